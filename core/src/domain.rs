@@ -1,0 +1,549 @@
+//! The domain of the Laplace problem and its boundary conditions.
+//!
+//! From the map, the domain is built in three steps:
+//!
+//! 1. **Candidates** — observed free voxels.
+//! 2. **Erosion** — candidates closer than the vehicle radius to an occupied (or uncertain)
+//!    voxel, or to the grid edge, are removed: the obstacles are inflated by the vehicle's size
+//!    so that every domain voxel is a safe place for the vehicle's centre.
+//! 3. **The vehicle's component** — a flood fill from the vehicle voxel through face-connected
+//!    candidates. The vehicle voxel becomes the source (Dirichlet φ = 1); reached candidates
+//!    with an unexplored face neighbour become frontiers (Dirichlet φ = 0) and the fill does not
+//!    continue through them; the rest are interior unknowns. Candidates not reached — other
+//!    components — are excluded, never solved.
+//!
+//! Every face between a domain voxel and a non-domain voxel is a wall with zero flux: the
+//! cell-centred finite-volume Laplacian simply omits it (see [`crate::solve`]).
+//!
+//! The flood fill uses a caller-provided ring queue of any capacity. When the queue is full,
+//! reached voxels are marked pending and collected by a later sweep over the grid, so a small
+//! queue costs time, never correctness.
+
+use heapless::Vec as HVec;
+
+use crate::map::{Occupancy, VoxelIndex, VoxelMap};
+
+/// Role of a voxel in the Laplace problem. After [`build`] only `Outside`, `Interior`,
+/// `Frontier` and `Source` remain; the other variants are transient states of the build.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[repr(u8)]
+pub enum Label {
+    /// Not part of the problem (unknown, occupied, inflated or another component).
+    #[default]
+    Outside = 0,
+    /// Unknown φ: the mean of its in-domain neighbours.
+    Interior = 1,
+    /// Dirichlet φ = 0: a free voxel next to unexplored space.
+    Frontier = 2,
+    /// Dirichlet φ = 1: the vehicle.
+    Source = 3,
+    /// Build state: free and not inflated, not reached yet.
+    Candidate = 4,
+    /// Build state: reached, waiting in the queue.
+    Queued = 5,
+    /// Build state: reached, waiting for a queue slot.
+    Pending = 6,
+}
+
+impl Label {
+    /// True for voxels that take part in the problem (interior or Dirichlet).
+    #[inline]
+    pub fn in_domain(self) -> bool {
+        matches!(self, Label::Interior | Label::Frontier | Label::Source)
+    }
+}
+
+/// Largest supported inflation radius, voxels.
+pub const MAX_INFLATION_VOXELS: usize = 6;
+/// Capacity of the inflation stencil (a ball of radius [`MAX_INFLATION_VOXELS`] + 1).
+const STENCIL_CAPACITY: usize = 2200;
+
+/// The set of voxel offsets within the vehicle radius, precomputed once.
+#[derive(Debug, Clone)]
+pub struct InflationStencil {
+    offsets: HVec<[i8; 3], STENCIL_CAPACITY>,
+    radius_voxels: f32,
+}
+
+/// Domain-building errors.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DomainError {
+    /// The vehicle radius is negative, not finite, or larger than the supported maximum.
+    BadRadius,
+    /// A storage slice is shorter than the grid.
+    StorageTooSmall,
+    /// The vehicle voxel is not observed free (it is occupied, uncertain or unknown).
+    VehicleNotFree,
+    /// The vehicle voxel is free but closer than the vehicle radius to an obstacle.
+    VehicleInInflatedSpace,
+}
+
+impl InflationStencil {
+    /// Offsets of every voxel whose cube comes closer than `radius` to the centre of the
+    /// voxel at the origin — an obstacle there forbids that centre.
+    pub fn new(radius: f32, resolution: f32) -> Result<Self, DomainError> {
+        let r = radius / resolution;
+        if !(r.is_finite() && r >= 0.0 && r <= MAX_INFLATION_VOXELS as f32) {
+            return Err(DomainError::BadRadius);
+        }
+        let mut offsets = HVec::new();
+        let reach = libm::ceilf(r + 0.5) as i32;
+        for dz in -reach..=reach {
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    if (dx, dy, dz) == (0, 0, 0) {
+                        continue;
+                    }
+                    if cube_distance_sq([dx, dy, dz]) < r * r {
+                        // |d| ≤ 7 and capacity covers the ball, so neither can fail.
+                        offsets
+                            .push([dx as i8, dy as i8, dz as i8])
+                            .map_err(|_| DomainError::BadRadius)?;
+                    }
+                }
+            }
+        }
+        Ok(Self {
+            offsets,
+            radius_voxels: r,
+        })
+    }
+    /// Radius in voxels.
+    pub fn radius_voxels(&self) -> f32 {
+        self.radius_voxels
+    }
+    /// Number of offsets.
+    pub fn len(&self) -> usize {
+        self.offsets.len()
+    }
+    /// True if the radius is too small to exclude any neighbour.
+    pub fn is_empty(&self) -> bool {
+        self.offsets.is_empty()
+    }
+}
+
+/// Squared distance, in voxels², from a voxel centre to the cube of the voxel at offset `d`.
+fn cube_distance_sq(d: [i32; 3]) -> f32 {
+    d.iter()
+        .map(|&c| {
+            let e = (c.abs() as f32 - 0.5).max(0.0);
+            e * e
+        })
+        .sum()
+}
+
+/// What a domain build found.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct DomainStats {
+    /// Observed free voxels.
+    pub free: u32,
+    /// Free voxels removed by inflation.
+    pub inflated: u32,
+    /// Interior unknowns of the vehicle's component.
+    pub interior: u32,
+    /// Frontier voxels (φ = 0) of the vehicle's component.
+    pub frontier: u32,
+    /// Candidate voxels in other components (excluded).
+    pub excluded: u32,
+    /// Times the flood-fill queue overflowed and a sweep collected pending voxels.
+    pub queue_sweeps: u32,
+}
+
+/// Builds the labels of the vehicle's component. `labels` and `queue` need at least
+/// `dims.len()` and 1 entries respectively.
+pub fn build(
+    map: &VoxelMap<'_>,
+    stencil: &InflationStencil,
+    vehicle: VoxelIndex,
+    labels: &mut [Label],
+    queue: &mut [u32],
+) -> Result<DomainStats, DomainError> {
+    let dims = map.dims();
+    let n = dims.len();
+    if labels.len() < n || queue.is_empty() {
+        return Err(DomainError::StorageTooSmall);
+    }
+    let labels = &mut labels[..n];
+    let mut stats = DomainStats::default();
+
+    for (i, l) in labels.iter_mut().enumerate() {
+        *l = if map.is_free(i) {
+            stats.free += 1;
+            Label::Candidate
+        } else {
+            Label::Outside
+        };
+    }
+    inflate(map, stencil, labels);
+    let vehicle_i = dims.linear(vehicle);
+    match labels.get(vehicle_i) {
+        Some(Label::Candidate) => {}
+        _ if map.is_free(vehicle_i) => {
+            return Err(DomainError::VehicleInInflatedSpace);
+        }
+        _ => return Err(DomainError::VehicleNotFree),
+    }
+
+    let mut fill = Fill {
+        queue,
+        head: 0,
+        len: 0,
+        overflow: false,
+    };
+    fill.push(labels, vehicle_i);
+    loop {
+        while let Some(i) = fill.pop() {
+            let v = dims.voxel(i);
+            let label = if i == vehicle_i {
+                Label::Source
+            } else if map.is_frontier(v) {
+                Label::Frontier
+            } else {
+                Label::Interior
+            };
+            if let Some(l) = labels.get_mut(i) {
+                *l = label;
+            }
+            match label {
+                Label::Frontier => stats.frontier += 1,
+                Label::Interior => stats.interior += 1,
+                _ => {}
+            }
+            if label != Label::Frontier {
+                dims.for_each_face_neighbour(v, |nb| {
+                    if labels.get(nb) == Some(&Label::Candidate) {
+                        fill.push(labels, nb);
+                    }
+                });
+            }
+        }
+        if !fill.overflow {
+            break;
+        }
+        fill.overflow = false;
+        stats.queue_sweeps += 1;
+        for i in 0..n {
+            if labels.get(i) == Some(&Label::Pending) {
+                fill.push(labels, i);
+            }
+        }
+    }
+
+    for l in labels.iter_mut() {
+        if *l == Label::Candidate {
+            stats.excluded += 1;
+            *l = Label::Outside;
+        }
+    }
+    stats.inflated = stats.free - stats.interior - stats.frontier - stats.excluded - 1;
+    Ok(stats)
+}
+
+/// Removes candidates within the stencil of any occupied/uncertain voxel or of the grid edge.
+fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) {
+    let dims = map.dims();
+    for i in 0..dims.len() {
+        if matches!(map.occupancy(i), Occupancy::Occupied | Occupancy::Uncertain) {
+            let v = dims.voxel(i);
+            for d in stencil.offsets.iter() {
+                let d = [i32::from(d[0]), i32::from(d[1]), i32::from(d[2])];
+                if let Some(nb) = dims.offset(v, d) {
+                    if let Some(l) = labels.get_mut(dims.linear(nb)) {
+                        *l = Label::Outside;
+                    }
+                }
+            }
+        }
+    }
+    // The grid edge is a wall: the space beyond it is not the vehicle's to fly in.
+    let r2 = stencil.radius_voxels * stencil.radius_voxels;
+    let edge_clear = |c: u16, n: usize| {
+        let near = f32::from(c) + 0.5;
+        let far = n as f32 - f32::from(c) - 0.5;
+        near * near >= r2 && far * far >= r2
+    };
+    for (i, l) in labels.iter_mut().enumerate() {
+        if *l == Label::Candidate {
+            let v = dims.voxel(i);
+            if !(edge_clear(v.x, dims.nx()) && edge_clear(v.y, dims.ny()) && edge_clear(v.z, dims.nz())) {
+                *l = Label::Outside;
+            }
+        }
+    }
+}
+
+struct Fill<'q> {
+    queue: &'q mut [u32],
+    head: usize,
+    len: usize,
+    overflow: bool,
+}
+
+impl Fill<'_> {
+    fn push(&mut self, labels: &mut [Label], i: usize) {
+        let cap = self.queue.len();
+        let Some(l) = labels.get_mut(i) else { return };
+        if self.len < cap {
+            if let Some(slot) = self.queue.get_mut((self.head + self.len) % cap) {
+                // Grid indices are below MAX_AXIS³ < 2³³; see Dims. Fits u32 for supported sizes.
+                *slot = i as u32;
+            }
+            self.len += 1;
+            *l = Label::Queued;
+        } else {
+            *l = Label::Pending;
+            self.overflow = true;
+        }
+    }
+    fn pop(&mut self) -> Option<usize> {
+        if self.len == 0 {
+            return None;
+        }
+        let i = self.queue.get(self.head).copied()?;
+        self.head = (self.head + 1) % self.queue.len();
+        self.len -= 1;
+        Some(i as usize)
+    }
+}
+
+/// The nearest voxel (by face-connected path through observed free space) that is free and not
+/// inflated, searching at most `max_visits` voxels. Used to get a vehicle that finds itself too
+/// close to a newly seen obstacle back into the domain. Overwrites `labels`.
+pub fn escape_target(
+    map: &VoxelMap<'_>,
+    stencil: &InflationStencil,
+    vehicle: VoxelIndex,
+    labels: &mut [Label],
+    queue: &mut [u32],
+    max_visits: usize,
+) -> Option<VoxelIndex> {
+    let dims = map.dims();
+    let n = dims.len();
+    if labels.len() < n || queue.is_empty() {
+        return None;
+    }
+    let labels = &mut labels[..n];
+    for (i, l) in labels.iter_mut().enumerate() {
+        *l = if map.is_free(i) {
+            Label::Candidate
+        } else {
+            Label::Outside
+        };
+    }
+    inflate(map, stencil, labels);
+    // Now Candidate = safe voxel. Walk free voxels breadth-first, marking visited as Source.
+    let mut visited = 0usize;
+    let (mut head, mut len) = (0usize, 0usize);
+    let cap = queue.len();
+    let start = dims.linear(vehicle);
+    let push = |labels: &mut [Label], queue: &mut [u32], i: usize, len: &mut usize, head: usize| {
+        if *len < cap {
+            if let Some(slot) = queue.get_mut((head + *len) % cap) {
+                *slot = i as u32;
+                *len += 1;
+            }
+        }
+        if let Some(l) = labels.get_mut(i) {
+            if *l == Label::Outside {
+                *l = Label::Source;
+            }
+        }
+    };
+    if labels.get(start) == Some(&Label::Candidate) {
+        return Some(vehicle);
+    }
+    if !map.is_free(start) && map.occupancy(start) != Occupancy::Unknown {
+        return None;
+    }
+    push(labels, queue, start, &mut len, head);
+    while len > 0 && visited < max_visits {
+        let i = queue.get(head).copied()? as usize;
+        head = (head + 1) % cap;
+        len -= 1;
+        visited += 1;
+        let v = dims.voxel(i);
+        let mut found = None;
+        dims.for_each_face_neighbour(v, |nb| {
+            if found.is_some() {
+                return;
+            }
+            match labels.get(nb) {
+                Some(Label::Candidate) => found = Some(nb),
+                Some(Label::Outside) if map.is_free(nb) => push(labels, queue, nb, &mut len, head),
+                _ => {}
+            }
+        });
+        if let Some(f) = found {
+            return Some(dims.voxel(f));
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::map::{Dims, LogOddsParams, MapGeometry};
+    use nalgebra::Point3;
+
+    /// Builds a 1 m-resolution map from ASCII pictures, one string slice per z-layer:
+    /// '.' free, '#' occupied, anything else unknown.
+    pub(crate) fn map_from_layers<'a>(
+        layers: &[&[&str]],
+        lo: &'a mut [i8],
+        st: &'a mut [u8],
+    ) -> VoxelMap<'a> {
+        let (nz, ny, nx) = (layers.len(), layers[0].len(), layers[0][0].len());
+        let g = MapGeometry::new(Dims::new(nx, ny, nz).unwrap(), Point3::origin(), 1.0).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), lo, st).unwrap();
+        for (z, layer) in layers.iter().enumerate() {
+            for (y, row) in layer.iter().enumerate() {
+                for (x, c) in row.bytes().enumerate() {
+                    let i = g.dims().linear(VoxelIndex::new(x as u16, y as u16, z as u16));
+                    match c {
+                        b'.' => map.apply_miss(i),
+                        b'#' => map.apply_hit(i),
+                        _ => false,
+                    };
+                }
+            }
+        }
+        map
+    }
+
+    #[test]
+    fn frontier_is_free_next_to_unknown() {
+        let (mut lo, mut st) = ([0i8; 16], [0u8; 16]);
+        let layers: &[&[&str]] = &[&["....", ".#..", "...?", "...."]];
+        let map = map_from_layers(layers, &mut lo, &mut st);
+        let mut frontier = heapless::Vec::<(u16, u16), 16>::new();
+        for y in 0..4 {
+            for x in 0..4 {
+                if map.is_frontier(VoxelIndex::new(x, y, 0)) {
+                    frontier.push((x, y)).unwrap();
+                }
+            }
+        }
+        // The face neighbours of the unknown voxel at (3,2); the grid edge is not unknown.
+        assert_eq!(frontier.as_slice(), &[(3, 1), (2, 2), (3, 3)]);
+    }
+
+    #[test]
+    fn frontier_ignores_occupied_and_sealed_neighbours() {
+        let (mut lo, mut st) = ([0i8; 6], [0u8; 6]);
+        let layers: &[&[&str]] = &[&["..#", ".?."]];
+        let mut map = map_from_layers(layers, &mut lo, &mut st);
+        assert!(!map.is_frontier(VoxelIndex::new(1, 0, 0)) || map.is_unexplored(4));
+        assert!(map.is_frontier(VoxelIndex::new(0, 1, 0)));
+        assert!(
+            !map.is_frontier(VoxelIndex::new(2, 0, 0)),
+            "occupied is never a frontier"
+        );
+        map.seal(4);
+        assert!(
+            !map.is_frontier(VoxelIndex::new(0, 1, 0)),
+            "sealed unknown makes no frontier"
+        );
+    }
+
+    #[test]
+    fn component_without_frontier_is_excluded_and_inflation_removes_wall_neighbours() {
+        let (mut lo, mut st) = ([0i8; 40], [0u8; 40]);
+        // One unknown voxel at (4,1); rows 2 and 3 lead around it, so the far side is reached
+        // without passing through a frontier voxel.
+        let layers: &[&[&str]] = &[&["..........", "....?.#...", "......#...", ".........."]];
+        let map = map_from_layers(layers, &mut lo, &mut st);
+        let g = *map.geometry();
+        let stencil = InflationStencil::new(0.0, 1.0).unwrap();
+        let mut labels = [Label::Outside; 40];
+        let mut queue = [0u32; 3]; // tiny on purpose: exercises the overflow sweep
+        let stats = build(&map, &stencil, VoxelIndex::new(0, 0, 0), &mut labels, &mut queue).unwrap();
+        assert!(stats.queue_sweeps > 0);
+        let at = |labels: &[Label], x: u16, y: u16| labels[g.dims().linear(VoxelIndex::new(x, y, 0))];
+        assert_eq!(at(&labels, 0, 0), Label::Source);
+        assert_eq!(at(&labels, 3, 1), Label::Frontier);
+        assert_eq!(at(&labels, 4, 0), Label::Frontier);
+        assert_eq!(at(&labels, 5, 1), Label::Frontier);
+        assert_eq!(at(&labels, 4, 2), Label::Frontier);
+        assert_eq!(
+            at(&labels, 9, 3),
+            Label::Interior,
+            "reachable around the unknown voxel"
+        );
+        assert_eq!(stats.frontier, 4);
+        assert_eq!(stats.interior + stats.frontier + 1 + stats.excluded, stats.free);
+        assert!(labels.iter().all(|l| matches!(
+            l,
+            Label::Outside | Label::Interior | Label::Frontier | Label::Source
+        )));
+
+        // A room behind a wall whose only gap is unknown is another component.
+        let (mut lo2, mut st2) = ([0i8; 21], [0u8; 21]);
+        let pocket: &[&[&str]] = &[&[".......", "##?####", "......."]];
+        let map2 = map_from_layers(pocket, &mut lo2, &mut st2);
+        let mut labels2 = [Label::Outside; 21];
+        let stats2 = build(
+            &map2,
+            &stencil,
+            VoxelIndex::new(0, 0, 0),
+            &mut labels2,
+            &mut queue,
+        )
+        .unwrap();
+        assert_eq!(
+            stats2.frontier, 1,
+            "only the voxel on the vehicle's side of the gap"
+        );
+        // Row 2 (7 voxels) and row 0 beyond the frontier (4): reachable only through a sink.
+        assert_eq!(stats2.excluded, 11);
+
+        // Radius 1 voxel needs a grid at least 3 layers thick (the z edges are walls too).
+        let (mut lo3, mut st3) = ([0i8; 120], [0u8; 120]);
+        let layer: &[&str] = layers[0];
+        let map3 = map_from_layers(&[layer, layer, layer], &mut lo3, &mut st3);
+        let g3 = *map3.geometry();
+        let mut labels3 = [Label::Outside; 120];
+        let stencil = InflationStencil::new(1.0, 1.0).unwrap();
+        let stats = build(
+            &map3,
+            &stencil,
+            VoxelIndex::new(1, 1, 1),
+            &mut labels3,
+            &mut queue,
+        )
+        .unwrap();
+        let at3 = |x: u16, y: u16, z: u16| labels3[g3.dims().linear(VoxelIndex::new(x, y, z))];
+        assert_eq!(at3(0, 0, 1), Label::Outside, "grid edge inflated");
+        assert_eq!(at3(1, 1, 0), Label::Outside, "floor edge inflated");
+        assert_eq!(at3(7, 1, 1), Label::Outside, "wall neighbour inflated");
+        assert_eq!(at3(2, 1, 1), Label::Interior);
+        assert!(stats.inflated > 0);
+    }
+
+    #[test]
+    fn vehicle_outside_free_space_is_an_error() {
+        let (mut lo, mut st) = ([0i8; 16], [0u8; 16]);
+        let layers: &[&[&str]] = &[&["....", ".#..", "....", "?..."]];
+        let map = map_from_layers(layers, &mut lo, &mut st);
+        let mut labels = [Label::Outside; 16];
+        let mut queue = [0u32; 16];
+        let s0 = InflationStencil::new(0.0, 1.0).unwrap();
+        let r = build(&map, &s0, VoxelIndex::new(1, 1, 0), &mut labels, &mut queue);
+        assert_eq!(r, Err(DomainError::VehicleNotFree));
+        let r = build(&map, &s0, VoxelIndex::new(0, 3, 0), &mut labels, &mut queue);
+        assert_eq!(r, Err(DomainError::VehicleNotFree));
+        let s1 = InflationStencil::new(1.0, 1.0).unwrap();
+        let r = build(&map, &s1, VoxelIndex::new(2, 1, 0), &mut labels, &mut queue);
+        assert_eq!(r, Err(DomainError::VehicleInInflatedSpace));
+    }
+
+    #[test]
+    fn stencil_matches_cube_distance() {
+        // 0.2 m at 0.1 m: offsets (1,0,0),(2,0,0),(1,1,0),(2,1,0),(1,1,1),(2,1,1) and permutations.
+        let s = InflationStencil::new(0.2, 0.1).unwrap();
+        assert_eq!(s.len(), 12 + 12 + 24 + 8 + 24);
+        assert!(InflationStencil::new(-1.0, 0.1).is_err());
+        assert!(InflationStencil::new(f32::NAN, 0.1).is_err());
+        assert!(InflationStencil::new(10.0, 0.1).is_err());
+    }
+}

@@ -1,0 +1,569 @@
+//! The exploration loop: integrate a frame, build the domain, solve, trace, choose a goal.
+//!
+//! [`Explorer`] owns the map and all planning buffers (borrowed from the caller through
+//! [`ExplorerStorage`]) and is the one object the firmware and the host simulator drive:
+//!
+//! ```text
+//! integrate(depth frame, camera pose) ─┐   (any number of frames)
+//! plan(vehicle position, yaw) ─────────┴─► Goal { position, yaw } + waypoints | Complete | Hold
+//! ```
+//!
+//! Planning steps, each reported in [`Status`]:
+//!
+//! 1. mark the voxels the vehicle's own body fills as free (it is there, so they are);
+//! 2. build the domain around the vehicle ([`crate::domain`]); no frontier in the vehicle's
+//!    component means exploration is **complete**;
+//! 3. solve Laplace's equation, warm-started from the previous φ ([`crate::solve`]);
+//! 4. trace the streamline from the vehicle to a frontier ([`crate::streamline`]);
+//! 5. choose the goal: the point on the streamline closest to its end from which the camera,
+//!    turned towards the frontier, sees it inside its field of view and beyond its minimum range
+//!    (the streamline's end itself if no such point exists); the goal yaw faces the frontier.
+//!
+//! Frontiers the camera cannot resolve from any reachable pose (for example unknown voxels
+//! inside the minimum range under the vehicle) would make the loop revisit the same place
+//! forever. The explorer notices when a plan targets the frontier it targeted last time while
+//! the vehicle already stands at that goal, and after [`ExplorerConfig::stall_visits`] such
+//! visits it *seals* the unknown voxels behind that frontier (Shade's stagnant-region sealing,
+//! thesis §6.6.2), so the rest of the map can be explored. Sealed voxels are counted.
+//!
+//! Faults never panic: a plan that cannot be made returns [`PlanOutcome::Hold`] with the reason,
+//! and the reason's counter in [`ErrorCounters`] goes up; the caller keeps the last safe setpoint.
+
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use crate::camera::{DepthFrame, Intrinsics};
+use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label};
+use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
+use crate::map::{Dims, LogOddsParams, MapCounts, MapError, MapGeometry, VoxelIndex, VoxelMap};
+use crate::solve::{self, SolveError, SolveParams, SolveStats};
+use crate::streamline::{self, Field, StreamlineEnd, StreamlineError, StreamlineParams, Waypoints};
+
+/// Which Laplace solver plans with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum SolverKind {
+    /// Lexicographic Gauss-Seidel, the seed paper's solver.
+    #[default]
+    GaussSeidel,
+}
+
+/// Everything an explorer is configured with.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ExplorerConfig {
+    /// Occupancy update parameters.
+    pub log_odds: LogOddsParams,
+    /// Depth integration parameters.
+    pub integration: IntegrationParams,
+    /// Vehicle radius (planning clearance) in metres; obstacles are inflated by it.
+    pub vehicle_radius: f32,
+    /// Solver choice.
+    pub solver: SolverKind,
+    /// Solver stopping rule.
+    pub solve: SolveParams,
+    /// Streamline tracer settings.
+    pub streamline: StreamlineParams,
+    /// Fraction of the camera's half field of view a goal must keep the frontier inside.
+    pub view_margin: f32,
+    /// Fruitless visits to the same frontier before the unknown behind it is sealed.
+    pub stall_visits: u8,
+}
+
+impl Default for ExplorerConfig {
+    fn default() -> Self {
+        Self {
+            log_odds: LogOddsParams::default(),
+            integration: IntegrationParams::default(),
+            vehicle_radius: 0.2,
+            solver: SolverKind::default(),
+            solve: SolveParams::default(),
+            streamline: StreamlineParams::default(),
+            view_margin: 0.8,
+            stall_visits: 2,
+        }
+    }
+}
+
+/// Buffers an explorer works in, each with at least one entry per voxel (`queue`: any length
+/// ≥ 1; a few thousand entries keep the flood fill to one pass).
+pub struct ExplorerStorage<'a> {
+    /// Map log-odds.
+    pub log_odds: &'a mut [i8],
+    /// Map observation stamps.
+    pub stamps: &'a mut [u8],
+    /// Domain labels.
+    pub labels: &'a mut [Label],
+    /// Potential φ.
+    pub phi: &'a mut [f32],
+    /// Flood-fill queue.
+    pub queue: &'a mut [u32],
+}
+
+/// Why an explorer could not be built.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ConfigError {
+    /// Map geometry or storage problem.
+    Map(MapError),
+    /// Vehicle radius unusable at this resolution.
+    Domain(DomainError),
+    /// A planning buffer is shorter than the grid.
+    StorageTooSmall,
+}
+
+/// Why a plan was not made or a frame not integrated. Each has a counter in [`ErrorCounters`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fault {
+    /// Vehicle position not finite.
+    BadPose,
+    /// Vehicle outside the map grid.
+    VehicleOutsideGrid,
+    /// Vehicle voxel occupied or unknown, and no free voxel to escape to.
+    VehicleNotFree,
+    /// The streamline could not be traced.
+    Streamline(StreamlineError),
+    /// The solver refused to run.
+    Solver(SolveError),
+    /// A frame could not be integrated.
+    Integrate(IntegrateError),
+}
+
+/// Counts of every fault and notable event since start.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ErrorCounters {
+    /// Frames rejected for a bad camera pose or range settings.
+    pub frames_rejected: u32,
+    /// Plans refused for a non-finite vehicle position.
+    pub bad_pose: u32,
+    /// Plans refused because the vehicle was outside the grid.
+    pub vehicle_outside_grid: u32,
+    /// Plans refused because the vehicle voxel was not free and nothing free was near.
+    pub vehicle_not_free: u32,
+    /// Plans that had to steer the vehicle out of inflated space first.
+    pub escapes: u32,
+    /// Streamlines that stalled or ran too long.
+    pub streamline_failures: u32,
+    /// Solves that hit the iteration cap before the tolerance.
+    pub solver_not_converged: u32,
+    /// Times unknown voxels were sealed as unobservable.
+    pub seals: u32,
+}
+
+/// How exploration stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Termination {
+    /// Still frontiers to visit.
+    #[default]
+    Running,
+    /// The vehicle's component of free space has no frontier left.
+    Complete,
+}
+
+/// A place to fly to and the direction to look in when there.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Goal {
+    /// Goal position, map frame.
+    pub position: Point3<f32>,
+    /// Goal yaw about map z, radians (0 = +x).
+    pub yaw: f32,
+    /// The frontier voxel the streamline ended in.
+    pub frontier: VoxelIndex,
+    /// True if the goal is an escape from inflated space rather than a streamline.
+    pub escape: bool,
+}
+
+/// Result of [`Explorer::plan`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PlanOutcome {
+    /// Fly to the goal through [`Explorer::waypoints`].
+    Goal(Goal),
+    /// Nothing reachable is left to explore.
+    Complete,
+    /// No plan: hold the last safe setpoint.
+    Hold(Fault),
+}
+
+/// A monotonic tick source for per-phase timing (a board timer, a cycle counter, or the host
+/// clock). Ticks are opaque units; the caller knows their rate.
+pub trait Clock {
+    /// Current tick count.
+    fn ticks(&mut self) -> u64;
+}
+
+/// A clock that always reads 0, for callers that do not time phases.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct NoClock;
+
+impl Clock for NoClock {
+    fn ticks(&mut self) -> u64 {
+        0
+    }
+}
+
+/// Ticks spent in each planning phase of the last plan.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct PhaseTicks {
+    /// Domain and boundary conditions (including re-builds after sealing).
+    pub domain: u64,
+    /// Laplace solve.
+    pub solve: u64,
+    /// Streamline and goal choice.
+    pub streamline: u64,
+}
+
+/// Everything the explorer reports.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Status {
+    /// Voxel counts after the last plan.
+    pub map: MapCounts,
+    /// Domain of the last plan.
+    pub domain: DomainStats,
+    /// Solver statistics of the last plan.
+    pub solve: SolveStats,
+    /// Last streamline, if one was traced.
+    pub streamline: Option<StreamlineEnd>,
+    /// Last frame's integration statistics.
+    pub integration: IntegrationStats,
+    /// Frames integrated.
+    pub frames: u32,
+    /// Plans made (any outcome).
+    pub plans: u32,
+    /// Total voxel updates by integration ("integration ops").
+    pub integration_ops: u64,
+    /// Total solver cell updates ("planning ops").
+    pub planning_ops: u64,
+    /// Exploration state.
+    pub termination: Termination,
+    /// Time per phase of the last plan, in the caller's clock ticks.
+    pub phase_ticks: PhaseTicks,
+    /// Fault counters.
+    pub errors: ErrorCounters,
+}
+
+/// The exploration core.
+pub struct Explorer<'a> {
+    config: ExplorerConfig,
+    map: VoxelMap<'a>,
+    stencil: InflationStencil,
+    labels: &'a mut [Label],
+    phi: &'a mut [f32],
+    queue: &'a mut [u32],
+    waypoints: Waypoints,
+    intrinsics: Option<Intrinsics>,
+    last_goal: Option<Goal>,
+    fruitless_visits: u8,
+    status: Status,
+}
+
+impl<'a> Explorer<'a> {
+    /// Builds an explorer over `geometry` in `storage`; the map starts all unknown.
+    pub fn new(
+        geometry: MapGeometry,
+        config: ExplorerConfig,
+        storage: ExplorerStorage<'a>,
+    ) -> Result<Self, ConfigError> {
+        let n = geometry.dims().len();
+        let ExplorerStorage {
+            log_odds,
+            stamps,
+            labels,
+            phi,
+            queue,
+        } = storage;
+        if labels.len() < n || phi.len() < n || queue.is_empty() {
+            return Err(ConfigError::StorageTooSmall);
+        }
+        let map = VoxelMap::new(geometry, config.log_odds, log_odds, stamps).map_err(ConfigError::Map)?;
+        let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
+            .map_err(ConfigError::Domain)?;
+        let labels = &mut labels[..n];
+        let phi = &mut phi[..n];
+        labels.fill(Label::Outside);
+        phi.fill(0.0);
+        Ok(Self {
+            config,
+            map,
+            stencil,
+            labels,
+            phi,
+            queue,
+            waypoints: Waypoints::new(),
+            intrinsics: None,
+            last_goal: None,
+            fruitless_visits: 0,
+            status: Status::default(),
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &ExplorerConfig {
+        &self.config
+    }
+    /// The map.
+    pub fn map(&self) -> &VoxelMap<'a> {
+        &self.map
+    }
+    /// Domain labels of the last plan.
+    pub fn labels(&self) -> &[Label] {
+        self.labels
+    }
+    /// φ of the last plan.
+    pub fn phi(&self) -> &[f32] {
+        self.phi
+    }
+    /// Waypoints from the vehicle to the last goal (map frame).
+    pub fn waypoints(&self) -> &[Point3<f32>] {
+        &self.waypoints
+    }
+    /// Current status and counters.
+    pub fn status(&self) -> &Status {
+        &self.status
+    }
+
+    /// Integrates one depth frame taken from `camera_pose` (camera → map).
+    pub fn integrate(
+        &mut self,
+        frame: &DepthFrame<'_>,
+        camera_pose: &Isometry3<f32>,
+    ) -> Result<IntegrationStats, Fault> {
+        match integrate::integrate(&mut self.map, frame, camera_pose, &self.config.integration) {
+            Ok(stats) => {
+                self.intrinsics = Some(*frame.intrinsics());
+                self.status.frames += 1;
+                self.status.integration = stats;
+                self.status.integration_ops += u64::from(stats.voxel_updates);
+                Ok(stats)
+            }
+            Err(e) => {
+                self.status.errors.frames_rejected += 1;
+                Err(Fault::Integrate(e))
+            }
+        }
+    }
+
+    /// Plans from the vehicle at `position` (map frame) with heading `yaw`.
+    pub fn plan(&mut self, position: &Point3<f32>, yaw: f32) -> PlanOutcome {
+        self.plan_timed(position, yaw, &mut NoClock)
+    }
+
+    /// [`plan`](Self::plan), recording the ticks of each phase in [`Status::phase_ticks`].
+    pub fn plan_timed(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> PlanOutcome {
+        self.status.plans += 1;
+        self.status.phase_ticks = PhaseTicks::default();
+        self.waypoints.clear();
+        let outcome = self.plan_inner(position, yaw, clock);
+        self.status.map = self.map.counts();
+        match outcome {
+            PlanOutcome::Complete => self.status.termination = Termination::Complete,
+            PlanOutcome::Goal(g) => {
+                self.status.termination = Termination::Running;
+                self.last_goal = Some(g);
+            }
+            PlanOutcome::Hold(_) => {}
+        }
+        outcome
+    }
+
+    fn plan_inner(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> PlanOutcome {
+        let errors = &mut self.status.errors;
+        if !(position.coords.iter().all(|c| c.is_finite()) && yaw.is_finite()) {
+            errors.bad_pose += 1;
+            return PlanOutcome::Hold(Fault::BadPose);
+        }
+        let geometry = *self.map.geometry();
+        let Some(vehicle) = geometry.voxel_at(position) else {
+            errors.vehicle_outside_grid += 1;
+            return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
+        };
+        self.mark_body(position);
+
+        // Each pass either returns or seals something and tries again; sealing is bounded by the
+        // number of unknown voxels, the pass count keeps one call's work bounded too.
+        for _ in 0..8 {
+            let t0 = clock.ticks();
+            let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+            let t1 = clock.ticks();
+            self.status.phase_ticks.domain += t1.saturating_sub(t0);
+            let stats = match built {
+                Ok(s) => s,
+                Err(DomainError::VehicleInInflatedSpace) => return self.escape(vehicle, yaw),
+                Err(_) => {
+                    self.status.errors.vehicle_not_free += 1;
+                    return PlanOutcome::Hold(Fault::VehicleNotFree);
+                }
+            };
+            self.status.domain = stats;
+            if stats.frontier == 0 {
+                self.status.streamline = None;
+                return PlanOutcome::Complete;
+            }
+            let solved = match self.config.solver {
+                SolverKind::GaussSeidel => {
+                    solve::gauss_seidel(&geometry.dims(), self.labels, self.phi, &self.config.solve)
+                }
+            };
+            let t2 = clock.ticks();
+            self.status.phase_ticks.solve += t2.saturating_sub(t1);
+            match solved {
+                Ok(s) => {
+                    self.status.solve = s;
+                    self.status.planning_ops += s.cell_updates;
+                    if !s.converged {
+                        self.status.errors.solver_not_converged += 1;
+                    }
+                }
+                Err(e) => return PlanOutcome::Hold(Fault::Solver(e)),
+            }
+            let field = Field {
+                geometry: &geometry,
+                labels: self.labels,
+                phi: self.phi,
+            };
+            let end = match streamline::trace(&field, position, &self.config.streamline, &mut self.waypoints)
+            {
+                Ok(end) => end,
+                Err(e) => {
+                    self.status.errors.streamline_failures += 1;
+                    self.status.streamline = None;
+                    return PlanOutcome::Hold(Fault::Streamline(e));
+                }
+            };
+            self.status.streamline = Some(end);
+            let goal = self.choose_goal(&end, yaw);
+            self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
+            if self.is_fruitless_revisit(&goal, position) {
+                self.fruitless_visits = self.fruitless_visits.saturating_add(1);
+                if self.fruitless_visits >= self.config.stall_visits {
+                    self.fruitless_visits = 0;
+                    self.seal_around(end.frontier);
+                    self.status.errors.seals += 1;
+                    continue;
+                }
+            } else {
+                self.fruitless_visits = 0;
+            }
+            return PlanOutcome::Goal(goal);
+        }
+        self.status.errors.streamline_failures += 1;
+        PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
+    }
+
+    /// Marks unknown voxels whose centres lie within the vehicle radius of `position` as free.
+    fn mark_body(&mut self, position: &Point3<f32>) {
+        let geometry = *self.map.geometry();
+        let dims = geometry.dims();
+        let r = self.config.vehicle_radius.max(0.5 * geometry.resolution());
+        let reach = libm::ceilf(r / geometry.resolution()) as i32;
+        let Some(c) = geometry.voxel_at(position) else {
+            return;
+        };
+        for dz in -reach..=reach {
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    if let Some(v) = dims.offset(c, [dx, dy, dz]) {
+                        if (geometry.center(v) - position).norm() <= r {
+                            self.map.mark_traversed(dims.linear(v));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// The goal for a traced streamline: the waypoint nearest the end that sees the frontier.
+    /// Trims the waypoints to end at the goal.
+    fn choose_goal(&mut self, end: &StreamlineEnd, yaw: f32) -> Goal {
+        let target = end.end;
+        let min_range = self.config.integration.min_range + self.map.geometry().resolution();
+        let tan_v = self
+            .intrinsics
+            .map(|i| libm::tanf(i.half_fov().1 * self.config.view_margin))
+            .unwrap_or(0.0);
+        let sees = |p: &Point3<f32>| {
+            let d = target - p;
+            let horizontal = libm::sqrtf(d.x * d.x + d.y * d.y);
+            d.norm() >= min_range && d.z.abs() <= horizontal * tan_v
+        };
+        let chosen = self.waypoints.iter().rposition(sees);
+        let (position, look) = match chosen {
+            Some(k) => {
+                self.waypoints.truncate(k + 1);
+                let p = self.waypoints.get(k).copied().unwrap_or(end.end);
+                (p, target - p)
+            }
+            None => (end.end, end.direction),
+        };
+        let yaw = if look.x.abs() + look.y.abs() > 1e-3 * look.norm().max(1e-6) {
+            libm::atan2f(look.y, look.x)
+        } else {
+            yaw
+        };
+        Goal {
+            position,
+            yaw,
+            frontier: end.frontier,
+            escape: false,
+        }
+    }
+
+    fn is_fruitless_revisit(&self, goal: &Goal, position: &Point3<f32>) -> bool {
+        let res = self.map.geometry().resolution();
+        self.last_goal.is_some_and(|last| {
+            !last.escape
+                && last.frontier.distance_sq(&goal.frontier) <= 2
+                && (last.position - position).norm() <= 1.5 * res
+        })
+    }
+
+    /// Seals the unexplored face neighbours of frontier voxels within two voxels of `frontier`.
+    fn seal_around(&mut self, frontier: VoxelIndex) {
+        let dims: Dims = self.map.dims();
+        for dz in -2..=2 {
+            for dy in -2..=2 {
+                for dx in -2..=2 {
+                    let Some(v) = dims.offset(frontier, [dx, dy, dz]) else {
+                        continue;
+                    };
+                    if !self.map.is_frontier(v) {
+                        continue;
+                    }
+                    for d in crate::map::FACE_OFFSETS {
+                        if let Some(n) = dims.offset(v, d) {
+                            self.map.seal(dims.linear(n));
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    /// Goal back into the domain for a vehicle that a new observation left inside inflated space.
+    fn escape(&mut self, vehicle: VoxelIndex, yaw: f32) -> PlanOutcome {
+        self.status.errors.escapes += 1;
+        let target = domain::escape_target(&self.map, &self.stencil, vehicle, self.labels, self.queue, 4096);
+        // The escape search overwrote the labels; they describe no domain now.
+        self.labels.fill(Label::Outside);
+        match target {
+            Some(v) => {
+                let p = self.map.geometry().center(v);
+                let _ = self.waypoints.push(p);
+                PlanOutcome::Goal(Goal {
+                    position: p,
+                    yaw,
+                    frontier: v,
+                    escape: true,
+                })
+            }
+            None => {
+                self.status.errors.vehicle_not_free += 1;
+                PlanOutcome::Hold(Fault::VehicleNotFree)
+            }
+        }
+    }
+}
+
+/// Camera pose of a forward-looking camera on a vehicle at `position` with heading `yaw`:
+/// body x forward, y left, z up; camera z = body x, camera x = −body y, camera y = −body z.
+pub fn forward_camera_pose(position: &Point3<f32>, yaw: f32) -> Isometry3<f32> {
+    let body_from_camera = nalgebra::Matrix3::new(0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0);
+    let r_cam = nalgebra::UnitQuaternion::from_matrix(&body_from_camera);
+    let r_yaw = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
+    Isometry3::from_parts(nalgebra::Translation3::from(position.coords), r_yaw * r_cam)
+}

@@ -1,0 +1,515 @@
+//! Depth integration: one depth frame in, log-odds updates to the [`VoxelMap`] out.
+//!
+//! Each used pixel becomes a ray from the camera centre. A valid return marks its endpoint voxel
+//! with a *hit* and every voxel the ray crosses before it with a *miss* (Amanatides–Woo voxel
+//! traversal, [`traverse`]). Pixels with no return (depth 0) or a return beyond the maximum range
+//! clear free space up to the maximum range with no occupied endpoint. Returns closer than the
+//! minimum range are physically implausible for the sensor and are counted as invalid, not
+//! integrated.
+//!
+//! A voxel is updated at most once per frame. Endpoints are applied in a first pass and rays in a
+//! second, so a voxel that one pixel hits and another passes through counts as a hit (OctoMap's
+//! rule: occupied wins within a scan).
+
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use crate::camera::DepthFrame;
+use crate::map::{Dims, MapGeometry, VoxelIndex, VoxelMap};
+
+/// How depth pixels are turned into map updates.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IntegrationParams {
+    /// Returns closer than this (metres, along the ray) are invalid.
+    pub min_range: f32,
+    /// Returns beyond this clear free space up to it, with no endpoint.
+    pub max_range: f32,
+    /// Use every k-th pixel in both directions (1 = all pixels).
+    pub pixel_stride: u16,
+}
+
+impl Default for IntegrationParams {
+    /// The seed thesis's simulated sensor: 0.3–10 m, every pixel.
+    fn default() -> Self {
+        Self {
+            min_range: 0.3,
+            max_range: 10.0,
+            pixel_stride: 1,
+        }
+    }
+}
+
+/// What one frame's integration did.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct IntegrationStats {
+    /// Pixels looked at (after the stride).
+    pub pixels: u32,
+    /// Pixels with a valid return inside the range.
+    pub returns: u32,
+    /// Pixels with depth 0.
+    pub no_return: u32,
+    /// Pixels whose return lies beyond the maximum range.
+    pub beyond_range: u32,
+    /// Pixels closer than the minimum range: counted, not integrated.
+    pub invalid: u32,
+    /// Returns whose endpoint lies outside the grid (the in-grid part of the ray is still used).
+    pub endpoint_outside: u32,
+    /// Voxels visited by ray traversal (work done).
+    pub voxels_traversed: u32,
+    /// Log-odds updates applied (at most one per voxel).
+    pub voxel_updates: u32,
+}
+
+/// Why a frame was not integrated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IntegrateError {
+    /// The camera pose has a non-finite translation or rotation.
+    BadPose,
+    /// The range limits are not finite or not `0 < min < max`.
+    BadRange,
+}
+
+/// Integrates one depth frame taken from `camera_pose` (camera frame → map frame).
+pub fn integrate(
+    map: &mut VoxelMap<'_>,
+    frame: &DepthFrame<'_>,
+    camera_pose: &Isometry3<f32>,
+    params: &IntegrationParams,
+) -> Result<IntegrationStats, IntegrateError> {
+    let q = camera_pose.rotation.quaternion();
+    let finite = camera_pose
+        .translation
+        .vector
+        .iter()
+        .chain(q.coords.iter())
+        .all(|c| c.is_finite());
+    if !finite || (q.norm() - 1.0).abs() > 1e-3 {
+        return Err(IntegrateError::BadPose);
+    }
+    if !(params.min_range.is_finite()
+        && params.max_range.is_finite()
+        && params.min_range >= 0.0
+        && params.min_range < params.max_range)
+    {
+        return Err(IntegrateError::BadRange);
+    }
+    let geometry = *map.geometry();
+    let origin = Point3::from(camera_pose.translation.vector);
+    let mut stats = IntegrationStats::default();
+    map.begin_frame();
+
+    // Pass 1: endpoints.
+    for_each_pixel_ray(frame, camera_pose, params, |ray| {
+        if let PixelRay::Return { end } = ray {
+            if let Some(v) = geometry.voxel_at(&end) {
+                if map.apply_hit(geometry.dims().linear(v)) {
+                    stats.voxel_updates += 1;
+                }
+            }
+        }
+    });
+
+    // Pass 2: free space along every usable ray, classifying pixels as we go.
+    for_each_pixel_ray(frame, camera_pose, params, |ray| {
+        stats.pixels += 1;
+        let (end, endpoint) = match ray {
+            PixelRay::Invalid => {
+                stats.invalid += 1;
+                return;
+            }
+            PixelRay::NoReturn { end } => {
+                stats.no_return += 1;
+                (end, None)
+            }
+            PixelRay::BeyondRange { end } => {
+                stats.beyond_range += 1;
+                (end, None)
+            }
+            PixelRay::Return { end } => {
+                stats.returns += 1;
+                let v = geometry.voxel_at(&end);
+                if v.is_none() {
+                    stats.endpoint_outside += 1;
+                }
+                (end, v)
+            }
+        };
+        let dims = geometry.dims();
+        traverse(&geometry, &origin, &end, |v| {
+            stats.voxels_traversed += 1;
+            if Some(v) == endpoint {
+                return false;
+            }
+            if map.apply_miss(dims.linear(v)) {
+                stats.voxel_updates += 1;
+            }
+            true
+        });
+    });
+    Ok(stats)
+}
+
+/// One pixel's measurement, in map coordinates.
+enum PixelRay {
+    /// Closer than the minimum range.
+    Invalid,
+    /// Depth 0: clear to `end` (maximum range along the pixel's ray).
+    NoReturn { end: Point3<f32> },
+    /// Return beyond the maximum range: clear to `end`.
+    BeyondRange { end: Point3<f32> },
+    /// A valid return at `end`.
+    Return { end: Point3<f32> },
+}
+
+fn for_each_pixel_ray(
+    frame: &DepthFrame<'_>,
+    pose: &Isometry3<f32>,
+    params: &IntegrationParams,
+    mut f: impl FnMut(PixelRay),
+) {
+    let k = usize::from(params.pixel_stride.max(1));
+    let intr = frame.intrinsics();
+    let width = usize::from(intr.width());
+    for (v, row) in frame.depth_mm().chunks_exact(width).enumerate().step_by(k) {
+        for (u, &d) in row.iter().enumerate().step_by(k) {
+            // u < width and v < height, both u16.
+            let ray_cam = intr.ray(u as u16, v as u16);
+            let ray_len = ray_cam.norm();
+            let dir: Vector3<f32> = pose.rotation * (ray_cam / ray_len);
+            let origin = Point3::from(pose.translation.vector);
+            let clear_to = origin + dir * params.max_range;
+            let ray = if d == 0 {
+                PixelRay::NoReturn { end: clear_to }
+            } else {
+                let range = f32::from(d) * 1e-3 * ray_len;
+                if range < params.min_range {
+                    PixelRay::Invalid
+                } else if range > params.max_range {
+                    PixelRay::BeyondRange { end: clear_to }
+                } else {
+                    PixelRay::Return {
+                        end: origin + dir * range,
+                    }
+                }
+            };
+            f(ray);
+        }
+    }
+}
+
+/// Visits, in order, every voxel the segment `a → b` passes through inside the grid
+/// (Amanatides & Woo 1987), starting with the voxel of `a` (or where the segment enters the grid)
+/// and ending with the voxel of `b` (or where it leaves). `visit` returns `false` to stop early.
+/// Returns the number of voxels visited.
+///
+/// Where the segment passes exactly through an edge or corner, one of the voxels sharing it is
+/// visited before the step to the diagonal one (x before y before z), so the visited set is
+/// always face-connected.
+pub fn traverse(
+    geometry: &MapGeometry,
+    a: &Point3<f32>,
+    b: &Point3<f32>,
+    mut visit: impl FnMut(VoxelIndex) -> bool,
+) -> u32 {
+    let dims = geometry.dims();
+    let ga = geometry.to_grid(a);
+    let gb = geometry.to_grid(b);
+    let d = gb - ga;
+    if !(ga.iter().chain(gb.iter()).all(|c| c.is_finite())) {
+        return 0;
+    }
+    let Some((t0, t1)) = clip_to_grid(&dims, &ga, &d) else {
+        return 0;
+    };
+    let n = [dims.nx(), dims.ny(), dims.nz()];
+    let start = ga + d * t0;
+    let end = ga + d * t1;
+    let cell_of = |p: &Vector3<f32>, axis: usize| -> i32 {
+        let max = n[axis] as i32 - 1;
+        (libm::floorf(p[axis]) as i32).clamp(0, max)
+    };
+    let mut cell = [cell_of(&start, 0), cell_of(&start, 1), cell_of(&start, 2)];
+    let last = [cell_of(&end, 0), cell_of(&end, 1), cell_of(&end, 2)];
+    let mut step = [0i32; 3];
+    let mut t_max = [f32::INFINITY; 3];
+    let mut t_delta = [f32::INFINITY; 3];
+    for axis in 0..3 {
+        if d[axis] > 0.0 {
+            step[axis] = 1;
+            t_max[axis] = (cell[axis] as f32 + 1.0 - ga[axis]) / d[axis];
+            t_delta[axis] = 1.0 / d[axis];
+        } else if d[axis] < 0.0 {
+            step[axis] = -1;
+            t_max[axis] = (cell[axis] as f32 - ga[axis]) / d[axis];
+            t_delta[axis] = -1.0 / d[axis];
+        }
+    }
+    let mut visited = 0u32;
+    // A segment crosses at most nx + ny + nz voxel boundaries inside the grid.
+    let cap = n[0] + n[1] + n[2] + 1;
+    for _ in 0..cap {
+        let Some(v) = dims.checked(cell[0], cell[1], cell[2]) else {
+            break;
+        };
+        visited += 1;
+        if !visit(v) || cell == last {
+            break;
+        }
+        let axis = if t_max[0] <= t_max[1] && t_max[0] <= t_max[2] {
+            0
+        } else if t_max[1] <= t_max[2] {
+            1
+        } else {
+            2
+        };
+        if t_max[axis] > t1 || step[axis] == 0 {
+            break;
+        }
+        cell[axis] += step[axis];
+        t_max[axis] += t_delta[axis];
+    }
+    visited
+}
+
+/// Parameter interval `[t0, t1] ⊆ [0, 1]` of `g + t·d` inside the grid box, if any.
+fn clip_to_grid(dims: &Dims, g: &Vector3<f32>, d: &Vector3<f32>) -> Option<(f32, f32)> {
+    let n = [dims.nx() as f32, dims.ny() as f32, dims.nz() as f32];
+    let (mut t0, mut t1) = (0.0f32, 1.0f32);
+    for axis in 0..3 {
+        if d[axis] == 0.0 {
+            if g[axis] < 0.0 || g[axis] >= n[axis] {
+                return None;
+            }
+        } else {
+            let ta = (0.0 - g[axis]) / d[axis];
+            let tb = (n[axis] - g[axis]) / d[axis];
+            let (lo, hi) = if ta < tb { (ta, tb) } else { (tb, ta) };
+            t0 = t0.max(lo);
+            t1 = t1.min(hi);
+        }
+    }
+    (t0 <= t1).then_some((t0, t1))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Intrinsics;
+    use crate::map::{LogOddsParams, Occupancy};
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    fn geometry(nx: usize, ny: usize, nz: usize) -> MapGeometry {
+        MapGeometry::new(Dims::new(nx, ny, nz).unwrap(), Point3::origin(), 1.0).unwrap()
+    }
+
+    fn collect(g: &MapGeometry, a: [f32; 3], b: [f32; 3]) -> heapless::Vec<[u16; 3], 64> {
+        let mut out = heapless::Vec::new();
+        traverse(g, &Point3::from(a), &Point3::from(b), |v| {
+            out.push([v.x, v.y, v.z]).unwrap();
+            true
+        });
+        out
+    }
+
+    #[test]
+    fn axis_aligned_ray_visits_a_row() {
+        let g = geometry(8, 4, 4);
+        let got = collect(&g, [0.5, 1.5, 2.5], [5.5, 1.5, 2.5]);
+        let want = [[0, 1, 2], [1, 1, 2], [2, 1, 2], [3, 1, 2], [4, 1, 2], [5, 1, 2]];
+        assert_eq!(got.as_slice(), &want);
+        let back = collect(&g, [5.5, 1.5, 2.5], [0.5, 1.5, 2.5]);
+        assert_eq!(back.len(), 6);
+        assert_eq!(back[0], [5, 1, 2]);
+        assert_eq!(back[5], [0, 1, 2]);
+    }
+
+    #[test]
+    fn diagonal_ray_through_corners_stays_face_connected() {
+        let g = geometry(4, 4, 4);
+        let got = collect(&g, [0.5, 0.5, 0.5], [3.5, 3.5, 0.5]);
+        // Through the corners at (1,1), (2,2), (3,3): x steps first on ties.
+        let want = [
+            [0, 0, 0],
+            [1, 0, 0],
+            [1, 1, 0],
+            [2, 1, 0],
+            [2, 2, 0],
+            [3, 2, 0],
+            [3, 3, 0],
+        ];
+        assert_eq!(got.as_slice(), &want);
+    }
+
+    #[test]
+    fn shallow_ray_visits_exact_cells() {
+        let g = geometry(8, 8, 2);
+        // From (0.5,0.5) to (6.5,2.9): slope 0.4, crosses y=1 at x=1.75 and y=2 at x=4.25.
+        let got = collect(&g, [0.5, 0.5, 0.5], [6.5, 2.9, 0.5]);
+        let want = [
+            [0, 0, 0],
+            [1, 0, 0],
+            [1, 1, 0],
+            [2, 1, 0],
+            [3, 1, 0],
+            [4, 1, 0],
+            [4, 2, 0],
+            [5, 2, 0],
+            [6, 2, 0],
+        ];
+        assert_eq!(got.as_slice(), &want);
+    }
+
+    #[test]
+    fn grazing_ray_along_a_voxel_face() {
+        let g = geometry(6, 4, 4);
+        // Runs exactly on the plane y = 2 (boundary between rows 1 and 2): floor picks row 2,
+        // and the ray never steps in y.
+        let got = collect(&g, [0.5, 2.0, 1.5], [4.5, 2.0, 1.5]);
+        assert_eq!(
+            got.as_slice(),
+            &[[0, 2, 1], [1, 2, 1], [2, 2, 1], [3, 2, 1], [4, 2, 1]]
+        );
+    }
+
+    #[test]
+    fn ray_is_clipped_to_the_grid() {
+        let g = geometry(4, 4, 4);
+        let got = collect(&g, [-3.5, 1.5, 1.5], [9.0, 1.5, 1.5]);
+        assert_eq!(got.as_slice(), &[[0, 1, 1], [1, 1, 1], [2, 1, 1], [3, 1, 1]]);
+        assert!(collect(&g, [-3.0, -1.0, 1.5], [9.0, -1.0, 1.5]).is_empty());
+        assert!(collect(&g, [f32::NAN, 1.0, 1.0], [2.0, 1.0, 1.0]).is_empty());
+    }
+
+    struct Fixture {
+        lo: [i8; 4096],
+        st: [u8; 4096],
+    }
+
+    fn looking_along_x() -> Isometry3<f32> {
+        // Camera z → map x, camera x → map −y, camera y → map −z.
+        let r = nalgebra::Matrix3::new(0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0);
+        let rot = UnitQuaternion::from_matrix(&r);
+        Isometry3::from_parts(Translation3::new(0.05, 0.85, 0.85), rot)
+    }
+
+    #[test]
+    fn single_pixel_marks_free_ray_and_occupied_endpoint() {
+        let mut f = Fixture {
+            lo: [0; 4096],
+            st: [0; 4096],
+        };
+        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let depth = [1000u16]; // 1.0 m straight ahead along +x.
+        let frame = DepthFrame::new(intr, &depth).unwrap();
+        let params = IntegrationParams {
+            min_range: 0.3,
+            max_range: 10.0,
+            pixel_stride: 1,
+        };
+        let s = integrate(&mut map, &frame, &looking_along_x(), &params).unwrap();
+        assert_eq!(s.returns, 1);
+        let d = g.dims();
+        let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
+        for x in 0..10 {
+            assert_eq!(map.occupancy(at(x)), Occupancy::Free, "x = {x}");
+        }
+        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(11)), Occupancy::Unknown);
+        assert_eq!(s.voxel_updates, 11);
+    }
+
+    #[test]
+    fn no_return_clears_to_max_range_and_too_close_is_invalid() {
+        let mut f = Fixture {
+            lo: [0; 4096],
+            st: [0; 4096],
+        };
+        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let params = IntegrationParams {
+            min_range: 0.3,
+            max_range: 0.75,
+            pixel_stride: 1,
+        };
+        let d = g.dims();
+        let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
+
+        let close = [200u16];
+        let s = integrate(
+            &mut map,
+            &DepthFrame::new(intr, &close).unwrap(),
+            &looking_along_x(),
+            &params,
+        )
+        .unwrap();
+        assert_eq!((s.invalid, s.voxel_updates), (1, 0));
+        assert_eq!(map.occupancy(at(0)), Occupancy::Unknown);
+
+        for depth in [[0u16], [5000u16]] {
+            let s = integrate(
+                &mut map,
+                &DepthFrame::new(intr, &depth).unwrap(),
+                &looking_along_x(),
+                &params,
+            )
+            .unwrap();
+            assert_eq!(s.no_return + s.beyond_range, 1);
+        }
+        // Max range 0.75 m from x = 0.05 reaches x = 0.8: voxels 0..=7 free, nothing occupied.
+        for x in 0..8 {
+            assert_eq!(map.occupancy(at(x)), Occupancy::Free, "x = {x}");
+        }
+        assert_eq!(map.occupancy(at(8)), Occupancy::Unknown);
+        assert_eq!(map.counts().occupied, 0);
+    }
+
+    #[test]
+    fn occupied_wins_within_one_frame() {
+        let mut f = Fixture {
+            lo: [0; 4096],
+            st: [0; 4096],
+        };
+        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        // Two pixels on the same ray line: the first ends at 0.5 m, the second passes to 1.0 m.
+        // A huge focal length makes both pixels' rays coincide to within 1e-6 rad.
+        let intr = Intrinsics::new(1e6, 1.0, 0.0, 0.0, 2, 1).unwrap();
+        let depth = [500u16, 1000u16];
+        let frame = DepthFrame::new(intr, &depth).unwrap();
+        let s = integrate(
+            &mut map,
+            &frame,
+            &looking_along_x(),
+            &IntegrationParams::default(),
+        )
+        .unwrap();
+        assert_eq!(s.returns, 2);
+        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
+        assert_eq!(map.occupancy(at(5)), Occupancy::Occupied);
+        assert!(
+            (map.log_odds(at(5)) - 0.85).abs() < 1e-6,
+            "hit once, never missed in the same frame"
+        );
+    }
+
+    #[test]
+    fn bad_pose_is_rejected() {
+        let mut f = Fixture {
+            lo: [0; 4096],
+            st: [0; 4096],
+        };
+        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let depth = [1000u16];
+        let frame = DepthFrame::new(intr, &depth).unwrap();
+        let mut pose = looking_along_x();
+        pose.translation.x = f32::NAN;
+        assert_eq!(
+            integrate(&mut map, &frame, &pose, &IntegrationParams::default()),
+            Err(IntegrateError::BadPose)
+        );
+    }
+}

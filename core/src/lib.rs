@@ -1,0 +1,45 @@
+//! # harmonic-core
+//!
+//! An autonomous exploration core that chooses where to go with a harmonic potential (Shade &
+//! Newman, "Choosing Where To Go", ICRA 2011). `#![no_std]`, no allocation: every buffer is
+//! borrowed from the caller, so the same code runs in firmware `static`s and in a host `Vec`.
+//!
+//! ## Data flow
+//!
+//! ```text
+//! depth frame ──► integrate ──► map ──► domain ──► solve ──► streamline ──► goal
+//!  (camera)      (ray DDA,     (log-odds, (free, eroded,  (Laplace,   (RK4 down ∇φ)  (position, yaw)
+//!                 log-odds)     unknown)   φ=1 vehicle,    in place)
+//!                                          φ=0 frontier)
+//! ```
+//!
+//! - [`camera`] — pinhole intrinsics and depth frames, validated once at construction.
+//! - [`map`] — the voxel occupancy grid: log-odds with OctoMap defaults, an explicit
+//!   never-observed state, world ↔ voxel conversion, frontier test.
+//! - [`integrate`] — Amanatides–Woo traversal of every depth ray; hits and misses, each voxel at
+//!   most once per frame; no-return pixels clear free space to the maximum range.
+//! - [`domain`] — boundary conditions: free space eroded by the vehicle radius, the vehicle's
+//!   connected component, source (φ = 1) and frontier (φ = 0) voxels; walls are zero-flux.
+//! - [`solve`] — Laplace's equation over the domain (cell-centred finite volumes); the
+//!   reference Gauss-Seidel solver with a relative-residual stop.
+//! - [`streamline`] — steepest descent of φ from the vehicle to a frontier (trilinear
+//!   gradient, RK4, discrete fallback), with fixed-capacity waypoints.
+//! - [`explore`] — the [`Explorer`](explore::Explorer) that owns the loop and reports status,
+//!   termination and fault counters.
+//!
+//! Frames: the map frame is right-handed, z up, metres; poses are `Isometry3<f32>`. The camera
+//! frame is x right, y down, z forward. Depth is `u16` millimetres, 0 = no return.
+//!
+//! Errors: inputs are validated at the boundary into types that cannot be wrong afterwards; a
+//! fault is a value with a counter, never a panic.
+#![no_std]
+#![deny(unsafe_code)]
+#![warn(missing_docs)]
+
+pub mod camera;
+pub mod domain;
+pub mod explore;
+pub mod integrate;
+pub mod map;
+pub mod solve;
+pub mod streamline;

@@ -1,0 +1,577 @@
+//! The voxel occupancy map: geometry (origin, resolution, dimensions) and per-voxel state.
+//!
+//! Storage is borrowed from the caller (two byte slices of `nx·ny·nz` entries), so the same type
+//! lives in a firmware `static` or in a host `Vec`. Per voxel the map keeps
+//!
+//! - a log-odds value in `i8` fixed point ([`LOG_ODDS_SCALE`] steps per unit), OctoMap defaults:
+//!   hit +0.85, miss −0.4, clamped to [−2.0, +3.5]; occupied above 0, free below 0;
+//! - an observation stamp: 0 means *never observed* (unknown), otherwise the stamp of the last
+//!   frame that updated the voxel. Unknown is therefore a separate state, not "log-odds 0": an
+//!   observed voxel with log-odds exactly 0 is [`Occupancy::Uncertain`]. The stamp also makes
+//!   "each voxel at most once per frame" an O(1) check with no extra memory.
+//!
+//! An unknown voxel may be *sealed*: the planner has decided it cannot be observed from any
+//! reachable pose (see [`crate::explore`]), so it no longer makes its free neighbours frontiers.
+//! Sealing is forgotten as soon as the voxel is observed.
+//!
+//! Voxels are indexed `x + nx·(y + ny·z)`. The map frame is right-handed, z up, metres.
+
+use nalgebra::{Point3, Vector3};
+
+/// Fixed-point steps per unit of log-odds.
+pub const LOG_ODDS_SCALE: f32 = 20.0;
+
+/// Largest number of voxels along one axis (indices must fit comfortably in `u32`).
+pub const MAX_AXIS: usize = 2048;
+
+/// Integer voxel coordinates inside a grid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct VoxelIndex {
+    /// Column along map x.
+    pub x: u16,
+    /// Row along map y.
+    pub y: u16,
+    /// Layer along map z.
+    pub z: u16,
+}
+
+impl VoxelIndex {
+    /// Builds an index from its three coordinates.
+    pub const fn new(x: u16, y: u16, z: u16) -> Self {
+        Self { x, y, z }
+    }
+    /// Squared distance to another voxel, in voxels².
+    pub fn distance_sq(&self, other: &VoxelIndex) -> u32 {
+        let d = |a: u16, b: u16| u32::from(a.abs_diff(b)).pow(2);
+        d(self.x, other.x) + d(self.y, other.y) + d(self.z, other.z)
+    }
+}
+
+/// The six face neighbours' offsets.
+pub const FACE_OFFSETS: [[i32; 3]; 6] = [
+    [-1, 0, 0],
+    [1, 0, 0],
+    [0, -1, 0],
+    [0, 1, 0],
+    [0, 0, -1],
+    [0, 0, 1],
+];
+
+/// Grid dimensions, validated: every axis in `1..=MAX_AXIS`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Dims {
+    nx: usize,
+    ny: usize,
+    nz: usize,
+}
+
+impl Dims {
+    /// Checked constructor.
+    pub fn new(nx: usize, ny: usize, nz: usize) -> Result<Self, MapError> {
+        let ok = |n: usize| (1..=MAX_AXIS).contains(&n);
+        if ok(nx) && ok(ny) && ok(nz) {
+            Ok(Self { nx, ny, nz })
+        } else {
+            Err(MapError::BadDimensions)
+        }
+    }
+    /// Voxels along x.
+    pub fn nx(&self) -> usize {
+        self.nx
+    }
+    /// Voxels along y.
+    pub fn ny(&self) -> usize {
+        self.ny
+    }
+    /// Voxels along z.
+    pub fn nz(&self) -> usize {
+        self.nz
+    }
+    /// Total number of voxels.
+    pub fn len(&self) -> usize {
+        self.nx * self.ny * self.nz
+    }
+    /// Always false: a grid has at least one voxel.
+    pub fn is_empty(&self) -> bool {
+        false
+    }
+    /// Linear index of a voxel that is known to be inside.
+    #[inline]
+    pub fn linear(&self, v: VoxelIndex) -> usize {
+        usize::from(v.x) + self.nx * (usize::from(v.y) + self.ny * usize::from(v.z))
+    }
+    /// Voxel coordinates of a linear index (which must be `< len()`).
+    #[inline]
+    pub fn voxel(&self, i: usize) -> VoxelIndex {
+        let x = i % self.nx;
+        let yz = i / self.nx;
+        // Each coordinate is below MAX_AXIS, so the casts are exact.
+        VoxelIndex::new(x as u16, (yz % self.ny) as u16, (yz / self.ny) as u16)
+    }
+    /// The voxel at signed coordinates, if inside the grid.
+    #[inline]
+    pub fn checked(&self, x: i32, y: i32, z: i32) -> Option<VoxelIndex> {
+        let inside = |c: i32, n: usize| c >= 0 && (c as usize) < n;
+        if inside(x, self.nx) && inside(y, self.ny) && inside(z, self.nz) {
+            Some(VoxelIndex::new(x as u16, y as u16, z as u16))
+        } else {
+            None
+        }
+    }
+    /// The voxel at `v + offset`, if inside the grid.
+    #[inline]
+    pub fn offset(&self, v: VoxelIndex, d: [i32; 3]) -> Option<VoxelIndex> {
+        self.checked(
+            i32::from(v.x) + d[0],
+            i32::from(v.y) + d[1],
+            i32::from(v.z) + d[2],
+        )
+    }
+    /// Calls `f` with the linear index of every face neighbour of `v` that is inside the grid.
+    #[inline]
+    pub fn for_each_face_neighbour(&self, v: VoxelIndex, mut f: impl FnMut(usize)) {
+        for d in FACE_OFFSETS {
+            if let Some(n) = self.offset(v, d) {
+                f(self.linear(n));
+            }
+        }
+    }
+}
+
+/// Map errors: bad geometry or storage that does not fit it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MapError {
+    /// An axis has zero voxels or more than [`MAX_AXIS`].
+    BadDimensions,
+    /// Resolution not finite and positive, or origin not finite.
+    BadGeometry,
+    /// A storage slice is shorter than the number of voxels.
+    StorageTooSmall {
+        /// Entries the grid needs.
+        needed: usize,
+        /// Entries supplied.
+        got: usize,
+    },
+}
+
+/// Where the grid sits in the map frame and how fine it is.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MapGeometry {
+    dims: Dims,
+    origin: Point3<f32>,
+    resolution: f32,
+}
+
+impl MapGeometry {
+    /// `origin` is the minimum corner of voxel (0,0,0); `resolution` is the voxel edge in metres.
+    pub fn new(dims: Dims, origin: Point3<f32>, resolution: f32) -> Result<Self, MapError> {
+        if !(resolution.is_finite() && resolution > 0.0 && origin.coords.iter().all(|c| c.is_finite())) {
+            return Err(MapError::BadGeometry);
+        }
+        Ok(Self {
+            dims,
+            origin,
+            resolution,
+        })
+    }
+    /// Grid dimensions.
+    pub fn dims(&self) -> Dims {
+        self.dims
+    }
+    /// Minimum corner of voxel (0,0,0), map frame.
+    pub fn origin(&self) -> Point3<f32> {
+        self.origin
+    }
+    /// Voxel edge length, metres.
+    pub fn resolution(&self) -> f32 {
+        self.resolution
+    }
+    /// Continuous grid coordinates (voxel units; voxel `i` spans `[i, i+1)`).
+    pub fn to_grid(&self, p: &Point3<f32>) -> Vector3<f32> {
+        (p - self.origin) / self.resolution
+    }
+    /// Map-frame point of continuous grid coordinates.
+    pub fn from_grid(&self, g: &Vector3<f32>) -> Point3<f32> {
+        self.origin + g * self.resolution
+    }
+    /// The voxel containing a map-frame point, or `None` outside the grid (or not finite).
+    pub fn voxel_at(&self, p: &Point3<f32>) -> Option<VoxelIndex> {
+        let g = self.to_grid(p);
+        if !g.iter().all(|c| c.is_finite()) {
+            return None;
+        }
+        let f = |c: f32| libm::floorf(c);
+        let (x, y, z) = (f(g.x), f(g.y), f(g.z));
+        // Values far outside the grid saturate in the cast and are rejected by `checked`.
+        self.dims.checked(x as i32, y as i32, z as i32)
+    }
+    /// Centre of a voxel in the map frame.
+    pub fn center(&self, v: VoxelIndex) -> Point3<f32> {
+        let g = Vector3::new(f32::from(v.x) + 0.5, f32::from(v.y) + 0.5, f32::from(v.z) + 0.5);
+        self.from_grid(&g)
+    }
+}
+
+/// The occupancy state of one voxel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Occupancy {
+    /// Never observed.
+    Unknown,
+    /// Observed, log-odds below 0.
+    Free,
+    /// Observed, log-odds above 0.
+    Occupied,
+    /// Observed, but the evidence cancels out (log-odds exactly 0).
+    Uncertain,
+}
+
+/// Log-odds update parameters, in log-odds units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LogOddsParams {
+    /// Added for a measured endpoint.
+    pub hit: f32,
+    /// Added for a voxel a ray passed through.
+    pub miss: f32,
+    /// Lower clamp.
+    pub min: f32,
+    /// Upper clamp.
+    pub max: f32,
+}
+
+impl Default for LogOddsParams {
+    /// OctoMap's defaults.
+    fn default() -> Self {
+        Self {
+            hit: 0.85,
+            miss: -0.4,
+            min: -2.0,
+            max: 3.5,
+        }
+    }
+}
+
+/// [`LogOddsParams`] converted to the map's fixed point.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct FixedParams {
+    hit: i8,
+    miss: i8,
+    min: i8,
+    max: i8,
+}
+
+impl FixedParams {
+    fn from(p: &LogOddsParams) -> Self {
+        let q = |v: f32| {
+            let s = libm::roundf(v * LOG_ODDS_SCALE);
+            if s.is_nan() {
+                0
+            } else {
+                s.clamp(-127.0, 127.0) as i8
+            }
+        };
+        let min = q(p.min).min(-1);
+        let max = q(p.max).max(1);
+        Self {
+            hit: q(p.hit).max(1),
+            miss: q(p.miss).min(-1),
+            min,
+            max,
+        }
+    }
+}
+
+/// Stamp value meaning "never observed".
+const UNOBSERVED: u8 = 0;
+/// Log-odds value an unknown voxel carries when it is sealed.
+const SEALED: i8 = i8::MIN;
+
+/// Counts of voxels by state.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MapCounts {
+    /// Observed free voxels.
+    pub free: u32,
+    /// Observed occupied voxels.
+    pub occupied: u32,
+    /// Never observed voxels.
+    pub unknown: u32,
+    /// Observed voxels with cancelling evidence.
+    pub uncertain: u32,
+    /// Unknown voxels the planner sealed.
+    pub sealed: u32,
+}
+
+/// A fixed-capacity occupancy map over caller-provided storage.
+#[derive(Debug)]
+pub struct VoxelMap<'a> {
+    geometry: MapGeometry,
+    params: FixedParams,
+    log_odds: &'a mut [i8],
+    stamps: &'a mut [u8],
+    frame_stamp: u8,
+}
+
+impl<'a> VoxelMap<'a> {
+    /// Wraps storage of at least `dims.len()` entries each; everything starts unknown.
+    pub fn new(
+        geometry: MapGeometry,
+        params: LogOddsParams,
+        log_odds: &'a mut [i8],
+        stamps: &'a mut [u8],
+    ) -> Result<Self, MapError> {
+        let needed = geometry.dims().len();
+        for got in [log_odds.len(), stamps.len()] {
+            if got < needed {
+                return Err(MapError::StorageTooSmall { needed, got });
+            }
+        }
+        let log_odds = &mut log_odds[..needed];
+        let stamps = &mut stamps[..needed];
+        log_odds.fill(0);
+        stamps.fill(UNOBSERVED);
+        Ok(Self {
+            geometry,
+            params: FixedParams::from(&params),
+            log_odds,
+            stamps,
+            frame_stamp: 1,
+        })
+    }
+
+    /// Geometry of the grid.
+    pub fn geometry(&self) -> &MapGeometry {
+        &self.geometry
+    }
+    /// Grid dimensions.
+    pub fn dims(&self) -> Dims {
+        self.geometry.dims
+    }
+
+    /// Starts a new frame: afterwards every voxel accepts one more update.
+    pub fn begin_frame(&mut self) {
+        if self.frame_stamp == u8::MAX {
+            // Renumber so that no stale stamp can equal a future one.
+            for s in self.stamps.iter_mut() {
+                if *s != UNOBSERVED {
+                    *s = 1;
+                }
+            }
+            self.frame_stamp = 1;
+        }
+        self.frame_stamp += 1;
+    }
+
+    /// Applies a hit to voxel `i` unless it was already updated this frame. Returns whether it
+    /// was applied.
+    pub fn apply_hit(&mut self, i: usize) -> bool {
+        self.apply(i, self.params.hit)
+    }
+    /// Applies a miss to voxel `i` unless it was already updated this frame.
+    pub fn apply_miss(&mut self, i: usize) -> bool {
+        self.apply(i, self.params.miss)
+    }
+
+    fn apply(&mut self, i: usize, delta: i8) -> bool {
+        let (Some(stamp), Some(lo)) = (self.stamps.get_mut(i), self.log_odds.get_mut(i)) else {
+            return false;
+        };
+        if *stamp == self.frame_stamp {
+            return false;
+        }
+        let before = if *stamp == UNOBSERVED { 0 } else { *lo };
+        *lo = before
+            .saturating_add(delta)
+            .clamp(self.params.min, self.params.max);
+        *stamp = self.frame_stamp;
+        true
+    }
+
+    /// Marks an unknown voxel free (space the vehicle's own body occupies). Observed voxels are
+    /// left alone. Returns whether the voxel changed.
+    pub fn mark_traversed(&mut self, i: usize) -> bool {
+        match self.stamps.get(i) {
+            Some(&UNOBSERVED) => self.apply(i, self.params.miss),
+            _ => false,
+        }
+    }
+
+    /// Seals an unknown voxel so it no longer makes frontiers. Returns whether it changed.
+    pub fn seal(&mut self, i: usize) -> bool {
+        match (self.stamps.get(i), self.log_odds.get_mut(i)) {
+            (Some(&UNOBSERVED), Some(lo)) if *lo != SEALED => {
+                *lo = SEALED;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// State of voxel `i` (out-of-range indices read as unknown).
+    #[inline]
+    pub fn occupancy(&self, i: usize) -> Occupancy {
+        match (self.stamps.get(i), self.log_odds.get(i)) {
+            (Some(&s), Some(&lo)) if s != UNOBSERVED => match lo {
+                l if l < 0 => Occupancy::Free,
+                l if l > 0 => Occupancy::Occupied,
+                _ => Occupancy::Uncertain,
+            },
+            _ => Occupancy::Unknown,
+        }
+    }
+    /// True if voxel `i` is observed free.
+    #[inline]
+    pub fn is_free(&self, i: usize) -> bool {
+        self.occupancy(i) == Occupancy::Free
+    }
+    /// True if voxel `i` was never observed.
+    #[inline]
+    pub fn is_unknown(&self, i: usize) -> bool {
+        self.stamps.get(i).is_none_or(|&s| s == UNOBSERVED)
+    }
+    /// True if voxel `i` is unknown and sealed by the planner.
+    #[inline]
+    pub fn is_sealed(&self, i: usize) -> bool {
+        self.is_unknown(i) && self.log_odds.get(i) == Some(&SEALED)
+    }
+    /// True if voxel `i` is unknown and not sealed: space that exploration should still look at.
+    #[inline]
+    pub fn is_unexplored(&self, i: usize) -> bool {
+        self.is_unknown(i) && self.log_odds.get(i) != Some(&SEALED)
+    }
+    /// Log-odds of voxel `i` in log-odds units (0 for unknown voxels).
+    pub fn log_odds(&self, i: usize) -> f32 {
+        match self.occupancy(i) {
+            Occupancy::Unknown => 0.0,
+            _ => f32::from(self.log_odds.get(i).copied().unwrap_or(0)) / LOG_ODDS_SCALE,
+        }
+    }
+
+    /// A frontier voxel: free, with at least one unexplored face neighbour inside the grid.
+    /// (Voxels beyond the grid edge are not unknown space: the grid is the exploration volume.)
+    pub fn is_frontier(&self, v: VoxelIndex) -> bool {
+        let dims = self.dims();
+        if !self.is_free(dims.linear(v)) {
+            return false;
+        }
+        let mut frontier = false;
+        dims.for_each_face_neighbour(v, |n| frontier |= self.is_unexplored(n));
+        frontier
+    }
+
+    /// Counts voxels by state (one pass over the grid).
+    pub fn counts(&self) -> MapCounts {
+        let mut c = MapCounts::default();
+        for i in 0..self.stamps.len() {
+            match self.occupancy(i) {
+                Occupancy::Free => c.free += 1,
+                Occupancy::Occupied => c.occupied += 1,
+                Occupancy::Uncertain => c.uncertain += 1,
+                Occupancy::Unknown => {
+                    c.unknown += 1;
+                    if self.is_sealed(i) {
+                        c.sealed += 1;
+                    }
+                }
+            }
+        }
+        c
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn geometry(n: usize) -> MapGeometry {
+        MapGeometry::new(Dims::new(n, n, n).unwrap(), Point3::origin(), 0.1).unwrap()
+    }
+
+    #[test]
+    fn world_voxel_conversion_rejects_outside() {
+        let g = geometry(10);
+        assert_eq!(
+            g.voxel_at(&Point3::new(0.05, 0.15, 0.95)),
+            Some(VoxelIndex::new(0, 1, 9))
+        );
+        assert_eq!(g.voxel_at(&Point3::new(-0.01, 0.5, 0.5)), None);
+        assert_eq!(g.voxel_at(&Point3::new(0.5, 1.0, 0.5)), None);
+        assert_eq!(g.voxel_at(&Point3::new(f32::NAN, 0.5, 0.5)), None);
+        assert_eq!(g.voxel_at(&Point3::new(1e30, 0.5, 0.5)), None);
+        let c = g.center(VoxelIndex::new(3, 4, 5));
+        assert!((c - Point3::new(0.35, 0.45, 0.55)).norm() < 1e-6);
+    }
+
+    #[test]
+    fn log_odds_follow_octomap_defaults_and_clamp() {
+        let g = geometry(4);
+        let (mut lo, mut st) = ([0i8; 64], [0u8; 64]);
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
+        assert_eq!(map.occupancy(0), Occupancy::Unknown);
+        assert!(map.apply_hit(0));
+        assert!(!map.apply_hit(0), "second update in one frame must be refused");
+        assert!((map.log_odds(0) - 0.85).abs() < 1e-6);
+        for _ in 0..10 {
+            map.begin_frame();
+            map.apply_hit(0);
+        }
+        assert!((map.log_odds(0) - 3.5).abs() < 1e-6);
+        for _ in 0..20 {
+            map.begin_frame();
+            map.apply_miss(0);
+        }
+        assert!((map.log_odds(0) + 2.0).abs() < 1e-6);
+        assert_eq!(map.occupancy(0), Occupancy::Free);
+    }
+
+    #[test]
+    fn frame_stamps_survive_wraparound() {
+        let g = geometry(2);
+        let (mut lo, mut st) = ([0i8; 8], [0u8; 8]);
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
+        map.apply_miss(1);
+        for _ in 0..1000 {
+            map.begin_frame();
+            assert!(map.apply_hit(0), "a new frame must accept an update");
+        }
+        assert_eq!(map.occupancy(1), Occupancy::Free);
+    }
+
+    #[test]
+    fn contradictory_evidence_is_not_unknown() {
+        let g = geometry(2);
+        let (mut lo, mut st) = ([0i8; 8], [0u8; 8]);
+        let params = LogOddsParams {
+            hit: 0.5,
+            miss: -0.5,
+            min: -2.0,
+            max: 3.5,
+        };
+        let mut map = VoxelMap::new(g, params, &mut lo, &mut st).unwrap();
+        map.apply_hit(0);
+        map.begin_frame();
+        map.apply_miss(0);
+        assert_eq!(map.occupancy(0), Occupancy::Uncertain);
+        assert!(!map.is_unknown(0));
+    }
+
+    #[test]
+    fn storage_too_small_is_an_error() {
+        let g = geometry(4);
+        let (mut lo, mut st) = ([0i8; 63], [0u8; 64]);
+        assert_eq!(
+            VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap_err(),
+            MapError::StorageTooSmall { needed: 64, got: 63 }
+        );
+    }
+
+    #[test]
+    fn sealing_is_forgotten_on_observation() {
+        let g = geometry(3);
+        let (mut lo, mut st) = ([0i8; 27], [0u8; 27]);
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
+        assert!(map.seal(5));
+        assert!(map.is_sealed(5) && !map.is_unexplored(5));
+        map.apply_miss(5);
+        assert_eq!(map.occupancy(5), Occupancy::Free);
+        assert!(!map.is_sealed(5));
+    }
+}

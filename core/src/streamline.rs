@@ -1,0 +1,444 @@
+//! Streamlines: steepest descent of φ from the vehicle to a frontier.
+//!
+//! The gradient is taken by central differences at voxel centres (a neighbour outside the domain
+//! mirrors the centre value — zero flux — so walls contribute no normal component) and
+//! interpolated trilinearly between the in-domain centres around a point. The tracer integrates
+//! the unit descent direction with classical RK4 at a fixed step (at most half a voxel) and stops
+//! on entering a frontier voxel.
+//!
+//! A harmonic φ has no interior local minimum, so the continuous streamline always ends on a
+//! frontier. The discrete one can still stall where the interpolated gradient vanishes (a
+//! saddle, a plateau below f32 resolution), leave the domain at a corner, or loop inside one
+//! voxel. Each of those falls back to one step of *discrete* steepest descent: to the face
+//! neighbour with the lowest φ, which the discrete maximum principle guarantees is lower than
+//! the current voxel unless φ is constant around it. The first step from the source voxel is
+//! always discrete (max flux out of the source), because the gradient at a point source is
+//! ill-defined.
+//!
+//! Waypoints are kept in a fixed-capacity buffer: when it fills, every other waypoint is dropped
+//! and the spacing doubles, so any path fits with bounded memory.
+
+use heapless::Vec as HVec;
+use nalgebra::{Point3, Vector3};
+
+use crate::domain::Label;
+use crate::map::{MapGeometry, VoxelIndex};
+
+/// Waypoint buffer capacity.
+pub const WAYPOINT_CAPACITY: usize = 128;
+
+/// Waypoints of a streamline, map frame.
+pub type Waypoints = HVec<Point3<f32>, WAYPOINT_CAPACITY>;
+
+/// Tracer settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StreamlineParams {
+    /// RK4 step in voxels; clamped to (0.05, 0.5].
+    pub step_voxels: f32,
+    /// Give up after this many steps.
+    pub max_steps: u32,
+}
+
+impl Default for StreamlineParams {
+    fn default() -> Self {
+        Self {
+            step_voxels: 0.5,
+            max_steps: 50_000,
+        }
+    }
+}
+
+/// Where and how a streamline ended.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StreamlineEnd {
+    /// The frontier voxel it entered.
+    pub frontier: VoxelIndex,
+    /// Its final point, map frame.
+    pub end: Point3<f32>,
+    /// Unit direction of travel at the end (map frame).
+    pub direction: Vector3<f32>,
+    /// Path length, metres.
+    pub length: f32,
+    /// RK4 steps taken.
+    pub steps: u32,
+    /// Discrete fallback steps taken.
+    pub fallback_steps: u32,
+}
+
+/// Why no streamline could be traced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StreamlineError {
+    /// The start point is not in a domain voxel.
+    StartOutsideDomain,
+    /// No neighbour has a lower φ (φ is flat here: unsolved or below f32 resolution).
+    Stalled,
+    /// The step cap was hit.
+    TooLong,
+    /// `labels` or `phi` is shorter than the grid.
+    StorageTooSmall,
+}
+
+/// The φ field and its domain, read-only.
+#[derive(Clone, Copy)]
+pub struct Field<'a> {
+    /// Grid geometry.
+    pub geometry: &'a MapGeometry,
+    /// Domain labels.
+    pub labels: &'a [Label],
+    /// Potential.
+    pub phi: &'a [f32],
+}
+
+impl Field<'_> {
+    fn label(&self, v: VoxelIndex) -> Label {
+        self.labels
+            .get(self.geometry.dims().linear(v))
+            .copied()
+            .unwrap_or(Label::Outside)
+    }
+    fn phi_at(&self, v: VoxelIndex) -> f32 {
+        self.phi
+            .get(self.geometry.dims().linear(v))
+            .copied()
+            .unwrap_or(0.0)
+    }
+    fn in_domain(&self, v: VoxelIndex) -> bool {
+        self.label(v).in_domain()
+    }
+    fn voxel_of(&self, g: &Vector3<f32>) -> Option<VoxelIndex> {
+        let f = |c: f32| libm::floorf(c) as i32;
+        self.geometry.dims().checked(f(g.x), f(g.y), f(g.z))
+    }
+
+    /// Central-difference gradient at a domain voxel centre (grid units).
+    fn centre_gradient(&self, v: VoxelIndex) -> Vector3<f32> {
+        let dims = self.geometry.dims();
+        let c = self.phi_at(v);
+        let mut g = Vector3::zeros();
+        for axis in 0..3 {
+            let side = |s: i32| {
+                let mut d = [0i32; 3];
+                d[axis] = s;
+                match dims.offset(v, d) {
+                    Some(n) if self.in_domain(n) => self.phi_at(n),
+                    _ => c,
+                }
+            };
+            g[axis] = 0.5 * (side(1) - side(-1));
+        }
+        g
+    }
+
+    /// Trilinear interpolation of the centre gradients of the in-domain voxels around `p`
+    /// (grid coordinates), renormalised over those present. `None` if none is.
+    pub fn gradient(&self, p: &Vector3<f32>) -> Option<Vector3<f32>> {
+        let q = p - Vector3::repeat(0.5);
+        let base = q.map(libm::floorf);
+        let frac = q - base;
+        let dims = self.geometry.dims();
+        let mut sum = Vector3::zeros();
+        let mut wsum = 0.0f32;
+        for corner in 0..8u8 {
+            let o = [
+                (corner & 1) as i32,
+                ((corner >> 1) & 1) as i32,
+                ((corner >> 2) & 1) as i32,
+            ];
+            let Some(v) = dims.checked(base.x as i32 + o[0], base.y as i32 + o[1], base.z as i32 + o[2])
+            else {
+                continue;
+            };
+            if !self.in_domain(v) {
+                continue;
+            }
+            let w = (0..3)
+                .map(|a| if o[a] == 1 { frac[a] } else { 1.0 - frac[a] })
+                .product::<f32>();
+            sum += self.centre_gradient(v) * w;
+            wsum += w;
+        }
+        (wsum > 1e-6).then(|| sum / wsum)
+    }
+
+    /// Unit descent direction at `p`, if the gradient is resolvable.
+    fn descent(&self, p: &Vector3<f32>) -> Option<Vector3<f32>> {
+        let g = self.gradient(p)?;
+        let n = g.norm();
+        (n.is_finite() && n > 1e-30).then(|| -g / n)
+    }
+
+    /// The face neighbour (or for the source, any of the 26 neighbours reachable through
+    /// in-domain faces) with the steepest drop of φ per unit distance, if φ drops at all.
+    fn steepest_neighbour(&self, v: VoxelIndex, all_26: bool) -> Option<VoxelIndex> {
+        let dims = self.geometry.dims();
+        let here = self.phi_at(v);
+        let mut best: Option<(f32, VoxelIndex)> = None;
+        for dz in -1i32..=1 {
+            for dy in -1i32..=1 {
+                for dx in -1i32..=1 {
+                    let manhattan = dx.abs() + dy.abs() + dz.abs();
+                    if manhattan == 0 || (!all_26 && manhattan > 1) {
+                        continue;
+                    }
+                    let Some(n) = dims.offset(v, [dx, dy, dz]) else {
+                        continue;
+                    };
+                    if !self.in_domain(n) {
+                        continue;
+                    }
+                    // A diagonal move must not cut a corner of a wall: every face-step
+                    // component must itself land in the domain.
+                    let corner_clear = [[dx, 0, 0], [0, dy, 0], [0, 0, dz]]
+                        .iter()
+                        .filter(|d| d.iter().any(|&c| c != 0))
+                        .all(|d| dims.offset(v, *d).is_some_and(|m| self.in_domain(m)));
+                    if manhattan > 1 && !corner_clear {
+                        continue;
+                    }
+                    let drop = (here - self.phi_at(n)) / libm::sqrtf(manhattan as f32);
+                    if drop > 0.0 && best.is_none_or(|(d, _)| drop > d) {
+                        best = Some((drop, n));
+                    }
+                }
+            }
+        }
+        best.map(|(_, n)| n)
+    }
+}
+
+/// Traces the streamline from `start` (map frame, inside the source voxel or any domain voxel)
+/// to a frontier. Waypoints (start included, end included) go to `out`.
+pub fn trace(
+    field: &Field<'_>,
+    start: &Point3<f32>,
+    params: &StreamlineParams,
+    out: &mut Waypoints,
+) -> Result<StreamlineEnd, StreamlineError> {
+    let n = field.geometry.dims().len();
+    if field.labels.len() < n || field.phi.len() < n {
+        return Err(StreamlineError::StorageTooSmall);
+    }
+    out.clear();
+    let h = params.step_voxels.clamp(0.05, 0.5);
+    let mut rec = Recorder {
+        spacing: 1.0,
+        since_last: 0.0,
+    };
+    let mut p = field.geometry.to_grid(start);
+    let mut cell = field
+        .voxel_of(&p)
+        .filter(|v| field.in_domain(*v))
+        .ok_or(StreamlineError::StartOutsideDomain)?;
+    rec.push(field, out, &p, true);
+    let mut end = StreamlineEnd {
+        frontier: cell,
+        end: *start,
+        direction: Vector3::x(),
+        length: 0.0,
+        steps: 0,
+        fallback_steps: 0,
+    };
+    let centre =
+        |v: VoxelIndex| Vector3::new(f32::from(v.x) + 0.5, f32::from(v.y) + 0.5, f32::from(v.z) + 0.5);
+    let mut steps_in_cell = 0u32;
+    let cell_budget = libm::ceilf(3.0 / h) as u32;
+
+    while field.label(cell) != Label::Frontier {
+        if end.steps + end.fallback_steps >= params.max_steps {
+            return Err(StreamlineError::TooLong);
+        }
+        let rk4 = if field.label(cell) == Label::Source || steps_in_cell > cell_budget {
+            None
+        } else {
+            rk4_step(field, &p, h)
+        };
+        let next = rk4.and_then(|q| {
+            let v = field.voxel_of(&q)?;
+            // Accept only moves into the domain that do not climb to a higher voxel.
+            (field.in_domain(v) && (v == cell || field.phi_at(v) <= field.phi_at(cell))).then_some((q, v))
+        });
+        let (q, v) = match next {
+            Some(step) => {
+                end.steps += 1;
+                step
+            }
+            None => {
+                let v = field
+                    .steepest_neighbour(cell, field.label(cell) == Label::Source)
+                    .ok_or(StreamlineError::Stalled)?;
+                end.fallback_steps += 1;
+                (centre(v), v)
+            }
+        };
+        let d = q - p;
+        let len = d.norm();
+        if len > 0.0 {
+            end.direction = d / len;
+            end.length += len;
+            rec.since_last += len;
+        }
+        steps_in_cell = if v == cell { steps_in_cell + 1 } else { 0 };
+        p = q;
+        cell = v;
+        rec.push(field, out, &p, false);
+    }
+    rec.push(field, out, &p, true);
+    end.frontier = cell;
+    end.end = field.geometry.from_grid(&p);
+    end.length *= field.geometry.resolution();
+    // Grid and map axes are parallel with one scale, so the unit direction carries over as is.
+    Ok(end)
+}
+
+fn rk4_step(field: &Field<'_>, p: &Vector3<f32>, h: f32) -> Option<Vector3<f32>> {
+    let k1 = field.descent(p)?;
+    let k2 = field.descent(&(p + k1 * (0.5 * h)))?;
+    let k3 = field.descent(&(p + k2 * (0.5 * h)))?;
+    let k4 = field.descent(&(p + k3 * h))?;
+    let q = p + (k1 + k2 * 2.0 + k3 * 2.0 + k4) * (h / 6.0);
+    q.iter().all(|c| c.is_finite()).then_some(q)
+}
+
+/// Keeps waypoints about `spacing` voxels apart, halving the list when it fills.
+struct Recorder {
+    spacing: f32,
+    since_last: f32,
+}
+
+impl Recorder {
+    fn push(&mut self, field: &Field<'_>, out: &mut Waypoints, g: &Vector3<f32>, force: bool) {
+        if !force && self.since_last < self.spacing {
+            return;
+        }
+        self.since_last = 0.0;
+        let p = field.geometry.from_grid(g);
+        if out.is_full() {
+            // Keep the first point and every other one after it; double the spacing.
+            let mut kept = 0;
+            for i in (0..out.len()).step_by(2) {
+                if let Some(&w) = out.get(i) {
+                    if let Some(slot) = out.get_mut(kept) {
+                        *slot = w;
+                    }
+                    kept += 1;
+                }
+            }
+            out.truncate(kept);
+            self.spacing *= 2.0;
+        }
+        // Not full after halving (capacity ≥ 2).
+        let _ = out.push(p);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::Dims;
+    use crate::solve::{gauss_seidel, SolveParams};
+
+    #[test]
+    fn l_shaped_corridor_streamline_turns_the_corner_and_ends_on_the_frontier() {
+        // 2D L: a corridor along x (y = 1..=3) then up along y at x = 10..=12.
+        let dims = Dims::new(14, 14, 1).unwrap();
+        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let mut labels = [Label::Outside; 196];
+        for y in 1..=3 {
+            for x in 1..=12 {
+                labels[dims.linear(VoxelIndex::new(x, y, 0))] = Label::Interior;
+            }
+        }
+        for y in 4..=12 {
+            for x in 10..=12 {
+                labels[dims.linear(VoxelIndex::new(x, y, 0))] = Label::Interior;
+            }
+        }
+        for x in 10..=12 {
+            labels[dims.linear(VoxelIndex::new(x, 12, 0))] = Label::Frontier;
+        }
+        let src = VoxelIndex::new(2, 2, 0);
+        labels[dims.linear(src)] = Label::Source;
+        let mut phi = [0.0f32; 196];
+        let s = gauss_seidel(&dims, &labels, &mut phi, &SolveParams::default()).unwrap();
+        assert!(s.converged);
+        let field = Field {
+            geometry: &g,
+            labels: &labels,
+            phi: &phi,
+        };
+        let mut wps = Waypoints::new();
+        let end = trace(&field, &g.center(src), &StreamlineParams::default(), &mut wps).unwrap();
+        assert_eq!(end.frontier.y, 12);
+        assert!(
+            end.direction.y > 0.9,
+            "arrives heading into the unknown: {:?}",
+            end.direction
+        );
+        for w in &wps {
+            let v = g.voxel_at(w).unwrap();
+            assert!(
+                labels[dims.linear(v)].in_domain(),
+                "waypoint {w:?} outside the domain"
+            );
+        }
+        // Path at least the Manhattan-free distance, not absurdly longer.
+        assert!(end.length > 1.4 && end.length < 2.6, "{}", end.length);
+    }
+
+    #[test]
+    fn flat_field_stalls_instead_of_looping() {
+        let dims = Dims::new(5, 1, 1).unwrap();
+        let g = MapGeometry::new(dims, Point3::origin(), 1.0).unwrap();
+        let mut labels = [Label::Interior; 5];
+        labels[4] = Label::Frontier;
+        let phi = [0.0f32; 5];
+        let field = Field {
+            geometry: &g,
+            labels: &labels,
+            phi: &phi,
+        };
+        let mut wps = Waypoints::new();
+        let r = trace(
+            &field,
+            &Point3::new(0.5, 0.5, 0.5),
+            &StreamlineParams::default(),
+            &mut wps,
+        );
+        assert_eq!(r, Err(StreamlineError::Stalled));
+        let r = trace(
+            &field,
+            &Point3::new(-1.0, 0.5, 0.5),
+            &StreamlineParams::default(),
+            &mut wps,
+        );
+        assert_eq!(r, Err(StreamlineError::StartOutsideDomain));
+    }
+
+    #[test]
+    fn long_paths_fit_the_waypoint_buffer() {
+        let n = 600;
+        let dims = Dims::new(n, 1, 1).unwrap();
+        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let mut labels = [Label::Interior; 600];
+        labels[0] = Label::Source;
+        labels[n - 1] = Label::Frontier;
+        let phi: [f32; 600] = core::array::from_fn(|x| 1.0 - x as f32 / (n - 1) as f32);
+        let field = Field {
+            geometry: &g,
+            labels: &labels,
+            phi: &phi,
+        };
+        let mut wps = Waypoints::new();
+        let end = trace(
+            &field,
+            &g.center(VoxelIndex::new(0, 0, 0)),
+            &StreamlineParams::default(),
+            &mut wps,
+        )
+        .unwrap();
+        assert_eq!(usize::from(end.frontier.x), n - 1);
+        assert!(wps.len() > WAYPOINT_CAPACITY / 4 && wps.len() <= WAYPOINT_CAPACITY);
+        assert!((wps.last().unwrap().x - end.end.x).abs() < 1e-4);
+        assert!(wps.windows(2).all(|w| w[1].x > w[0].x), "ordered along the path");
+    }
+}

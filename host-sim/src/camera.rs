@@ -1,0 +1,300 @@
+//! Simulated forward-looking depth camera: renders a [`World`] into the depth images the core
+//! consumes (u16 millimetres of camera-frame z, 0 = no return), optionally with stereo noise.
+//!
+//! Frames: the camera frame is x right, y down, z forward; the vehicle body frame is x forward,
+//! y left, z up; the map frame is z up. [`camera_pose`] builds the camera → map transform of a
+//! level camera looking along the body's +x axis.
+
+use harmonic_core::camera::Intrinsics;
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use rand::Rng;
+
+use crate::world::World;
+
+/// Rays are cast this far (metres) whatever the camera's range, so that hits beyond the maximum
+/// range are reported and the core can clear free space up to its range along them.
+pub const RAYCAST_LIMIT_M: f32 = 60.0;
+
+/// Largest encodable depth, millimetres (`u16::MAX` is kept free as a sentinel).
+pub const MAX_DEPTH_MM: u16 = u16::MAX - 1;
+
+/// Stereo-matching noise: Gaussian disparity error, as a stereo depth camera has.
+///
+/// Depth `z` corresponds to disparity `d = fx · baseline / z`; the sensor measures `d` with
+/// error `N(0, sigma_px)`, quantised to 1/16 px (sub-pixel resolution of common stereo
+/// matchers). Depth error therefore grows with `z²`, and far surfaces drop out.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StereoNoise {
+    /// Standard deviation of the disparity error, pixels.
+    pub sigma_px: f32,
+    /// Distance between the two stereo cameras, metres.
+    pub baseline_m: f32,
+}
+
+impl Default for StereoNoise {
+    /// σ = 1 px, baseline 0.12 m.
+    fn default() -> Self {
+        Self {
+            sigma_px: 1.0,
+            baseline_m: 0.12,
+        }
+    }
+}
+
+impl StereoNoise {
+    /// Disparity at or below which the matcher gives no return, pixels.
+    pub const MIN_DISPARITY_PX: f32 = 0.5;
+    /// Disparity quantisation step, pixels.
+    pub const DISPARITY_STEP_PX: f32 = 1.0 / 16.0;
+
+    /// The noisy depth measured for a surface at true depth `z` (metres), or `None` if the
+    /// noisy disparity is too small to give a return.
+    pub fn perturb(&self, z: f32, fx: f32, rng: &mut impl Rng) -> Option<f32> {
+        let fb = fx * self.baseline_m;
+        let d = fb / z + self.sigma_px * standard_normal(rng);
+        let d = (d / Self::DISPARITY_STEP_PX).round() * Self::DISPARITY_STEP_PX;
+        (d > Self::MIN_DISPARITY_PX).then(|| fb / d)
+    }
+}
+
+/// One sample of N(0, 1) by the Box–Muller transform.
+fn standard_normal(rng: &mut impl Rng) -> f32 {
+    // u1 ∈ (0, 1] keeps the logarithm finite.
+    let u1: f32 = 1.0 - rng.random::<f32>();
+    let u2: f32 = rng.random::<f32>();
+    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+}
+
+/// A pinhole depth camera rendered by ray casting.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthCamera {
+    /// Pinhole model; also sent to the core with every frame.
+    pub intrinsics: Intrinsics,
+    /// Closest valid depth, metres. Closer hits are still reported; the core rejects them.
+    pub min_range: f32,
+    /// Farthest valid depth, metres. Farther hits are still reported; the core treats them as
+    /// free-space clearing up to this range.
+    pub max_range: f32,
+    /// Stereo noise, or `None` for exact depth.
+    pub noise: Option<StereoNoise>,
+}
+
+impl DepthCamera {
+    /// The reference configuration: 100 × 100 px, 75° horizontal and vertical field of view,
+    /// range 0.3–10 m, no noise.
+    pub fn default_thesis() -> Self {
+        let intrinsics = Intrinsics::from_hfov(100, 100, 75f32.to_radians())
+            .expect("75° over 100 × 100 px are valid intrinsics");
+        Self {
+            intrinsics,
+            min_range: 0.3,
+            max_range: 10.0,
+            noise: None,
+        }
+    }
+
+    /// The same camera with the given noise model.
+    pub fn with_noise(self, noise: Option<StereoNoise>) -> Self {
+        Self { noise, ..self }
+    }
+
+    /// Renders the depth image seen from `camera_pose` (camera frame → map frame) into `out`
+    /// (resized to width × height, row-major `v * width + u`).
+    ///
+    /// Each pixel holds the camera-frame z of the first surface along its ray in millimetres,
+    /// rounded up so that the endpoint lies just inside the surface (and so inside the occupied
+    /// voxel even when the surface lies on a voxel boundary); 0 where nothing is hit within
+    /// [`RAYCAST_LIMIT_M`] or where stereo noise drops the return.
+    pub fn render(
+        &self,
+        world: &World,
+        camera_pose: &Isometry3<f32>,
+        rng: &mut impl Rng,
+        out: &mut Vec<u16>,
+    ) {
+        let k = &self.intrinsics;
+        let (width, height) = (k.width(), k.height());
+        out.clear();
+        out.reserve(k.pixel_count());
+        let rotation = camera_pose.rotation.to_rotation_matrix();
+        let origin = Point3::from(camera_pose.translation.vector);
+        for v in 0..height {
+            for u in 0..width {
+                let ray_cam = k.ray(u, v);
+                let norm = ray_cam.norm();
+                let dir = rotation * (ray_cam / norm);
+                let depth = world.raycast(&origin, &dir, RAYCAST_LIMIT_M).and_then(|t| {
+                    let z = t / norm;
+                    match &self.noise {
+                        Some(noise) => noise.perturb(z, k.fx(), rng),
+                        None => Some(z),
+                    }
+                });
+                out.push(depth.map_or(0, encode_depth_mm));
+            }
+        }
+    }
+}
+
+/// Millimetres for a depth in metres: rounded up, at least 1 (0 means no return) and at most
+/// [`MAX_DEPTH_MM`].
+pub fn encode_depth_mm(z: f32) -> u16 {
+    let mm = (z * 1000.0).ceil();
+    if mm >= f32::from(MAX_DEPTH_MM) {
+        MAX_DEPTH_MM
+    } else if mm >= 1.0 {
+        mm as u16
+    } else {
+        1
+    }
+}
+
+/// Camera → map transform of a level camera on a vehicle at `position` with heading `yaw`
+/// (radians about map z, 0 = looking along map +x, counter-clockwise positive).
+///
+/// The camera looks along body +x; camera x (right) is body −y and camera y (down) is body −z.
+pub fn camera_pose(position: &Point3<f32>, yaw: f32) -> Isometry3<f32> {
+    let body_from_camera = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        -Vector3::y(), // camera x (right)
+        -Vector3::z(), // camera y (down)
+        Vector3::x(),  // camera z (forward)
+    ]));
+    let map_from_body = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
+    let rotation = map_from_body * UnitQuaternion::from_rotation_matrix(&body_from_camera);
+    Isometry3::from_parts(Translation3::from(position.coords), rotation)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::Aabb;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    fn centre_ray_map(yaw: f32) -> Vector3<f32> {
+        // 100 × 100 has no centre pixel; the mean of the four central rays is the optical axis.
+        let cam = DepthCamera::default_thesis();
+        let pose = camera_pose(&Point3::origin(), yaw);
+        let sum: Vector3<f32> = [(49, 49), (49, 50), (50, 49), (50, 50)]
+            .iter()
+            .map(|&(u, v)| cam.intrinsics.ray(u, v))
+            .sum();
+        (pose.rotation * sum).normalize()
+    }
+
+    #[test]
+    fn optical_axis_follows_yaw() {
+        let x = centre_ray_map(0.0);
+        assert!((x - Vector3::x()).norm() < 1e-5, "{x}");
+        let y = centre_ray_map(90f32.to_radians());
+        assert!((y - Vector3::y()).norm() < 1e-5, "{y}");
+    }
+
+    #[test]
+    fn image_rows_go_down_and_columns_go_right() {
+        let cam = DepthCamera::default_thesis();
+        let pose = camera_pose(&Point3::origin(), 0.0);
+        let top = pose.rotation * cam.intrinsics.ray(50, 0);
+        assert!(top.z > 0.3, "{top}");
+        let bottom = pose.rotation * cam.intrinsics.ray(50, 99);
+        assert!(bottom.z < -0.3, "{bottom}");
+        // Looking along +x with z up, the right edge of the image is towards −y.
+        let right = pose.rotation * cam.intrinsics.ray(99, 50);
+        assert!(right.y < -0.3, "{right}");
+    }
+
+    #[test]
+    fn pose_agrees_with_the_core() {
+        let p = Point3::new(1.0, -2.0, 1.5);
+        for yaw in [-2.0f32, 0.0, 0.7, 3.0] {
+            let ours = camera_pose(&p, yaw);
+            let core = harmonic_core::explore::forward_camera_pose(&p, yaw);
+            assert!(ours.rotation.angle_to(&core.rotation) < 1e-5, "yaw {yaw}");
+            assert_eq!(ours.translation, core.translation);
+        }
+    }
+
+    fn wall_ahead() -> World {
+        // Wall face at x = 3 m, filling the view of a camera at x = 1.
+        World::new(
+            "wall",
+            Aabb::from_arrays([-20.0, -20.0, -20.0], [20.0, 20.0, 20.0]),
+            vec![Aabb::from_arrays([3.0, -20.0, -20.0], [3.2, 20.0, 20.0])],
+        )
+    }
+
+    #[test]
+    fn flat_wall_has_constant_depth() {
+        let cam = DepthCamera::default_thesis();
+        let pose = camera_pose(&Point3::new(1.0, 0.0, 1.0), 0.0);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let mut depth = Vec::new();
+        cam.render(&wall_ahead(), &pose, &mut rng, &mut depth);
+        assert_eq!(depth.len(), 100 * 100);
+        let centre = depth[50 * 100 + 50];
+        assert!(centre == 2000 || centre == 2001, "{centre}");
+        for &d in &depth {
+            assert!(d.abs_diff(centre) <= 1, "{d} vs {centre}");
+        }
+    }
+
+    #[test]
+    fn noise_off_is_exact_and_deterministic() {
+        let cam = DepthCamera::default_thesis();
+        let pose = camera_pose(&Point3::new(1.0, 0.0, 1.0), 0.0);
+        let mut a = Vec::new();
+        let mut b = Vec::new();
+        cam.render(&wall_ahead(), &pose, &mut ChaCha8Rng::seed_from_u64(1), &mut a);
+        cam.render(&wall_ahead(), &pose, &mut ChaCha8Rng::seed_from_u64(2), &mut b);
+        assert_eq!(a, b);
+        // A corner pixel: its ray is longer than the axis but its z is the same 2 m.
+        let corner = a[0];
+        assert!(corner == 2000 || corner == 2001, "{corner}");
+    }
+
+    #[test]
+    fn nothing_in_view_gives_no_return() {
+        let cam = DepthCamera::default_thesis();
+        let pose = camera_pose(&Point3::new(1.0, 0.0, 1.0), 180f32.to_radians());
+        let mut depth = Vec::new();
+        cam.render(
+            &wall_ahead(),
+            &pose,
+            &mut ChaCha8Rng::seed_from_u64(1),
+            &mut depth,
+        );
+        assert!(depth.iter().all(|&d| d == 0));
+    }
+
+    #[test]
+    fn stereo_noise_is_unbiased_in_disparity_and_drops_far_returns() {
+        let noise = StereoNoise::default();
+        let fx = DepthCamera::default_thesis().intrinsics.fx();
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let z = 2.0;
+        let n = 4000;
+        // True disparity ≈ 3.9 px; a 3.4 σ error drops a return now and then.
+        let d: Vec<f32> = (0..n)
+            .filter_map(|_| noise.perturb(z, fx, &mut rng))
+            .map(|z| fx * noise.baseline_m / z)
+            .collect();
+        assert!(d.len() > n * 99 / 100, "{}", d.len());
+        let mean_d = d.iter().sum::<f32>() / d.len() as f32;
+        assert!((mean_d - fx * noise.baseline_m / z).abs() < 0.1, "{mean_d}");
+        let var = d.iter().map(|x| (x - mean_d).powi(2)).sum::<f32>() / d.len() as f32;
+        assert!((var.sqrt() - noise.sigma_px).abs() < 0.1, "{var}");
+        // At 100 m the true disparity is ~0.08 px: most samples give no return.
+        let dropped = (0..n)
+            .filter(|_| noise.perturb(100.0, fx, &mut rng).is_none())
+            .count();
+        assert!(dropped > n / 2, "{dropped}");
+    }
+
+    #[test]
+    fn depth_encoding_rounds_up_and_saturates() {
+        assert_eq!(encode_depth_mm(2.0), 2000);
+        assert_eq!(encode_depth_mm(1.9995), 2000);
+        assert_eq!(encode_depth_mm(0.0), 1);
+        assert_eq!(encode_depth_mm(1000.0), MAX_DEPTH_MM);
+    }
+}

@@ -1,0 +1,13 @@
+//! # harmonic-sim
+//!
+//! The `std` host simulator around `harmonic-core`: box worlds from scenario files
+//! ([`scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`camera`]),
+//! a multirotor that flies the core's plans ([`sim`]), and ground-truth coverage metrics
+//! ([`metrics`]). The simulator renders and flies; every decision is the core's.
+#![warn(missing_docs)]
+
+pub mod camera;
+pub mod metrics;
+pub mod scenario;
+pub mod sim;
+pub mod world;

@@ -1,0 +1,525 @@
+//! The closed loop: render a depth frame, hand it to the core, fly the core's plan, repeat.
+//!
+//! The simulator never plans for the core. Each step it
+//!
+//! 1. renders the depth camera at the vehicle's true pose and passes the frame and camera pose to
+//!    [`Explorer::integrate`];
+//! 2. asks [`Explorer::plan`] where to go;
+//! 3. flies the returned waypoints with simple multirotor kinematics (speed and yaw-rate
+//!    limits, fixed time step), for at most `replan_distance` metres (receding horizon) or the
+//!    whole path with `follow_full_path`, turning to the goal yaw on arrival;
+//! 4. checks the vehicle's body sphere against the true world at every time step and counts
+//!    collisions.
+//!
+//! It stops when the core reports `Complete`, after three consecutive `Hold`s (the fault is the
+//! termination reason), or at the scan limit.
+
+use std::time::Instant;
+
+use harmonic_core::camera::DepthFrame;
+use harmonic_core::domain::Label;
+use harmonic_core::explore::{
+    forward_camera_pose, Clock, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
+};
+use harmonic_core::map::{Dims, MapGeometry};
+use nalgebra::Point3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::camera::DepthCamera;
+use crate::metrics::{Coverage, GroundTruth};
+use crate::scenario::Scenario;
+
+/// Simulation settings.
+#[derive(Debug, Clone)]
+pub struct SimConfig {
+    /// Core configuration (vehicle radius, solver, …).
+    pub explorer: ExplorerConfig,
+    /// Depth camera.
+    pub camera: DepthCamera,
+    /// Radius of the vehicle's physical body for collision checks, metres.
+    pub body_radius: f32,
+    /// Maximum speed, m/s.
+    pub max_speed: f32,
+    /// Maximum yaw rate, rad/s.
+    pub max_yaw_rate: f32,
+    /// Integration time step, s.
+    pub dt: f32,
+    /// Distance flown before the next scan and replan, metres.
+    pub replan_distance: f32,
+    /// Fly every streamline to its end before scanning again (the paper's mode).
+    pub follow_full_path: bool,
+    /// Stop after this many scans.
+    pub max_scans: u32,
+    /// Seed for sensor noise.
+    pub seed: u64,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        Self {
+            explorer: ExplorerConfig::default(),
+            camera: DepthCamera::default_thesis(),
+            body_radius: 0.15,
+            max_speed: 1.0,
+            max_yaw_rate: 90f32.to_radians(),
+            dt: 0.05,
+            replan_distance: 1.0,
+            follow_full_path: false,
+            max_scans: 3000,
+            seed: 1,
+        }
+    }
+}
+
+/// Fault counters as they appear in the report.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct ErrorReport {
+    /// Frames the core rejected.
+    pub frames_rejected: u32,
+    /// Plans refused for a bad pose.
+    pub bad_pose: u32,
+    /// Plans refused with the vehicle outside the grid.
+    pub vehicle_outside_grid: u32,
+    /// Plans refused with the vehicle in non-free space.
+    pub vehicle_not_free: u32,
+    /// Escapes from inflated space.
+    pub escapes: u32,
+    /// Streamlines that failed.
+    pub streamline_failures: u32,
+    /// Solves that hit the iteration cap.
+    pub solver_not_converged: u32,
+    /// Sealing events.
+    pub seals: u32,
+}
+
+impl From<ErrorCounters> for ErrorReport {
+    fn from(e: ErrorCounters) -> Self {
+        Self {
+            frames_rejected: e.frames_rejected,
+            bad_pose: e.bad_pose,
+            vehicle_outside_grid: e.vehicle_outside_grid,
+            vehicle_not_free: e.vehicle_not_free,
+            escapes: e.escapes,
+            streamline_failures: e.streamline_failures,
+            solver_not_converged: e.solver_not_converged,
+            seals: e.seals,
+        }
+    }
+}
+
+/// One scan-and-plan step.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepRecord {
+    /// Step number (= scans so far).
+    pub step: u32,
+    /// Vehicle position at the scan, map frame.
+    pub position: [f32; 3],
+    /// Vehicle yaw at the scan, radians.
+    pub yaw: f32,
+    /// "goal", "escape", "complete" or "hold:<fault>".
+    pub outcome: String,
+    /// Frontier voxels in the vehicle's component.
+    pub frontier: u32,
+    /// Interior unknowns solved for.
+    pub unknowns: u32,
+    /// Free coverage after this scan.
+    pub coverage_free: f64,
+    /// Integration time, ms.
+    pub integrate_ms: f64,
+    /// Domain build time, ms.
+    pub domain_ms: f64,
+    /// Solve time, ms.
+    pub solve_ms: f64,
+    /// Streamline and goal time, ms.
+    pub streamline_ms: f64,
+    /// Solver iterations.
+    pub solver_iterations: u32,
+    /// Final relative residual.
+    pub solver_residual: f32,
+    /// Solver cell updates.
+    pub solver_updates: u64,
+    /// Streamline length, metres.
+    pub streamline_m: f32,
+    /// Path flown so far, metres.
+    pub path_length_m: f64,
+}
+
+/// Mean and maximum of a per-step time.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct TimeStat {
+    /// Mean, ms.
+    pub mean_ms: f64,
+    /// Maximum, ms.
+    pub max_ms: f64,
+}
+
+impl TimeStat {
+    fn of(values: impl Iterator<Item = f64>) -> Self {
+        let (mut n, mut sum, mut max) = (0usize, 0.0f64, 0.0f64);
+        for v in values {
+            n += 1;
+            sum += v;
+            max = max.max(v);
+        }
+        Self {
+            mean_ms: if n == 0 { 0.0 } else { sum / n as f64 },
+            max_ms: max,
+        }
+    }
+}
+
+/// Per-phase timing over a run.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct Timing {
+    /// Depth integration.
+    pub integrate: TimeStat,
+    /// Domain build.
+    pub domain: TimeStat,
+    /// Laplace solve.
+    pub solve: TimeStat,
+    /// Streamline and goal.
+    pub streamline: TimeStat,
+}
+
+/// Everything a run produced; serialised as `report.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// Scenario name.
+    pub scenario: String,
+    /// Planner name.
+    pub planner: String,
+    /// Solver name.
+    pub solver: String,
+    /// "complete", "scan_limit" or "stuck:<fault>".
+    pub termination: String,
+    /// Free-space coverage at the end.
+    pub coverage_free: f64,
+    /// Surface coverage at the end.
+    pub coverage_surface: f64,
+    /// Reachable free voxels the map holds as occupied.
+    pub free_marked_occupied: usize,
+    /// Path flown, metres.
+    pub path_length_m: f64,
+    /// Depth frames integrated.
+    pub scans: u32,
+    /// Collision events (body sphere entering an obstacle).
+    pub collisions: u32,
+    /// Voxel updates by integration.
+    pub integration_ops: u64,
+    /// Solver cell updates.
+    pub planning_ops: u64,
+    /// Simulated flight time, s.
+    pub flight_time_s: f64,
+    /// Wall-clock time of the run, s.
+    pub wall_time_s: f64,
+    /// Grid size.
+    pub grid: [usize; 3],
+    /// Voxel edge, metres.
+    pub resolution: f32,
+    /// Reachable free voxels in the ground truth.
+    pub reachable_free_voxels: usize,
+    /// Unknown voxels sealed as unobservable at the end.
+    pub sealed_voxels: u32,
+    /// Per-phase timing.
+    pub timing: Timing,
+    /// Fault counters.
+    pub errors: ErrorReport,
+    /// Per-step records.
+    pub steps: Vec<StepRecord>,
+}
+
+/// Errors that stop a run before it starts.
+#[derive(Debug)]
+pub enum SimError {
+    /// The scenario's grid does not fit the core's limits.
+    Grid(String),
+    /// The core refused the configuration.
+    Config(String),
+}
+
+impl std::fmt::Display for SimError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SimError::Grid(s) => write!(f, "grid: {s}"),
+            SimError::Config(s) => write!(f, "explorer configuration: {s}"),
+        }
+    }
+}
+
+impl std::error::Error for SimError {}
+
+/// Host-owned buffers for one explorer.
+pub struct HostStorage {
+    log_odds: Vec<i8>,
+    stamps: Vec<u8>,
+    labels: Vec<Label>,
+    phi: Vec<f32>,
+    queue: Vec<u32>,
+}
+
+impl HostStorage {
+    /// Buffers for `dims`.
+    pub fn new(dims: &Dims) -> Self {
+        let n = dims.len();
+        Self {
+            log_odds: vec![0; n],
+            stamps: vec![0; n],
+            labels: vec![Label::Outside; n],
+            phi: vec![0.0; n],
+            queue: vec![0; 16 * 1024],
+        }
+    }
+    /// Lends the buffers to an explorer.
+    pub fn lend(&mut self) -> ExplorerStorage<'_> {
+        ExplorerStorage {
+            log_odds: &mut self.log_odds,
+            stamps: &mut self.stamps,
+            labels: &mut self.labels,
+            phi: &mut self.phi,
+            queue: &mut self.queue,
+        }
+    }
+}
+
+/// The map geometry a scenario is explored on.
+pub fn scenario_geometry(scenario: &Scenario) -> Result<MapGeometry, SimError> {
+    let [nx, ny, nz] = scenario.grid_dims();
+    let dims = Dims::new(nx, ny, nz).map_err(|e| SimError::Grid(format!("{nx}×{ny}×{nz}: {e:?}")))?;
+    MapGeometry::new(dims, scenario.world.bounds.min, scenario.resolution)
+        .map_err(|e| SimError::Grid(format!("{e:?}")))
+}
+
+/// Nanosecond host clock for the core's phase timing.
+struct HostClock(Instant);
+
+impl Clock for HostClock {
+    fn ticks(&mut self) -> u64 {
+        self.0.elapsed().as_nanos() as u64
+    }
+}
+
+fn ms(ns: u64) -> f64 {
+    ns as f64 * 1e-6
+}
+
+/// The simulated multirotor.
+#[derive(Debug, Clone, Copy)]
+pub struct Vehicle {
+    /// Position, map frame.
+    pub position: Point3<f32>,
+    /// Yaw about map z, radians.
+    pub yaw: f32,
+}
+
+/// What one flight leg did.
+#[derive(Debug, Clone, Copy, Default)]
+struct Leg {
+    distance: f64,
+    time: f64,
+    collisions: u32,
+}
+
+fn wrap_angle(a: f32) -> f32 {
+    let mut a = a % std::f32::consts::TAU;
+    if a > std::f32::consts::PI {
+        a -= std::f32::consts::TAU;
+    } else if a < -std::f32::consts::PI {
+        a += std::f32::consts::TAU;
+    }
+    a
+}
+
+impl Vehicle {
+    fn slew_yaw(&mut self, target: f32, max_step: f32) -> bool {
+        let e = wrap_angle(target - self.yaw);
+        if e.abs() <= max_step {
+            self.yaw = wrap_angle(target);
+            true
+        } else {
+            self.yaw = wrap_angle(self.yaw + max_step * e.signum());
+            false
+        }
+    }
+
+    /// Flies along `waypoints` for at most `budget` metres, then (if the end was reached) turns
+    /// to the goal yaw.
+    fn fly(
+        &mut self,
+        waypoints: &[Point3<f32>],
+        goal: &Goal,
+        budget: f32,
+        cfg: &SimConfig,
+        world: &crate::world::World,
+    ) -> Leg {
+        let mut leg = Leg::default();
+        let step_len = cfg.max_speed * cfg.dt;
+        let yaw_step = cfg.max_yaw_rate * cfg.dt;
+        let mut colliding = world.sphere_collides(&self.position, cfg.body_radius);
+        let mut check = |p: &Point3<f32>, leg: &mut Leg| {
+            let now = world.sphere_collides(p, cfg.body_radius);
+            if now && !colliding {
+                leg.collisions += 1;
+            }
+            colliding = now;
+        };
+        let mut travelled = 0.0f32;
+        for w in waypoints.iter() {
+            loop {
+                let seg = w - self.position;
+                let dist = seg.norm();
+                if dist < 1e-5 {
+                    break;
+                }
+                if travelled >= budget {
+                    return leg;
+                }
+                let s = step_len.min(dist).min(budget - travelled);
+                let horizontal = (seg.x * seg.x + seg.y * seg.y).sqrt();
+                if horizontal > 0.2 * dist {
+                    self.slew_yaw(seg.y.atan2(seg.x), yaw_step);
+                }
+                self.position += seg * (s / dist);
+                travelled += s;
+                leg.distance += f64::from(s);
+                leg.time += f64::from(cfg.dt);
+                check(&self.position, &mut leg);
+            }
+        }
+        // Arrived: look where the planner asked.
+        for _ in 0..1000 {
+            if self.slew_yaw(goal.yaw, yaw_step) {
+                break;
+            }
+            leg.time += f64::from(cfg.dt);
+        }
+        leg
+    }
+}
+
+/// Runs one exploration of `scenario` to termination. `progress` is called after every step.
+pub fn run(
+    scenario: &Scenario,
+    cfg: &SimConfig,
+    mut progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    let wall = Instant::now();
+    let geometry = scenario_geometry(scenario)?;
+    let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
+    let mut storage = HostStorage::new(&geometry.dims());
+    let mut explorer = Explorer::new(geometry, cfg.explorer, storage.lend())
+        .map_err(|e| SimError::Config(format!("{e:?}")))?;
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let mut vehicle = Vehicle {
+        position: scenario.start_position,
+        yaw: scenario.start_yaw,
+    };
+    let mut depth = Vec::new();
+    let mut clock = HostClock(Instant::now());
+    let mut steps = Vec::new();
+    let (mut path, mut flight_time, mut collisions) = (0.0f64, 0.0f64, 0u32);
+    let mut consecutive_holds = 0u32;
+    let mut termination = String::from("scan_limit");
+    let budget = if cfg.follow_full_path {
+        f32::INFINITY
+    } else {
+        cfg.replan_distance
+    };
+
+    for step in 1..=cfg.max_scans {
+        let pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
+        cfg.camera.render(&scenario.world, &pose, &mut rng, &mut depth);
+        let t0 = Instant::now();
+        let integrated = DepthFrame::new(cfg.camera.intrinsics, &depth)
+            .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))
+            .map(|frame| explorer.integrate(&frame, &pose));
+        let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
+        integrated?.ok();
+
+        let outcome = explorer.plan_timed(&vehicle.position, vehicle.yaw, &mut clock);
+        let status = *explorer.status();
+        let coverage = truth.coverage(explorer.map());
+        let label = match outcome {
+            PlanOutcome::Goal(g) if g.escape => "escape".to_string(),
+            PlanOutcome::Goal(_) => "goal".to_string(),
+            PlanOutcome::Complete => "complete".to_string(),
+            PlanOutcome::Hold(f) => format!("hold:{f:?}"),
+        };
+        let record = StepRecord {
+            step,
+            position: vehicle.position.coords.into(),
+            yaw: vehicle.yaw,
+            outcome: label,
+            frontier: status.domain.frontier,
+            unknowns: status.domain.interior,
+            coverage_free: coverage.free,
+            integrate_ms,
+            domain_ms: ms(status.phase_ticks.domain),
+            solve_ms: ms(status.phase_ticks.solve),
+            streamline_ms: ms(status.phase_ticks.streamline),
+            solver_iterations: status.solve.iterations,
+            solver_residual: status.solve.residual,
+            solver_updates: status.solve.cell_updates,
+            streamline_m: status.streamline.map(|s| s.length).unwrap_or(0.0),
+            path_length_m: path,
+        };
+        progress(&record);
+        steps.push(record);
+
+        match outcome {
+            PlanOutcome::Complete => {
+                termination = "complete".into();
+                break;
+            }
+            PlanOutcome::Hold(fault) => {
+                consecutive_holds += 1;
+                if consecutive_holds >= 3 {
+                    termination = format!("stuck:{fault:?}");
+                    break;
+                }
+            }
+            PlanOutcome::Goal(goal) => {
+                consecutive_holds = 0;
+                let waypoints: Vec<Point3<f32>> = explorer.waypoints().to_vec();
+                let leg = vehicle.fly(&waypoints, &goal, budget, cfg, &scenario.world);
+                path += leg.distance;
+                flight_time += leg.time;
+                collisions += leg.collisions;
+            }
+        }
+    }
+
+    let status = *explorer.status();
+    let coverage: Coverage = truth.coverage(explorer.map());
+    let timing = Timing {
+        integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
+        domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
+        solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
+        streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
+    };
+    let dims = geometry.dims();
+    Ok(Report {
+        scenario: scenario.world.name.clone(),
+        planner: "harmonic".into(),
+        solver: "gs".into(),
+        termination,
+        coverage_free: coverage.free,
+        coverage_surface: coverage.surface,
+        free_marked_occupied: coverage.free_marked_occupied,
+        path_length_m: path,
+        scans: status.frames,
+        collisions,
+        integration_ops: status.integration_ops,
+        planning_ops: status.planning_ops,
+        flight_time_s: flight_time,
+        wall_time_s: wall.elapsed().as_secs_f64(),
+        grid: [dims.nx(), dims.ny(), dims.nz()],
+        resolution: geometry.resolution(),
+        reachable_free_voxels: truth.reachable_free(),
+        sealed_voxels: status.map.sealed,
+        timing,
+        errors: status.errors.into(),
+        steps,
+    })
+}

@@ -1,0 +1,282 @@
+//! Ground-truth worlds: a bounded region of free space with solid axis-aligned boxes in it.
+//!
+//! The simulator renders depth images from a [`World`] ([`World::raycast`]), checks the vehicle
+//! against it ([`World::sphere_collides`]) and builds the ground-truth voxel grid that coverage
+//! is measured against ([`World::cell_occupied`]). Everything is in the map frame: right-handed,
+//! z up, metres.
+
+use nalgebra::{Point3, Vector3};
+
+/// A solid axis-aligned box, `min` ≤ `max` on every axis (map frame, metres).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Aabb {
+    /// Corner with the smallest coordinates.
+    pub min: Point3<f32>,
+    /// Corner with the largest coordinates.
+    pub max: Point3<f32>,
+}
+
+impl Aabb {
+    /// Box spanning `min` to `max` (not checked; see [`Aabb::is_valid`]).
+    pub fn new(min: Point3<f32>, max: Point3<f32>) -> Self {
+        Self { min, max }
+    }
+
+    /// Box from corner coordinate arrays, as scenario files write them.
+    pub fn from_arrays(min: [f32; 3], max: [f32; 3]) -> Self {
+        Self::new(Point3::from(min), Point3::from(max))
+    }
+
+    /// True if every coordinate is finite and `min < max` on every axis.
+    pub fn is_valid(&self) -> bool {
+        (0..3).all(|i| self.min[i].is_finite() && self.max[i].is_finite() && self.min[i] < self.max[i])
+    }
+
+    /// Size along each axis.
+    pub fn extent(&self) -> Vector3<f32> {
+        self.max - self.min
+    }
+
+    /// Centre point.
+    pub fn center(&self) -> Point3<f32> {
+        nalgebra::center(&self.min, &self.max)
+    }
+
+    /// Volume, m³.
+    pub fn volume(&self) -> f32 {
+        let e = self.extent();
+        e.x * e.y * e.z
+    }
+
+    /// True if `p` lies inside the box or on its surface.
+    pub fn contains(&self, p: &Point3<f32>) -> bool {
+        (0..3).all(|i| self.min[i] <= p[i] && p[i] <= self.max[i])
+    }
+
+    /// Squared Euclidean distance from `p` to the box (0 inside).
+    pub fn distance_squared_to_point(&self, p: &Point3<f32>) -> f32 {
+        (0..3)
+            .map(|i| {
+                let d = (self.min[i] - p[i]).max(p[i] - self.max[i]).max(0.0);
+                d * d
+            })
+            .sum()
+    }
+
+    /// Euclidean distance from `p` to the box (0 inside).
+    pub fn distance_to_point(&self, p: &Point3<f32>) -> f32 {
+        self.distance_squared_to_point(p).sqrt()
+    }
+
+    /// Euclidean distance between two boxes (0 if they touch or overlap).
+    pub fn distance_to(&self, other: &Aabb) -> f32 {
+        (0..3)
+            .map(|i| {
+                let d = (other.min[i] - self.max[i])
+                    .max(self.min[i] - other.max[i])
+                    .max(0.0);
+                d * d
+            })
+            .sum::<f32>()
+            .sqrt()
+    }
+
+    /// True if the interiors of the box and the open box `(min, max)` overlap by more than
+    /// `eps` on every axis; boxes that merely touch (or overlap by less than `eps`) do not.
+    pub fn overlaps_interior(&self, min: &Point3<f32>, max: &Point3<f32>, eps: f32) -> bool {
+        (0..3).all(|i| min[i] < self.max[i] - eps && max[i] > self.min[i] + eps)
+    }
+
+    /// Slab test: distance along the ray `origin + t * dir` at which it enters the box, if
+    /// that happens for some `t` in `[0, t_max]`. `inv_dir` is the component-wise reciprocal
+    /// of `dir`. A ray starting inside the box enters at `t = 0`.
+    pub fn ray_entry(
+        &self,
+        origin: &Point3<f32>,
+        dir: &Vector3<f32>,
+        inv_dir: &Vector3<f32>,
+        t_max: f32,
+    ) -> Option<f32> {
+        let mut t0 = 0.0f32;
+        let mut t1 = t_max;
+        for i in 0..3 {
+            if dir[i] == 0.0 {
+                // Parallel to this slab: inside it for all t, or never.
+                if origin[i] < self.min[i] || origin[i] > self.max[i] {
+                    return None;
+                }
+                continue;
+            }
+            let a = (self.min[i] - origin[i]) * inv_dir[i];
+            let b = (self.max[i] - origin[i]) * inv_dir[i];
+            let (near, far) = if a <= b { (a, b) } else { (b, a) };
+            t0 = t0.max(near);
+            t1 = t1.min(far);
+            if t0 > t1 {
+                return None;
+            }
+        }
+        Some(t0)
+    }
+}
+
+/// A world: free space inside `bounds`, minus the solid `boxes`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct World {
+    /// Human-readable name (the scenario name).
+    pub name: String,
+    /// Region the vehicle must stay inside; the map covers exactly this box.
+    pub bounds: Aabb,
+    /// Solid obstacles: walls, slabs, furniture. They may touch or overlap.
+    pub boxes: Vec<Aabb>,
+}
+
+impl World {
+    /// A world with the given name, bounds and obstacles.
+    pub fn new(name: impl Into<String>, bounds: Aabb, boxes: Vec<Aabb>) -> Self {
+        Self {
+            name: name.into(),
+            bounds,
+            boxes,
+        }
+    }
+
+    /// Distance along the unit direction `dir` from `origin` to the first box surface it hits,
+    /// or `None` if nothing is hit within `max_dist`. A ray starting inside a box hits at 0.
+    pub fn raycast(&self, origin: &Point3<f32>, dir: &Vector3<f32>, max_dist: f32) -> Option<f32> {
+        let inv_dir = dir.map(|c| 1.0 / c);
+        let mut best: Option<f32> = None;
+        let mut t_max = max_dist;
+        for b in &self.boxes {
+            if let Some(t) = b.ray_entry(origin, dir, &inv_dir, t_max) {
+                best = Some(t);
+                t_max = t;
+                if t == 0.0 {
+                    break;
+                }
+            }
+        }
+        best
+    }
+
+    /// True if the sphere intersects any box or is not entirely inside `bounds`.
+    pub fn sphere_collides(&self, center: &Point3<f32>, radius: f32) -> bool {
+        self.first_box_within(center, radius).is_some() || !self.sphere_inside_bounds(center, radius)
+    }
+
+    /// True if the sphere lies entirely inside `bounds` (touching counts as inside).
+    pub fn sphere_inside_bounds(&self, center: &Point3<f32>, radius: f32) -> bool {
+        (0..3).all(|i| center[i] - radius >= self.bounds.min[i] && center[i] + radius <= self.bounds.max[i])
+    }
+
+    /// Index of the first box closer than `radius` to `center`, if any.
+    pub fn first_box_within(&self, center: &Point3<f32>, radius: f32) -> Option<usize> {
+        let r2 = radius * radius;
+        self.boxes
+            .iter()
+            .position(|b| b.distance_squared_to_point(center) < r2)
+    }
+
+    /// Distance from `p` to the nearest box (`f32::INFINITY` in a world without boxes).
+    pub fn distance_to_nearest_box(&self, p: &Point3<f32>) -> f32 {
+        self.boxes
+            .iter()
+            .map(|b| b.distance_squared_to_point(p))
+            .fold(f32::INFINITY, f32::min)
+            .sqrt()
+    }
+
+    /// True if the open cell `(min, max)` intersects the interior of any box by more than
+    /// [`World::CELL_EPSILON`]: a box that only touches a face of the cell does not occupy it.
+    pub fn cell_occupied(&self, min: &Point3<f32>, max: &Point3<f32>) -> bool {
+        self.boxes
+            .iter()
+            .any(|b| b.overlaps_interior(min, max, Self::CELL_EPSILON))
+    }
+
+    /// Tolerance of [`World::cell_occupied`], metres: absorbs the rounding of grid-aligned
+    /// coordinates such as 0.1 m, which f32 cannot represent exactly.
+    pub const CELL_EPSILON: f32 = 1e-4;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn room() -> World {
+        // A 4 × 4 × 3 room with a 0.2 m wall at x ∈ [3, 3.2] and a cube on the floor.
+        World::new(
+            "test",
+            Aabb::from_arrays([0.0, 0.0, 0.0], [4.0, 4.0, 3.0]),
+            vec![
+                Aabb::from_arrays([3.0, 0.0, 0.0], [3.2, 4.0, 3.0]),
+                Aabb::from_arrays([1.0, 2.0, 0.0], [1.5, 2.5, 0.5]),
+            ],
+        )
+    }
+
+    #[test]
+    fn raycast_hits_nearest_box() {
+        let w = room();
+        let o = Point3::new(1.0, 1.0, 1.0);
+        let t = w.raycast(&o, &Vector3::x(), 60.0).unwrap();
+        assert!((t - 2.0).abs() < 1e-6, "{t}");
+        // Looking down at the cube from above hits its top face.
+        let o = Point3::new(1.25, 2.25, 2.0);
+        let t = w.raycast(&o, &-Vector3::z(), 60.0).unwrap();
+        assert!((t - 1.5).abs() < 1e-6, "{t}");
+    }
+
+    #[test]
+    fn raycast_misses_beyond_max_dist_and_behind() {
+        let w = room();
+        let o = Point3::new(1.0, 1.0, 1.0);
+        assert_eq!(w.raycast(&o, &Vector3::x(), 1.5), None);
+        assert_eq!(w.raycast(&o, &-Vector3::x(), 60.0), None);
+        assert_eq!(w.raycast(&o, &Vector3::z(), 60.0), None);
+    }
+
+    #[test]
+    fn raycast_oblique() {
+        let w = room();
+        let o = Point3::new(1.0, 1.0, 1.0);
+        let dir = Vector3::new(1.0, 1.0, 0.0).normalize();
+        let t = w.raycast(&o, &dir, 60.0).unwrap();
+        assert!((t - 2.0 * std::f32::consts::SQRT_2).abs() < 1e-5, "{t}");
+    }
+
+    #[test]
+    fn sphere_collides_with_boxes_and_bounds() {
+        let w = room();
+        assert!(!w.sphere_collides(&Point3::new(2.0, 1.0, 1.0), 0.5));
+        assert!(w.sphere_collides(&Point3::new(2.7, 1.0, 1.0), 0.5));
+        assert!(w.sphere_collides(&Point3::new(0.2, 1.0, 1.0), 0.5));
+        assert!(w.sphere_collides(&Point3::new(1.25, 2.25, 0.8), 0.5));
+        assert_eq!(w.first_box_within(&Point3::new(2.7, 1.0, 1.0), 0.5), Some(0));
+    }
+
+    #[test]
+    fn cell_occupied_ignores_touching_faces() {
+        let w = room();
+        let r = 0.1f32;
+        // The cell just left of the wall touches its face: free.
+        let min = Point3::new(29.0 * r, 10.0 * r, 10.0 * r);
+        assert!(!w.cell_occupied(&min, &(min + Vector3::repeat(r))));
+        // The first cell inside the wall: occupied.
+        let min = Point3::new(30.0 * r, 10.0 * r, 10.0 * r);
+        assert!(w.cell_occupied(&min, &(min + Vector3::repeat(r))));
+        // The cell on top of the cube touches its top face only: free.
+        let min = Point3::new(10.0 * r, 20.0 * r, 5.0 * r);
+        assert!(!w.cell_occupied(&min, &(min + Vector3::repeat(r))));
+    }
+
+    #[test]
+    fn box_distance() {
+        let a = Aabb::from_arrays([0.0; 3], [1.0; 3]);
+        let b = Aabb::from_arrays([2.0, 0.0, 0.0], [3.0, 1.0, 1.0]);
+        let c = Aabb::from_arrays([1.0, 1.0, 0.0], [2.0, 2.0, 1.0]);
+        assert!((a.distance_to(&b) - 1.0).abs() < 1e-6);
+        assert_eq!(a.distance_to(&c), 0.0);
+        assert!((a.distance_to_point(&Point3::new(2.0, 2.0, 0.5)) - std::f32::consts::SQRT_2).abs() < 1e-6);
+    }
+}
