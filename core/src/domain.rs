@@ -3,14 +3,17 @@
 //! From the map, the domain is built in three steps:
 //!
 //! 1. **Candidates** — observed free voxels.
-//! 2. **Erosion** — candidates closer than the vehicle radius to an occupied (or uncertain)
-//!    voxel, or to the grid edge, are removed: the obstacles are inflated by the vehicle's size
-//!    so that every domain voxel is a safe place for the vehicle's centre.
+//! 2. **Erosion** — candidates closer than the vehicle radius to an occupied, uncertain or
+//!    sealed voxel, or to the grid edge, are removed: obstacles are inflated by the vehicle's
+//!    size. Candidates closer than the radius to *unexplored* space become *fringe*: unknown
+//!    space may hide a wall, so the vehicle's body must not reach into it either. What remains
+//!    is safe: the whole body fits in observed free space.
 //! 3. **The vehicle's component** — a flood fill from the vehicle voxel through face-connected
-//!    candidates. The vehicle voxel becomes the source (Dirichlet φ = 1); reached candidates
-//!    with an unexplored face neighbour become frontiers (Dirichlet φ = 0) and the fill does not
-//!    continue through them; the rest are interior unknowns. Candidates not reached — other
-//!    components — are excluded, never solved.
+//!    safe voxels. The vehicle voxel becomes the source (Dirichlet φ = 1); reached voxels with a
+//!    fringe face neighbour (or, with a zero radius, an unexplored one) become frontiers
+//!    (Dirichlet φ = 0): the closest the vehicle may get to the unknown, looking into it. The
+//!    fill does not continue through them; the rest are interior unknowns. Safe voxels not
+//!    reached — other components — are excluded, never solved.
 //!
 //! Every face between a domain voxel and a non-domain voxel is a wall with zero flux: the
 //! cell-centred finite-volume Laplacian simply omits it (see [`crate::solve`]).
@@ -43,6 +46,9 @@ pub enum Label {
     Queued = 5,
     /// Build state: reached, waiting for a queue slot.
     Pending = 6,
+    /// Build state: free and clear of obstacles, but within the vehicle radius of unexplored
+    /// space.
+    Fringe = 7,
 }
 
 impl Label {
@@ -108,6 +114,12 @@ impl InflationStencil {
             radius_voxels: r,
         })
     }
+    /// The offsets, as signed voxel steps.
+    pub fn offsets(&self) -> impl Iterator<Item = [i32; 3]> + '_ {
+        self.offsets
+            .iter()
+            .map(|d| [i32::from(d[0]), i32::from(d[1]), i32::from(d[2])])
+    }
     /// Radius in voxels.
     pub fn radius_voxels(&self) -> f32 {
         self.radius_voxels
@@ -143,8 +155,10 @@ pub struct DomainStats {
     pub interior: u32,
     /// Frontier voxels (φ = 0) of the vehicle's component.
     pub frontier: u32,
-    /// Candidate voxels in other components (excluded).
+    /// Safe voxels in other components (excluded).
     pub excluded: u32,
+    /// Free voxels within the vehicle radius of unexplored space.
+    pub fringe: u32,
     /// Times the flood-fill queue overflowed and a sweep collected pending voxels.
     pub queue_sweeps: u32,
 }
@@ -196,7 +210,7 @@ pub fn build(
             let v = dims.voxel(i);
             let label = if i == vehicle_i {
                 Label::Source
-            } else if map.is_frontier(v) {
+            } else if touches_unexplored(map, labels, v) {
                 Label::Frontier
             } else {
                 Label::Interior
@@ -230,20 +244,70 @@ pub fn build(
     }
 
     for l in labels.iter_mut() {
-        if *l == Label::Candidate {
-            stats.excluded += 1;
-            *l = Label::Outside;
+        match *l {
+            Label::Candidate => {
+                stats.excluded += 1;
+                *l = Label::Outside;
+            }
+            Label::Fringe => {
+                stats.fringe += 1;
+                *l = Label::Outside;
+            }
+            _ => {}
         }
     }
-    stats.inflated = stats.free - stats.interior - stats.frontier - stats.excluded - 1;
+    stats.inflated = stats.free - stats.interior - stats.frontier - stats.excluded - stats.fringe - 1;
     Ok(stats)
 }
 
-/// Removes candidates within the stencil of any occupied/uncertain voxel or of the grid edge.
+/// A safe voxel borders the unknown if a face neighbour is fringe or itself unexplored.
+fn touches_unexplored(map: &VoxelMap<'_>, labels: &[Label], v: VoxelIndex) -> bool {
+    let mut touches = false;
+    map.dims().for_each_face_neighbour(v, |n| {
+        touches |= labels.get(n) == Some(&Label::Fringe) || map.is_unexplored(n);
+    });
+    touches
+}
+
+/// True for unexplored voxels with an observed voxel among their 26 neighbours: the nearest
+/// unexplored voxel to any observed one is always of this kind, so these are the only ones
+/// whose radius needs marking.
+fn on_unknown_boundary(map: &VoxelMap<'_>, v: VoxelIndex) -> bool {
+    let dims = map.dims();
+    for dz in -1..=1 {
+        for dy in -1..=1 {
+            for dx in -1..=1 {
+                if let Some(n) = dims.offset(v, [dx, dy, dz]) {
+                    if !map.is_unknown(dims.linear(n)) {
+                        return true;
+                    }
+                }
+            }
+        }
+    }
+    false
+}
+
+/// Removes candidates within the stencil of any occupied/uncertain/sealed voxel or of the grid
+/// edge, and marks those within the stencil of unexplored space as fringe.
 fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) {
     let dims = map.dims();
     for i in 0..dims.len() {
-        if matches!(map.occupancy(i), Occupancy::Occupied | Occupancy::Uncertain) {
+        if map.is_unexplored(i) {
+            let v = dims.voxel(i);
+            if on_unknown_boundary(map, v) {
+                for d in stencil.offsets() {
+                    if let Some(l) = dims.offset(v, d).and_then(|nb| labels.get_mut(dims.linear(nb))) {
+                        if *l == Label::Candidate {
+                            *l = Label::Fringe;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    for i in 0..dims.len() {
+        if matches!(map.occupancy(i), Occupancy::Occupied | Occupancy::Uncertain) || map.is_sealed(i) {
             let v = dims.voxel(i);
             for d in stencil.offsets.iter() {
                 let d = [i32::from(d[0]), i32::from(d[1]), i32::from(d[2])];
@@ -263,7 +327,7 @@ fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label])
         near * near >= r2 && far * far >= r2
     };
     for (i, l) in labels.iter_mut().enumerate() {
-        if *l == Label::Candidate {
+        if matches!(*l, Label::Candidate | Label::Fringe) {
             let v = dims.voxel(i);
             if !(edge_clear(v.x, dims.nx()) && edge_clear(v.y, dims.ny()) && edge_clear(v.z, dims.nz())) {
                 *l = Label::Outside;
@@ -516,8 +580,11 @@ pub(crate) mod tests {
         assert_eq!(at3(0, 0, 1), Label::Outside, "grid edge inflated");
         assert_eq!(at3(1, 1, 0), Label::Outside, "floor edge inflated");
         assert_eq!(at3(7, 1, 1), Label::Outside, "wall neighbour inflated");
-        assert_eq!(at3(2, 1, 1), Label::Interior);
-        assert!(stats.inflated > 0);
+        // The unknown column at x = 4 makes x = 3..=5 fringe: the vehicle stops one voxel short.
+        assert_eq!(at3(3, 1, 1), Label::Outside);
+        assert_eq!(at3(2, 1, 1), Label::Frontier);
+        assert_eq!(at3(1, 2, 1), Label::Interior);
+        assert!(stats.inflated > 0 && stats.fringe > 0);
     }
 
     #[test]

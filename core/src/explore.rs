@@ -34,15 +34,18 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use crate::camera::{DepthFrame, Intrinsics};
 use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
-use crate::map::{Dims, LogOddsParams, MapCounts, MapError, MapGeometry, VoxelIndex, VoxelMap};
+use crate::map::{Dims, LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use crate::solve::multigrid::{Method, Multigrid, MultigridStorage};
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
 use crate::streamline::{self, Field, StreamlineEnd, StreamlineError, StreamlineParams, Waypoints};
 
 /// Which Laplace solver plans with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum SolverKind {
-    /// Lexicographic Gauss-Seidel, the seed paper's solver.
+    /// Geometric multigrid: MGPCG when Krylov storage is lent, V-cycles otherwise.
     #[default]
+    Multigrid,
+    /// Lexicographic Gauss-Seidel, the seed paper's solver (reference and baseline).
     GaussSeidel,
 }
 
@@ -65,6 +68,11 @@ pub struct ExplorerConfig {
     pub view_margin: f32,
     /// Fruitless visits to the same frontier before the unknown behind it is sealed.
     pub stall_visits: u8,
+    /// Keep flying to the current goal, without re-solving, while its frontier voxel is still a
+    /// frontier and the rest of its path is still free of (inflated) obstacles. Without this a
+    /// receding-horizon caller can oscillate between two frontiers whose pull swaps as the
+    /// source moves.
+    pub commit_to_goal: bool,
 }
 
 impl Default for ExplorerConfig {
@@ -78,12 +86,15 @@ impl Default for ExplorerConfig {
             streamline: StreamlineParams::default(),
             view_margin: 0.8,
             stall_visits: 2,
+            commit_to_goal: true,
         }
     }
 }
 
 /// Buffers an explorer works in, each with at least one entry per voxel (`queue`: any length
-/// ≥ 1; a few thousand entries keep the flood fill to one pass).
+/// ≥ 1; a few thousand entries keep the flood fill to one pass). The multigrid buffers are sized
+/// by [`crate::solve::multigrid::scratch_size`]; they may be empty when the solver is Gauss-Seidel, and
+/// `krylov` may be empty to run plain V-cycles in less memory.
 pub struct ExplorerStorage<'a> {
     /// Map log-odds.
     pub log_odds: &'a mut [i8],
@@ -95,6 +106,12 @@ pub struct ExplorerStorage<'a> {
     pub phi: &'a mut [f32],
     /// Flood-fill queue.
     pub queue: &'a mut [u32],
+    /// Multigrid coarse-level values.
+    pub coarse_values: &'a mut [f32],
+    /// Multigrid coarse-level labels.
+    pub coarse_labels: &'a mut [Label],
+    /// MGPCG vectors (optional).
+    pub krylov: &'a mut [f32],
 }
 
 /// Why an explorer could not be built.
@@ -106,6 +123,8 @@ pub enum ConfigError {
     Domain(DomainError),
     /// A planning buffer is shorter than the grid.
     StorageTooSmall,
+    /// The multigrid scratch is too small for the grid.
+    Solver(SolveError),
 }
 
 /// Why a plan was not made or a frame not integrated. Each has a counter in [`ErrorCounters`].
@@ -225,6 +244,8 @@ pub struct Status {
     pub frames: u32,
     /// Plans made (any outcome).
     pub plans: u32,
+    /// Plans that kept the committed goal instead of re-solving.
+    pub plans_kept: u32,
     /// Total voxel updates by integration ("integration ops").
     pub integration_ops: u64,
     /// Total solver cell updates ("planning ops").
@@ -245,6 +266,7 @@ pub struct Explorer<'a> {
     labels: &'a mut [Label],
     phi: &'a mut [f32],
     queue: &'a mut [u32],
+    multigrid: Option<Multigrid<'a>>,
     waypoints: Waypoints,
     intrinsics: Option<Intrinsics>,
     last_goal: Option<Goal>,
@@ -266,10 +288,27 @@ impl<'a> Explorer<'a> {
             labels,
             phi,
             queue,
+            coarse_values,
+            coarse_labels,
+            krylov,
         } = storage;
         if labels.len() < n || phi.len() < n || queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
         }
+        let multigrid = match config.solver {
+            SolverKind::Multigrid => Some(
+                Multigrid::new(
+                    geometry.dims(),
+                    MultigridStorage {
+                        values: coarse_values,
+                        labels: coarse_labels,
+                        krylov,
+                    },
+                )
+                .map_err(ConfigError::Solver)?,
+            ),
+            SolverKind::GaussSeidel => None,
+        };
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, stamps).map_err(ConfigError::Map)?;
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
@@ -284,6 +323,7 @@ impl<'a> Explorer<'a> {
             labels,
             phi,
             queue,
+            multigrid,
             waypoints: Waypoints::new(),
             intrinsics: None,
             last_goal: None,
@@ -304,8 +344,8 @@ impl<'a> Explorer<'a> {
     pub fn labels(&self) -> &[Label] {
         self.labels
     }
-    /// φ of the last plan.
-    pub fn phi(&self) -> &[f32] {
+    /// The stored potential ψ = 1 − φ of the last plan (see [`crate::solve`]).
+    pub fn psi(&self) -> &[f32] {
         self.phi
     }
     /// Waypoints from the vehicle to the last goal (map frame).
@@ -347,6 +387,17 @@ impl<'a> Explorer<'a> {
     pub fn plan_timed(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> PlanOutcome {
         self.status.plans += 1;
         self.status.phase_ticks = PhaseTicks::default();
+        if self.config.commit_to_goal {
+            if let Some(goal) = self.last_goal.filter(|g| !g.escape) {
+                let t0 = clock.ticks();
+                let kept = self.keep_goal(position, &goal);
+                self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
+                if kept {
+                    self.status.plans_kept += 1;
+                    return PlanOutcome::Goal(goal);
+                }
+            }
+        }
         self.waypoints.clear();
         let outcome = self.plan_inner(position, yaw, clock);
         self.status.map = self.map.counts();
@@ -356,9 +407,65 @@ impl<'a> Explorer<'a> {
                 self.status.termination = Termination::Running;
                 self.last_goal = Some(g);
             }
-            PlanOutcome::Hold(_) => {}
+            PlanOutcome::Hold(_) => self.last_goal = None,
         }
         outcome
+    }
+
+    /// True (and the waypoints trimmed to start at the vehicle) if the committed goal still
+    /// stands: its frontier is still a frontier, the vehicle is on its path short of the goal,
+    /// and every voxel the rest of the path crosses is free and clear of inflated obstacles.
+    fn keep_goal(&mut self, position: &Point3<f32>, goal: &Goal) -> bool {
+        let geometry = *self.map.geometry();
+        let res = geometry.resolution();
+        let still_open = self.any_near(goal.frontier, self.frontier_reach(), |i| {
+            self.map.is_unexplored(i)
+        });
+        if !still_open || (goal.position - position).norm() <= 1.5 * res {
+            return false;
+        }
+        let Some((k, d)) = self
+            .waypoints
+            .iter()
+            .enumerate()
+            .map(|(k, w)| (k, (w - position).norm()))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+        else {
+            return false;
+        };
+        if d > 2.0 * res {
+            return false;
+        }
+        // Check the remaining path from the vehicle on.
+        let mut clear = true;
+        let mut from = *position;
+        for w in self.waypoints.iter().skip(k) {
+            integrate::traverse(&geometry, &from, w, |v| {
+                clear &= self.is_safe(v);
+                clear
+            });
+            if !clear {
+                return false;
+            }
+            from = *w;
+        }
+        // Drop the waypoints already passed; start from where the vehicle is.
+        let rest: Waypoints = core::iter::once(*position)
+            .chain(self.waypoints.iter().skip(k + 1).copied())
+            .collect();
+        self.waypoints = rest;
+        true
+    }
+
+    /// A voxel the vehicle's centre may pass: observed free, and nothing but observed free
+    /// space within the vehicle radius (the domain's rule, checked locally).
+    fn is_safe(&self, v: VoxelIndex) -> bool {
+        let dims = self.map.dims();
+        self.map.is_free(dims.linear(v))
+            && self.stencil.offsets().all(|d| {
+                dims.offset(v, d)
+                    .is_none_or(|n| self.map.occupancy(dims.linear(n)) == Occupancy::Free)
+            })
     }
 
     fn plan_inner(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> PlanOutcome {
@@ -394,10 +501,9 @@ impl<'a> Explorer<'a> {
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
             }
-            let solved = match self.config.solver {
-                SolverKind::GaussSeidel => {
-                    solve::gauss_seidel(&geometry.dims(), self.labels, self.phi, &self.config.solve)
-                }
+            let solved = match self.multigrid.as_mut() {
+                Some(mg) => mg.solve(self.labels, self.phi, &self.config.solve, Method::Auto),
+                None => solve::gauss_seidel(&geometry.dims(), self.labels, self.phi, &self.config.solve),
             };
             let t2 = clock.ticks();
             self.status.phase_ticks.solve += t2.saturating_sub(t1);
@@ -445,26 +551,42 @@ impl<'a> Explorer<'a> {
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
     }
 
-    /// Marks unknown voxels whose centres lie within the vehicle radius of `position` as free.
+    /// Marks the unknown voxels the vehicle's body reaches into — its voxel and every voxel the
+    /// inflation stencil covers — as free: the vehicle is there, so they are. In flight this
+    /// never changes anything (the domain keeps the body clear of unknown space); it matters at
+    /// start-up, when everything around the vehicle is still unknown.
     fn mark_body(&mut self, position: &Point3<f32>) {
         let geometry = *self.map.geometry();
         let dims = geometry.dims();
-        let r = self.config.vehicle_radius.max(0.5 * geometry.resolution());
-        let reach = libm::ceilf(r / geometry.resolution()) as i32;
         let Some(c) = geometry.voxel_at(position) else {
             return;
         };
+        self.map.mark_traversed(dims.linear(c));
+        for d in self.stencil.offsets() {
+            if let Some(v) = dims.offset(c, d) {
+                self.map.mark_traversed(dims.linear(v));
+            }
+        }
+    }
+
+    /// True if any voxel within `reach` voxels (Chebyshev) of `v` satisfies `pred`.
+    fn any_near(&self, v: VoxelIndex, reach: i32, pred: impl Fn(usize) -> bool) -> bool {
+        let dims = self.map.dims();
         for dz in -reach..=reach {
             for dy in -reach..=reach {
                 for dx in -reach..=reach {
-                    if let Some(v) = dims.offset(c, [dx, dy, dz]) {
-                        if (geometry.center(v) - position).norm() <= r {
-                            self.map.mark_traversed(dims.linear(v));
-                        }
+                    if dims.offset(v, [dx, dy, dz]).is_some_and(|n| pred(dims.linear(n))) {
+                        return true;
                     }
                 }
             }
         }
+        false
+    }
+
+    /// Voxels from a frontier voxel to the unexplored space that makes it one.
+    fn frontier_reach(&self) -> i32 {
+        libm::ceilf(self.stencil.radius_voxels() + 0.5) as i32 + 1
     }
 
     /// The goal for a traced streamline: the waypoint nearest the end that sees the frontier.
@@ -512,22 +634,15 @@ impl<'a> Explorer<'a> {
         })
     }
 
-    /// Seals the unexplored face neighbours of frontier voxels within two voxels of `frontier`.
+    /// Seals the unexplored voxels that make `frontier` a frontier (those within reach of it).
     fn seal_around(&mut self, frontier: VoxelIndex) {
         let dims: Dims = self.map.dims();
-        for dz in -2..=2 {
-            for dy in -2..=2 {
-                for dx in -2..=2 {
-                    let Some(v) = dims.offset(frontier, [dx, dy, dz]) else {
-                        continue;
-                    };
-                    if !self.map.is_frontier(v) {
-                        continue;
-                    }
-                    for d in crate::map::FACE_OFFSETS {
-                        if let Some(n) = dims.offset(v, d) {
-                            self.map.seal(dims.linear(n));
-                        }
+        let reach = self.frontier_reach();
+        for dz in -reach..=reach {
+            for dy in -reach..=reach {
+                for dx in -reach..=reach {
+                    if let Some(v) = dims.offset(frontier, [dx, dy, dz]) {
+                        self.map.seal(dims.linear(v));
                     }
                 }
             }

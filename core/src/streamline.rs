@@ -1,5 +1,8 @@
 //! Streamlines: steepest descent of φ from the vehicle to a frontier.
 //!
+//! The field holds ψ = 1 − φ (see [`crate::solve`]), so descending φ is ascending ψ; all
+//! differences are taken in ψ, where the vehicle's surroundings have full f32 precision.
+//!
 //! The gradient is taken by central differences at voxel centres (a neighbour outside the domain
 //! mirrors the centre value — zero flux — so walls contribute no normal component) and
 //! interpolated trilinearly between the in-domain centres around a point. The tracer integrates
@@ -85,7 +88,7 @@ pub struct Field<'a> {
     pub geometry: &'a MapGeometry,
     /// Domain labels.
     pub labels: &'a [Label],
-    /// Potential.
+    /// Stored potential ψ = 1 − φ.
     pub phi: &'a [f32],
 }
 
@@ -129,7 +132,7 @@ impl Field<'_> {
         g
     }
 
-    /// Trilinear interpolation of the centre gradients of the in-domain voxels around `p`
+    /// Trilinear interpolation of the centre gradients of ψ of the in-domain voxels around `p`
     /// (grid coordinates), renormalised over those present. `None` if none is.
     pub fn gradient(&self, p: &Vector3<f32>) -> Option<Vector3<f32>> {
         let q = p - Vector3::repeat(0.5);
@@ -160,11 +163,11 @@ impl Field<'_> {
         (wsum > 1e-6).then(|| sum / wsum)
     }
 
-    /// Unit descent direction at `p`, if the gradient is resolvable.
+    /// Unit direction of steepest descent of φ (ascent of ψ) at `p`, if resolvable.
     fn descent(&self, p: &Vector3<f32>) -> Option<Vector3<f32>> {
         let g = self.gradient(p)?;
         let n = g.norm();
-        (n.is_finite() && n > 1e-30).then(|| -g / n)
+        (n.is_finite() && n > 1e-30).then(|| g / n)
     }
 
     /// The face neighbour (or for the source, any of the 26 neighbours reachable through
@@ -195,7 +198,7 @@ impl Field<'_> {
                     if manhattan > 1 && !corner_clear {
                         continue;
                     }
-                    let drop = (here - self.phi_at(n)) / libm::sqrtf(manhattan as f32);
+                    let drop = (self.phi_at(n) - here) / libm::sqrtf(manhattan as f32);
                     if drop > 0.0 && best.is_none_or(|(d, _)| drop > d) {
                         best = Some((drop, n));
                     }
@@ -255,7 +258,7 @@ pub fn trace(
         let next = rk4.and_then(|q| {
             let v = field.voxel_of(&q)?;
             // Accept only moves into the domain that do not climb to a higher voxel.
-            (field.in_domain(v) && (v == cell || field.phi_at(v) <= field.phi_at(cell))).then_some((q, v))
+            (field.in_domain(v) && (v == cell || field.phi_at(v) >= field.phi_at(cell))).then_some((q, v))
         });
         let (q, v) = match next {
             Some(step) => {
@@ -391,7 +394,7 @@ mod tests {
         let g = MapGeometry::new(dims, Point3::origin(), 1.0).unwrap();
         let mut labels = [Label::Interior; 5];
         labels[4] = Label::Frontier;
-        let phi = [0.0f32; 5];
+        let phi = [0.5f32; 5];
         let field = Field {
             geometry: &g,
             labels: &labels,
@@ -422,7 +425,7 @@ mod tests {
         let mut labels = [Label::Interior; 600];
         labels[0] = Label::Source;
         labels[n - 1] = Label::Frontier;
-        let phi: [f32; 600] = core::array::from_fn(|x| 1.0 - x as f32 / (n - 1) as f32);
+        let phi: [f32; 600] = core::array::from_fn(|x| x as f32 / (n - 1) as f32);
         let field = Field {
             geometry: &g,
             labels: &labels,

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
+use harmonic_core::explore::SolverKind;
 use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::scenario::{builtin_names, Scenario};
 use harmonic_sim::sim::{self, Report, SimConfig};
@@ -64,6 +65,9 @@ struct ExploreArgs {
     /// Stop after this many scans.
     #[arg(long, default_value_t = 3000)]
     max_scans: u32,
+    /// Laplace solver: `mg` (multigrid, default) or `gs` (the seed paper's Gauss-Seidel).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "gs"])]
+    solver: String,
     /// Solver relative-residual tolerance.
     #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
     tol: f32,
@@ -137,6 +141,11 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     cfg.seed = args.seed;
     cfg.explorer.vehicle_radius = args.vehicle_radius;
     cfg.explorer.solve.tolerance = args.tol;
+    cfg.explorer.solver = if args.solver == "gs" {
+        SolverKind::GaussSeidel
+    } else {
+        SolverKind::Multigrid
+    };
     cfg.body_radius = args.body_radius;
     cfg.replan_distance = args.replan_distance;
     cfg.follow_full_path = args.follow_full_path;

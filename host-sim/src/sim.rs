@@ -20,8 +20,10 @@ use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{
     forward_camera_pose, Clock, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
+    SolverKind,
 };
 use harmonic_core::map::{Dims, MapGeometry};
+use harmonic_core::solve::multigrid;
 use nalgebra::Point3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -206,6 +208,8 @@ pub struct Report {
     pub scans: u32,
     /// Collision events (body sphere entering an obstacle).
     pub collisions: u32,
+    /// Where each collision began, map frame.
+    pub collision_points: Vec<[f32; 3]>,
     /// Voxel updates by integration.
     pub integration_ops: u64,
     /// Solver cell updates.
@@ -257,13 +261,20 @@ pub struct HostStorage {
     labels: Vec<Label>,
     phi: Vec<f32>,
     queue: Vec<u32>,
+    coarse_values: Vec<f32>,
+    coarse_labels: Vec<Label>,
+    krylov: Vec<f32>,
 }
 
 impl HostStorage {
-    /// Buffers for `dims`.
+    /// Buffers for `dims`, with MGPCG storage.
     pub fn new(dims: &Dims) -> Self {
         let n = dims.len();
+        let mg = multigrid::scratch_size(dims);
         Self {
+            coarse_values: vec![0.0; mg.values],
+            coarse_labels: vec![Label::Outside; mg.labels],
+            krylov: vec![0.0; mg.krylov],
             log_odds: vec![0; n],
             stamps: vec![0; n],
             labels: vec![Label::Outside; n],
@@ -279,6 +290,9 @@ impl HostStorage {
             labels: &mut self.labels,
             phi: &mut self.phi,
             queue: &mut self.queue,
+            coarse_values: &mut self.coarse_values,
+            coarse_labels: &mut self.coarse_labels,
+            krylov: &mut self.krylov,
         }
     }
 }
@@ -314,11 +328,11 @@ pub struct Vehicle {
 }
 
 /// What one flight leg did.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 struct Leg {
     distance: f64,
     time: f64,
-    collisions: u32,
+    collisions: Vec<[f32; 3]>,
 }
 
 fn wrap_angle(a: f32) -> f32 {
@@ -360,7 +374,7 @@ impl Vehicle {
         let mut check = |p: &Point3<f32>, leg: &mut Leg| {
             let now = world.sphere_collides(p, cfg.body_radius);
             if now && !colliding {
-                leg.collisions += 1;
+                leg.collisions.push(p.coords.into());
             }
             colliding = now;
         };
@@ -418,7 +432,7 @@ pub fn run(
     let mut depth = Vec::new();
     let mut clock = HostClock(Instant::now());
     let mut steps = Vec::new();
-    let (mut path, mut flight_time, mut collisions) = (0.0f64, 0.0f64, 0u32);
+    let (mut path, mut flight_time, mut collisions) = (0.0f64, 0.0f64, Vec::new());
     let mut consecutive_holds = 0u32;
     let mut termination = String::from("scan_limit");
     let budget = if cfg.follow_full_path {
@@ -485,7 +499,7 @@ pub fn run(
                 let leg = vehicle.fly(&waypoints, &goal, budget, cfg, &scenario.world);
                 path += leg.distance;
                 flight_time += leg.time;
-                collisions += leg.collisions;
+                collisions.extend(leg.collisions);
             }
         }
     }
@@ -502,14 +516,18 @@ pub fn run(
     Ok(Report {
         scenario: scenario.world.name.clone(),
         planner: "harmonic".into(),
-        solver: "gs".into(),
+        solver: match cfg.explorer.solver {
+            SolverKind::Multigrid => "mg".into(),
+            SolverKind::GaussSeidel => "gs".into(),
+        },
         termination,
         coverage_free: coverage.free,
         coverage_surface: coverage.surface,
         free_marked_occupied: coverage.free_marked_occupied,
         path_length_m: path,
         scans: status.frames,
-        collisions,
+        collisions: collisions.len() as u32,
+        collision_points: collisions,
         integration_ops: status.integration_ops,
         planning_ops: status.planning_ops,
         flight_time_s: flight_time,

@@ -8,15 +8,25 @@
 //! Dirichlet voxel, and every interior φ is the mean of its in-domain neighbours — hence the
 //! discrete maximum principle: no interior local extremum.
 //!
+//! **Stored potential.** The buffer holds ψ = 1 − φ: the source at ψ = 0 and frontiers at
+//! ψ = 1. The two describe the same field, but f32 spacing near 0 is far finer than near 1, and
+//! the region that needs it is the one around the vehicle, where φ sits within rounding of 1 —
+//! above all in a large hall whose only exit is a long corridor, where the whole hall is at
+//! φ ≈ 1 and its gradient would otherwise vanish below f32 resolution. The relative residual is
+//! measured on the ψ system, whose right-hand side comes from the frontier values.
+//!
 //! Convergence is judged on the relative residual `‖b − Aφ‖₂ / ‖b‖₂`, never on the change between
 //! iterations (the seed paper's relative-change rule divides by zero at φ = 0 and stops early).
 //! Row sums are accumulated in `f32` and the grid total in `f64`, which keeps the norm accurate
 //! without double-precision work in the inner loop.
 //!
 //! [`gauss_seidel`] is the seed paper's solver, kept as the reference: correct, not fast.
+//! [`multigrid`] is the production solver: O(cells) per solve.
 
 use crate::domain::Label;
 use crate::map::Dims;
+
+pub mod multigrid;
 
 /// When a solve stops.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -61,23 +71,32 @@ pub enum SolveError {
     StorageTooSmall,
     /// Tolerance not finite and positive.
     BadTolerance,
+    /// The multigrid scratch storage does not fit the grid.
+    ScratchTooSmall,
 }
 
-/// Sets Dirichlet values, zeroes φ outside the domain and, unless warm-starting, in the interior.
-/// Non-finite warm-start values are reset to 0.
-pub fn prepare(labels: &[Label], phi: &mut [f32], warm_start: bool) {
-    for (l, p) in labels.iter().zip(phi.iter_mut()) {
+/// Value of the stored potential ψ = 1 − φ at the source.
+pub const PSI_SOURCE: f32 = 0.0;
+/// Value of the stored potential ψ = 1 − φ at frontiers.
+pub const PSI_FRONTIER: f32 = 1.0;
+
+/// Sets Dirichlet values of ψ, zeroes it outside the domain and, unless warm-starting, in the
+/// interior. Non-finite or out-of-range warm-start values are reset to 0.
+pub fn prepare(labels: &[Label], psi: &mut [f32], warm_start: bool) {
+    for (l, p) in labels.iter().zip(psi.iter_mut()) {
         *p = match l {
-            Label::Source => 1.0,
-            Label::Interior if warm_start && p.is_finite() => *p,
+            Label::Frontier => PSI_FRONTIER,
+            Label::Interior if warm_start && (0.0..=1.0).contains(p) => *p,
             _ => 0.0,
         };
     }
 }
 
-/// Sum of in-domain face neighbours' φ and their count, for voxel `i` at `(x, y, z)`.
+/// Net flux into voxel `i` at `(x, y, z)`, `Σ (φ_j − φ_i)` over in-domain face neighbours `j`, and
+/// their count. Summing differences, rather than `Σ φ_j − count·φ_i`, avoids the cancellation
+/// that would otherwise put an f32 rounding floor of ~1e-6 under the relative residual.
 #[inline]
-fn neighbour_sum(
+pub(crate) fn neighbour_flux(
     dims: &Dims,
     labels: &[Label],
     phi: &[f32],
@@ -87,12 +106,13 @@ fn neighbour_sum(
     z: usize,
 ) -> (f32, u32) {
     let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
-    let mut sum = 0.0f32;
+    let centre = phi.get(i).copied().unwrap_or(0.0);
+    let mut flux = 0.0f32;
     let mut count = 0u32;
     let mut add = |j: usize| {
         if let (Some(l), Some(p)) = (labels.get(j), phi.get(j)) {
             if l.in_domain() {
-                sum += *p;
+                flux += *p - centre;
                 count += 1;
             }
         }
@@ -115,7 +135,7 @@ fn neighbour_sum(
     if z + 1 < dims.nz() {
         add(i + nxy);
     }
-    (sum, count)
+    (flux, count)
 }
 
 /// Relative residual `‖b − Aφ‖ / ‖b‖` of the current φ (0 when `b = 0`: φ = 0 solves it).
@@ -141,9 +161,7 @@ fn residual_norms(dims: &Dims, labels: &[Label], phi: &[f32]) -> (f64, f64) {
                 if labels.get(i) != Some(&Label::Interior) {
                     continue;
                 }
-                let (sum, count) = neighbour_sum(dims, labels, phi, i, x, y, z);
-                let p = phi.get(i).copied().unwrap_or(0.0);
-                let r = sum - count as f32 * p;
+                let (r, _) = neighbour_flux(dims, labels, phi, i, x, y, z);
                 row_r += r * r;
                 let mut b = 0.0f32;
                 each_dirichlet_neighbour(dims, labels, i, x, y, z, |v| b += v);
@@ -168,8 +186,8 @@ fn each_dirichlet_neighbour(
 ) {
     let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
     let mut check = |j: usize| match labels.get(j) {
-        Some(Label::Source) => f(1.0),
-        Some(Label::Frontier) => f(0.0),
+        Some(Label::Source) => f(PSI_SOURCE),
+        Some(Label::Frontier) => f(PSI_FRONTIER),
         _ => {}
     };
     if x > 0 {
@@ -225,10 +243,10 @@ pub fn gauss_seidel(
                     if labels.get(i) != Some(&Label::Interior) {
                         continue;
                     }
-                    let (sum, count) = neighbour_sum(dims, labels, phi, i, x, y, z);
+                    let (flux, count) = neighbour_flux(dims, labels, phi, i, x, y, z);
                     if count > 0 {
                         if let Some(p) = phi.get_mut(i) {
-                            *p = sum / count as f32;
+                            *p += flux / count as f32;
                         }
                         stats.cell_updates += 1;
                     }
@@ -264,7 +282,7 @@ mod tests {
         let s = gauss_seidel(&dims, &labels, &mut phi, &params).unwrap();
         assert!(s.converged, "{s:?}");
         for (x, p) in phi.iter().enumerate() {
-            let want = 1.0 - x as f32 / 11.0;
+            let want = x as f32 / 11.0; // ψ = 1 − φ, φ linear from 1 to 0
             assert!((p - want).abs() < 1e-5, "x={x}: {p} vs {want}");
         }
     }
@@ -284,7 +302,7 @@ mod tests {
         assert!(s.converged);
         for y in 0..3 {
             for x in 0..8 {
-                let want = 1.0 - x as f32 / 7.0;
+                let want = x as f32 / 7.0;
                 assert!((phi[y * 8 + x] - want).abs() < 1e-5);
             }
         }
