@@ -6,7 +6,7 @@
 //! level camera looking along the body's +x axis.
 
 use harmonic_core::camera::Intrinsics;
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3};
 use rand::Rng;
 
 use crate::world::World;
@@ -149,25 +149,15 @@ pub fn encode_depth_mm(z: f32) -> u16 {
     }
 }
 
-/// Camera → map transform of a level camera on a vehicle at `position` with heading `yaw`
-/// (radians about map z, 0 = looking along map +x, counter-clockwise positive).
-///
-/// The camera looks along body +x; camera x (right) is body −y and camera y (down) is body −z.
-pub fn camera_pose(position: &Point3<f32>, yaw: f32) -> Isometry3<f32> {
-    let body_from_camera = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
-        -Vector3::y(), // camera x (right)
-        -Vector3::z(), // camera y (down)
-        Vector3::x(),  // camera z (forward)
-    ]));
-    let map_from_body = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
-    let rotation = map_from_body * UnitQuaternion::from_rotation_matrix(&body_from_camera);
-    Isometry3::from_parts(Translation3::from(position.coords), rotation)
-}
+/// Camera → map pose of the forward-looking camera on a vehicle at `position` with heading
+/// `yaw` (the core's convention, re-exported so simulator code and the core cannot disagree).
+pub use harmonic_core::explore::forward_camera_pose as camera_pose;
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::world::Aabb;
+    use nalgebra::Vector3;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 
@@ -201,17 +191,6 @@ mod tests {
         // Looking along +x with z up, the right edge of the image is towards −y.
         let right = pose.rotation * cam.intrinsics.ray(99, 50);
         assert!(right.y < -0.3, "{right}");
-    }
-
-    #[test]
-    fn pose_agrees_with_the_core() {
-        let p = Point3::new(1.0, -2.0, 1.5);
-        for yaw in [-2.0f32, 0.0, 0.7, 3.0] {
-            let ours = camera_pose(&p, yaw);
-            let core = harmonic_core::explore::forward_camera_pose(&p, yaw);
-            assert!(ours.rotation.angle_to(&core.rotation) < 1e-5, "yaw {yaw}");
-            assert_eq!(ours.translation, core.translation);
-        }
     }
 
     fn wall_ahead() -> World {

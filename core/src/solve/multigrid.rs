@@ -614,17 +614,16 @@ mod tests {
     fn rooms(nx: usize, ny: usize, nz: usize) -> (Dims, Vec<Label>) {
         let dims = Dims::new(nx, ny, nz).unwrap();
         let mut labels = vec![Label::Interior; dims.len()];
-        for i in 0..dims.len() {
+        for (i, l) in labels.iter_mut().enumerate() {
             let v = dims.voxel(i);
-            let (x, y, z) = (v.x as usize, v.y as usize, v.z as usize);
-            let wall = x == nx / 2 && !(y >= ny / 3 && y < ny / 3 + 2);
-            if wall {
-                labels[i] = Label::Outside;
+            let (x, y) = (v.x as usize, v.y as usize);
+            let door = (ny / 3..ny / 3 + 2).contains(&y);
+            if x == nx / 2 && !door {
+                *l = Label::Outside;
             }
             if x == nx - 1 && y > ny / 2 {
-                labels[i] = Label::Frontier;
+                *l = Label::Frontier;
             }
-            let _ = z;
         }
         labels[dims.linear(VoxelIndex::new(2, 2, (nz / 2) as u16))] = Label::Source;
         (dims, labels)
@@ -717,12 +716,12 @@ mod tests {
     }
 
     #[test]
-    fn vcycle_converges_fast_on_an_open_box() {
+    fn vcycles_converge_on_an_open_box() {
         let dims = Dims::new(32, 32, 16).unwrap();
         let mut labels = vec![Label::Interior; dims.len()];
-        for i in 0..dims.len() {
+        for (i, l) in labels.iter_mut().enumerate() {
             if dims.voxel(i).x == 31 {
-                labels[i] = Label::Frontier;
+                *l = Label::Frontier;
             }
         }
         labels[dims.linear(VoxelIndex::new(3, 16, 8))] = Label::Source;

@@ -1,0 +1,87 @@
+//! The command line as a user meets it: clear one-line errors with exit code 2, and a report.
+
+use std::process::Command;
+
+fn sim() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_harmonic-sim"))
+}
+
+#[test]
+fn bad_scenario_file_is_a_one_line_error_with_exit_code_2() {
+    let fixture = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/scenarios/fixtures/inverted-box.toml"
+    );
+    let out = sim()
+        .args(["explore", "--scenario", fixture, "--out", "/tmp/unused"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8(out.stderr).unwrap();
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(
+        err.contains("inverted-box.toml") && err.contains("box[1]"),
+        "{err}"
+    );
+}
+
+#[test]
+fn unknown_scenario_and_bad_option_exit_with_code_2() {
+    let out = sim()
+        .args(["explore", "--scenario", "no-such-world"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no-such-world"));
+    let out = sim()
+        .args(["explore", "--vehicle-radius", "-1"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let out = sim().args(["explore", "--noise", "lidar"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("lidar"));
+}
+
+#[test]
+fn explore_writes_a_report_with_the_documented_fields() {
+    let dir = std::env::temp_dir().join(format!("harmonic-cli-{}", std::process::id()));
+    let out = sim()
+        .args([
+            "explore",
+            "--scenario",
+            "apartment",
+            "--max-scans",
+            "3",
+            "--quiet",
+            "--out",
+        ])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    for key in [
+        "scenario",
+        "termination",
+        "coverage_free",
+        "coverage_surface",
+        "path_length_m",
+        "scans",
+        "collisions",
+        "integration_ops",
+        "planning_ops",
+        "steps",
+    ] {
+        assert!(report.get(key).is_some(), "report.json lacks `{key}`");
+    }
+    assert_eq!(report["scans"], 3);
+    assert_eq!(report["termination"], "scan_limit");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("coverage (free)"),
+        "summary table missing: {stdout}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
