@@ -146,6 +146,7 @@ pub enum Fault {
 
 /// Counts of every fault and notable event since start.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct ErrorCounters {
     /// Frames rejected for a bad camera pose or range settings.
     pub frames_rejected: u32,

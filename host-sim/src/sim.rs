@@ -75,42 +75,6 @@ impl Default for SimConfig {
     }
 }
 
-/// Fault counters as they appear in the report.
-#[derive(Debug, Clone, Copy, Default, Serialize)]
-pub struct ErrorReport {
-    /// Frames the core rejected.
-    pub frames_rejected: u32,
-    /// Plans refused for a bad pose.
-    pub bad_pose: u32,
-    /// Plans refused with the vehicle outside the grid.
-    pub vehicle_outside_grid: u32,
-    /// Plans refused with the vehicle in non-free space.
-    pub vehicle_not_free: u32,
-    /// Escapes from inflated space.
-    pub escapes: u32,
-    /// Streamlines that failed.
-    pub streamline_failures: u32,
-    /// Solves that hit the iteration cap.
-    pub solver_not_converged: u32,
-    /// Sealing events.
-    pub seals: u32,
-}
-
-impl From<ErrorCounters> for ErrorReport {
-    fn from(e: ErrorCounters) -> Self {
-        Self {
-            frames_rejected: e.frames_rejected,
-            bad_pose: e.bad_pose,
-            vehicle_outside_grid: e.vehicle_outside_grid,
-            vehicle_not_free: e.vehicle_not_free,
-            escapes: e.escapes,
-            streamline_failures: e.streamline_failures,
-            solver_not_converged: e.solver_not_converged,
-            seals: e.seals,
-        }
-    }
-}
-
 /// One scan-and-plan step.
 #[derive(Debug, Clone, Serialize)]
 pub struct StepRecord {
@@ -229,7 +193,7 @@ pub struct Report {
     /// Per-phase timing.
     pub timing: Timing,
     /// Fault counters.
-    pub errors: ErrorReport,
+    pub errors: ErrorCounters,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
 }
@@ -537,7 +501,7 @@ pub fn run(
         reachable_free_voxels: truth.reachable_free(),
         sealed_voxels: status.map.sealed,
         timing,
-        errors: status.errors.into(),
+        errors: status.errors,
         steps,
     })
 }

@@ -92,6 +92,39 @@ pub fn prepare(labels: &[Label], psi: &mut [f32], warm_start: bool) {
     }
 }
 
+/// Calls `f` with the linear index of each face neighbour of voxel `i` at `(x, y, z)` that lies
+/// inside the grid. The solvers' hot loops already know the coordinates, so this avoids
+/// recomputing them from `i`.
+#[inline]
+pub(crate) fn each_face_neighbour(
+    dims: &Dims,
+    i: usize,
+    x: usize,
+    y: usize,
+    z: usize,
+    mut f: impl FnMut(usize),
+) {
+    let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
+    if x > 0 {
+        f(i - 1);
+    }
+    if x + 1 < dims.nx() {
+        f(i + 1);
+    }
+    if y > 0 {
+        f(i - nx);
+    }
+    if y + 1 < dims.ny() {
+        f(i + nx);
+    }
+    if z > 0 {
+        f(i - nxy);
+    }
+    if z + 1 < dims.nz() {
+        f(i + nxy);
+    }
+}
+
 /// Net flux into voxel `i` at `(x, y, z)`, `Σ (φ_j − φ_i)` over in-domain face neighbours `j`, and
 /// their count. Summing differences, rather than `Σ φ_j − count·φ_i`, avoids the cancellation
 /// that would otherwise put an f32 rounding floor of ~1e-6 under the relative residual.
@@ -105,36 +138,17 @@ pub(crate) fn neighbour_flux(
     y: usize,
     z: usize,
 ) -> (f32, u32) {
-    let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
     let centre = phi.get(i).copied().unwrap_or(0.0);
     let mut flux = 0.0f32;
     let mut count = 0u32;
-    let mut add = |j: usize| {
+    each_face_neighbour(dims, i, x, y, z, |j| {
         if let (Some(l), Some(p)) = (labels.get(j), phi.get(j)) {
             if l.in_domain() {
                 flux += *p - centre;
                 count += 1;
             }
         }
-    };
-    if x > 0 {
-        add(i - 1);
-    }
-    if x + 1 < dims.nx() {
-        add(i + 1);
-    }
-    if y > 0 {
-        add(i - nx);
-    }
-    if y + 1 < dims.ny() {
-        add(i + nx);
-    }
-    if z > 0 {
-        add(i - nxy);
-    }
-    if z + 1 < dims.nz() {
-        add(i + nxy);
-    }
+    });
     (flux, count)
 }
 
@@ -184,30 +198,11 @@ fn each_dirichlet_neighbour(
     z: usize,
     mut f: impl FnMut(f32),
 ) {
-    let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
-    let mut check = |j: usize| match labels.get(j) {
+    each_face_neighbour(dims, i, x, y, z, |j| match labels.get(j) {
         Some(Label::Source) => f(PSI_SOURCE),
         Some(Label::Frontier) => f(PSI_FRONTIER),
         _ => {}
-    };
-    if x > 0 {
-        check(i - 1);
-    }
-    if x + 1 < dims.nx() {
-        check(i + 1);
-    }
-    if y > 0 {
-        check(i - nx);
-    }
-    if y + 1 < dims.ny() {
-        check(i + nx);
-    }
-    if z > 0 {
-        check(i - nxy);
-    }
-    if z + 1 < dims.nz() {
-        check(i + nxy);
-    }
+    });
 }
 
 /// Lexicographic Gauss-Seidel, in place, until the relative residual reaches the tolerance or

@@ -629,7 +629,13 @@ mod tests {
         (dims, labels)
     }
 
-    fn solve_mg(dims: Dims, labels: &[Label], method: Method) -> (Vec<f32>, SolveStats) {
+    /// Solves from ψ = 0 with `method`; returns ψ, the stats and the residual history.
+    fn solve_mg(
+        dims: Dims,
+        labels: &[Label],
+        method: Method,
+        max_iterations: u32,
+    ) -> (Vec<f32>, SolveStats, Vec<f32>) {
         let size = scratch_size(&dims);
         let mut values = vec![0.0f32; size.values];
         let mut clabels = vec![Label::Outside; size.labels];
@@ -646,11 +652,12 @@ mod tests {
         let mut phi = vec![0.0f32; dims.len()];
         let params = SolveParams {
             tolerance: 1e-6,
-            max_iterations: 200,
+            max_iterations,
             warm_start: false,
         };
         let s = mg.solve(labels, &mut phi, &params, method).unwrap();
-        (phi, s)
+        let history = mg.history().to_vec();
+        (phi, s, history)
     }
 
     #[test]
@@ -665,7 +672,7 @@ mod tests {
         let gs = gauss_seidel(&dims, &labels, &mut reference, &params).unwrap();
         assert!(gs.converged, "{gs:?}");
         for method in [Method::Pcg, Method::VCycle] {
-            let (phi, s) = solve_mg(dims, &labels, method);
+            let (phi, s, _) = solve_mg(dims, &labels, method, 200);
             assert!(s.converged, "{method:?}: {s:?}");
             // The one-voxel wall couples the rooms on coarse levels: plain cycles slow down there,
             // which is what the Krylov wrapper is for.
@@ -691,30 +698,6 @@ mod tests {
         }
     }
 
-    fn mg_history(dims: Dims, labels: &[Label], method: Method) -> Vec<f32> {
-        let size = scratch_size(&dims);
-        let mut values = vec![0.0f32; size.values];
-        let mut clabels = vec![Label::Outside; size.labels];
-        let mut krylov = vec![0.0f32; size.krylov];
-        let mut mg = Multigrid::new(
-            dims,
-            MultigridStorage {
-                values: &mut values,
-                labels: &mut clabels,
-                krylov: &mut krylov,
-            },
-        )
-        .unwrap();
-        let mut phi = vec![0.0f32; dims.len()];
-        let params = SolveParams {
-            tolerance: 1e-6,
-            max_iterations: 30,
-            warm_start: false,
-        };
-        mg.solve(labels, &mut phi, &params, method).unwrap();
-        mg.history().to_vec()
-    }
-
     #[test]
     fn vcycles_converge_on_an_open_box() {
         let dims = Dims::new(32, 32, 16).unwrap();
@@ -725,8 +708,7 @@ mod tests {
             }
         }
         labels[dims.linear(VoxelIndex::new(3, 16, 8))] = Label::Source;
-        let h = mg_history(dims, &labels, Method::VCycle);
-        std::println!("open box V-cycle history {h:?}");
+        let (_, _, h) = solve_mg(dims, &labels, Method::VCycle, 30);
         assert!(
             h.len() <= 30 && h[h.len() - 1] <= 1e-6,
             "V-cycles did not converge: {h:?}"
