@@ -9,11 +9,11 @@
 //! discrete maximum principle: no interior local extremum.
 //!
 //! **Stored potential.** The buffer holds ψ = 1 − φ: the source at ψ = 0 and frontiers at
-//! ψ = 1. The two describe the same field, but f32 spacing near 0 is far finer than near 1, and
-//! the region that needs it is the one around the vehicle, where φ sits within rounding of 1 —
-//! above all in a large hall whose only exit is a long corridor, where the whole hall is at
-//! φ ≈ 1 and its gradient would otherwise vanish below f32 resolution. The relative residual is
-//! measured on the ψ system, whose right-hand side comes from the frontier values.
+//! ψ = 1. Both describe the same field, but f32 spacing near 0 is far finer than near 1, and the
+//! cells that set the rounding floor of the residual are those around the vehicle, where φ is
+//! close to 1. Measured on the two-room test domain of [`multigrid`]: Gauss-Seidel stalls at a
+//! relative residual of 1.5e-6 storing φ and 4.8e-7 storing ψ — below the default 1e-6 only in
+//! the second form. Residuals are summed as fluxes `Σ (ψ_j − ψ_i)` for the same reason.
 //!
 //! Convergence is judged on the relative residual `‖b − Aφ‖₂ / ‖b‖₂`, never on the change between
 //! iterations (the seed paper's relative-change rule divides by zero at φ = 0 and stops early).
