@@ -170,6 +170,24 @@ impl Field<'_> {
         (n.is_finite() && n > 1e-30).then(|| g / n)
     }
 
+    /// A frontier face neighbour of `v`, the one most in line with the descent direction at `p`.
+    fn frontier_neighbour(&self, v: VoxelIndex, p: &Vector3<f32>) -> Option<VoxelIndex> {
+        let dims = self.geometry.dims();
+        let toward = self.descent(p).unwrap_or_else(Vector3::zeros);
+        let mut best: Option<(f32, VoxelIndex)> = None;
+        for d in crate::map::FACE_OFFSETS {
+            let Some(n) = dims.offset(v, d) else { continue };
+            if self.label(n) != Label::Frontier {
+                continue;
+            }
+            let align = toward.dot(&Vector3::new(d[0] as f32, d[1] as f32, d[2] as f32));
+            if best.is_none_or(|(a, _)| align > a) {
+                best = Some((align, n));
+            }
+        }
+        best.map(|(_, n)| n)
+    }
+
     /// The face neighbour (or for the source, any of the 26 neighbours reachable through
     /// in-domain faces) with the steepest drop of φ per unit distance, if φ drops at all.
     fn steepest_neighbour(&self, v: VoxelIndex, all_26: bool) -> Option<VoxelIndex> {
@@ -255,17 +273,23 @@ pub fn trace(
         } else {
             rk4_step(field, &p, h)
         };
+        // A move that changes voxel must strictly descend φ (ascend ψ): then no voxel is entered
+        // twice and no plateau — a dead-end pocket at constant ψ — can trap the tracer.
         let next = rk4.and_then(|q| {
             let v = field.voxel_of(&q)?;
-            // Accept only moves into the domain that do not climb to a higher voxel.
-            (field.in_domain(v) && (v == cell || field.phi_at(v) >= field.phi_at(cell))).then_some((q, v))
+            (field.in_domain(v) && (v == cell || field.phi_at(v) > field.phi_at(cell))).then_some((q, v))
         });
-        let (q, v) = match next {
-            Some(step) => {
+        let (q, v) = match (field.frontier_neighbour(cell, &p), next) {
+            // Next to a frontier: step into it (it is the highest ψ there is).
+            (Some(f), _) => {
+                end.fallback_steps += 1;
+                (centre(f), f)
+            }
+            (None, Some(step)) => {
                 end.steps += 1;
                 step
             }
-            None => {
+            (None, None) => {
                 let v = field
                     .steepest_neighbour(cell, field.label(cell) == Label::Source)
                     .ok_or(StreamlineError::Stalled)?;

@@ -60,7 +60,11 @@ pub struct SolveStats {
     pub residual: f32,
     /// Interior cell updates performed (the work measure "planning ops").
     pub cell_updates: u64,
-    /// True if the tolerance was reached.
+    /// Relative residual the rounding of the current f32 solution alone can produce: below
+    /// this, nothing better is representable (see [`Residual`]).
+    pub floor: f32,
+    /// True if the tolerance — or, where the tolerance lies below it, the f32 floor — was
+    /// reached.
     pub converged: bool,
 }
 
@@ -89,6 +93,17 @@ pub fn prepare(labels: &[Label], psi: &mut [f32], warm_start: bool) {
             Label::Interior if warm_start && (0.0..=1.0).contains(p) => *p,
             _ => 0.0,
         };
+    }
+}
+
+/// Clamps interior ψ into [0, 1], the range the maximum principle guarantees: rounding can
+/// leave a value a few ulps outside it, and equal values at the top would give the streamline a
+/// plateau to wander on.
+pub(crate) fn clamp_to_bounds(labels: &[Label], psi: &mut [f32]) {
+    for (l, p) in labels.iter().zip(psi.iter_mut()) {
+        if *l == Label::Interior {
+            *p = p.clamp(PSI_SOURCE, PSI_FRONTIER);
+        }
     }
 }
 
@@ -152,40 +167,84 @@ pub(crate) fn neighbour_flux(
     (flux, count)
 }
 
-/// Relative residual `‖b − Aφ‖ / ‖b‖` of the current φ (0 when `b = 0`: φ = 0 solves it).
-pub fn relative_residual(dims: &Dims, labels: &[Label], phi: &[f32]) -> f32 {
-    let (r2, b2) = residual_norms(dims, labels, phi);
-    if b2 == 0.0 {
-        0.0
-    } else {
-        libm::sqrt(r2 / b2) as f32
+/// Residual of the current solution and the floor f32 rounding puts under it.
+///
+/// `relative` is `‖b − Aψ‖ / ‖b‖` (0 when `b = 0`: ψ = 0 solves it). `floor` is `‖e‖ / ‖b‖`
+/// with `eᵢ = ε·√((Σⱼ ψⱼ² + deg_i²·ψᵢ²) / 12)`: the RMS residual that rounding each ψ to f32
+/// (an error uniform within half a unit in the last place) causes on its own. How close to 1e-6 that floor comes depends on the geometry — how
+/// many voxels sit at large ψ — so a solve stops at the tolerance or at the floor, whichever is
+/// higher: iterating below the floor only stirs rounding noise.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Residual {
+    /// Relative residual.
+    pub relative: f32,
+    /// Relative rounding floor.
+    pub floor: f32,
+}
+
+impl Residual {
+    /// True if the residual meets `tolerance`, or the floor where that lies above it.
+    pub fn meets(&self, tolerance: f32) -> bool {
+        self.relative <= tolerance.max(self.floor)
     }
 }
 
-/// Squared norms of the residual and of the right-hand side `b` (the Dirichlet contributions).
-fn residual_norms(dims: &Dims, labels: &[Label], phi: &[f32]) -> (f64, f64) {
-    let (mut r2, mut b2) = (0.0f64, 0.0f64);
+/// Relative residual of the current ψ (see [`Residual`]).
+pub fn relative_residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> f32 {
+    residual(dims, labels, psi).relative
+}
+
+/// Residual and rounding floor of the current ψ.
+pub fn residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> Residual {
+    let (r2, b2, e2) = residual_norms(dims, labels, psi);
+    if b2 == 0.0 {
+        Residual {
+            relative: 0.0,
+            floor: 0.0,
+        }
+    } else {
+        Residual {
+            relative: libm::sqrt(r2 / b2) as f32,
+            floor: libm::sqrt(e2 / b2) as f32,
+        }
+    }
+}
+
+/// Squared norms of the residual, of the right-hand side `b` (the Dirichlet contributions) and
+/// of the rounding bound `e`.
+fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64) {
+    let (mut r2, mut b2, mut e2) = (0.0f64, 0.0f64, 0.0f64);
     let nx = dims.nx();
     for z in 0..dims.nz() {
         for y in 0..dims.ny() {
-            let (mut row_r, mut row_b) = (0.0f32, 0.0f32);
+            let (mut row_r, mut row_b, mut row_e) = (0.0f32, 0.0f32, 0.0f32);
             let base = nx * (y + dims.ny() * z);
             for x in 0..nx {
                 let i = base + x;
                 if labels.get(i) != Some(&Label::Interior) {
                     continue;
                 }
-                let (r, _) = neighbour_flux(dims, labels, phi, i, x, y, z);
+                let (r, count) = neighbour_flux(dims, labels, psi, i, x, y, z);
                 row_r += r * r;
                 let mut b = 0.0f32;
                 each_dirichlet_neighbour(dims, labels, i, x, y, z, |v| b += v);
                 row_b += b * b;
+                let centre = count as f32 * psi.get(i).copied().unwrap_or(0.0);
+                let mut spread = centre * centre;
+                each_face_neighbour(dims, i, x, y, z, |j| {
+                    if labels.get(j).is_some_and(|l| l.in_domain()) {
+                        let p = psi.get(j).copied().unwrap_or(0.0);
+                        spread += p * p;
+                    }
+                });
+                row_e += f32::EPSILON * f32::EPSILON * spread / 12.0;
             }
             r2 += f64::from(row_r);
             b2 += f64::from(row_b);
+            e2 += f64::from(row_e);
         }
     }
-    (r2, b2)
+    (r2, b2, e2)
 }
 
 /// Calls `f` with the Dirichlet value of each face neighbour that is a source or frontier.
@@ -223,13 +282,13 @@ pub fn gauss_seidel(
     let (labels, phi) = (&labels[..n], &mut phi[..n]);
     prepare(labels, phi, params.warm_start);
     const CHECK_EVERY: u32 = 4;
+    let mut res = residual(dims, labels, phi);
     let mut stats = SolveStats {
-        initial_residual: relative_residual(dims, labels, phi),
+        initial_residual: res.relative,
         ..Default::default()
     };
-    stats.residual = stats.initial_residual;
     let nx = dims.nx();
-    while stats.residual > params.tolerance && stats.iterations < params.max_iterations {
+    while !res.meets(params.tolerance) && stats.iterations < params.max_iterations {
         for z in 0..dims.nz() {
             for y in 0..dims.ny() {
                 let base = nx * (y + dims.ny() * z);
@@ -250,10 +309,13 @@ pub fn gauss_seidel(
         }
         stats.iterations += 1;
         if stats.iterations % CHECK_EVERY == 0 || stats.iterations == params.max_iterations {
-            stats.residual = relative_residual(dims, labels, phi);
+            res = residual(dims, labels, phi);
         }
     }
-    stats.converged = stats.residual <= params.tolerance;
+    clamp_to_bounds(labels, phi);
+    stats.residual = res.relative;
+    stats.floor = res.floor;
+    stats.converged = res.meets(params.tolerance);
     Ok(stats)
 }
 

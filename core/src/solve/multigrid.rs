@@ -33,7 +33,7 @@
 
 use heapless::Vec as HVec;
 
-use super::{neighbour_flux, prepare, relative_residual, SolveError, SolveParams, SolveStats};
+use super::{neighbour_flux, prepare, residual, Residual, SolveError, SolveParams, SolveStats};
 use crate::domain::Label;
 use crate::map::{Dims, VoxelIndex};
 
@@ -204,8 +204,8 @@ impl<'a> Multigrid<'a> {
         self.history.clear();
         let mut stats = SolveStats::default();
         stats.cell_updates += self.build_labels(labels);
-        stats.initial_residual = relative_residual(&self.fine, labels, phi);
-        stats.residual = stats.initial_residual;
+        let mut res = residual(&self.fine, labels, phi);
+        stats.initial_residual = res.relative;
         let use_pcg = match method {
             Method::Auto => self.has_krylov(),
             Method::VCycle => false,
@@ -217,9 +217,9 @@ impl<'a> Multigrid<'a> {
             }
         };
         if use_pcg {
-            self.pcg(labels, phi, params, &mut stats);
+            res = self.pcg(labels, phi, params, res, &mut stats);
         } else {
-            while stats.residual > params.tolerance && stats.iterations < params.max_iterations {
+            while !res.meets(params.tolerance) && stats.iterations < params.max_iterations {
                 let fine = View {
                     dims: self.fine,
                     labels,
@@ -228,12 +228,15 @@ impl<'a> Multigrid<'a> {
                 };
                 stats.cell_updates += vcycle(fine, &self.levels, self.values, self.labels);
                 stats.iterations += 1;
-                stats.residual = relative_residual(&self.fine, labels, phi);
+                res = residual(&self.fine, labels, phi);
                 stats.cell_updates += n as u64;
-                let _ = self.history.push(stats.residual);
+                let _ = self.history.push(res.relative);
             }
         }
-        stats.converged = stats.residual <= params.tolerance;
+        super::clamp_to_bounds(labels, phi);
+        stats.residual = res.relative;
+        stats.floor = res.floor;
+        stats.converged = res.meets(params.tolerance);
         Ok(stats)
     }
 
@@ -271,8 +274,16 @@ impl<'a> Multigrid<'a> {
         work
     }
 
-    /// MGPCG on the correction: solves `A e = r(φ)` and adds `e` to φ.
-    fn pcg(&mut self, labels: &[Label], phi: &mut [f32], params: &SolveParams, stats: &mut SolveStats) {
+    /// MGPCG on the correction: solves `A e = r(φ)` and adds `e` to φ. Returns the true
+    /// residual at the end.
+    fn pcg(
+        &mut self,
+        labels: &[Label],
+        phi: &mut [f32],
+        params: &SolveParams,
+        mut res: Residual,
+        stats: &mut SolveStats,
+    ) -> Residual {
         let Self {
             fine,
             levels,
@@ -316,26 +327,25 @@ impl<'a> Multigrid<'a> {
             libm::sqrt(b2)
         };
         if b_norm == 0.0 {
-            stats.residual = 0.0;
-            return;
+            return res;
         }
         let rel = |r: &[f32]| (libm::sqrt(dot(r, r)) / b_norm) as f32;
-        stats.residual = rel(r);
         // Defect correction: each pass runs CG on the true residual of the current φ, so the
         // f32 drift between CG's recursive residual and the true one cannot stall the solve.
         for pass in 0..MAX_RESTARTS {
             if pass > 0 {
                 residual_into(&dims, labels, phi, None, r);
-                stats.cell_updates += n as u64;
-                stats.residual = rel(r);
+                res = residual(&dims, labels, phi);
+                stats.cell_updates += 2 * n as u64;
             }
-            if stats.residual <= params.tolerance || stats.iterations >= params.max_iterations {
+            if res.meets(params.tolerance) || stats.iterations >= params.max_iterations {
                 break;
             }
+            let target = params.tolerance.max(res.floor);
             stats.cell_updates += precondition(r, z);
             p.copy_from_slice(z);
             let mut rho = dot(r, z);
-            let start = stats.residual;
+            let start = res.relative;
             while stats.iterations < params.max_iterations {
                 // z ← A p
                 apply(&dims, labels, p, z);
@@ -356,11 +366,11 @@ impl<'a> Multigrid<'a> {
                     }
                 }
                 stats.iterations += 1;
-                stats.residual = rel(r);
-                let _ = history.push(stats.residual);
+                let recursive = rel(r);
+                let _ = history.push(recursive);
                 // Stop this pass at the target, or once it has gained three orders of
                 // magnitude (beyond that the recursive residual is no longer trustworthy).
-                if stats.residual <= params.tolerance * 0.5 || stats.residual <= start * 1e-3 {
+                if recursive <= target * 0.5 || recursive <= start * 1e-3 {
                     break;
                 }
                 stats.cell_updates += precondition(r, z);
@@ -373,8 +383,8 @@ impl<'a> Multigrid<'a> {
             }
         }
         // Report the true residual, not the recurrence's.
-        stats.residual = relative_residual(&dims, labels, phi);
         stats.cell_updates += n as u64;
+        residual(&dims, labels, phi)
     }
 }
 
