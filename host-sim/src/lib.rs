@@ -6,8 +6,11 @@
 //! ([`metrics`]). The simulator renders and flies; every decision is the core's.
 #![warn(missing_docs)]
 
+pub mod bench;
 pub mod camera;
 pub mod metrics;
+pub mod npy;
+pub mod problem;
 pub mod scenario;
 pub mod sim;
 pub mod world;

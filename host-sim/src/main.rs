@@ -6,7 +6,12 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 use harmonic_core::explore::SolverKind;
+use harmonic_core::map::Dims;
+use harmonic_core::solve::multigrid::Method;
+use harmonic_sim::bench::{self, BenchSolver};
 use harmonic_sim::camera::StereoNoise;
+use harmonic_sim::npy;
+use harmonic_sim::problem::{self, SolverChoice};
 use harmonic_sim::scenario::{builtin_names, Scenario};
 use harmonic_sim::sim::{self, Report, SimConfig};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -28,6 +33,95 @@ enum Command {
     Explore(ExploreArgs),
     /// List the built-in scenarios.
     Scenarios,
+    /// Benchmark the Laplace solvers on building-like grids (the numbers in BENCHMARKS.md).
+    BenchSolve(BenchSolveArgs),
+    /// Solve one planning problem from a .npy label grid and print a JSON line of statistics.
+    Solve(SolveArgs),
+}
+
+#[derive(clap::Args)]
+struct SolveArgs {
+    /// uint8 .npy label grid, shape (NX, NY, NZ), C order: 0 unknown, 1 free, 2 occupied.
+    #[arg(long)]
+    labels: PathBuf,
+    /// Source (vehicle) voxel as X,Y,Z indices.
+    #[arg(long, value_parser = parse_voxel)]
+    source: [usize; 3],
+    /// Solver: `mg` (multigrid-preconditioned CG) or `gs` (Gauss-Seidel reference).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "gs"])]
+    solver: String,
+    /// Relative-residual tolerance.
+    #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
+    tol: f32,
+    /// Vehicle radius in metres (obstacles and unknown space are inflated by it).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_radius)]
+    radius: f32,
+    /// Voxel edge in metres (scales the radius).
+    #[arg(long, default_value_t = 0.1, value_parser = parse_positive)]
+    resolution: f32,
+    /// Write φ (float32 .npy, same shape, 0 outside the domain) here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+fn parse_voxel(s: &str) -> Result<[usize; 3], String> {
+    let n: Vec<usize> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
+    match (n.as_slice(), s.split(',').count()) {
+        ([x, y, z], 3) => Ok([*x, *y, *z]),
+        _ => Err(format!("expected three voxel indices X,Y,Z, got `{s}`")),
+    }
+}
+
+fn solve_problem(args: &SolveArgs) -> Result<(), String> {
+    let grid = npy::read_u8_file(&args.labels).map_err(|e| format!("{}: {e}", args.labels.display()))?;
+    let request = problem::SolveRequest {
+        source: args.source,
+        solver: if args.solver == "gs" {
+            SolverChoice::GaussSeidel
+        } else {
+            SolverChoice::Multigrid
+        },
+        tolerance: args.tol,
+        radius: args.radius,
+        resolution: args.resolution,
+    };
+    let (phi, summary) =
+        problem::solve(&grid, &request).map_err(|e| format!("{}: {e}", args.labels.display()))?;
+    if let Some(out) = &args.out {
+        std::fs::write(out, npy::write_f32(&phi)).map_err(|e| format!("{}: {e}", out.display()))?;
+    }
+    println!("{}", serde_json::to_string(&summary).map_err(|e| e.to_string())?);
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct BenchSolveArgs {
+    /// Grid sizes, NXxNYxNZ, comma-separated.
+    #[arg(long, default_value = "64x64x32,128x128x64", value_delimiter = ',', value_parser = parse_dims)]
+    sizes: Vec<Dims>,
+    /// Run the Gauss-Seidel reference only on grids with at most this many voxels (its cost grows
+    /// like n^(5/3); the 128×128×64 grid takes many minutes).
+    #[arg(long, default_value_t = 200_000)]
+    gs_max_voxels: usize,
+    /// Repetitions per measurement (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    repeat: usize,
+    /// Relative-residual tolerance.
+    #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
+    tol: f32,
+}
+
+fn parse_dims(s: &str) -> Result<Dims, String> {
+    let parts: Vec<&str> = s.split('x').collect();
+    let n: Vec<usize> = parts.iter().filter_map(|p| p.parse().ok()).collect();
+    match n.as_slice() {
+        [x, y, z] if parts.len() == 3 && *x >= 16 && *y >= 16 && *z >= 8 => {
+            Dims::new(*x, *y, *z).map_err(|e| format!("`{s}`: {e:?}"))
+        }
+        _ => Err(format!(
+            "expected NXxNYxNZ with NX, NY >= 16 and NZ >= 8, got `{s}`"
+        )),
+    }
 }
 
 #[derive(clap::Args)]
@@ -71,6 +165,9 @@ struct ExploreArgs {
     /// Solver relative-residual tolerance.
     #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
     tol: f32,
+    /// Write every planning step's problem (labels .npy + source) here, for `harmonic-sim solve`.
+    #[arg(long)]
+    dump_problem: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -124,6 +221,11 @@ fn main() -> ExitCode {
             Ok(())
         }
         Command::Explore(args) => explore(args),
+        Command::Solve(args) => solve_problem(&args),
+        Command::BenchSolve(args) => {
+            bench_solve(&args);
+            Ok(())
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -152,6 +254,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     cfg.max_speed = args.max_speed;
     cfg.max_yaw_rate = args.max_yaw_rate.to_radians();
     cfg.max_scans = args.max_scans;
+    cfg.dump_problem = args.dump_problem.clone();
     std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
 
     // On a terminal: a live status line. Elsewhere (CI logs, pipes): a plain line every 25 steps.
@@ -189,6 +292,73 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     print_summary(&report);
     println!("report: {}", path.display());
     Ok(())
+}
+
+fn bench_solve(args: &BenchSolveArgs) {
+    println!("| grid | unknowns | frontier | solver | start | iterations | residual | ms | cell updates |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    let mut mg_cold_ms = Vec::new();
+    for dims in &args.sizes {
+        let mut solvers = vec![
+            BenchSolver::Multigrid(Method::Pcg),
+            BenchSolver::Multigrid(Method::VCycle),
+        ];
+        if dims.len() <= args.gs_max_voxels {
+            solvers.push(BenchSolver::GaussSeidel);
+        }
+        let mut rows = Vec::new();
+        for solver in solvers {
+            eprintln!(
+                "measuring {} on {}x{}x{} ...",
+                solver_label(solver),
+                dims.nx(),
+                dims.ny(),
+                dims.nz()
+            );
+            for row in bench::measure(*dims, solver, args.tol, args.repeat) {
+                println!(
+                    "| {} | {} | {} | {} | {} | {} | {:.1e} | {:.2} | {} |",
+                    row.grid,
+                    row.unknowns,
+                    row.frontier,
+                    row.solver,
+                    row.start,
+                    row.iterations,
+                    row.residual,
+                    row.ms,
+                    row.cell_updates
+                );
+                rows.push(row);
+            }
+        }
+        let find = |solver: &str, start: &str| rows.iter().find(|r| r.solver == solver && r.start == start);
+        if let (Some(mg), Some(gs)) = (find("mg (pcg)", "cold"), find("gs", "cold")) {
+            println!(
+                "\n{}: Gauss-Seidel / MGPCG, cold: time {:.0}×, cell updates {:.0}×\n",
+                mg.grid,
+                gs.ms / mg.ms,
+                gs.cell_updates as f64 / mg.cell_updates as f64
+            );
+        }
+        if let Some(mg) = find("mg (pcg)", "cold") {
+            mg_cold_ms.push((dims.len(), mg.ms));
+        }
+    }
+    for pair in mg_cold_ms.windows(2) {
+        println!(
+            "growth: {:.1}× the voxels took {:.1}× the MGPCG cold-solve time",
+            pair[1].0 as f64 / pair[0].0 as f64,
+            pair[1].1 / pair[0].1
+        );
+    }
+}
+
+fn solver_label(s: BenchSolver) -> &'static str {
+    match s {
+        BenchSolver::Multigrid(Method::VCycle) => "multigrid V-cycles",
+        BenchSolver::Multigrid(_) => "MGPCG",
+        BenchSolver::GaussSeidel => "Gauss-Seidel",
+    }
 }
 
 fn print_summary(r: &Report) {

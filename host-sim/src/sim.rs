@@ -56,6 +56,9 @@ pub struct SimConfig {
     pub max_scans: u32,
     /// Seed for sensor noise.
     pub seed: u64,
+    /// Write each full replan's problem (`step_NNNN.npy` labels and `step_NNNN.json` with the
+    /// source voxel and the command that re-solves it) into this directory.
+    pub dump_problem: Option<std::path::PathBuf>,
 }
 
 impl Default for SimConfig {
@@ -71,6 +74,7 @@ impl Default for SimConfig {
             follow_full_path: false,
             max_scans: 3000,
             seed: 1,
+            dump_problem: None,
         }
     }
 }
@@ -205,6 +209,8 @@ pub enum SimError {
     Grid(String),
     /// The core refused the configuration.
     Config(String),
+    /// A problem dump could not be written.
+    Dump(String),
 }
 
 impl std::fmt::Display for SimError {
@@ -212,6 +218,7 @@ impl std::fmt::Display for SimError {
         match self {
             SimError::Grid(s) => write!(f, "grid: {s}"),
             SimError::Config(s) => write!(f, "explorer configuration: {s}"),
+            SimError::Dump(s) => write!(f, "--dump-problem: {s}"),
         }
     }
 }
@@ -376,6 +383,39 @@ impl Vehicle {
     }
 }
 
+/// Writes the labels and source of one planning step for `harmonic-sim solve`.
+fn dump_problem(
+    dir: &std::path::Path,
+    step: u32,
+    explorer: &Explorer<'_>,
+    position: &Point3<f32>,
+    cfg: &SimConfig,
+) -> Result<(), SimError> {
+    let err = |e: std::io::Error| SimError::Dump(format!("{}: {e}", dir.display()));
+    std::fs::create_dir_all(dir).map_err(err)?;
+    let map = explorer.map();
+    let grid = crate::problem::labels_from_map(map);
+    let labels_path = dir.join(format!("step_{step:04}.npy"));
+    std::fs::write(&labels_path, crate::npy::write_u8(&grid)).map_err(err)?;
+    let Some(v) = map.geometry().voxel_at(position) else {
+        return Ok(());
+    };
+    // f32 → shortest decimal → f64, so the JSON says 0.2 rather than 0.20000000298.
+    let short = |v: f32| v.to_string().parse::<f64>().unwrap_or(f64::from(v));
+    let meta = serde_json::json!({
+        "labels": labels_path.file_name().map(|n| n.to_string_lossy().into_owned()),
+        "source": [v.x, v.y, v.z],
+        "radius": short(cfg.explorer.vehicle_radius),
+        "resolution": short(map.geometry().resolution()),
+        "command": format!(
+            "harmonic-sim solve --labels {} --source {},{},{} --radius {} --resolution {}",
+            labels_path.display(), v.x, v.y, v.z, cfg.explorer.vehicle_radius, map.geometry().resolution()
+        ),
+    });
+    std::fs::write(dir.join(format!("step_{step:04}.json")), meta.to_string()).map_err(err)?;
+    Ok(())
+}
+
 /// Runs one exploration of `scenario` to termination. `progress` is called after every step.
 pub fn run(
     scenario: &Scenario,
@@ -415,8 +455,12 @@ pub fn run(
         let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
         integrated?.ok();
 
+        let kept_before = explorer.status().plans_kept;
         let outcome = explorer.plan_timed(&vehicle.position, vehicle.yaw, &mut clock);
         let status = *explorer.status();
+        if let (Some(dir), true) = (&cfg.dump_problem, status.plans_kept == kept_before) {
+            dump_problem(dir, step, &explorer, &vehicle.position, cfg)?;
+        }
         let coverage = truth.coverage(explorer.map());
         let label = match outcome {
             PlanOutcome::Goal(g) if g.escape => "escape".to_string(),

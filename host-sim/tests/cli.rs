@@ -85,3 +85,60 @@ fn explore_writes_a_report_with_the_documented_fields() {
     );
     let _ = std::fs::remove_dir_all(dir);
 }
+
+#[test]
+fn solve_round_trips_a_numpy_label_grid() {
+    let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/labels_4x3x2.npy");
+    let out_path = std::env::temp_dir().join(format!("harmonic-phi-{}.npy", std::process::id()));
+    for solver in ["mg", "gs"] {
+        let out = sim()
+            .args([
+                "solve", "--labels", fixture, "--source", "0,0,0", "--solver", solver, "--out",
+            ])
+            .arg(&out_path)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let stdout = String::from_utf8(out.stdout).unwrap();
+        assert_eq!(stdout.lines().count(), 1, "one JSON line: {stdout}");
+        let line: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        for key in [
+            "cells", "unknowns", "frontier", "solver", "cycles", "residual", "solve_ms", "setup_ms",
+        ] {
+            assert!(line.get(key).is_some(), "missing `{key}` in {line}");
+        }
+        assert_eq!(line["cells"], 24);
+        assert_eq!(line["solver"], solver);
+        let phi = harmonic_sim::npy::read_f32(&std::fs::read(&out_path).unwrap()).unwrap();
+        assert_eq!(phi.shape, [4, 3, 2]);
+        assert_eq!(*phi.get(0, 0, 0).unwrap(), 1.0, "φ = 1 at the source");
+        assert_eq!(
+            *phi.get(0, 1, 1).unwrap(),
+            0.0,
+            "occupied voxel is outside the domain"
+        );
+        assert!(phi.data.iter().all(|p| (0.0..=1.0).contains(p)));
+    }
+    let _ = std::fs::remove_file(out_path);
+}
+
+#[test]
+fn solve_rejects_fortran_order_and_bad_source_with_exit_code_2() {
+    let fortran = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/labels_4x3x2_fortran.npy"
+    );
+    let out = sim()
+        .args(["solve", "--labels", fortran, "--source", "0,0,0"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("Fortran"));
+    let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/labels_4x3x2.npy");
+    let out = sim()
+        .args(["solve", "--labels", fixture, "--source", "9,0,0"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("outside the grid"));
+}

@@ -1,0 +1,217 @@
+//! Solver benchmarks: the numbers in BENCHMARKS.md come from here (`harmonic-sim bench-solve`).
+//!
+//! The problem is a building-like grid: outer walls, floor and ceiling, a 4 × 4 plan of rooms
+//! separated by one-voxel walls with door openings, the vehicle (source) in the first room and a
+//! 10 × 10 patch of frontier voxels against the far wall of the last room. A *warm* re-solve
+//! models the next planning step after one scan: the vehicle has moved 1 m (10 voxels) and the
+//! frontier patch has shifted by three voxels; the solve starts from the previous solution.
+
+use std::time::Instant;
+
+use harmonic_core::domain::Label;
+use harmonic_core::map::{Dims, VoxelIndex};
+use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
+use harmonic_core::solve::{gauss_seidel, SolveParams, SolveStats};
+use serde::Serialize;
+
+/// A labelled Laplace problem.
+pub struct Problem {
+    /// Grid size.
+    pub dims: Dims,
+    /// Domain labels.
+    pub labels: Vec<Label>,
+}
+
+impl Problem {
+    /// Interior unknowns.
+    pub fn unknowns(&self) -> usize {
+        self.labels.iter().filter(|l| **l == Label::Interior).count()
+    }
+    /// Frontier voxels.
+    pub fn frontier(&self) -> usize {
+        self.labels.iter().filter(|l| **l == Label::Frontier).count()
+    }
+}
+
+/// Rooms with doors on an `nx × ny × nz` grid; `step` moves the source and the frontier patch as
+/// one scan would (0 = the cold problem).
+pub fn rooms_with_doors(dims: Dims, step: usize) -> Problem {
+    let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
+    let room_x = nx / 4;
+    let room_y = ny / 4;
+    let door = (room_y / 3).max(2);
+    let door_height = (nz * 2 / 3).max(2);
+    let mut labels = vec![Label::Outside; dims.len()];
+    for (i, l) in labels.iter_mut().enumerate() {
+        let v = dims.voxel(i);
+        let (x, y, z) = (usize::from(v.x), usize::from(v.y), usize::from(v.z));
+        let boundary = x == 0 || y == 0 || z == 0 || x == nx - 1 || y == ny - 1 || z == nz - 1;
+        // Interior walls on x = k·room_x and y = k·room_y with a door in the middle of each wall
+        // segment.
+        let wall_x = x % room_x == 0 && {
+            let mid = (y / room_y) * room_y + room_y / 2;
+            !(y.abs_diff(mid) < door / 2 + 1 && z < door_height)
+        };
+        let wall_y = y % room_y == 0 && {
+            let mid = (x / room_x) * room_x + room_x / 2;
+            !(x.abs_diff(mid) < door / 2 + 1 && z < door_height)
+        };
+        if !(boundary || wall_x || wall_y) {
+            *l = Label::Interior;
+        }
+    }
+    // Frontier: a 10 × 10 patch on the far wall of the last room.
+    let shift = 3 * step;
+    let y0 = ny.saturating_sub(room_y / 2 + 5) + shift.min((room_y / 2).saturating_sub(6));
+    let z0 = (nz / 2).saturating_sub(5);
+    for y in y0..y0 + 10 {
+        for z in z0..z0 + 10 {
+            if let Some(v) = dims.checked((nx - 2) as i32, y as i32, z as i32) {
+                labels[dims.linear(v)] = Label::Frontier;
+            }
+        }
+    }
+    let source = VoxelIndex::new(
+        (room_x / 2 + 10 * step) as u16,
+        (room_y / 2) as u16,
+        (nz / 2) as u16,
+    );
+    labels[dims.linear(source)] = Label::Source;
+    Problem { dims, labels }
+}
+
+/// One benchmark measurement.
+#[derive(Debug, Clone, Serialize)]
+pub struct SolveRow {
+    /// Grid size, e.g. "64x64x32".
+    pub grid: String,
+    /// Interior unknowns.
+    pub unknowns: usize,
+    /// Frontier voxels.
+    pub frontier: usize,
+    /// "mg (pcg)", "mg (v-cycle)" or "gs".
+    pub solver: String,
+    /// "cold" or "warm".
+    pub start: String,
+    /// Cycles, CG iterations or sweeps.
+    pub iterations: u32,
+    /// Final relative residual.
+    pub residual: f32,
+    /// Converged to the tolerance.
+    pub converged: bool,
+    /// Median wall time, ms.
+    pub ms: f64,
+    /// Cell updates.
+    pub cell_updates: u64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Which solver a row measures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BenchSolver {
+    /// Multigrid with the given method.
+    Multigrid(Method),
+    /// The reference Gauss-Seidel.
+    GaussSeidel,
+}
+
+impl BenchSolver {
+    fn name(self) -> &'static str {
+        match self {
+            BenchSolver::Multigrid(Method::VCycle) => "mg (v-cycle)",
+            BenchSolver::Multigrid(_) => "mg (pcg)",
+            BenchSolver::GaussSeidel => "gs",
+        }
+    }
+}
+
+/// Measures a cold solve and a warm re-solve of the rooms problem on `dims`, `repeat` times each
+/// (median reported).
+pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -> [SolveRow; 2] {
+    let cold = rooms_with_doors(dims, 0);
+    let warm = rooms_with_doors(dims, 1);
+    let size = scratch_size(&dims);
+    let mut values = vec![0.0f32; size.values];
+    let mut clabels = vec![Label::Outside; size.labels];
+    let mut krylov = vec![0.0f32; size.krylov];
+    let mut psi = vec![0.0f32; dims.len()];
+    let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool| -> SolveStats {
+        let params = SolveParams {
+            tolerance,
+            max_iterations: 1_000_000,
+            warm_start,
+        };
+        match solver {
+            BenchSolver::Multigrid(method) => {
+                let storage = MultigridStorage {
+                    values: &mut values,
+                    labels: &mut clabels,
+                    krylov: &mut krylov,
+                };
+                let mut mg = Multigrid::new(dims, storage).expect("scratch sized by scratch_size");
+                mg.solve(labels, psi, &params, method).expect("valid problem")
+            }
+            BenchSolver::GaussSeidel => gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),
+        }
+    };
+    let grid = format!("{}x{}x{}", dims.nx(), dims.ny(), dims.nz());
+    let row = |p: &Problem, start: &str, stats: SolveStats, ms: f64| SolveRow {
+        grid: grid.clone(),
+        unknowns: p.unknowns(),
+        frontier: p.frontier(),
+        solver: solver.name().into(),
+        start: start.into(),
+        iterations: stats.iterations,
+        residual: stats.residual,
+        converged: stats.converged,
+        ms,
+        cell_updates: stats.cell_updates,
+    };
+    let (mut cold_times, mut warm_times) = (Vec::new(), Vec::new());
+    let (mut cold_stats, mut warm_stats) = (SolveStats::default(), SolveStats::default());
+    for _ in 0..repeat.max(1) {
+        psi.fill(0.0);
+        let t = Instant::now();
+        cold_stats = run(&cold.labels, &mut psi, false);
+        cold_times.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        warm_stats = run(&warm.labels, &mut psi, true);
+        warm_times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    [
+        row(&cold, "cold", cold_stats, median(cold_times)),
+        row(&warm, "warm", warm_stats, median(warm_times)),
+    ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rooms_problem_has_the_advertised_shape() {
+        let p = rooms_with_doors(Dims::new(64, 64, 32).unwrap(), 0);
+        assert!((90_000..130_000).contains(&p.unknowns()), "{}", p.unknowns());
+        assert_eq!(p.frontier(), 100);
+        assert_eq!(p.labels.iter().filter(|l| **l == Label::Source).count(), 1);
+        let q = rooms_with_doors(Dims::new(64, 64, 32).unwrap(), 1);
+        assert_ne!(p.labels, q.labels, "a scan changes the problem");
+    }
+
+    #[test]
+    fn warm_start_needs_fewer_iterations_than_cold() {
+        let dims = Dims::new(32, 32, 16).unwrap();
+        let [cold, warm] = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-6, 1);
+        assert!(cold.converged && warm.converged, "{cold:?} {warm:?}");
+        assert!(
+            warm.iterations < cold.iterations,
+            "warm {} vs cold {}",
+            warm.iterations,
+            cold.iterations
+        );
+    }
+}

@@ -1,0 +1,1387 @@
+//! NumPy `.npy` files for 3-D arrays: a small, dependency-free reader and writer.
+//!
+//! # Format
+//!
+//! A `.npy` file is
+//!
+//! ```text
+//! b"\x93NUMPY" | major: u8 | minor: u8 | header_len | header (header_len bytes) | data
+//! ```
+//!
+//! where `header_len` is a little-endian `u16` for format 1.0 and a little-endian `u32` for 2.0
+//! and 3.0. The header is a Python dict literal such as
+//! `{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2), }`, padded with spaces and ended
+//! by `'\n'`; it is ASCII for 1.0 and 2.0 (NumPy says latin-1, but no header this module accepts
+//! needs a non-ASCII byte) and UTF-8 for 3.0. NumPy ≥ 1.9 pads so that the data starts at a
+//! multiple of 64 bytes, older versions at a multiple of 16; the reader accepts any padding.
+//!
+//! # What is supported
+//!
+//! - Reading: format 1.0, 2.0 and 3.0; C order only (`fortran_order` must be `False`); exactly
+//!   three dimensions. [`read_u8`] takes `uint8` (`'|u1'`, `'<u1'`, `'>u1'`, `'=u1'`, `'u1'`) and
+//!   `bool` (`'|b1'` and the same variants, or `'?'`; any non-zero byte reads as 1). [`read_f32`]
+//!   takes `float32` in either byte order (`'<f4'`, `'>f4'`).
+//! - Writing: [`write_u8`] (`'|u1'`) and [`write_f32`] (`'<f4'`) produce format 1.0, C order,
+//!   byte for byte what NumPy 2.x `numpy.save` writes for the same array: keys sorted, a trailing
+//!   `", "` before `}`, NumPy's 21-digit growth padding, then spaces and `'\n'` so that magic,
+//!   version, length and header together are a multiple of 64 bytes.
+//!
+//! The header parser understands just enough Python: the three keys `'descr'`, `'fortran_order'`
+//! and `'shape'` in any order, single- or double-quoted strings, `True`/`False`, tuples of
+//! non-negative integers (an `L` suffix, as Python 2 NumPy wrote, is accepted), whitespace, and
+//! an optional trailing comma. Every malformed input yields an [`NpyError`]; the reader never
+//! panics.
+//!
+//! # Element order
+//!
+//! [`Array3`] stores its elements in C (row-major) order, the order NumPy uses for
+//! `fortran_order: False`: the **last** index varies fastest. For `shape = [nx, ny, nz]`, element
+//! `[x, y, z]` is `data[(x * ny + y) * nz + z]`, so `data` holds `[0, 0, 0], [0, 0, 1], …,
+//! [0, 0, nz-1], [0, 1, 0], …, [nx-1, ny-1, nz-1]`. In NumPy terms `data` is
+//! `a.ravel(order='C')` for the array `a` with `a.shape == (nx, ny, nz)`, and `a[x, y, z]` is the
+//! element [`Array3::get`]`(x, y, z)` returns.
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+/// The six bytes every `.npy` file starts with.
+const MAGIC: &[u8; 6] = b"\x93NUMPY";
+/// The alignment NumPy ≥ 1.9 pads the header to.
+const ARRAY_ALIGN: usize = 64;
+/// NumPy leaves room in the header for the growable axis to reach this many digits.
+const GROWTH_AXIS_MAX_DIGITS: usize = 21;
+/// At most this many characters of an input-derived string go into an error message.
+const MAX_QUOTED: usize = 40;
+
+/// A dense 3-D array in C (row-major) order.
+///
+/// For `shape = [nx, ny, nz]`, element `[x, y, z]` is `data[(x * ny + y) * nz + z]`: `z` varies
+/// fastest, `x` slowest (see the [module documentation](self)). A well-formed array has
+/// `data.len() == nx * ny * nz`; the readers only return well-formed arrays, and the writers
+/// panic on arrays that are not.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Array3<T> {
+    /// `[nx, ny, nz]`: the extent along each axis, slowest-varying first.
+    pub shape: [usize; 3],
+    /// The elements in C order: `[x, y, z]` at `(x * ny + y) * nz + z`.
+    pub data: Vec<T>,
+}
+
+impl<T> Array3<T> {
+    /// Wraps `data` (in C order) as an array of `shape`; `None` if `data.len()` is not the
+    /// product of `shape`.
+    pub fn new(shape: [usize; 3], data: Vec<T>) -> Option<Self> {
+        (element_count(&shape) == Some(data.len())).then_some(Self { shape, data })
+    }
+
+    /// Builds an array of `shape` whose element `[x, y, z]` is `f(x, y, z)`, calling `f` in C
+    /// order.
+    ///
+    /// # Panics
+    ///
+    /// If the product of `shape` overflows `usize`.
+    pub fn from_fn(shape: [usize; 3], mut f: impl FnMut(usize, usize, usize) -> T) -> Self {
+        let n = element_count(&shape).expect("Array3::from_fn: shape product overflows usize");
+        let mut data = Vec::with_capacity(n);
+        for x in 0..shape[0] {
+            for y in 0..shape[1] {
+                for z in 0..shape[2] {
+                    data.push(f(x, y, z));
+                }
+            }
+        }
+        Self { shape, data }
+    }
+
+    /// Number of elements, `data.len()`.
+    pub fn len(&self) -> usize {
+        self.data.len()
+    }
+
+    /// Whether the array has no elements (some axis has extent 0).
+    pub fn is_empty(&self) -> bool {
+        self.data.is_empty()
+    }
+
+    /// The position of `[x, y, z]` in `data`, `(x * ny + y) * nz + z`; `None` if an index is out
+    /// of range for `shape`.
+    pub fn index_of(&self, x: usize, y: usize, z: usize) -> Option<usize> {
+        let [nx, ny, nz] = self.shape;
+        if x >= nx || y >= ny || z >= nz {
+            return None;
+        }
+        x.checked_mul(ny)?.checked_add(y)?.checked_mul(nz)?.checked_add(z)
+    }
+
+    /// Element `[x, y, z]`, or `None` if out of range.
+    pub fn get(&self, x: usize, y: usize, z: usize) -> Option<&T> {
+        self.data.get(self.index_of(x, y, z)?)
+    }
+}
+
+/// Why a `.npy` file could not be read.
+///
+/// Every variant's [`Display`](fmt::Display) is a single line saying what was wrong.
+#[derive(Debug)]
+pub enum NpyError {
+    /// The file could not be read from disk.
+    Io {
+        /// The path that was being read.
+        path: PathBuf,
+        /// The underlying error.
+        source: std::io::Error,
+    },
+    /// The input does not start with `\x93NUMPY`.
+    BadMagic,
+    /// The input ends inside the magic string, version, header length or header.
+    Truncated {
+        /// Bytes needed to hold everything up to the end of the part that is cut off.
+        needed: usize,
+        /// Bytes present.
+        got: usize,
+    },
+    /// The format version is not 1.0, 2.0 or 3.0.
+    UnsupportedVersion {
+        /// Major version byte.
+        major: u8,
+        /// Minor version byte.
+        minor: u8,
+    },
+    /// The header is not ASCII (formats 1.0 and 2.0) or not UTF-8 (format 3.0).
+    HeaderEncoding {
+        /// Major format version (1, 2 or 3).
+        major: u8,
+    },
+    /// The header is not a dict literal with exactly the keys `'descr'`, `'fortran_order'` and
+    /// `'shape'` holding a string, a bool and a tuple of integers.
+    MalformedHeader {
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// The array is stored in Fortran (column-major) order, which this reader does not support.
+    FortranOrder,
+    /// The dtype is not one the reader accepts.
+    UnsupportedDtype {
+        /// The header's `'descr'`.
+        found: String,
+        /// What was accepted, e.g. `'|u1' or '|b1'`.
+        expected: &'static str,
+    },
+    /// The array does not have exactly three dimensions.
+    NotThreeD {
+        /// The header's shape.
+        shape: Vec<usize>,
+    },
+    /// The array's byte size, product(shape) × itemsize, overflows `usize`.
+    ShapeOverflow {
+        /// The header's shape.
+        shape: [usize; 3],
+        /// Bytes per element.
+        itemsize: usize,
+    },
+    /// The data section is not exactly product(shape) × itemsize bytes long.
+    DataLength {
+        /// The header's shape.
+        shape: [usize; 3],
+        /// Bytes per element.
+        itemsize: usize,
+        /// product(shape) × itemsize.
+        expected: usize,
+        /// Bytes after the header.
+        found: usize,
+    },
+}
+
+impl fmt::Display for NpyError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Io { path, source } => {
+                write!(
+                    f,
+                    "cannot read {}: {}",
+                    path.display(),
+                    one_line(&source.to_string())
+                )
+            }
+            Self::BadMagic => write!(f, "not a .npy file: it does not start with \\x93NUMPY"),
+            Self::Truncated { needed, got } => {
+                write!(
+                    f,
+                    ".npy file truncated in its header: need {needed} bytes, got {got}"
+                )
+            }
+            Self::UnsupportedVersion { major, minor } => write!(
+                f,
+                "unsupported .npy format version {major}.{minor} (supported: 1.0, 2.0, 3.0)"
+            ),
+            Self::HeaderEncoding { major } => {
+                let encoding = if *major >= 3 { "UTF-8" } else { "ASCII" };
+                write!(f, ".npy header is not valid {encoding} (format {major}.0)")
+            }
+            Self::MalformedHeader { reason } => write!(f, "malformed .npy header: {}", one_line(reason)),
+            Self::FortranOrder => {
+                write!(
+                    f,
+                    "array is stored in Fortran order (fortran_order: True); only C order is supported"
+                )
+            }
+            Self::UnsupportedDtype { found, expected } => {
+                write!(f, "unsupported dtype '{}', expected {expected}", quoted(found))
+            }
+            Self::NotThreeD { shape } => {
+                write!(f, "expected a 3-D array, got shape {}", ShapeDisplay(shape))
+            }
+            Self::ShapeOverflow { shape, itemsize } => write!(
+                f,
+                "array of shape {} with {itemsize}-byte items is too large: its size overflows usize",
+                ShapeDisplay(shape)
+            ),
+            Self::DataLength {
+                shape,
+                itemsize,
+                expected,
+                found,
+            } => write!(
+                f,
+                "data section is {found} bytes, expected {expected} for shape {} with {itemsize}-byte items",
+                ShapeDisplay(shape)
+            ),
+        }
+    }
+}
+
+impl std::error::Error for NpyError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Self::Io { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}
+
+/// A shape as Python prints a tuple: `()`, `(4,)`, `(4, 5)`.
+struct ShapeDisplay<'a>(&'a [usize]);
+
+impl fmt::Display for ShapeDisplay<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self.0 {
+            [] => write!(f, "()"),
+            [only] => write!(f, "({only},)"),
+            [first, rest @ ..] => {
+                write!(f, "({first}")?;
+                for d in rest {
+                    write!(f, ", {d}")?;
+                }
+                write!(f, ")")
+            }
+        }
+    }
+}
+
+/// Collapses all whitespace runs to single spaces.
+fn one_line(s: &str) -> String {
+    s.split_whitespace().collect::<Vec<_>>().join(" ")
+}
+
+/// An input-derived string made safe for a one-line message: escaped and shortened.
+fn quoted(s: &str) -> String {
+    let mut out: String = s.chars().take(MAX_QUOTED).flat_map(char::escape_debug).collect();
+    if s.chars().nth(MAX_QUOTED).is_some() {
+        out.push('…');
+    }
+    out
+}
+
+/// The exact product of `shape` (0 if any axis is 0, even if the others would overflow), `None`
+/// on overflow.
+fn element_count(shape: &[usize]) -> Option<usize> {
+    if shape.contains(&0) {
+        return Some(0);
+    }
+    shape.iter().try_fold(1usize, |acc, &d| acc.checked_mul(d))
+}
+
+// ---------------------------------------------------------------------------------------------
+// Reading
+// ---------------------------------------------------------------------------------------------
+
+/// Reads a 3-D `uint8` (or `bool`, as 0/1) array from the bytes of a `.npy` file.
+///
+/// Accepts dtypes `'|u1'`, `'<u1'`, `'>u1'`, `'=u1'`, `'u1'` and `'|b1'`, `'<b1'`, `'>b1'`,
+/// `'=b1'`, `'b1'`, `'?'`; a `bool` byte that is not 0 reads as 1. See the
+/// [module documentation](self) for the formats and headers accepted.
+pub fn read_u8(bytes: &[u8]) -> Result<Array3<u8>, NpyError> {
+    let (shape, kind, data) = read_raw(bytes, u8_kind, "'|u1' or '|b1'")?;
+    let data = match kind {
+        U8Kind::U8 => data.to_vec(),
+        U8Kind::Bool => data.iter().map(|&b| u8::from(b != 0)).collect(),
+    };
+    Ok(Array3 { shape, data })
+}
+
+/// Reads the `.npy` file at `path` with [`read_u8`].
+pub fn read_u8_file(path: impl AsRef<Path>) -> Result<Array3<u8>, NpyError> {
+    let path = path.as_ref();
+    let bytes = std::fs::read(path).map_err(|source| NpyError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    read_u8(&bytes)
+}
+
+/// Reads a 3-D `float32` array (`'<f4'` or `'>f4'`) from the bytes of a `.npy` file.
+pub fn read_f32(bytes: &[u8]) -> Result<Array3<f32>, NpyError> {
+    let (shape, big_endian, data) = read_raw(bytes, f32_kind, "'<f4' or '>f4'")?;
+    let data = data
+        .chunks_exact(4)
+        .map(|c| {
+            let b = [c[0], c[1], c[2], c[3]];
+            if big_endian {
+                f32::from_be_bytes(b)
+            } else {
+                f32::from_le_bytes(b)
+            }
+        })
+        .collect();
+    Ok(Array3 { shape, data })
+}
+
+#[derive(Clone, Copy)]
+enum U8Kind {
+    U8,
+    Bool,
+}
+
+/// The element kind and item size of a `descr` [`read_u8`] accepts.
+fn u8_kind(descr: &str) -> Option<(U8Kind, usize)> {
+    match descr {
+        "|u1" | "<u1" | ">u1" | "=u1" | "u1" => Some((U8Kind::U8, 1)),
+        "|b1" | "<b1" | ">b1" | "=b1" | "b1" | "?" => Some((U8Kind::Bool, 1)),
+        _ => None,
+    }
+}
+
+/// Whether a `descr` [`read_f32`] accepts is big-endian, and its item size.
+fn f32_kind(descr: &str) -> Option<(bool, usize)> {
+    match descr {
+        "<f4" => Some((false, 4)),
+        ">f4" => Some((true, 4)),
+        _ => None,
+    }
+}
+
+/// Parses and validates everything but the element values: returns the shape, the element kind
+/// and the data section, whose length is checked to be product(shape) × itemsize.
+fn read_raw<'a, K>(
+    bytes: &'a [u8],
+    kind_of: fn(&str) -> Option<(K, usize)>,
+    expected: &'static str,
+) -> Result<([usize; 3], K, &'a [u8]), NpyError> {
+    let (header, data) = split_header(bytes)?;
+    let Some((kind, itemsize)) = kind_of(&header.descr) else {
+        return Err(NpyError::UnsupportedDtype {
+            found: header.descr,
+            expected,
+        });
+    };
+    if header.fortran_order {
+        return Err(NpyError::FortranOrder);
+    }
+    let shape: [usize; 3] = match header.shape.as_slice() {
+        &[nx, ny, nz] => [nx, ny, nz],
+        _ => return Err(NpyError::NotThreeD { shape: header.shape }),
+    };
+    let expected_len = element_count(&shape)
+        .and_then(|n| n.checked_mul(itemsize))
+        .ok_or(NpyError::ShapeOverflow { shape, itemsize })?;
+    if data.len() != expected_len {
+        return Err(NpyError::DataLength {
+            shape,
+            itemsize,
+            expected: expected_len,
+            found: data.len(),
+        });
+    }
+    Ok((shape, kind, data))
+}
+
+/// The header dict of a `.npy` file.
+#[derive(Debug, PartialEq)]
+struct Header {
+    descr: String,
+    fortran_order: bool,
+    shape: Vec<usize>,
+}
+
+/// Checks the magic and version, parses the header and returns it with the bytes after it.
+fn split_header(bytes: &[u8]) -> Result<(Header, &[u8]), NpyError> {
+    let got = bytes.len();
+    let magic_seen = got.min(MAGIC.len());
+    if bytes.get(..magic_seen) != MAGIC.get(..magic_seen) {
+        return Err(NpyError::BadMagic);
+    }
+    let (major, minor) = match (bytes.get(6), bytes.get(7)) {
+        (Some(&major), Some(&minor)) => (major, minor),
+        _ => return Err(NpyError::Truncated { needed: 8, got }),
+    };
+    let len_size = match (major, minor) {
+        (1, 0) => 2,
+        (2, 0) | (3, 0) => 4,
+        _ => return Err(NpyError::UnsupportedVersion { major, minor }),
+    };
+    let start = 8 + len_size;
+    let header_len = match bytes.get(8..start) {
+        Some(&[a, b]) => usize::from(u16::from_le_bytes([a, b])),
+        Some(&[a, b, c, d]) => usize::try_from(u32::from_le_bytes([a, b, c, d])).unwrap_or(usize::MAX),
+        _ => return Err(NpyError::Truncated { needed: start, got }),
+    };
+    let end = start.saturating_add(header_len);
+    let (Some(raw), Some(data)) = (bytes.get(start..end), bytes.get(end..)) else {
+        return Err(NpyError::Truncated { needed: end, got });
+    };
+    let ascii_ok = major >= 3 || raw.is_ascii();
+    let text = match std::str::from_utf8(raw) {
+        Ok(text) if ascii_ok => text,
+        _ => return Err(NpyError::HeaderEncoding { major }),
+    };
+    Ok((parse_header(text)?, data))
+}
+
+fn malformed(reason: impl Into<String>) -> NpyError {
+    NpyError::MalformedHeader {
+        reason: reason.into(),
+    }
+}
+
+/// A Python literal in the header.
+enum Value {
+    Str(String),
+    Bool(bool),
+    /// An integer; its value is never needed, only that it is not a tuple.
+    Int,
+    Tuple(Vec<usize>),
+    /// A list, as in a structured dtype's `descr`; its contents are skipped.
+    List,
+}
+
+/// Parses the header dict.
+fn parse_header(text: &str) -> Result<Header, NpyError> {
+    let mut p = Parser { s: text, pos: 0 };
+    let (mut descr, mut fortran_order, mut shape) = (None, None, None);
+    p.skip_ws();
+    p.expect(b'{')?;
+    loop {
+        p.skip_ws();
+        if p.eat(b'}') {
+            break;
+        }
+        let key_at = p.pos;
+        let key = match p.peek() {
+            Some(b'\'' | b'"') => p.string()?,
+            _ => return Err(p.unexpected("a quoted key or '}'")),
+        };
+        p.skip_ws();
+        p.expect(b':')?;
+        p.skip_ws();
+        let value = p.value()?;
+        let slot_taken = match key.as_str() {
+            "descr" => descr.replace(value).is_some(),
+            "fortran_order" => fortran_order.replace(value).is_some(),
+            "shape" => shape.replace(value).is_some(),
+            _ => {
+                return Err(malformed(format!(
+                    "unexpected key '{}' at byte {key_at}",
+                    quoted(&key)
+                )))
+            }
+        };
+        if slot_taken {
+            return Err(malformed(format!("duplicate key '{key}' at byte {key_at}")));
+        }
+        p.skip_ws();
+        if p.eat(b',') {
+            continue;
+        }
+        if p.eat(b'}') {
+            break;
+        }
+        return Err(p.unexpected("',' or '}'"));
+    }
+    p.skip_ws();
+    if p.peek().is_some() {
+        return Err(p.unexpected("only whitespace after the closing '}'"));
+    }
+    let descr = match descr {
+        Some(Value::Str(s)) => s,
+        Some(Value::List) => {
+            return Err(NpyError::UnsupportedDtype {
+                found: "[…] (a structured dtype)".into(),
+                expected: "a simple dtype",
+            })
+        }
+        Some(_) => return Err(malformed("'descr' is not a string")),
+        None => return Err(malformed("missing key 'descr'")),
+    };
+    let fortran_order = match fortran_order {
+        Some(Value::Bool(b)) => b,
+        Some(_) => return Err(malformed("'fortran_order' is not True or False")),
+        None => return Err(malformed("missing key 'fortran_order'")),
+    };
+    let shape = match shape {
+        Some(Value::Tuple(t)) => t,
+        Some(_) => return Err(malformed("'shape' is not a tuple of integers")),
+        None => return Err(malformed("missing key 'shape'")),
+    };
+    Ok(Header {
+        descr,
+        fortran_order,
+        shape,
+    })
+}
+
+/// A cursor over the header text. `pos` is a byte offset that only ever stops on ASCII bytes or
+/// the end, so slicing `s` at it is always on a character boundary.
+struct Parser<'a> {
+    s: &'a str,
+    pos: usize,
+}
+
+impl Parser<'_> {
+    fn peek(&self) -> Option<u8> {
+        self.s.as_bytes().get(self.pos).copied()
+    }
+
+    fn eat(&mut self, c: u8) -> bool {
+        let hit = self.peek() == Some(c);
+        if hit {
+            self.pos += 1;
+        }
+        hit
+    }
+
+    fn expect(&mut self, c: u8) -> Result<(), NpyError> {
+        if self.eat(c) {
+            Ok(())
+        } else {
+            Err(self.unexpected(&format!("'{}'", char::from(c))))
+        }
+    }
+
+    fn skip_ws(&mut self) {
+        while matches!(self.peek(), Some(b' ' | b'\t' | b'\n' | b'\r' | b'\x0c')) {
+            self.pos += 1;
+        }
+    }
+
+    /// An error saying what was found at the cursor instead of `wanted`.
+    fn unexpected(&self, wanted: &str) -> NpyError {
+        let found = match self.s.get(self.pos..).and_then(|rest| rest.chars().next()) {
+            Some(c) => format!("'{}'", c.escape_debug()),
+            None => "the end of the header".to_string(),
+        };
+        malformed(format!("expected {wanted} at byte {}, found {found}", self.pos))
+    }
+
+    /// A single- or double-quoted string. The escapes `\n`, `\t`, `\r`, `\0`, `\\`, `\'` and `\"`
+    /// are decoded as in Python; any other backslash is kept with the character after it.
+    fn string(&mut self) -> Result<String, NpyError> {
+        let start = self.pos;
+        let Some(quote) = self.peek() else {
+            return Err(self.unexpected("a string"));
+        };
+        let rest = self.s.get(start + 1..).unwrap_or("");
+        let mut out = String::new();
+        let mut chars = rest.char_indices();
+        while let Some((i, c)) = chars.next() {
+            match c {
+                '\\' => match chars.next() {
+                    Some((_, 'n')) => out.push('\n'),
+                    Some((_, 't')) => out.push('\t'),
+                    Some((_, 'r')) => out.push('\r'),
+                    Some((_, '0')) => out.push('\0'),
+                    Some((_, e @ ('\\' | '\'' | '"'))) => out.push(e),
+                    Some((_, other)) => {
+                        out.push('\\');
+                        out.push(other);
+                    }
+                    None => break,
+                },
+                '\n' => break,
+                c if c == char::from(quote) => {
+                    self.pos = start + 1 + i + 1;
+                    return Ok(out);
+                }
+                c => out.push(c),
+            }
+        }
+        Err(malformed(format!("unterminated string starting at byte {start}")))
+    }
+
+    /// A run of ASCII letters, digits and underscores.
+    fn word(&mut self) -> &str {
+        let start = self.pos;
+        while matches!(self.peek(), Some(c) if c.is_ascii_alphanumeric() || c == b'_') {
+            self.pos += 1;
+        }
+        self.s.get(start..self.pos).unwrap_or("")
+    }
+
+    /// A non-negative integer, optionally with Python 2's `L` suffix.
+    fn int(&mut self) -> Result<usize, NpyError> {
+        let start = self.pos;
+        let word = self.word();
+        let digits = word.strip_suffix(['L', 'l']).unwrap_or(word);
+        if digits.is_empty() || !digits.bytes().all(|b| b.is_ascii_digit()) {
+            self.pos = start;
+            return Err(self.unexpected("a non-negative integer"));
+        }
+        digits.parse().map_err(|_| {
+            malformed(format!(
+                "integer {} at byte {start} does not fit in usize",
+                quoted(digits)
+            ))
+        })
+    }
+
+    fn value(&mut self) -> Result<Value, NpyError> {
+        match self.peek() {
+            Some(b'\'' | b'"') => self.string().map(Value::Str),
+            Some(b'(') => self.tuple(),
+            Some(b'[') => self.skip_list(),
+            Some(c) if c.is_ascii_digit() => self.int().map(|_| Value::Int),
+            Some(c) if c.is_ascii_alphabetic() => {
+                let start = self.pos;
+                match self.word() {
+                    "True" => Ok(Value::Bool(true)),
+                    "False" => Ok(Value::Bool(false)),
+                    _ => {
+                        self.pos = start;
+                        Err(self.unexpected("True, False, a string, an integer or a tuple"))
+                    }
+                }
+            }
+            _ => Err(self.unexpected("a value")),
+        }
+    }
+
+    /// `()`, `(n,)`, `(n, m)`, `(n, m,)`, …; `(n)` without a comma is just the integer `n`, as in
+    /// Python.
+    fn tuple(&mut self) -> Result<Value, NpyError> {
+        self.expect(b'(')?;
+        let mut items = Vec::new();
+        let mut saw_comma = false;
+        loop {
+            self.skip_ws();
+            if self.eat(b')') {
+                break;
+            }
+            items.push(self.int()?);
+            self.skip_ws();
+            if self.eat(b',') {
+                saw_comma = true;
+                continue;
+            }
+            if self.eat(b')') {
+                break;
+            }
+            return Err(self.unexpected("',' or ')'"));
+        }
+        match items.as_slice() {
+            [_] if !saw_comma => Ok(Value::Int),
+            _ => Ok(Value::Tuple(items)),
+        }
+    }
+
+    /// Skips a bracketed list, minding nesting and quoted strings.
+    fn skip_list(&mut self) -> Result<Value, NpyError> {
+        let start = self.pos;
+        let mut depth = 0usize;
+        while let Some(c) = self.peek() {
+            match c {
+                b'\'' | b'"' => {
+                    self.string()?;
+                    continue;
+                }
+                b'[' | b'(' => depth += 1,
+                b']' | b')' => {
+                    depth = depth.saturating_sub(1);
+                    if depth == 0 {
+                        self.pos += 1;
+                        return Ok(Value::List);
+                    }
+                }
+                _ => {}
+            }
+            // Only ASCII bytes are stepped over one at a time; anything else is skipped by the
+            // string branch or is not valid outside a string.
+            if !c.is_ascii() {
+                return Err(self.unexpected("ASCII outside strings"));
+            }
+            self.pos += 1;
+        }
+        Err(malformed(format!("unterminated list starting at byte {start}")))
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writing
+// ---------------------------------------------------------------------------------------------
+
+/// Writes `arr` as a `.npy` file (format 1.0, dtype `'<f4'`, C order), byte for byte as NumPy
+/// 2.x `numpy.save` would.
+///
+/// # Panics
+///
+/// If `arr.data.len()` is not the product of `arr.shape`.
+pub fn write_f32(arr: &Array3<f32>) -> Vec<u8> {
+    check_len(arr);
+    let mut out = header_bytes("<f4", arr.shape, arr.data.len() * 4);
+    for v in &arr.data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// Writes `arr` as a `.npy` file (format 1.0, dtype `'|u1'`, C order), byte for byte as NumPy
+/// 2.x `numpy.save` would.
+///
+/// # Panics
+///
+/// If `arr.data.len()` is not the product of `arr.shape`.
+pub fn write_u8(arr: &Array3<u8>) -> Vec<u8> {
+    check_len(arr);
+    let mut out = header_bytes("|u1", arr.shape, arr.data.len());
+    out.extend_from_slice(&arr.data);
+    out
+}
+
+fn check_len<T>(arr: &Array3<T>) {
+    assert_eq!(
+        element_count(&arr.shape),
+        Some(arr.data.len()),
+        "npy: Array3 of shape {:?} holds {} elements",
+        arr.shape,
+        arr.data.len()
+    );
+}
+
+/// Magic, version, header length and the padded header for a C-order array, with capacity for
+/// `data_len` more bytes.
+fn header_bytes(descr: &str, shape: [usize; 3], data_len: usize) -> Vec<u8> {
+    let [nx, ny, nz] = shape;
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({nx}, {ny}, {nz}), }}");
+    // Room for the growable (first, in C order) axis to be rewritten in place with more digits.
+    let digits = nx.to_string().len();
+    header.extend(std::iter::repeat_n(
+        ' ',
+        GROWTH_AXIS_MAX_DIGITS.saturating_sub(digits),
+    ));
+    // NumPy pads with 1..=64 bytes (a full 64 when already aligned), the last being '\n'.
+    let hlen = header.len() + 1;
+    let (version, prefix_len) = if 10 + hlen + ARRAY_ALIGN <= usize::from(u16::MAX) {
+        (1u8, 10)
+    } else {
+        (2u8, 12) // Unreachable for three dimensions, but NumPy's rule nonetheless.
+    };
+    let pad = ARRAY_ALIGN - (prefix_len + hlen) % ARRAY_ALIGN;
+    let total = hlen + pad;
+    let mut out = Vec::with_capacity(prefix_len + total + data_len);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&[version, 0]);
+    match u16::try_from(total) {
+        Ok(len) if version == 1 => out.extend_from_slice(&len.to_le_bytes()),
+        _ => out.extend_from_slice(&(total as u32).to_le_bytes()),
+    }
+    out.extend_from_slice(header.as_bytes());
+    out.resize(prefix_len + total - 1, b' ');
+    out.push(b'\n');
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixture(name: &str) -> PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/fixtures")
+            .join(name)
+    }
+
+    /// The label grid in `tests/fixtures/labels_4x3x2.npy`, `LABELS[x][y][z]` as in
+    /// `make_fixtures.py`.
+    const LABELS: [[[u8; 2]; 3]; 4] = [
+        [[1, 1], [1, 2], [1, 1]],
+        [[1, 1], [1, 1], [1, 2]],
+        [[1, 0], [2, 0], [1, 0]],
+        [[2, 0], [0, 0], [0, 0]],
+    ];
+
+    /// A `.npy` file with an arbitrary header text and version.
+    fn npy_with_header(major: u8, header: &str, data: &[u8]) -> Vec<u8> {
+        let mut out = MAGIC.to_vec();
+        out.extend_from_slice(&[major, 0]);
+        if major == 1 {
+            out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        } else {
+            out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+        }
+        out.extend_from_slice(header.as_bytes());
+        out.extend_from_slice(data);
+        out
+    }
+
+    fn u8_header(dict: &str) -> Vec<u8> {
+        npy_with_header(1, &format!("{dict}\n"), &[7; 24])
+    }
+
+    #[test]
+    fn array3_order_is_c_order() {
+        let a = Array3::from_fn([4, 3, 2], |x, y, z| (100 * x + 10 * y + z) as u16);
+        assert_eq!(a.len(), 24);
+        assert_eq!(&a.data[..4], &[0, 1, 10, 11]);
+        for x in 0..4 {
+            for y in 0..3 {
+                for z in 0..2 {
+                    let i = (x * 3 + y) * 2 + z;
+                    assert_eq!(a.index_of(x, y, z), Some(i));
+                    assert_eq!(a.get(x, y, z), Some(&a.data[i]));
+                    assert_eq!(a.data[i] as usize, 100 * x + 10 * y + z);
+                }
+            }
+        }
+        assert_eq!(a.get(4, 0, 0), None);
+        assert_eq!(a.get(0, 3, 0), None);
+        assert_eq!(a.get(0, 0, 2), None);
+        assert!(Array3::new([4, 3, 2], vec![0u8; 23]).is_none());
+        assert!(Array3::new([usize::MAX, 2, 1], Vec::<u8>::new()).is_none());
+        assert!(Array3::new([usize::MAX, usize::MAX, 0], Vec::<u8>::new()).is_some());
+        assert!(Array3::new([0, 3, 2], Vec::<u8>::new()).unwrap().is_empty());
+    }
+
+    #[test]
+    fn fixture_labels_parses() {
+        let a = read_u8_file(fixture("labels_4x3x2.npy")).unwrap();
+        assert_eq!(a.shape, [4, 3, 2]);
+        let flat: Vec<u8> = LABELS.iter().flatten().flatten().copied().collect();
+        assert_eq!(a.data, flat);
+        for (x, plane) in LABELS.iter().enumerate() {
+            for (y, row) in plane.iter().enumerate() {
+                for (z, &v) in row.iter().enumerate() {
+                    assert_eq!(a.get(x, y, z), Some(&v), "[{x}, {y}, {z}]");
+                }
+            }
+        }
+        // x = 0 is free except [0, 1, 1]; unknown voxels exist.
+        assert_eq!(a.get(0, 1, 1), Some(&2));
+        let x0_occupied = (0..3)
+            .flat_map(|y| (0..2).map(move |z| (y, z)))
+            .filter(|&(y, z)| a.get(0, y, z) == Some(&2));
+        assert_eq!(x0_occupied.count(), 1);
+        assert!(a.data.contains(&0));
+    }
+
+    #[test]
+    fn writer_matches_numpy_bytes_of_fixture() {
+        let bytes = std::fs::read(fixture("labels_4x3x2.npy")).unwrap();
+        let a = read_u8(&bytes).unwrap();
+        assert_eq!(write_u8(&a), bytes);
+    }
+
+    #[test]
+    fn fixture_fortran_order_is_rejected() {
+        let err = read_u8_file(fixture("labels_4x3x2_fortran.npy")).unwrap_err();
+        assert!(matches!(err, NpyError::FortranOrder), "{err}");
+    }
+
+    #[test]
+    fn round_trip_u8() {
+        for shape in [[4, 3, 2], [1, 1, 1], [0, 5, 7], [3, 0, 0], [12345, 2, 1]] {
+            let a = Array3::from_fn(shape, |x, y, z| (x * 7 + y * 3 + z) as u8);
+            let bytes = write_u8(&a);
+            assert_eq!(read_u8(&bytes).unwrap(), a);
+            assert!(matches!(read_f32(&bytes), Err(NpyError::UnsupportedDtype { .. })));
+        }
+    }
+
+    #[test]
+    fn round_trip_f32() {
+        let special = [
+            0.0,
+            -0.0,
+            1.5,
+            f32::MIN_POSITIVE,
+            f32::MAX,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+        ];
+        let a = Array3::from_fn([2, 2, 2], |x, y, z| special[(x * 2 + y) * 2 + z]);
+        let back = read_f32(&write_f32(&a)).unwrap();
+        assert_eq!(back.shape, a.shape);
+        let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&back.data), bits(&a.data));
+
+        let b = Array3::from_fn([5, 1, 3], |x, y, z| x as f32 * 0.25 - y as f32 + z as f32 * 1e-3);
+        let bytes = write_f32(&b);
+        assert_eq!(read_f32(&bytes).unwrap(), b);
+        assert!(matches!(read_u8(&bytes), Err(NpyError::UnsupportedDtype { .. })));
+    }
+
+    #[test]
+    fn written_header_is_numpy_layout() {
+        for shape in [
+            [4, 3, 2],
+            [1, 1, 1],
+            [1234567890, 0, 9],
+            [usize::MAX, usize::MAX, 0],
+        ] {
+            let n = element_count(&shape).unwrap();
+            let a = Array3 {
+                shape,
+                data: vec![5u8; n],
+            };
+            let bytes = write_u8(&a);
+            assert_eq!(&bytes[..8], b"\x93NUMPY\x01\x00");
+            let hlen = usize::from(u16::from_le_bytes([bytes[8], bytes[9]]));
+            assert_eq!((10 + hlen) % 64, 0, "{shape:?}");
+            assert_eq!(bytes.len(), 10 + hlen + n);
+            assert_eq!(bytes[10 + hlen - 1], b'\n');
+            let text = std::str::from_utf8(&bytes[10..10 + hlen - 1]).unwrap();
+            let dict = text.trim_end_matches(' ');
+            assert_eq!(
+                dict,
+                format!(
+                    "{{'descr': '|u1', 'fortran_order': False, 'shape': ({}, {}, {}), }}",
+                    shape[0], shape[1], shape[2]
+                )
+            );
+            // The growth padding: at least 21 - digits(shape[0]) spaces after '}'.
+            assert!(text.len() - dict.len() >= 21 - shape[0].to_string().len());
+            assert_eq!(read_u8(&bytes).unwrap(), a);
+        }
+        // The fixture's header: 10 + 118 = 128 (the growth padding pushes it past 64).
+        let bytes = write_u8(&Array3::from_fn([4, 3, 2], |_, _, _| 0));
+        assert_eq!(u16::from_le_bytes([bytes[8], bytes[9]]), 118);
+    }
+
+    #[test]
+    fn flexible_headers_are_accepted() {
+        let ok = [
+            // NumPy's own form, unpadded (no alignment at all is fine too).
+            "{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2), }",
+            // Any key order, double quotes, no trailing comma, odd whitespace.
+            "{\"shape\":(4,3,2),\"fortran_order\":False,\"descr\":\"<u1\"}",
+            " {\t'fortran_order' : False ,\n 'shape' : ( 4 , 3 , 2 , ) , 'descr' : 'u1' ,}  ",
+            // Python 2 NumPy's long suffix.
+            "{'descr': '|u1', 'fortran_order': False, 'shape': (4L, 3L, 2L), }",
+            "{'descr': '=u1', 'fortran_order': False, 'shape': (4, 3, 2)}",
+        ];
+        for dict in ok {
+            let a = read_u8(&u8_header(dict)).unwrap_or_else(|e| panic!("{dict}: {e}"));
+            assert_eq!(a.shape, [4, 3, 2]);
+            assert_eq!(a.data, vec![7; 24]);
+        }
+        // Old NumPy: 16-byte alignment, no growth padding.
+        let dict = "{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2), }";
+        let mut header = dict.to_string();
+        while (10 + header.len() + 1) % 16 != 0 {
+            header.push(' ');
+        }
+        header.push('\n');
+        assert_eq!(
+            read_u8(&npy_with_header(1, &header, &[1; 24])).unwrap().data,
+            vec![1; 24]
+        );
+    }
+
+    #[test]
+    fn bool_reads_as_zero_one() {
+        let data = [0u8, 1, 0, 1, 1, 0, 255, 2];
+        for descr in ["|b1", "b1", "?"] {
+            let header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': (2, 2, 2), }}\n");
+            let a = read_u8(&npy_with_header(1, &header, &data)).unwrap();
+            assert_eq!(a.data, vec![0, 1, 0, 1, 1, 0, 1, 1]);
+        }
+    }
+
+    #[test]
+    fn versions_2_and_3_are_read() {
+        let header = "{'descr': '>f4', 'fortran_order': False, 'shape': (1, 1, 2), }\n";
+        let data = [0x3f, 0x80, 0, 0, 0xc0, 0, 0, 0]; // 1.0, -2.0 big-endian
+        for major in [2, 3] {
+            let a = read_f32(&npy_with_header(major, header, &data)).unwrap();
+            assert_eq!(a.data, vec![1.0, -2.0]);
+        }
+        // Format 3.0 allows UTF-8 in the header; 1.0 does not.
+        let header = "{'descr': 'é', 'fortran_order': False, 'shape': (1, 1, 1), }\n";
+        let err = read_u8(&npy_with_header(3, header, &[0])).unwrap_err();
+        assert!(
+            matches!(&err, NpyError::UnsupportedDtype { found, .. } if found == "é"),
+            "{err}"
+        );
+        let err = read_u8(&npy_with_header(1, header, &[0])).unwrap_err();
+        assert!(matches!(err, NpyError::HeaderEncoding { major: 1 }), "{err}");
+    }
+
+    /// Every variant, and its one-line message.
+    #[test]
+    fn every_error_variant() {
+        let good = write_u8(&Array3::from_fn([4, 3, 2], |x, _, _| x as u8));
+        let check = |result: Result<Array3<u8>, NpyError>, want: &str, pred: fn(&NpyError) -> bool| {
+            let err = result.expect_err(want);
+            let msg = err.to_string();
+            assert!(pred(&err), "wrong variant for {want}: {err:?}");
+            assert!(
+                !msg.contains('\n') && !msg.is_empty(),
+                "message not one line: {msg:?}"
+            );
+            assert!(msg.contains(want), "message {msg:?} lacks {want:?}");
+        };
+
+        check(read_u8_file(fixture("does_not_exist.npy")), "cannot read", |e| {
+            matches!(e, NpyError::Io { .. })
+        });
+        check(read_u8(b"PK\x03\x04 zip"), "not a .npy file", |e| {
+            matches!(e, NpyError::BadMagic)
+        });
+        check(read_u8(b"\x93NUMPX\x01\x00"), "not a .npy file", |e| {
+            matches!(e, NpyError::BadMagic)
+        });
+        check(read_u8(b""), "need 8 bytes, got 0", |e| {
+            matches!(e, NpyError::Truncated { .. })
+        });
+        check(read_u8(b"\x93NUM"), "need 8 bytes, got 4", |e| {
+            matches!(e, NpyError::Truncated { .. })
+        });
+        check(read_u8(&good[..9]), "need 10 bytes, got 9", |e| {
+            matches!(e, NpyError::Truncated { .. })
+        });
+        check(read_u8(&good[..100]), "need 128 bytes, got 100", |e| {
+            matches!(e, NpyError::Truncated { .. })
+        });
+        check(
+            read_u8(b"\x93NUMPY\x02\x00\xff\xff\xff\xff{"),
+            "need 4294967307 bytes",
+            |e| matches!(e, NpyError::Truncated { .. }),
+        );
+        check(read_u8(b"\x93NUMPY\x04\x00\x10\x00"), "version 4.0", |e| {
+            matches!(e, NpyError::UnsupportedVersion { major: 4, minor: 0 })
+        });
+        check(read_u8(b"\x93NUMPY\x01\x01\x10\x00"), "version 1.1", |e| {
+            matches!(e, NpyError::UnsupportedVersion { major: 1, minor: 1 })
+        });
+        let mut latin1 = good.clone();
+        latin1[100] = 0xe9;
+        check(read_u8(&latin1), "not valid ASCII (format 1.0)", |e| {
+            matches!(e, NpyError::HeaderEncoding { major: 1 })
+        });
+        let mut bad_utf8 = good.clone();
+        bad_utf8[6] = 3;
+        bad_utf8.splice(8..10, [118, 0, 0, 0]);
+        bad_utf8[100] = 0xff;
+        check(read_u8(&bad_utf8), "not valid UTF-8 (format 3.0)", |e| {
+            matches!(e, NpyError::HeaderEncoding { major: 3 })
+        });
+        check(
+            read_u8_file(fixture("labels_4x3x2_fortran.npy")),
+            "Fortran order",
+            |e| matches!(e, NpyError::FortranOrder),
+        );
+        check(
+            read_u8(&u8_header(
+                "{'descr': '<i8', 'fortran_order': False, 'shape': (4, 3, 2), }",
+            )),
+            "unsupported dtype '<i8', expected '|u1' or '|b1'",
+            |e| matches!(e, NpyError::UnsupportedDtype { .. }),
+        );
+        check(
+            read_u8(&u8_header(
+                "{'descr': [('a', '<u1')], 'fortran_order': False, 'shape': (4, 3, 2)}",
+            )),
+            "structured dtype",
+            |e| matches!(e, NpyError::UnsupportedDtype { .. }),
+        );
+        check(
+            read_u8(&u8_header(
+                "{'descr': 'a\\nb', 'fortran_order': False, 'shape': (4, 3, 2)}",
+            )),
+            "unsupported dtype 'a\\nb'",
+            |e| matches!(e, NpyError::UnsupportedDtype { .. }),
+        );
+        for (shape, text) in [
+            ("(4, 5)", "(4, 5)"),
+            ("(24,)", "(24,)"),
+            ("()", "()"),
+            ("(4, 3, 2, 1)", "(4, 3, 2, 1)"),
+        ] {
+            let dict = format!("{{'descr': '|u1', 'fortran_order': False, 'shape': {shape}, }}");
+            check(
+                read_u8(&u8_header(&dict)),
+                &format!("expected a 3-D array, got shape {text}"),
+                |e| matches!(e, NpyError::NotThreeD { .. }),
+            );
+        }
+        let huge = usize::MAX;
+        let dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({huge}, 2, 1), }}");
+        check(
+            read_f32(&u8_header(&dict)).map(|_| Array3 {
+                shape: [0; 3],
+                data: vec![],
+            }),
+            "too large",
+            |e| matches!(e, NpyError::ShapeOverflow { itemsize: 4, .. }),
+        );
+        let dict = format!(
+            "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}, 1, 1), }}",
+            huge / 2
+        );
+        check(
+            read_f32(&u8_header(&dict)).map(|_| Array3 {
+                shape: [0; 3],
+                data: vec![],
+            }),
+            "too large",
+            |e| matches!(e, NpyError::ShapeOverflow { .. }),
+        );
+        check(
+            read_u8(&good[..good.len() - 1]),
+            "data section is 23 bytes, expected 24",
+            |e| {
+                matches!(
+                    e,
+                    NpyError::DataLength {
+                        expected: 24,
+                        found: 23,
+                        ..
+                    }
+                )
+            },
+        );
+        let mut long = good.clone();
+        long.push(0);
+        check(
+            read_u8(&long),
+            "data section is 25 bytes, expected 24 for shape (4, 3, 2)",
+            |e| matches!(e, NpyError::DataLength { .. }),
+        );
+
+        let malformed_headers = [
+            ("", "expected '{' at byte 1, found the end of the header"),
+            ("[1]", "expected '{' at byte 0, found '['"),
+            ("{'descr': '|u1', 'fortran_order': False}", "missing key 'shape'"),
+            (
+                "{'shape': (4, 3, 2), 'fortran_order': False}",
+                "missing key 'descr'",
+            ),
+            (
+                "{'shape': (4, 3, 2), 'descr': '|u1'}",
+                "missing key 'fortran_order'",
+            ),
+            (
+                "{'descr': '|u1', 'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2)}",
+                "duplicate key 'descr'",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2), 'x': 1}",
+                "unexpected key 'x'",
+            ),
+            (
+                "{'descr': 1, 'fortran_order': False, 'shape': (4, 3, 2)}",
+                "'descr' is not a string",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': 0, 'shape': (4, 3, 2)}",
+                "'fortran_order' is not True or False",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': false, 'shape': (4, 3, 2)}",
+                "expected True, False",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (24)}",
+                "'shape' is not a tuple",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': [4, 3, 2]}",
+                "'shape' is not a tuple",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (4, -3, 2)}",
+                "non-negative integer",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3.0, 2)}",
+                "expected ',' or ')'",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (4,, 2)}",
+                "non-negative integer",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2)",
+                "expected ',' or '}'",
+            ),
+            (
+                "{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2)} x",
+                "only whitespace after",
+            ),
+            (
+                "{'descr': '|u1 , 'fortran_order': False, 'shape': (4, 3, 2)}",
+                "expected ',' or '}' at byte 18, found 'f'",
+            ),
+            (
+                "{'descr' '|u1', 'fortran_order': False, 'shape': (4, 3, 2)}",
+                "expected ':' at byte 9",
+            ),
+            (
+                "{'descr': \"|u1', 'fortran_order': False, 'shape': (4, 3, 2)}",
+                "unterminated string",
+            ),
+            ("{descr: '|u1'}", "expected a quoted key"),
+            ("{,}", "expected a quoted key or '}' at byte 1, found ','"),
+            (
+                "{'shape': (99999999999999999999999, 3, 2)}",
+                "does not fit in usize",
+            ),
+        ];
+        for (dict, want) in malformed_headers {
+            check(read_u8(&u8_header(dict)), want, |e| {
+                matches!(e, NpyError::MalformedHeader { .. })
+            });
+        }
+    }
+
+    /// A small linear congruential generator (Knuth's MMIX constants).
+    struct Lcg(u64);
+
+    impl Lcg {
+        fn next(&mut self) -> u64 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            self.0 >> 33
+        }
+
+        fn below(&mut self, n: usize) -> usize {
+            (self.next() % n as u64) as usize
+        }
+    }
+
+    /// Both readers on `bytes`: any result is fine, but a returned array must be well formed.
+    fn read_both(bytes: &[u8]) {
+        if let Ok(a) = read_u8(bytes) {
+            assert_eq!(element_count(&a.shape), Some(a.data.len()));
+        }
+        if let Ok(a) = read_f32(bytes) {
+            assert_eq!(element_count(&a.shape), Some(a.data.len()));
+        }
+    }
+
+    #[test]
+    fn truncations_are_errors() {
+        let files = [
+            std::fs::read(fixture("labels_4x3x2.npy")).unwrap(),
+            write_f32(&Array3::from_fn([3, 2, 2], |x, y, z| (x + y + z) as f32)),
+        ];
+        for file in &files {
+            assert!(read_u8(file).is_ok() || read_f32(file).is_ok());
+            for len in 0..file.len() {
+                assert!(
+                    read_u8(&file[..len]).is_err() && read_f32(&file[..len]).is_err(),
+                    "prefix {len}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn corrupted_inputs_never_panic() {
+        let mut v3 = write_f32(&Array3::from_fn([2, 3, 1], |x, y, _| (x * y) as f32));
+        v3[6] = 3;
+        v3.splice(8..10, [v3[8], v3[9], 0, 0]);
+        let seeds = [
+            std::fs::read(fixture("labels_4x3x2.npy")).unwrap(),
+            std::fs::read(fixture("labels_4x3x2_fortran.npy")).unwrap(),
+            write_f32(&Array3::from_fn([3, 2, 2], |x, y, z| (x + y + z) as f32)),
+            v3,
+        ];
+        const INTERESTING: &[u8] = b"'\"(),:{}[] \t\n0123456789TFLl-_\\\x00\x80\xc3\xa9\xff";
+        let mut rng = Lcg(0x5eed_1234_abcd_0001);
+        for round in 0..40_000 {
+            let mut bytes = seeds[round % seeds.len()].clone();
+            let header_end = 128.min(bytes.len());
+            match rng.below(6) {
+                0 => bytes.truncate(rng.below(bytes.len() + 1)),
+                1 => {
+                    for _ in 0..1 + rng.below(4) {
+                        let i = rng.below(bytes.len());
+                        bytes[i] = rng.next() as u8;
+                    }
+                }
+                2 => {
+                    for _ in 0..1 + rng.below(3) {
+                        let i = rng.below(header_end);
+                        bytes[i] = INTERESTING[rng.below(INTERESTING.len())];
+                    }
+                }
+                3 => {
+                    let i = rng.below(header_end);
+                    if rng.below(2) == 0 {
+                        bytes.remove(i);
+                    } else {
+                        bytes.insert(i, INTERESTING[rng.below(INTERESTING.len())]);
+                    }
+                }
+                4 => {
+                    // A random header length field.
+                    let r = rng.next().to_le_bytes();
+                    bytes[8] = r[0];
+                    bytes[9] = r[1];
+                    if bytes[6] != 1 {
+                        bytes[10] = r[2];
+                        bytes[11] = r[3] % 4;
+                    }
+                }
+                _ => {
+                    // A random header assembled from header-ish tokens.
+                    const TOKENS: &[&str] = &[
+                        "{",
+                        "}",
+                        "(",
+                        ")",
+                        "[",
+                        "]",
+                        ",",
+                        ":",
+                        " ",
+                        "'descr'",
+                        "'shape'",
+                        "'fortran_order'",
+                        "'|u1'",
+                        "'<f4'",
+                        "\"",
+                        "'",
+                        "True",
+                        "False",
+                        "0",
+                        "3",
+                        "2L",
+                        "18446744073709551616",
+                        "\\",
+                        "é",
+                        "\n",
+                    ];
+                    let mut header = String::new();
+                    for _ in 0..rng.below(24) {
+                        header.push_str(TOKENS[rng.below(TOKENS.len())]);
+                    }
+                    let data_len = rng.below(40);
+                    bytes = npy_with_header(1 + rng.below(3) as u8, &header, &vec![1; data_len]);
+                }
+            }
+            read_both(&bytes);
+        }
+    }
+}

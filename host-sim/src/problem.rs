@@ -1,0 +1,282 @@
+//! Planning problems as files: the `solve` subcommand and `explore --dump-problem`.
+//!
+//! A problem is a uint8 label grid in NumPy `.npy` format — 0 unknown, 1 free, 2 occupied; shape
+//! `(NX, NY, NZ)`, C order, indexed `[x, y, z]` — plus a source voxel. [`solve`] builds the
+//! domain exactly as the explorer does (same map states, same inflation, same component and
+//! frontier rules), solves it with the chosen solver and returns φ = 1 − ψ on the grid (0
+//! outside the domain) with the statistics the CLI prints.
+
+use std::time::Instant;
+
+use harmonic_core::domain::{self, InflationStencil, Label};
+use harmonic_core::map::{Dims, LogOddsParams, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
+use harmonic_core::solve::{gauss_seidel, SolveParams};
+use nalgebra::Point3;
+use serde::Serialize;
+
+use crate::npy::Array3;
+
+/// Label values in problem files.
+pub mod labels {
+    /// Never observed.
+    pub const UNKNOWN: u8 = 0;
+    /// Observed free.
+    pub const FREE: u8 = 1;
+    /// Observed occupied (or uncertain).
+    pub const OCCUPIED: u8 = 2;
+}
+
+/// Which solver [`solve`] uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SolverChoice {
+    /// Multigrid-preconditioned CG.
+    Multigrid,
+    /// The reference Gauss-Seidel.
+    GaussSeidel,
+}
+
+/// Inputs of [`solve`] besides the grid.
+#[derive(Debug, Clone, Copy)]
+pub struct SolveRequest {
+    /// Source (vehicle) voxel.
+    pub source: [usize; 3],
+    /// Solver.
+    pub solver: SolverChoice,
+    /// Relative-residual tolerance.
+    pub tolerance: f32,
+    /// Vehicle radius, metres.
+    pub radius: f32,
+    /// Voxel edge, metres (only scales the radius).
+    pub resolution: f32,
+}
+
+/// The JSON line the CLI prints.
+#[derive(Debug, Clone, Serialize)]
+pub struct SolveSummary {
+    /// Voxels in the grid.
+    pub cells: usize,
+    /// Interior unknowns solved for.
+    pub unknowns: u32,
+    /// Frontier voxels.
+    pub frontier: u32,
+    /// "mg" or "gs".
+    pub solver: &'static str,
+    /// Cycles / CG iterations / sweeps.
+    pub cycles: u32,
+    /// Final relative residual.
+    pub residual: f32,
+    /// Whether the tolerance (or the f32 floor) was reached.
+    pub converged: bool,
+    /// Solve time, ms.
+    pub solve_ms: f64,
+    /// Domain build and solver set-up time, ms.
+    pub setup_ms: f64,
+}
+
+/// Why a problem could not be solved.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ProblemError {
+    /// A label value other than 0, 1, 2, with its index.
+    BadLabel {
+        /// `[x, y, z]` of the first bad voxel.
+        at: [usize; 3],
+        /// Its value.
+        value: u8,
+    },
+    /// The grid is empty or too large for the core.
+    BadGrid(String),
+    /// The source voxel is outside the grid.
+    SourceOutside([usize; 3]),
+    /// The domain could not be built around the source.
+    Domain(String),
+    /// The radius is unusable at this resolution.
+    BadRadius,
+}
+
+impl std::fmt::Display for ProblemError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ProblemError::BadLabel { at, value } => {
+                write!(
+                    f,
+                    "label {value} at [{}, {}, {}] (expected 0 unknown, 1 free, 2 occupied)",
+                    at[0], at[1], at[2]
+                )
+            }
+            ProblemError::BadGrid(s) => write!(f, "grid: {s}"),
+            ProblemError::SourceOutside(s) => {
+                write!(f, "source [{}, {}, {}] is outside the grid", s[0], s[1], s[2])
+            }
+            ProblemError::Domain(s) => write!(f, "domain: {s}"),
+            ProblemError::BadRadius => write!(f, "radius must be between 0 and 6 voxels"),
+        }
+    }
+}
+
+impl std::error::Error for ProblemError {}
+
+/// The map's state as a label grid (for `--dump-problem`).
+pub fn labels_from_map(map: &VoxelMap<'_>) -> Array3<u8> {
+    let dims = map.dims();
+    Array3::from_fn([dims.nx(), dims.ny(), dims.nz()], |x, y, z| {
+        let i = dims.linear(VoxelIndex::new(x as u16, y as u16, z as u16));
+        match map.occupancy(i) {
+            Occupancy::Unknown => labels::UNKNOWN,
+            Occupancy::Free => labels::FREE,
+            Occupancy::Occupied | Occupancy::Uncertain => labels::OCCUPIED,
+        }
+    })
+}
+
+/// Solves the problem in `grid`; returns φ (C order, like the input) and the summary.
+pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, SolveSummary), ProblemError> {
+    let t0 = Instant::now();
+    let [nx, ny, nz] = grid.shape;
+    let dims = Dims::new(nx, ny, nz).map_err(|e| ProblemError::BadGrid(format!("{nx}x{ny}x{nz}: {e:?}")))?;
+    let geometry = MapGeometry::new(dims, Point3::origin(), req.resolution)
+        .map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
+    let n = dims.len();
+    let (mut lo, mut st) = (vec![0i8; n], vec![0u8; n]);
+    let mut map = VoxelMap::new(geometry, LogOddsParams::default(), &mut lo, &mut st)
+        .map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
+    for x in 0..nx {
+        for y in 0..ny {
+            for z in 0..nz {
+                let value = grid.get(x, y, z).copied().unwrap_or(labels::UNKNOWN);
+                let i = dims.linear(VoxelIndex::new(x as u16, y as u16, z as u16));
+                match value {
+                    labels::UNKNOWN => {}
+                    labels::FREE => {
+                        map.apply_miss(i);
+                    }
+                    labels::OCCUPIED => {
+                        map.apply_hit(i);
+                    }
+                    value => return Err(ProblemError::BadLabel { at: [x, y, z], value }),
+                }
+            }
+        }
+    }
+    let [sx, sy, sz] = req.source;
+    let source = dims
+        .checked(sx as i32, sy as i32, sz as i32)
+        .filter(|_| sx < nx && sy < ny && sz < nz)
+        .ok_or(ProblemError::SourceOutside(req.source))?;
+    let stencil = InflationStencil::new(req.radius, req.resolution).map_err(|_| ProblemError::BadRadius)?;
+    let mut domain_labels = vec![Label::Outside; n];
+    let mut queue = vec![0u32; 16 * 1024];
+    let stats = domain::build(&map, &stencil, source, &mut domain_labels, &mut queue)
+        .map_err(|e| ProblemError::Domain(format!("{e:?} at source [{sx}, {sy}, {sz}]")))?;
+    let mut psi = vec![0.0f32; n];
+    let params = SolveParams {
+        tolerance: req.tolerance,
+        max_iterations: 1_000_000,
+        warm_start: false,
+    };
+    let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
+        SolverChoice::Multigrid => {
+            let size = scratch_size(&dims);
+            let (mut values, mut clabels, mut krylov) = (
+                vec![0.0f32; size.values],
+                vec![Label::Outside; size.labels],
+                vec![0.0f32; size.krylov],
+            );
+            let storage = MultigridStorage {
+                values: &mut values,
+                labels: &mut clabels,
+                krylov: &mut krylov,
+            };
+            let mut mg =
+                Multigrid::new(dims, storage).map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
+            let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
+            let t1 = Instant::now();
+            let s = mg.solve(&domain_labels, &mut psi, &params, Method::Pcg);
+            (s, setup_ms, t1.elapsed().as_secs_f64() * 1e3, "mg")
+        }
+        SolverChoice::GaussSeidel => {
+            let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
+            let t1 = Instant::now();
+            let s = gauss_seidel(&dims, &domain_labels, &mut psi, &params);
+            (s, setup_ms, t1.elapsed().as_secs_f64() * 1e3, "gs")
+        }
+    };
+    let s = solve_stats.map_err(|e| ProblemError::Domain(format!("solver: {e:?}")))?;
+    let phi = Array3::from_fn(grid.shape, |x, y, z| {
+        let i = dims.linear(VoxelIndex::new(x as u16, y as u16, z as u16));
+        if domain_labels[i].in_domain() {
+            1.0 - psi[i]
+        } else {
+            0.0
+        }
+    });
+    let summary = SolveSummary {
+        cells: n,
+        unknowns: stats.interior,
+        frontier: stats.frontier,
+        solver: name,
+        cycles: s.iterations,
+        residual: s.residual,
+        converged: s.converged,
+        solve_ms,
+        setup_ms,
+    };
+    Ok((phi, summary))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn corridor() -> Array3<u8> {
+        // 12 × 3 × 3: a free corridor along x, unknown at the far end.
+        Array3::from_fn(
+            [12, 3, 3],
+            |x, _, _| if x < 11 { labels::FREE } else { labels::UNKNOWN },
+        )
+    }
+
+    fn request(solver: SolverChoice) -> SolveRequest {
+        SolveRequest {
+            source: [0, 1, 1],
+            solver,
+            tolerance: 1e-6,
+            radius: 0.0,
+            resolution: 0.1,
+        }
+    }
+
+    #[test]
+    fn corridor_potential_falls_linearly_to_the_frontier() {
+        for solver in [SolverChoice::Multigrid, SolverChoice::GaussSeidel] {
+            let (phi, s) = solve(&corridor(), &request(solver)).unwrap();
+            assert!(s.converged, "{s:?}");
+            assert_eq!(s.frontier, 9, "the 3×3 face next to the unknown slab");
+            assert!((phi.get(0, 1, 1).unwrap() - 1.0).abs() < 1e-6);
+            assert_eq!(*phi.get(10, 1, 1).unwrap(), 0.0);
+            assert_eq!(*phi.get(11, 1, 1).unwrap(), 0.0, "unknown voxels are outside");
+            let a = phi.get(3, 1, 1).unwrap();
+            let b = phi.get(6, 1, 1).unwrap();
+            assert!(a > b && *b > 0.0, "decreasing along the corridor: {a} {b}");
+        }
+    }
+
+    #[test]
+    fn bad_inputs_are_errors_with_locations() {
+        let mut g = corridor();
+        g.data[5] = 7;
+        let e = solve(&g, &request(SolverChoice::Multigrid)).unwrap_err();
+        assert!(matches!(e, ProblemError::BadLabel { value: 7, .. }), "{e}");
+        let mut req = request(SolverChoice::Multigrid);
+        req.source = [12, 0, 0];
+        assert_eq!(
+            solve(&corridor(), &req).unwrap_err(),
+            ProblemError::SourceOutside([12, 0, 0])
+        );
+        req.source = [11, 1, 1];
+        assert!(matches!(
+            solve(&corridor(), &req).unwrap_err(),
+            ProblemError::Domain(_)
+        ));
+    }
+}
