@@ -210,33 +210,140 @@ pub fn residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> Residual {
     }
 }
 
+/// The five neighbouring rows of one x-row of a grid buffer, `None` at the grid edge.
+pub(crate) struct Rows<'r, T> {
+    pub(crate) y_minus: Option<&'r [T]>,
+    pub(crate) y_plus: Option<&'r [T]>,
+    pub(crate) z_minus: Option<&'r [T]>,
+    pub(crate) z_plus: Option<&'r [T]>,
+}
+
+impl<'r, T> Rows<'r, T> {
+    /// Rows around the row starting at `start` = index of (0, y, z), from the parts of the
+    /// buffer before it and after it (the row itself excluded).
+    pub(crate) fn around(dims: &Dims, y: usize, z: usize, before: &'r [T], after: &'r [T]) -> Self {
+        let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
+        let nxy = nx * ny;
+        let start = before.len();
+        Rows {
+            y_minus: if y > 0 {
+                before.get(start - nx..start)
+            } else {
+                None
+            },
+            z_minus: if z > 0 {
+                before.get(start - nxy..start - nxy + nx)
+            } else {
+                None
+            },
+            y_plus: if y + 1 < ny { after.get(..nx) } else { None },
+            z_plus: if z + 1 < nz {
+                after.get(nxy - nx..nxy)
+            } else {
+                None
+            },
+        }
+    }
+}
+
+/// Net flux `Σ (x_j − c)` into cell `x` of a row from its in-domain face neighbours, and their
+/// count (the row-sliced form of `solve::neighbour_flux`).
+#[inline]
+pub(crate) fn row_flux(
+    l_row: &[Label],
+    row: &[f32],
+    ls: &Rows<'_, Label>,
+    xs: &Rows<'_, f32>,
+    x: usize,
+    c: f32,
+) -> (f32, u32) {
+    let (mut flux, mut count) = (0.0f32, 0u32);
+    let mut add = |l: Option<&Label>, p: Option<&f32>| {
+        if let (Some(l), Some(p)) = (l, p) {
+            if l.in_domain() {
+                flux += *p - c;
+                count += 1;
+            }
+        }
+    };
+    if x > 0 {
+        add(l_row.get(x - 1), row.get(x - 1));
+    }
+    add(l_row.get(x + 1), row.get(x + 1));
+    for (l, p) in [
+        (ls.y_minus, xs.y_minus),
+        (ls.y_plus, xs.y_plus),
+        (ls.z_minus, xs.z_minus),
+        (ls.z_plus, xs.z_plus),
+    ] {
+        if let (Some(l), Some(p)) = (l, p) {
+            add(l.get(x), p.get(x));
+        }
+    }
+    (flux, count)
+}
+
 /// Squared norms of the residual, of the right-hand side `b` (the Dirichlet contributions) and
-/// of the rounding bound `e`.
+/// of the rounding estimate `e`, row by row.
 fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64) {
     let (mut r2, mut b2, mut e2) = (0.0f64, 0.0f64, 0.0f64);
-    let nx = dims.nx();
+    let (nx, ny) = (dims.nx(), dims.ny());
     for z in 0..dims.nz() {
-        for y in 0..dims.ny() {
+        for y in 0..ny {
+            let start = nx * (y + ny * z);
+            let (Some(x_before), Some(row), Some(x_after)) = (
+                psi.get(..start),
+                psi.get(start..start + nx),
+                psi.get(start + nx..),
+            ) else {
+                continue;
+            };
+            let (Some(l_before), Some(l_row), Some(l_after)) = (
+                labels.get(..start),
+                labels.get(start..start + nx),
+                labels.get(start + nx..),
+            ) else {
+                continue;
+            };
+            let xs = Rows::around(dims, y, z, x_before, x_after);
+            let ls = Rows::around(dims, y, z, l_before, l_after);
             let (mut row_r, mut row_b, mut row_e) = (0.0f32, 0.0f32, 0.0f32);
-            let base = nx * (y + dims.ny() * z);
-            for x in 0..nx {
-                let i = base + x;
-                if labels.get(i) != Some(&Label::Interior) {
+            for (x, l) in l_row.iter().enumerate() {
+                if *l != Label::Interior {
                     continue;
                 }
-                let (r, count) = neighbour_flux(dims, labels, psi, i, x, y, z);
+                let c = row.get(x).copied().unwrap_or(0.0);
+                let (r, count) = row_flux(l_row, row, &ls, &xs, x, c);
                 row_r += r * r;
-                let mut b = 0.0f32;
-                each_dirichlet_neighbour(dims, labels, i, x, y, z, |v| b += v);
-                row_b += b * b;
-                let centre = count as f32 * psi.get(i).copied().unwrap_or(0.0);
-                let mut spread = centre * centre;
-                each_face_neighbour(dims, i, x, y, z, |j| {
-                    if labels.get(j).is_some_and(|l| l.in_domain()) {
-                        let p = psi.get(j).copied().unwrap_or(0.0);
-                        spread += p * p;
+                // b: Dirichlet neighbour values; e: rounding estimate from the squares.
+                let (mut b, mut spread) = (0.0f32, (count as f32 * c) * (count as f32 * c));
+                let mut visit = |l: Option<&Label>, p: Option<&f32>| {
+                    if let (Some(l), Some(p)) = (l, p) {
+                        match l {
+                            Label::Frontier => b += PSI_FRONTIER,
+                            Label::Source => b += PSI_SOURCE,
+                            _ => {}
+                        }
+                        if l.in_domain() {
+                            spread += p * p;
+                        }
                     }
-                });
+                };
+                if x > 0 {
+                    visit(l_row.get(x - 1), row.get(x - 1));
+                }
+                visit(l_row.get(x + 1), row.get(x + 1));
+                for (l, p) in [
+                    (ls.y_minus, xs.y_minus),
+                    (ls.y_plus, xs.y_plus),
+                    (ls.z_minus, xs.z_minus),
+                    (ls.z_plus, xs.z_plus),
+                ] {
+                    if let (Some(l), Some(p)) = (l, p) {
+                        visit(l.get(x), p.get(x));
+                    }
+                }
+                row_b += b * b;
                 row_e += f32::EPSILON * f32::EPSILON * spread / 12.0;
             }
             r2 += f64::from(row_r);
@@ -245,23 +352,6 @@ fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64)
         }
     }
     (r2, b2, e2)
-}
-
-/// Calls `f` with the Dirichlet value of each face neighbour that is a source or frontier.
-fn each_dirichlet_neighbour(
-    dims: &Dims,
-    labels: &[Label],
-    i: usize,
-    x: usize,
-    y: usize,
-    z: usize,
-    mut f: impl FnMut(f32),
-) {
-    each_face_neighbour(dims, i, x, y, z, |j| match labels.get(j) {
-        Some(Label::Source) => f(PSI_SOURCE),
-        Some(Label::Frontier) => f(PSI_FRONTIER),
-        _ => {}
-    });
 }
 
 /// Lexicographic Gauss-Seidel, in place, until the relative residual reaches the tolerance or

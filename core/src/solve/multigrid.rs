@@ -33,7 +33,7 @@
 
 use heapless::Vec as HVec;
 
-use super::{neighbour_flux, prepare, residual, Residual, SolveError, SolveParams, SolveStats};
+use super::{prepare, residual, row_flux, Residual, Rows, SolveError, SolveParams, SolveStats};
 use crate::domain::Label;
 use crate::map::{Dims, VoxelIndex};
 
@@ -419,65 +419,99 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
     total
 }
 
+/// Calls `f(start, row, l_row, flux_of)` for every x-row, where `flux_of(x)` is the net flux into
+/// cell `x` of the row from `values` (see [`row_flux`]).
+fn for_each_row_flux(
+    dims: &Dims,
+    labels: &[Label],
+    values: &[f32],
+    mut f: impl FnMut(usize, &[Label], &dyn Fn(usize) -> f32),
+) {
+    let (nx, ny) = (dims.nx(), dims.ny());
+    for z in 0..dims.nz() {
+        for y in 0..ny {
+            let start = nx * (y + ny * z);
+            let (Some(x_before), Some(row), Some(x_after)) = (
+                values.get(..start),
+                values.get(start..start + nx),
+                values.get(start + nx..),
+            ) else {
+                continue;
+            };
+            let (Some(l_before), Some(l_row), Some(l_after)) = (
+                labels.get(..start),
+                labels.get(start..start + nx),
+                labels.get(start + nx..),
+            ) else {
+                continue;
+            };
+            let xs = Rows::around(dims, y, z, x_before, x_after);
+            let ls = Rows::around(dims, y, z, l_before, l_after);
+            let flux_of = |x: usize| row_flux(l_row, row, &ls, &xs, x, row.get(x).copied().unwrap_or(0.0)).0;
+            f(start, l_row, &flux_of);
+        }
+    }
+}
+
 /// `out ← A p` on interior cells (0 elsewhere); `p` must be 0 off the interior.
 fn apply(dims: &Dims, labels: &[Label], p: &[f32], out: &mut [f32]) {
-    for_each_cell(dims, |i, x, y, z| {
-        let v = if labels.get(i) == Some(&Label::Interior) {
-            -neighbour_flux(dims, labels, p, i, x, y, z).0
-        } else {
-            0.0
-        };
-        if let Some(o) = out.get_mut(i) {
-            *o = v;
+    for_each_row_flux(dims, labels, p, |start, l_row, flux_of| {
+        for (x, l) in l_row.iter().enumerate() {
+            if let Some(o) = out.get_mut(start + x) {
+                *o = if *l == Label::Interior { -flux_of(x) } else { 0.0 };
+            }
         }
     });
 }
 
 /// `out ← b − L x` on interior cells (0 elsewhere).
 fn residual_into(dims: &Dims, labels: &[Label], x: &[f32], b: Option<&[f32]>, out: &mut [f32]) {
-    for_each_cell(dims, |i, cx, cy, cz| {
-        let v = if labels.get(i) == Some(&Label::Interior) {
-            let bi = b.and_then(|b| b.get(i)).copied().unwrap_or(0.0);
-            bi + neighbour_flux(dims, labels, x, i, cx, cy, cz).0
-        } else {
-            0.0
-        };
-        if let Some(o) = out.get_mut(i) {
-            *o = v;
+    for_each_row_flux(dims, labels, x, |start, l_row, flux_of| {
+        for (cx, l) in l_row.iter().enumerate() {
+            let i = start + cx;
+            if let Some(o) = out.get_mut(i) {
+                *o = if *l == Label::Interior {
+                    b.and_then(|b| b.get(i)).copied().unwrap_or(0.0) + flux_of(cx)
+                } else {
+                    0.0
+                };
+            }
         }
     });
 }
 
-#[inline]
-fn for_each_cell(dims: &Dims, mut f: impl FnMut(usize, usize, usize, usize)) {
-    let mut i = 0;
-    for z in 0..dims.nz() {
-        for y in 0..dims.ny() {
-            for x in 0..dims.nx() {
-                f(i, x, y, z);
-                i += 1;
-            }
-        }
-    }
-}
-
-/// One red-black half sweep: relaxes interior cells with `(x + y + z) % 2 == colour`.
+/// One red-black half sweep: relaxes interior cells with `(x + y + z) % 2 == colour`. Works row
+/// by row on contiguous slices, so the inner loop does no index arithmetic beyond `x ± 1`.
 fn relax(v: &mut View<'_>, colour: usize) -> u64 {
     let dims = v.dims;
     let (nx, ny) = (dims.nx(), dims.ny());
     let mut updates = 0u64;
     for z in 0..dims.nz() {
         for y in 0..ny {
-            let base = nx * (y + ny * z);
+            let start = nx * (y + ny * z);
+            let (x_before, rest) = v.x.split_at_mut(start);
+            let Some((row, x_after)) = (rest.len() >= nx).then(|| rest.split_at_mut(nx)) else {
+                return updates;
+            };
+            let (Some(l_before), Some(l_row), Some(l_after)) = (
+                v.labels.get(..start),
+                v.labels.get(start..start + nx),
+                v.labels.get(start + nx..),
+            ) else {
+                return updates;
+            };
+            let xs = Rows::around(&dims, y, z, x_before, x_after);
+            let ls = Rows::around(&dims, y, z, l_before, l_after);
+            let b_row = v.b.and_then(|b| b.get(start..start + nx));
             let mut x = (colour + y + z) % 2;
             while x < nx {
-                let i = base + x;
-                if v.labels.get(i) == Some(&Label::Interior) {
-                    let (flux, count) = neighbour_flux(&dims, v.labels, v.x, i, x, y, z);
+                if l_row.get(x) == Some(&Label::Interior) {
+                    let c = row.get(x).copied().unwrap_or(0.0);
+                    let (flux, count) = row_flux(l_row, row, &ls, &xs, x, c);
                     if count > 0 {
-                        let bi = v.b.and_then(|b| b.get(i)).copied().unwrap_or(0.0);
-                        if let Some(xi) = v.x.get_mut(i) {
-                            *xi += (flux + bi) / count as f32;
+                        let bi = b_row.and_then(|b| b.get(x)).copied().unwrap_or(0.0);
+                        if let Some(xi) = row.get_mut(x) {
+                            *xi = c + (flux + bi) / count as f32;
                         }
                         updates += 1;
                     }
@@ -489,44 +523,66 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
     updates
 }
 
-/// Up to eight coarse parents of fine voxel `f` with normalised trilinear weights; outside
-/// coarse cells are skipped and the rest renormalised. Returns the count used.
-fn parents(f: VoxelIndex, coarse: &Dims, labels: &[Label], out: &mut [(usize, f32); 8]) -> usize {
-    let axis = |c: u16, n: usize| -> [(i32, f32); 2] {
-        let p = i32::from(c / 2);
-        let other = if c % 2 == 0 { p - 1 } else { p + 1 };
-        let other_ok = other >= 0 && (other as usize) < n;
-        [(p, 0.75), (if other_ok { other } else { -1 }, 0.25)]
+/// Coarse parents of fine coordinate `c` along one axis: its own parent (weight ¾) and the
+/// coarse neighbour on the side `c` lies towards (¼), `None` past the grid edge.
+#[inline]
+fn axis_parents(c: usize, n: usize) -> [(Option<usize>, f32); 2] {
+    let p = c / 2;
+    let other = if c % 2 == 0 {
+        p.checked_sub(1)
+    } else {
+        Some(p + 1).filter(|&o| o < n)
     };
-    let (ax, ay, az) = (
-        axis(f.x, coarse.nx()),
-        axis(f.y, coarse.ny()),
-        axis(f.z, coarse.nz()),
-    );
+    [(Some(p), 0.75), (other, 0.25)]
+}
+
+/// The coarse rows holding the parents of fine row `(y, z)`: start of coarse row `(0, cy, cz)`
+/// and the weight `w_y·w_z`. Up to four; the count is returned alongside.
+fn parent_rows(y: usize, z: usize, coarse: &Dims) -> ([(usize, f32); 4], usize) {
+    let mut rows = [(0usize, 0.0f32); 4];
+    let mut n = 0;
+    for (cz, wz) in axis_parents(z, coarse.nz()) {
+        for (cy, wy) in axis_parents(y, coarse.ny()) {
+            if let (Some(cy), Some(cz), Some(slot)) = (cy, cz, rows.get_mut(n)) {
+                *slot = (coarse.nx() * (cy + coarse.ny() * cz), wy * wz);
+                n += 1;
+            }
+        }
+    }
+    (rows, n)
+}
+
+/// Trilinear parents of fine cell `x` in a row whose parent rows are `rows`, skipping outside
+/// coarse cells and renormalising the rest. Returns the count written to `out`.
+#[inline]
+fn parents_in_rows(
+    x: usize,
+    rows: &[(usize, f32)],
+    coarse_nx: usize,
+    labels: &[Label],
+    out: &mut [(usize, f32); 8],
+) -> usize {
     let mut count = 0;
     let mut total = 0.0f32;
-    for &(cz, wz) in az.iter() {
-        for &(cy, wy) in ay.iter() {
-            for &(cx, wx) in ax.iter() {
-                let Some(c) = coarse.checked(cx, cy, cz) else {
-                    continue;
-                };
-                let ci = coarse.linear(c);
-                if labels.get(ci).is_none_or(|l| *l == Label::Outside) {
-                    continue;
-                }
-                let w = wx * wy * wz;
-                if let Some(slot) = out.get_mut(count) {
-                    *slot = (ci, w);
-                    count += 1;
-                    total += w;
-                }
+    for (cx, wx) in axis_parents(x, coarse_nx) {
+        let Some(cx) = cx else { continue };
+        for &(start, wyz) in rows {
+            let ci = start + cx;
+            if labels.get(ci).is_none_or(|l| *l == Label::Outside) {
+                continue;
+            }
+            let w = wx * wyz;
+            if let Some(slot) = out.get_mut(count) {
+                *slot = (ci, w);
+                count += 1;
+                total += w;
             }
         }
     }
     if total > 0.0 {
+        let inv = 1.0 / total;
         for slot in out.iter_mut().take(count) {
-            slot.1 /= total;
+            slot.1 *= inv;
         }
     }
     count
@@ -557,22 +613,48 @@ fn vcycle(mut fine: View<'_>, levels: &[Level], values: &mut [f32], labels: &[La
     cb.fill(0.0);
     // Restrict the residual: b_c += ½ Σ w r_f.
     let fdims = fine.dims;
+    let (fnx, fny) = (fdims.nx(), fdims.ny());
     let mut slots = [(0usize, 0.0f32); 8];
-    for_each_cell(&fdims, |i, x, y, z| {
-        if fine.labels.get(i) != Some(&Label::Interior) {
-            return;
-        }
-        let bi = fine.b.and_then(|b| b.get(i)).copied().unwrap_or(0.0);
-        let r = bi + neighbour_flux(&fdims, fine.labels, fine.x, i, x, y, z).0;
-        let k = parents(fdims.voxel(i), &level.dims, clabels, &mut slots);
-        for &(ci, w) in slots.iter().take(k) {
-            if clabels.get(ci) == Some(&Label::Interior) {
-                if let Some(b) = cb.get_mut(ci) {
-                    *b += 0.5 * w * r;
+    for z in 0..fdims.nz() {
+        for y in 0..fny {
+            let start = fnx * (y + fny * z);
+            let (Some(x_before), Some(row), Some(x_after)) = (
+                fine.x.get(..start),
+                fine.x.get(start..start + fnx),
+                fine.x.get(start + fnx..),
+            ) else {
+                continue;
+            };
+            let (Some(l_before), Some(l_row), Some(l_after)) = (
+                fine.labels.get(..start),
+                fine.labels.get(start..start + fnx),
+                fine.labels.get(start + fnx..),
+            ) else {
+                continue;
+            };
+            let xs = Rows::around(&fdims, y, z, x_before, x_after);
+            let ls = Rows::around(&fdims, y, z, l_before, l_after);
+            let b_row = fine.b.and_then(|b| b.get(start..start + fnx));
+            let (rows, nrows) = parent_rows(y, z, &level.dims);
+            let rows = rows.get(..nrows).unwrap_or(&[]);
+            for (x, l) in l_row.iter().enumerate() {
+                if *l != Label::Interior {
+                    continue;
+                }
+                let c = row.get(x).copied().unwrap_or(0.0);
+                let bi = b_row.and_then(|b| b.get(x)).copied().unwrap_or(0.0);
+                let r = bi + row_flux(l_row, row, &ls, &xs, x, c).0;
+                let k = parents_in_rows(x, rows, level.dims.nx(), clabels, &mut slots);
+                for &(ci, w) in slots.iter().take(k) {
+                    if clabels.get(ci) == Some(&Label::Interior) {
+                        if let Some(b) = cb.get_mut(ci) {
+                            *b += 0.5 * w * r;
+                        }
+                    }
                 }
             }
         }
-    });
+    }
     work += fdims.len() as u64;
     {
         // The coarser levels' values live after this level's block.
@@ -592,19 +674,30 @@ fn vcycle(mut fine: View<'_>, levels: &[Level], values: &mut [f32], labels: &[La
         work += vcycle(coarse, &rest_levels, rest, labels);
     }
     // Prolongate and correct.
-    for_each_cell(&fdims, |i, _, _, _| {
-        if fine.labels.get(i) != Some(&Label::Interior) {
-            return;
+    for z in 0..fdims.nz() {
+        for y in 0..fny {
+            let start = fnx * (y + fny * z);
+            let (rows, nrows) = parent_rows(y, z, &level.dims);
+            let rows = rows.get(..nrows).unwrap_or(&[]);
+            let (Some(l_row), Some(row)) = (
+                fine.labels.get(start..start + fnx),
+                fine.x.get_mut(start..start + fnx),
+            ) else {
+                continue;
+            };
+            for (x, (l, v)) in l_row.iter().zip(row.iter_mut()).enumerate() {
+                if *l != Label::Interior {
+                    continue;
+                }
+                let k = parents_in_rows(x, rows, level.dims.nx(), clabels, &mut slots);
+                let mut e = 0.0f32;
+                for &(ci, w) in slots.iter().take(k) {
+                    e += w * cx.get(ci).copied().unwrap_or(0.0);
+                }
+                *v += e;
+            }
         }
-        let k = parents(fdims.voxel(i), &level.dims, clabels, &mut slots);
-        let mut e = 0.0f32;
-        for &(ci, w) in slots.iter().take(k) {
-            e += w * cx.get(ci).copied().unwrap_or(0.0);
-        }
-        if let Some(x) = fine.x.get_mut(i) {
-            *x += e;
-        }
-    });
+    }
     work += fdims.len() as u64;
     for _ in 0..POST_SWEEPS {
         work += relax(&mut fine, 1) + relax(&mut fine, 0);
