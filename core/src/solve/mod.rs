@@ -283,18 +283,65 @@ pub(crate) fn row_flux(
     (flux, count)
 }
 
-/// Squared norms of the residual, of the right-hand side `b` (the Dirichlet contributions) and
-/// of the rounding estimate `e`, row by row.
-fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64) {
-    let (mut r2, mut b2, mut e2) = (0.0f64, 0.0f64, 0.0f64);
+/// One x-row of a grid buffer with its labels and the five neighbouring rows.
+pub(crate) struct RowView<'r> {
+    /// Row coordinates.
+    pub(crate) y: usize,
+    /// Row coordinates.
+    pub(crate) z: usize,
+    /// Linear index of the row's first cell.
+    pub(crate) start: usize,
+    /// The row's labels.
+    pub(crate) labels: &'r [Label],
+    /// The row's values.
+    pub(crate) values: &'r [f32],
+    label_rows: Rows<'r, Label>,
+    value_rows: Rows<'r, f32>,
+}
+
+impl RowView<'_> {
+    /// Net flux into cell `x` of the row and the number of in-domain neighbours.
+    #[inline]
+    pub(crate) fn flux(&self, x: usize) -> (f32, u32) {
+        let c = self.values.get(x).copied().unwrap_or(0.0);
+        row_flux(self.labels, self.values, &self.label_rows, &self.value_rows, x, c)
+    }
+    /// Calls `f(label, value)` for each face neighbour of cell `x` inside the grid.
+    #[inline]
+    pub(crate) fn each_neighbour(&self, x: usize, mut f: impl FnMut(&Label, f32)) {
+        let mut visit = |l: Option<&Label>, p: Option<&f32>| {
+            if let (Some(l), Some(p)) = (l, p) {
+                f(l, *p);
+            }
+        };
+        if x > 0 {
+            visit(self.labels.get(x - 1), self.values.get(x - 1));
+        }
+        visit(self.labels.get(x + 1), self.values.get(x + 1));
+        let (ls, xs) = (&self.label_rows, &self.value_rows);
+        for (l, p) in [
+            (ls.y_minus, xs.y_minus),
+            (ls.y_plus, xs.y_plus),
+            (ls.z_minus, xs.z_minus),
+            (ls.z_plus, xs.z_plus),
+        ] {
+            if let (Some(l), Some(p)) = (l, p) {
+                visit(l.get(x), p.get(x));
+            }
+        }
+    }
+}
+
+/// Calls `f` with a [`RowView`] of every x-row of `values` (read-only).
+pub(crate) fn for_each_row(dims: &Dims, labels: &[Label], values: &[f32], mut f: impl FnMut(&RowView<'_>)) {
     let (nx, ny) = (dims.nx(), dims.ny());
     for z in 0..dims.nz() {
         for y in 0..ny {
             let start = nx * (y + ny * z);
             let (Some(x_before), Some(row), Some(x_after)) = (
-                psi.get(..start),
-                psi.get(start..start + nx),
-                psi.get(start + nx..),
+                values.get(..start),
+                values.get(start..start + nx),
+                values.get(start + nx..),
             ) else {
                 continue;
             };
@@ -305,52 +352,51 @@ fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64)
             ) else {
                 continue;
             };
-            let xs = Rows::around(dims, y, z, x_before, x_after);
-            let ls = Rows::around(dims, y, z, l_before, l_after);
-            let (mut row_r, mut row_b, mut row_e) = (0.0f32, 0.0f32, 0.0f32);
-            for (x, l) in l_row.iter().enumerate() {
-                if *l != Label::Interior {
-                    continue;
-                }
-                let c = row.get(x).copied().unwrap_or(0.0);
-                let (r, count) = row_flux(l_row, row, &ls, &xs, x, c);
-                row_r += r * r;
-                // b: Dirichlet neighbour values; e: rounding estimate from the squares.
-                let (mut b, mut spread) = (0.0f32, (count as f32 * c) * (count as f32 * c));
-                let mut visit = |l: Option<&Label>, p: Option<&f32>| {
-                    if let (Some(l), Some(p)) = (l, p) {
-                        match l {
-                            Label::Frontier => b += PSI_FRONTIER,
-                            Label::Source => b += PSI_SOURCE,
-                            _ => {}
-                        }
-                        if l.in_domain() {
-                            spread += p * p;
-                        }
-                    }
-                };
-                if x > 0 {
-                    visit(l_row.get(x - 1), row.get(x - 1));
-                }
-                visit(l_row.get(x + 1), row.get(x + 1));
-                for (l, p) in [
-                    (ls.y_minus, xs.y_minus),
-                    (ls.y_plus, xs.y_plus),
-                    (ls.z_minus, xs.z_minus),
-                    (ls.z_plus, xs.z_plus),
-                ] {
-                    if let (Some(l), Some(p)) = (l, p) {
-                        visit(l.get(x), p.get(x));
-                    }
-                }
-                row_b += b * b;
-                row_e += f32::EPSILON * f32::EPSILON * spread / 12.0;
-            }
-            r2 += f64::from(row_r);
-            b2 += f64::from(row_b);
-            e2 += f64::from(row_e);
+            f(&RowView {
+                y,
+                z,
+                start,
+                labels: l_row,
+                values: row,
+                label_rows: Rows::around(dims, y, z, l_before, l_after),
+                value_rows: Rows::around(dims, y, z, x_before, x_after),
+            });
         }
     }
+}
+
+/// Squared norms of the residual, of the right-hand side `b` (the Dirichlet contributions) and
+/// of the rounding estimate `e`, row by row.
+fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64) {
+    let (mut r2, mut b2, mut e2) = (0.0f64, 0.0f64, 0.0f64);
+    for_each_row(dims, labels, psi, |row| {
+        let (mut row_r, mut row_b, mut row_e) = (0.0f32, 0.0f32, 0.0f32);
+        for (x, l) in row.labels.iter().enumerate() {
+            if *l != Label::Interior {
+                continue;
+            }
+            let c = row.values.get(x).copied().unwrap_or(0.0);
+            let (r, count) = row.flux(x);
+            row_r += r * r;
+            // b: Dirichlet neighbour values; e: rounding estimate from the squares.
+            let (mut b, mut spread) = (0.0f32, (count as f32 * c) * (count as f32 * c));
+            row.each_neighbour(x, |l, p| {
+                match l {
+                    Label::Frontier => b += PSI_FRONTIER,
+                    Label::Source => b += PSI_SOURCE,
+                    _ => {}
+                }
+                if l.in_domain() {
+                    spread += p * p;
+                }
+            });
+            row_b += b * b;
+            row_e += f32::EPSILON * f32::EPSILON * spread / 12.0;
+        }
+        r2 += f64::from(row_r);
+        b2 += f64::from(row_b);
+        e2 += f64::from(row_e);
+    });
     (r2, b2, e2)
 }
 

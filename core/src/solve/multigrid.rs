@@ -33,7 +33,7 @@
 
 use heapless::Vec as HVec;
 
-use super::{prepare, residual, row_flux, Residual, Rows, SolveError, SolveParams, SolveStats};
+use super::{for_each_row, prepare, residual, row_flux, Residual, Rows, SolveError, SolveParams, SolveStats};
 use crate::domain::Label;
 use crate::map::{Dims, VoxelIndex};
 
@@ -419,46 +419,16 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
     total
 }
 
-/// Calls `f(start, row, l_row, flux_of)` for every x-row, where `flux_of(x)` is the net flux into
-/// cell `x` of the row from `values` (see [`row_flux`]).
-fn for_each_row_flux(
-    dims: &Dims,
-    labels: &[Label],
-    values: &[f32],
-    mut f: impl FnMut(usize, &[Label], &dyn Fn(usize) -> f32),
-) {
-    let (nx, ny) = (dims.nx(), dims.ny());
-    for z in 0..dims.nz() {
-        for y in 0..ny {
-            let start = nx * (y + ny * z);
-            let (Some(x_before), Some(row), Some(x_after)) = (
-                values.get(..start),
-                values.get(start..start + nx),
-                values.get(start + nx..),
-            ) else {
-                continue;
-            };
-            let (Some(l_before), Some(l_row), Some(l_after)) = (
-                labels.get(..start),
-                labels.get(start..start + nx),
-                labels.get(start + nx..),
-            ) else {
-                continue;
-            };
-            let xs = Rows::around(dims, y, z, x_before, x_after);
-            let ls = Rows::around(dims, y, z, l_before, l_after);
-            let flux_of = |x: usize| row_flux(l_row, row, &ls, &xs, x, row.get(x).copied().unwrap_or(0.0)).0;
-            f(start, l_row, &flux_of);
-        }
-    }
-}
-
 /// `out ← A p` on interior cells (0 elsewhere); `p` must be 0 off the interior.
 fn apply(dims: &Dims, labels: &[Label], p: &[f32], out: &mut [f32]) {
-    for_each_row_flux(dims, labels, p, |start, l_row, flux_of| {
-        for (x, l) in l_row.iter().enumerate() {
-            if let Some(o) = out.get_mut(start + x) {
-                *o = if *l == Label::Interior { -flux_of(x) } else { 0.0 };
+    for_each_row(dims, labels, p, |row| {
+        for (x, l) in row.labels.iter().enumerate() {
+            if let Some(o) = out.get_mut(row.start + x) {
+                *o = if *l == Label::Interior {
+                    -row.flux(x).0
+                } else {
+                    0.0
+                };
             }
         }
     });
@@ -466,12 +436,12 @@ fn apply(dims: &Dims, labels: &[Label], p: &[f32], out: &mut [f32]) {
 
 /// `out ← b − L x` on interior cells (0 elsewhere).
 fn residual_into(dims: &Dims, labels: &[Label], x: &[f32], b: Option<&[f32]>, out: &mut [f32]) {
-    for_each_row_flux(dims, labels, x, |start, l_row, flux_of| {
-        for (cx, l) in l_row.iter().enumerate() {
-            let i = start + cx;
+    for_each_row(dims, labels, x, |row| {
+        for (cx, l) in row.labels.iter().enumerate() {
+            let i = row.start + cx;
             if let Some(o) = out.get_mut(i) {
                 *o = if *l == Label::Interior {
-                    b.and_then(|b| b.get(i)).copied().unwrap_or(0.0) + flux_of(cx)
+                    b.and_then(|b| b.get(i)).copied().unwrap_or(0.0) + row.flux(cx).0
                 } else {
                     0.0
                 };
@@ -615,46 +585,26 @@ fn vcycle(mut fine: View<'_>, levels: &[Level], values: &mut [f32], labels: &[La
     let fdims = fine.dims;
     let (fnx, fny) = (fdims.nx(), fdims.ny());
     let mut slots = [(0usize, 0.0f32); 8];
-    for z in 0..fdims.nz() {
-        for y in 0..fny {
-            let start = fnx * (y + fny * z);
-            let (Some(x_before), Some(row), Some(x_after)) = (
-                fine.x.get(..start),
-                fine.x.get(start..start + fnx),
-                fine.x.get(start + fnx..),
-            ) else {
+    super::for_each_row(&fdims, fine.labels, fine.x, |row| {
+        let b_row = fine.b.and_then(|b| b.get(row.start..row.start + fnx));
+        let (rows, nrows) = parent_rows(row.y, row.z, &level.dims);
+        let rows = rows.get(..nrows).unwrap_or(&[]);
+        for (x, l) in row.labels.iter().enumerate() {
+            if *l != Label::Interior {
                 continue;
-            };
-            let (Some(l_before), Some(l_row), Some(l_after)) = (
-                fine.labels.get(..start),
-                fine.labels.get(start..start + fnx),
-                fine.labels.get(start + fnx..),
-            ) else {
-                continue;
-            };
-            let xs = Rows::around(&fdims, y, z, x_before, x_after);
-            let ls = Rows::around(&fdims, y, z, l_before, l_after);
-            let b_row = fine.b.and_then(|b| b.get(start..start + fnx));
-            let (rows, nrows) = parent_rows(y, z, &level.dims);
-            let rows = rows.get(..nrows).unwrap_or(&[]);
-            for (x, l) in l_row.iter().enumerate() {
-                if *l != Label::Interior {
-                    continue;
-                }
-                let c = row.get(x).copied().unwrap_or(0.0);
-                let bi = b_row.and_then(|b| b.get(x)).copied().unwrap_or(0.0);
-                let r = bi + row_flux(l_row, row, &ls, &xs, x, c).0;
-                let k = parents_in_rows(x, rows, level.dims.nx(), clabels, &mut slots);
-                for &(ci, w) in slots.iter().take(k) {
-                    if clabels.get(ci) == Some(&Label::Interior) {
-                        if let Some(b) = cb.get_mut(ci) {
-                            *b += 0.5 * w * r;
-                        }
+            }
+            let bi = b_row.and_then(|b| b.get(x)).copied().unwrap_or(0.0);
+            let r = bi + row.flux(x).0;
+            let k = parents_in_rows(x, rows, level.dims.nx(), clabels, &mut slots);
+            for &(ci, w) in slots.iter().take(k) {
+                if clabels.get(ci) == Some(&Label::Interior) {
+                    if let Some(b) = cb.get_mut(ci) {
+                        *b += 0.5 * w * r;
                     }
                 }
             }
         }
-    }
+    });
     work += fdims.len() as u64;
     {
         // The coarser levels' values live after this level's block.
