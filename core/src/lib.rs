@@ -26,6 +26,9 @@
 //!   gradient, RK4, discrete fallback), with fixed-capacity waypoints.
 //! - [`explore`] — the [`Explorer`](explore::Explorer) that owns the loop and reports status,
 //!   termination and fault counters.
+//! - [`link`] — the depth link's wire format: versioned messages (intrinsics, depth chunks,
+//!   pose, heartbeat) in COBS frames with a CRC-32, a streaming decoder that resynchronises
+//!   after damage, and the assembler that turns complete chunk sets into depth frames.
 //!
 //! Frames: the map frame is right-handed, z up, metres; poses are `Isometry3<f32>`. The camera
 //! frame is x right, y down, z forward. Depth is `u16` millimetres, 0 = no return.
@@ -40,6 +43,7 @@ pub mod camera;
 pub mod domain;
 pub mod explore;
 pub mod integrate;
+pub mod link;
 pub mod map;
 pub mod solve;
 pub mod streamline;

@@ -1,0 +1,2183 @@
+//! The depth link: how depth images, camera intrinsics and poses travel from the camera side
+//! to the core over a UART or any other byte stream.
+//!
+//! On a vehicle the stereo camera has its own processor and streams to the board that runs the
+//! explorer. This module holds both ends of that link, without allocation:
+//!
+//! - [`Message`] — what travels: camera [`Intrinsics`], [`DepthChunk`]s (a run of rows of one
+//!   depth image), an optional camera [`Pose`], and a [`Heartbeat`]. Checked once, when decoded.
+//! - [`encode_frame`] and [`LinkEncoder`] — the sender: one message into one delimited frame
+//!   in a caller buffer; [`LinkEncoder::encode_depth_frame`] cuts a whole image into chunks.
+//! - [`FrameDecoder`] — the receiver's framing: bytes in any slicing in, checked messages out,
+//!   a fixed buffer of `N` bytes, resynchronisation at the next delimiter after damage.
+//! - [`DepthAssembler`] — chunks into a caller-provided image buffer; yields a [`DepthFrame`]
+//!   only when every row arrived, in order and intact. Anything else is dropped whole.
+//! - [`DepthReceiver`] — decoder and assembler together: what the core's input task runs.
+//! - [`LinkCounters`] — one counter per kind of fault, for the status output.
+//!
+//! # Wire format, version 1
+//!
+//! Every message travels as one frame:
+//!
+//! ```text
+//! 0x00 │ COBS( payload │ CRC-32 of payload, u32 LE ) │ 0x00
+//! payload = header (4 bytes) │ body (per message type)
+//!
+//! header   offset  type  field
+//!          0       u8    protocol version = 1
+//!          1       u8    message type (below)
+//!          2       u16   sequence number: +1 per frame sent, any type, wrapping
+//! ```
+//!
+//! All multi-byte fields are little-endian; `f32` is IEEE-754 binary32.
+//!
+//! - **CRC-32/ISO-HDLC** (the zlib / Ethernet `crc32`): reflected polynomial `0xEDB88320`,
+//!   initial value `0xFFFFFFFF`, final xor `0xFFFFFFFF`; `crc32("123456789") = 0xCBF43926`.
+//!   It covers header and body and is appended after them, before COBS encoding.
+//! - **COBS** (Cheshire & Baker, 1999) removes every `0x00` from payload and CRC: the encoded
+//!   bytes are groups, each a code byte `k` (1..=255) followed by `k − 1` non-zero bytes; a
+//!   group with `k < 255` stands for its bytes followed by one `0x00`, except the last group.
+//!   `n` bytes encode to at most `n + n / 254 + 1` bytes ([`max_encoded_len`]).
+//! - **Delimiters**: the sender writes `0x00` before *and* after each frame. The receiver
+//!   ignores empty frames, so back-to-back frames cost one extra byte, and line noise before a
+//!   frame (a receiver that starts listening mid-stream, a glitch on an idle line) ends at that
+//!   leading delimiter instead of corrupting the frame.
+//!
+//! Message bodies (offsets from the start of the body, i.e. after the 4-byte header):
+//!
+//! ```text
+//! 0x01 Intrinsics, 20 bytes          0x02 DepthChunk, 12 + 2 · width · row_count bytes
+//!   0  f32 fx  focal length, px        0  u32 frame_id   same for all chunks of an image
+//!   4  f32 fy                          4  u16 width      of the whole image, > 0
+//!   8  f32 cx  principal point, px     6  u16 height     of the whole image, > 0
+//!  12  f32 cy                          8  u16 first_row
+//!  16  u16 width   > 0                10  u16 row_count  > 0, first_row + row_count ≤ height
+//!  18  u16 height  > 0                12  u16[width · row_count] depth, row-major,
+//!                                             millimetres, 0 = no return
+//!
+//! 0x03 Pose, 32 bytes                0x04 Heartbeat, 16 bytes
+//!   0  u32 frame_id  depth frame       0  u32 uptime_ms
+//!   4  f32 tx, ty, tz  metres          4  u32 frames_sent     depth frames sent whole
+//!  16  f32 qx, qy, qz, qw              8  u32 frames_skipped  captured, not sent (link busy)
+//!      camera → map rotation          12  u32 sensor_errors
+//! ```
+//!
+//! Intrinsics must be finite with positive focal lengths and the principal point inside the
+//! image (−0.5 ≤ cx ≤ width − 0.5, likewise cy), as [`Intrinsics::new`] checks. A pose is the
+//! camera → map transform of the depth frame with the same id (the `camera_pose` of
+//! [`integrate`](crate::integrate::integrate)): all seven numbers finite and
+//! `|q|` within [`UNIT_QUATERNION_TOLERANCE`] of 1. A body whose length differs from the table
+//! is malformed; so is a chunk with zero width, height or rows, or rows past the height.
+//!
+//! Sender conventions: an Intrinsics message before the chunks of every image (so a receiver
+//! that starts late, or lost one, recovers at the next image); a Pose, if the camera side owns
+//! the pose, before the chunks of its image; the chunks of an image in row order without gaps;
+//! frame ids +1 per image. [`LinkEncoder::encode_depth_frame`] does all but the pose.
+//!
+//! Test vector: a Heartbeat with sequence number 1, uptime 1000 ms, 7 frames sent, 2 skipped
+//! and 0 sensor errors is, on the wire,
+//!
+//! ```text
+//! 00 04 01 04 01 03 E8 03 01 02 07 01 01 02 02 01 01 01 01 01 01 05 7F 60 E7 5D 00
+//! ```
+//!
+//! # Bandwidth
+//!
+//! A 100 × 100 image in chunks of 10 rows is one Intrinsics frame (at most 31 bytes) and ten
+//! chunk frames (at most 2030 bytes each): at most 20 331 bytes, 1.7 % over the 20 000 bytes of
+//! raw depth, 0.221 s at 921 600 baud (8N1, 92 160 bytes/s). Zeros in the data make COBS
+//! cheaper, so real images come in slightly under the bound. Smaller chunks cost more framing
+//! (1 row per chunk: +11.7 %) but need a smaller decoder buffer ([`max_depth_chunk_len`]).
+//!
+//! # Faults
+//!
+//! Damage does not produce a wrong message (short of a CRC-32 collision, 2⁻³² per damaged
+//! frame): a frame that fails COBS, CRC, version, type or body checks is dropped and counted, and decoding resumes at the next delimiter. A depth image is
+//! delivered only if all its rows arrived in order; an image with a missing, damaged or
+//! contradictory chunk is dropped whole and counted in [`LinkCounters`].
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
+
+use crate::camera::{DepthFrame, Intrinsics, IntrinsicsError};
+
+/// Protocol version this module speaks (header byte 0).
+pub const PROTOCOL_VERSION: u8 = 1;
+/// Frame delimiter. COBS guarantees it appears nowhere inside a frame.
+pub const DELIMITER: u8 = 0x00;
+/// Bytes of the header every payload starts with: version, type, sequence number.
+pub const HEADER_LEN: usize = 4;
+/// Bytes of the CRC-32 that follows the payload inside the COBS encoding.
+pub const CRC_LEN: usize = 4;
+/// Body bytes of an Intrinsics message.
+pub const INTRINSICS_BODY_LEN: usize = 20;
+/// Body bytes of a depth chunk before its depth values.
+pub const DEPTH_CHUNK_HEADER_LEN: usize = 12;
+/// Body bytes of a Pose message.
+pub const POSE_BODY_LEN: usize = 32;
+/// Body bytes of a Heartbeat message.
+pub const HEARTBEAT_BODY_LEN: usize = 16;
+/// How far the norm of a pose quaternion may be from 1.
+pub const UNIT_QUATERNION_TOLERANCE: f32 = 1e-3;
+/// A chunk whose frame id is at most this far behind the newest frame seen is a late or
+/// duplicated chunk and is dropped; further behind, it is taken as a new frame (the sender
+/// restarted its frame ids).
+pub const STALE_FRAME_WINDOW: u32 = 16;
+
+/// Worst-case bytes on the wire for one frame whose payload (header and body) is
+/// `payload_len` bytes: COBS overhead, CRC and both delimiters included.
+pub const fn max_encoded_len(payload_len: usize) -> usize {
+    let n = payload_len.saturating_add(CRC_LEN);
+    n.saturating_add(n / 254).saturating_add(3)
+}
+
+/// Payload bytes (header and body) of a depth chunk of `rows` rows of `width` pixels.
+pub const fn depth_chunk_payload_len(width: u16, rows: u16) -> usize {
+    let samples = (width as usize).saturating_mul(rows as usize);
+    (HEADER_LEN + DEPTH_CHUNK_HEADER_LEN).saturating_add(samples.saturating_mul(2))
+}
+
+/// Worst-case bytes on the wire for a depth chunk of `rows` rows of `width` pixels. A
+/// [`FrameDecoder`] with at least this capacity accepts such chunks; a scratch buffer of this
+/// size suffices for [`LinkEncoder::encode_depth_frame`].
+pub const fn max_depth_chunk_len(width: u16, rows: u16) -> usize {
+    max_encoded_len(depth_chunk_payload_len(width, rows))
+}
+
+/// The kinds of message on the link (header byte 1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum MessageType {
+    /// Camera intrinsics of the images that follow.
+    Intrinsics = 0x01,
+    /// A run of rows of one depth image.
+    DepthChunk = 0x02,
+    /// Camera pose of one depth image.
+    Pose = 0x03,
+    /// Camera-side liveness and counters.
+    Heartbeat = 0x04,
+}
+
+impl MessageType {
+    /// The message type with wire code `code`, if there is one.
+    pub fn from_code(code: u8) -> Option<Self> {
+        match code {
+            0x01 => Some(Self::Intrinsics),
+            0x02 => Some(Self::DepthChunk),
+            0x03 => Some(Self::Pose),
+            0x04 => Some(Self::Heartbeat),
+            _ => None,
+        }
+    }
+
+    /// The wire code of this message type.
+    pub fn code(self) -> u8 {
+        self as u8
+    }
+}
+
+/// Why a message body was rejected although its frame was intact.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Malformed {
+    /// The frame is shorter than a header and a CRC.
+    Truncated,
+    /// The body length does not match the message type (for a chunk: its width × rows).
+    BodyLength,
+    /// A depth chunk with zero width, height or rows, or rows past the image height.
+    ChunkGeometry,
+    /// Intrinsics that [`Intrinsics::new`] rejects.
+    Intrinsics(IntrinsicsError),
+    /// A pose that [`Pose::new`] rejects.
+    Pose(PoseError),
+}
+
+/// Everything that can go wrong on the link. Each variant but [`LinkError::BufferTooSmall`]
+/// (a sender-side error) has a counter in [`LinkCounters`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkError {
+    /// Sender: the output buffer cannot hold the encoded frame.
+    BufferTooSmall,
+    /// More bytes between two delimiters than the decoder's capacity; dropped whole.
+    Oversize,
+    /// The bytes between two delimiters are not valid COBS.
+    Cobs,
+    /// The CRC does not match the payload.
+    Crc,
+    /// Intact frame of another protocol version.
+    BadVersion(u8),
+    /// Intact frame of a message type this version does not know.
+    UnknownType(u8),
+    /// Intact frame whose body is not a valid message.
+    Malformed(Malformed),
+    /// A chunk behind the rows already received (duplicate, overlap, or a late chunk of an
+    /// earlier frame); dropped, the frame in progress continues.
+    OutOfOrderChunk,
+    /// Rows of a frame never arrived (a gap, or a new frame started first); the frame was
+    /// dropped whole.
+    MissingChunks,
+    /// A chunk whose image size differs from the earlier chunks of its frame; the frame was
+    /// dropped whole.
+    ChunkMismatch,
+    /// The image is larger than the assembler's buffer; the frame was dropped whole.
+    FrameTooLarge,
+    /// A frame completed before any intrinsics arrived; dropped.
+    NoIntrinsics,
+    /// A frame completed whose size differs from the last intrinsics; dropped.
+    IntrinsicsMismatch,
+}
+
+/// Counts of link traffic and of every fault since start. The decoder and the assembler each
+/// count what they see; [`LinkCounters::merged`] adds them up.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
+pub struct LinkCounters {
+    /// Bytes received.
+    pub bytes: u64,
+    /// Frames that decoded into a valid message.
+    pub frames_ok: u32,
+    /// Frames with a wrong CRC.
+    pub crc_errors: u32,
+    /// Frames that were not valid COBS.
+    pub cobs_errors: u32,
+    /// Frames longer than the decoder's capacity.
+    pub oversize: u32,
+    /// Intact frames of another protocol version.
+    pub bad_version: u32,
+    /// Intact frames of an unknown message type.
+    pub unknown_type: u32,
+    /// Intact frames with an invalid body (truncated, wrong length, bad values), and chunks
+    /// contradicting their frame.
+    pub malformed: u32,
+    /// Frames missing by sequence number (lost whole, or damaged beyond recognition).
+    pub sequence_gaps: u32,
+    /// Chunks dropped as duplicate, overlapping or late.
+    pub out_of_order_chunks: u32,
+    /// Depth frames dropped because rows never arrived.
+    pub missing_chunks: u32,
+    /// Depth frames larger than the assembler's buffer.
+    pub frame_too_large: u32,
+    /// Depth frames complete before any intrinsics arrived.
+    pub no_intrinsics: u32,
+    /// Depth frames whose size differed from the last intrinsics.
+    pub intrinsics_mismatch: u32,
+    /// Depth frames delivered.
+    pub depth_frames_complete: u32,
+    /// Depth frames of which some chunk arrived but which were not delivered.
+    pub depth_frames_dropped: u32,
+}
+
+fn bump(counter: &mut u32) {
+    *counter = counter.saturating_add(1);
+}
+
+impl LinkCounters {
+    /// All zero, in a `const fn` so that decoders can live in `static`s.
+    pub const fn new() -> Self {
+        Self {
+            bytes: 0,
+            frames_ok: 0,
+            crc_errors: 0,
+            cobs_errors: 0,
+            oversize: 0,
+            bad_version: 0,
+            unknown_type: 0,
+            malformed: 0,
+            sequence_gaps: 0,
+            out_of_order_chunks: 0,
+            missing_chunks: 0,
+            frame_too_large: 0,
+            no_intrinsics: 0,
+            intrinsics_mismatch: 0,
+            depth_frames_complete: 0,
+            depth_frames_dropped: 0,
+        }
+    }
+
+    /// Counts one occurrence of `error` (nothing for [`LinkError::BufferTooSmall`]).
+    pub fn record(&mut self, error: LinkError) {
+        let counter = match error {
+            LinkError::BufferTooSmall => return,
+            LinkError::Oversize => &mut self.oversize,
+            LinkError::Cobs => &mut self.cobs_errors,
+            LinkError::Crc => &mut self.crc_errors,
+            LinkError::BadVersion(_) => &mut self.bad_version,
+            LinkError::UnknownType(_) => &mut self.unknown_type,
+            LinkError::Malformed(_) | LinkError::ChunkMismatch => &mut self.malformed,
+            LinkError::OutOfOrderChunk => &mut self.out_of_order_chunks,
+            LinkError::MissingChunks => &mut self.missing_chunks,
+            LinkError::FrameTooLarge => &mut self.frame_too_large,
+            LinkError::NoIntrinsics => &mut self.no_intrinsics,
+            LinkError::IntrinsicsMismatch => &mut self.intrinsics_mismatch,
+        };
+        bump(counter);
+    }
+
+    /// Field-by-field sum (saturating) of two sets of counters.
+    pub fn merged(&self, other: &Self) -> Self {
+        let add = |a: u32, b: u32| a.saturating_add(b);
+        Self {
+            bytes: self.bytes.saturating_add(other.bytes),
+            frames_ok: add(self.frames_ok, other.frames_ok),
+            crc_errors: add(self.crc_errors, other.crc_errors),
+            cobs_errors: add(self.cobs_errors, other.cobs_errors),
+            oversize: add(self.oversize, other.oversize),
+            bad_version: add(self.bad_version, other.bad_version),
+            unknown_type: add(self.unknown_type, other.unknown_type),
+            malformed: add(self.malformed, other.malformed),
+            sequence_gaps: add(self.sequence_gaps, other.sequence_gaps),
+            out_of_order_chunks: add(self.out_of_order_chunks, other.out_of_order_chunks),
+            missing_chunks: add(self.missing_chunks, other.missing_chunks),
+            frame_too_large: add(self.frame_too_large, other.frame_too_large),
+            no_intrinsics: add(self.no_intrinsics, other.no_intrinsics),
+            intrinsics_mismatch: add(self.intrinsics_mismatch, other.intrinsics_mismatch),
+            depth_frames_complete: add(self.depth_frames_complete, other.depth_frames_complete),
+            depth_frames_dropped: add(self.depth_frames_dropped, other.depth_frames_dropped),
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Messages
+
+/// Why a pose was rejected.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PoseError {
+    /// A translation or quaternion component is not finite.
+    NotFinite,
+    /// The quaternion's norm is not within [`UNIT_QUATERNION_TOLERANCE`] of 1.
+    NotUnitQuaternion,
+}
+
+/// The camera pose (camera frame → map frame) of the depth frame with the same id, for setups
+/// where the camera side owns the pose. Finite, with a unit quaternion (checked here).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose {
+    frame_id: u32,
+    translation: [f32; 3],
+    rotation_xyzw: [f32; 4],
+}
+
+impl Pose {
+    /// Checked constructor: all components finite, `|q|` within [`UNIT_QUATERNION_TOLERANCE`]
+    /// of 1. `translation` is the camera origin in the map frame, metres; `rotation_xyzw`
+    /// rotates camera-frame vectors into the map frame.
+    pub fn new(frame_id: u32, translation: [f32; 3], rotation_xyzw: [f32; 4]) -> Result<Self, PoseError> {
+        if !translation
+            .iter()
+            .chain(rotation_xyzw.iter())
+            .all(|c| c.is_finite())
+        {
+            return Err(PoseError::NotFinite);
+        }
+        let norm = libm::sqrtf(rotation_xyzw.iter().map(|c| c * c).sum());
+        if (norm - 1.0).abs() > UNIT_QUATERNION_TOLERANCE {
+            return Err(PoseError::NotUnitQuaternion);
+        }
+        Ok(Self {
+            frame_id,
+            translation,
+            rotation_xyzw,
+        })
+    }
+
+    /// The pose of a camera given as an isometry (camera frame → map frame).
+    pub fn from_isometry(frame_id: u32, camera_pose: &Isometry3<f32>) -> Result<Self, PoseError> {
+        let t = camera_pose.translation.vector;
+        let q = camera_pose.rotation.quaternion();
+        Self::new(frame_id, [t.x, t.y, t.z], [q.i, q.j, q.k, q.w])
+    }
+
+    /// Id of the depth frame this pose belongs to.
+    pub fn frame_id(&self) -> u32 {
+        self.frame_id
+    }
+    /// Camera origin in the map frame, metres.
+    pub fn translation(&self) -> [f32; 3] {
+        self.translation
+    }
+    /// Rotation camera → map as a quaternion `[x, y, z, w]`, as received.
+    pub fn rotation_xyzw(&self) -> [f32; 4] {
+        self.rotation_xyzw
+    }
+    /// The pose as an isometry (camera frame → map frame), quaternion renormalised.
+    pub fn isometry(&self) -> Isometry3<f32> {
+        let [x, y, z, w] = self.rotation_xyzw;
+        let [tx, ty, tz] = self.translation;
+        Isometry3::from_parts(
+            Translation3::new(tx, ty, tz),
+            UnitQuaternion::new_normalize(Quaternion::new(w, x, y, z)),
+        )
+    }
+}
+
+/// Camera-side liveness and counters, sent periodically.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Heartbeat {
+    /// Milliseconds since the camera side started.
+    pub uptime_ms: u32,
+    /// Depth frames sent whole.
+    pub frames_sent: u32,
+    /// Depth frames captured but not sent (the link was still busy).
+    pub frames_skipped: u32,
+    /// Sensor faults on the camera side.
+    pub sensor_errors: u32,
+}
+
+#[derive(Debug, Clone, Copy)]
+enum SampleSource<'a> {
+    /// Little-endian pairs, straight from a received frame.
+    Wire(&'a [u8]),
+    /// Values from the sender's image.
+    Native(&'a [u16]),
+}
+
+/// A run of whole rows of one depth image. Its geometry is consistent (checked on
+/// construction and on decoding): width, height and rows non-zero, rows within the height,
+/// exactly `width × row_count` depth values.
+#[derive(Debug, Clone, Copy)]
+pub struct DepthChunk<'a> {
+    frame_id: u32,
+    width: u16,
+    height: u16,
+    first_row: u16,
+    row_count: u16,
+    samples: SampleSource<'a>,
+}
+
+impl<'a> DepthChunk<'a> {
+    /// Rows `first_row ..` of image `frame_id` (`width × height` pixels); `depth_mm` holds whole
+    /// rows, row-major, millimetres.
+    pub fn new(
+        frame_id: u32,
+        width: u16,
+        height: u16,
+        first_row: u16,
+        depth_mm: &'a [u16],
+    ) -> Result<Self, LinkError> {
+        let bad = LinkError::Malformed(Malformed::ChunkGeometry);
+        let w = usize::from(width);
+        if w == 0 || depth_mm.len() % w != 0 {
+            return Err(bad);
+        }
+        let row_count = u16::try_from(depth_mm.len() / w).map_err(|_| bad)?;
+        check_chunk_geometry(width, height, first_row, row_count)?;
+        Ok(Self {
+            frame_id,
+            width,
+            height,
+            first_row,
+            row_count,
+            samples: SampleSource::Native(depth_mm),
+        })
+    }
+
+    /// Id of the image this chunk belongs to.
+    pub fn frame_id(&self) -> u32 {
+        self.frame_id
+    }
+    /// Width of the whole image, pixels.
+    pub fn width(&self) -> u16 {
+        self.width
+    }
+    /// Height of the whole image, pixels.
+    pub fn height(&self) -> u16 {
+        self.height
+    }
+    /// First image row in this chunk.
+    pub fn first_row(&self) -> u16 {
+        self.first_row
+    }
+    /// Number of rows in this chunk.
+    pub fn row_count(&self) -> u16 {
+        self.row_count
+    }
+    /// Number of depth values in this chunk (`width × row_count`).
+    pub fn sample_count(&self) -> usize {
+        usize::from(self.width) * usize::from(self.row_count)
+    }
+    /// The depth values, row-major, millimetres (0 = no return).
+    pub fn samples(&self) -> DepthSamples<'a> {
+        DepthSamples { source: self.samples }
+    }
+}
+
+impl PartialEq for DepthChunk<'_> {
+    fn eq(&self, other: &Self) -> bool {
+        self.frame_id == other.frame_id
+            && self.width == other.width
+            && self.height == other.height
+            && self.first_row == other.first_row
+            && self.row_count == other.row_count
+            && self.samples().eq(other.samples())
+    }
+}
+
+fn check_chunk_geometry(width: u16, height: u16, first_row: u16, row_count: u16) -> Result<(), LinkError> {
+    let fits = u32::from(first_row) + u32::from(row_count) <= u32::from(height);
+    if width == 0 || height == 0 || row_count == 0 || !fits {
+        return Err(LinkError::Malformed(Malformed::ChunkGeometry));
+    }
+    Ok(())
+}
+
+/// Iterator over the depth values of a [`DepthChunk`], row-major, millimetres.
+#[derive(Debug, Clone)]
+pub struct DepthSamples<'a> {
+    source: SampleSource<'a>,
+}
+
+impl Iterator for DepthSamples<'_> {
+    type Item = u16;
+
+    fn next(&mut self) -> Option<u16> {
+        match &mut self.source {
+            SampleSource::Wire(bytes) => {
+                let all: &[u8] = bytes;
+                let (pair, rest) = all.split_first_chunk::<2>()?;
+                *bytes = rest;
+                Some(u16::from_le_bytes(*pair))
+            }
+            SampleSource::Native(values) => {
+                let all: &[u16] = values;
+                let (first, rest) = all.split_first()?;
+                *values = rest;
+                Some(*first)
+            }
+        }
+    }
+
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        let n = match self.source {
+            SampleSource::Wire(bytes) => bytes.len() / 2,
+            SampleSource::Native(values) => values.len(),
+        };
+        (n, Some(n))
+    }
+}
+
+impl ExactSizeIterator for DepthSamples<'_> {}
+
+/// One message of the depth link, checked.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Message<'a> {
+    /// Camera intrinsics of the images that follow.
+    Intrinsics(Intrinsics),
+    /// A run of rows of one depth image.
+    DepthChunk(DepthChunk<'a>),
+    /// Camera pose of one depth image.
+    Pose(Pose),
+    /// Camera-side liveness and counters.
+    Heartbeat(Heartbeat),
+}
+
+impl<'a> Message<'a> {
+    /// The wire type of this message.
+    pub fn message_type(&self) -> MessageType {
+        match self {
+            Message::Intrinsics(_) => MessageType::Intrinsics,
+            Message::DepthChunk(_) => MessageType::DepthChunk,
+            Message::Pose(_) => MessageType::Pose,
+            Message::Heartbeat(_) => MessageType::Heartbeat,
+        }
+    }
+
+    /// Payload bytes (header and body) of this message; [`max_encoded_len`] of it bounds the
+    /// frame on the wire.
+    pub fn payload_len(&self) -> usize {
+        match self {
+            Message::Intrinsics(_) => HEADER_LEN + INTRINSICS_BODY_LEN,
+            Message::DepthChunk(c) => depth_chunk_payload_len(c.width, c.row_count),
+            Message::Pose(_) => HEADER_LEN + POSE_BODY_LEN,
+            Message::Heartbeat(_) => HEADER_LEN + HEARTBEAT_BODY_LEN,
+        }
+    }
+
+    fn write_body(&self, w: &mut CobsWriter<'_>) -> Result<(), LinkError> {
+        match self {
+            Message::Intrinsics(i) => {
+                for v in [i.fx(), i.fy(), i.cx(), i.cy()] {
+                    w.payload(&v.to_le_bytes())?;
+                }
+                w.payload(&i.width().to_le_bytes())?;
+                w.payload(&i.height().to_le_bytes())
+            }
+            Message::DepthChunk(c) => {
+                w.payload(&c.frame_id.to_le_bytes())?;
+                for v in [c.width, c.height, c.first_row, c.row_count] {
+                    w.payload(&v.to_le_bytes())?;
+                }
+                match c.samples {
+                    SampleSource::Wire(bytes) => w.payload(bytes),
+                    SampleSource::Native(values) => {
+                        values.iter().try_for_each(|v| w.payload(&v.to_le_bytes()))
+                    }
+                }
+            }
+            Message::Pose(p) => {
+                w.payload(&p.frame_id.to_le_bytes())?;
+                for v in p.translation.iter().chain(p.rotation_xyzw.iter()) {
+                    w.payload(&v.to_le_bytes())?;
+                }
+                Ok(())
+            }
+            Message::Heartbeat(h) => {
+                for v in [h.uptime_ms, h.frames_sent, h.frames_skipped, h.sensor_errors] {
+                    w.payload(&v.to_le_bytes())?;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// Decodes the body of a message of wire type `code`.
+    fn decode(code: u8, body: &'a [u8]) -> Result<Self, LinkError> {
+        let mut r = Reader { rest: body };
+        let message = match MessageType::from_code(code).ok_or(LinkError::UnknownType(code))? {
+            MessageType::Intrinsics => {
+                let (fx, fy, cx, cy) = (r.f32()?, r.f32()?, r.f32()?, r.f32()?);
+                let (width, height) = (r.u16()?, r.u16()?);
+                r.end()?;
+                let intrinsics = Intrinsics::new(fx, fy, cx, cy, width, height)
+                    .map_err(|e| LinkError::Malformed(Malformed::Intrinsics(e)))?;
+                Message::Intrinsics(intrinsics)
+            }
+            MessageType::DepthChunk => {
+                let frame_id = r.u32()?;
+                let (width, height, first_row, row_count) = (r.u16()?, r.u16()?, r.u16()?, r.u16()?);
+                check_chunk_geometry(width, height, first_row, row_count)?;
+                let expected = usize::from(width)
+                    .checked_mul(usize::from(row_count))
+                    .and_then(|n| n.checked_mul(2));
+                if expected != Some(r.rest.len()) {
+                    return Err(LinkError::Malformed(Malformed::BodyLength));
+                }
+                Message::DepthChunk(DepthChunk {
+                    frame_id,
+                    width,
+                    height,
+                    first_row,
+                    row_count,
+                    samples: SampleSource::Wire(r.rest),
+                })
+            }
+            MessageType::Pose => {
+                let frame_id = r.u32()?;
+                let translation = [r.f32()?, r.f32()?, r.f32()?];
+                let rotation = [r.f32()?, r.f32()?, r.f32()?, r.f32()?];
+                r.end()?;
+                let pose = Pose::new(frame_id, translation, rotation)
+                    .map_err(|e| LinkError::Malformed(Malformed::Pose(e)))?;
+                Message::Pose(pose)
+            }
+            MessageType::Heartbeat => {
+                let heartbeat = Heartbeat {
+                    uptime_ms: r.u32()?,
+                    frames_sent: r.u32()?,
+                    frames_skipped: r.u32()?,
+                    sensor_errors: r.u32()?,
+                };
+                r.end()?;
+                Message::Heartbeat(heartbeat)
+            }
+        };
+        Ok(message)
+    }
+}
+
+/// Little-endian field reader over a message body; running short is a length error.
+struct Reader<'a> {
+    rest: &'a [u8],
+}
+
+impl Reader<'_> {
+    fn array<const K: usize>(&mut self) -> Result<[u8; K], LinkError> {
+        let (head, rest) = self
+            .rest
+            .split_first_chunk::<K>()
+            .ok_or(LinkError::Malformed(Malformed::BodyLength))?;
+        self.rest = rest;
+        Ok(*head)
+    }
+    fn u16(&mut self) -> Result<u16, LinkError> {
+        self.array().map(u16::from_le_bytes)
+    }
+    fn u32(&mut self) -> Result<u32, LinkError> {
+        self.array().map(u32::from_le_bytes)
+    }
+    fn f32(&mut self) -> Result<f32, LinkError> {
+        self.array().map(f32::from_le_bytes)
+    }
+    fn end(&self) -> Result<(), LinkError> {
+        if self.rest.is_empty() {
+            Ok(())
+        } else {
+            Err(LinkError::Malformed(Malformed::BodyLength))
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// CRC-32/ISO-HDLC and COBS
+
+const CRC32_INIT: u32 = 0xFFFF_FFFF;
+
+const CRC32_TABLE: [u32; 256] = {
+    let mut table = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            k += 1;
+        }
+        table[i] = c;
+        i += 1;
+    }
+    table
+};
+
+fn crc32_update(mut crc: u32, bytes: &[u8]) -> u32 {
+    for &b in bytes {
+        crc = CRC32_TABLE[((crc ^ u32::from(b)) & 0xFF) as usize] ^ (crc >> 8);
+    }
+    crc
+}
+
+/// CRC-32/ISO-HDLC (zlib's `crc32`) of `bytes`.
+pub fn crc32(bytes: &[u8]) -> u32 {
+    !crc32_update(CRC32_INIT, bytes)
+}
+
+/// Streaming COBS encoder into a slice, computing the CRC of what it is given as payload.
+struct CobsWriter<'o> {
+    out: &'o mut [u8],
+    /// Where the code byte of the open group goes.
+    code_at: usize,
+    /// Where the next data byte goes.
+    pos: usize,
+    /// Code of the open group: 1 + its data bytes.
+    code: u8,
+    crc: u32,
+}
+
+impl<'o> CobsWriter<'o> {
+    /// An encoder whose first group starts at `out[start]`.
+    fn new(out: &'o mut [u8], start: usize) -> Self {
+        Self {
+            out,
+            code_at: start,
+            pos: start + 1,
+            code: 1,
+            crc: CRC32_INIT,
+        }
+    }
+
+    fn slot(&mut self, at: usize) -> Result<&mut u8, LinkError> {
+        self.out.get_mut(at).ok_or(LinkError::BufferTooSmall)
+    }
+
+    fn close_group(&mut self) -> Result<(), LinkError> {
+        let code = self.code;
+        *self.slot(self.code_at)? = code;
+        self.code_at = self.pos;
+        self.pos += 1;
+        self.code = 1;
+        Ok(())
+    }
+
+    /// One byte into the encoding, outside the CRC.
+    fn put(&mut self, byte: u8) -> Result<(), LinkError> {
+        if byte == 0 {
+            return self.close_group();
+        }
+        *self.slot(self.pos)? = byte;
+        self.pos += 1;
+        self.code += 1;
+        if self.code == 0xFF {
+            self.close_group()?;
+        }
+        Ok(())
+    }
+
+    /// Payload bytes: into the CRC and the encoding.
+    fn payload(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        self.crc = crc32_update(self.crc, bytes);
+        bytes.iter().try_for_each(|&b| self.put(b))
+    }
+
+    /// Appends the CRC, closes the last group and writes the trailing delimiter. Returns the
+    /// length of `out` used.
+    fn finish(mut self) -> Result<usize, LinkError> {
+        for b in (!self.crc).to_le_bytes() {
+            self.put(b)?;
+        }
+        let (code, code_at, end) = (self.code, self.code_at, self.pos);
+        *self.slot(code_at)? = code;
+        *self.slot(end)? = DELIMITER;
+        Ok(end + 1)
+    }
+}
+
+/// Decodes COBS in place (the output never overtakes the input); returns the decoded length.
+fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
+    let len = buf.len();
+    let (mut read, mut write) = (0, 0);
+    while read < len {
+        let code = *buf.get(read).ok_or(LinkError::Cobs)?;
+        if code == 0 {
+            return Err(LinkError::Cobs);
+        }
+        read += 1;
+        let end = read + usize::from(code - 1);
+        if end > len {
+            return Err(LinkError::Cobs);
+        }
+        // write < read, so the copy stays inside the buffer.
+        buf.copy_within(read..end, write);
+        write += end - read;
+        read = end;
+        if code != 0xFF && read < len {
+            *buf.get_mut(write).ok_or(LinkError::Cobs)? = 0;
+            write += 1;
+        }
+    }
+    Ok(write)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Sender
+
+/// Encodes `message` with sequence number `seq` as one complete frame (leading delimiter, COBS
+/// of payload and CRC, trailing delimiter) at the start of `out`; returns the bytes written.
+/// `out` of [`max_encoded_len`]`(message.payload_len())` bytes always suffices.
+pub fn encode_frame(seq: u16, message: &Message<'_>, out: &mut [u8]) -> Result<usize, LinkError> {
+    *out.first_mut().ok_or(LinkError::BufferTooSmall)? = DELIMITER;
+    let mut w = CobsWriter::new(out, 1);
+    let [s0, s1] = seq.to_le_bytes();
+    w.payload(&[PROTOCOL_VERSION, message.message_type().code(), s0, s1])?;
+    message.write_body(&mut w)?;
+    w.finish()
+}
+
+/// The sending end of the link: numbers frames and cuts depth images into chunks.
+#[derive(Debug, Clone, Default)]
+pub struct LinkEncoder {
+    next_seq: u16,
+}
+
+impl LinkEncoder {
+    /// An encoder whose first frame has sequence number 0.
+    pub const fn new() -> Self {
+        Self { next_seq: 0 }
+    }
+
+    /// Sequence number of the next frame.
+    pub fn next_sequence(&self) -> u16 {
+        self.next_seq
+    }
+
+    /// Encodes `message` as the next frame into `out` (see [`encode_frame`]).
+    pub fn encode(&mut self, message: &Message<'_>, out: &mut [u8]) -> Result<usize, LinkError> {
+        let n = encode_frame(self.next_seq, message, out)?;
+        self.next_seq = self.next_seq.wrapping_add(1);
+        Ok(n)
+    }
+
+    /// Sends one depth image as image `frame_id`: its intrinsics, then chunks of
+    /// `rows_per_chunk` rows (0 counts as 1; the last chunk may be shorter), each frame handed
+    /// to `emit` as soon as it is encoded in `scratch`. Returns the bytes emitted. Fails
+    /// before emitting anything if `scratch` is shorter than
+    /// [`max_depth_chunk_len`]`(width, rows_per_chunk)`.
+    pub fn encode_depth_frame(
+        &mut self,
+        frame_id: u32,
+        frame: &DepthFrame<'_>,
+        rows_per_chunk: u16,
+        scratch: &mut [u8],
+        mut emit: impl FnMut(&[u8]),
+    ) -> Result<usize, LinkError> {
+        let intrinsics = *frame.intrinsics();
+        let (width, height) = (intrinsics.width(), intrinsics.height());
+        let rows_per_chunk = rows_per_chunk.clamp(1, height);
+        let needed =
+            max_depth_chunk_len(width, rows_per_chunk).max(max_encoded_len(HEADER_LEN + INTRINSICS_BODY_LEN));
+        if scratch.len() < needed {
+            return Err(LinkError::BufferTooSmall);
+        }
+        let mut sent = 0;
+        let mut send = |encoder: &mut Self, message: &Message<'_>| -> Result<(), LinkError> {
+            let n = encoder.encode(message, scratch)?;
+            emit(scratch.get(..n).ok_or(LinkError::BufferTooSmall)?);
+            sent += n;
+            Ok(())
+        };
+        send(self, &Message::Intrinsics(intrinsics))?;
+        let w = usize::from(width);
+        let mut first_row = 0u16;
+        while first_row < height {
+            let rows = rows_per_chunk.min(height - first_row);
+            let start = usize::from(first_row) * w;
+            let depth = frame
+                .depth_mm()
+                .get(start..start + usize::from(rows) * w)
+                .ok_or(LinkError::Malformed(Malformed::ChunkGeometry))?;
+            send(
+                self,
+                &Message::DepthChunk(DepthChunk::new(frame_id, width, height, first_row, depth)?),
+            )?;
+            first_row += rows;
+        }
+        Ok(sent)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Receiver: framing
+
+/// Streaming frame decoder with a fixed buffer of `N` bytes: feed it bytes in any slicing, get
+/// checked messages. A frame of more than `N` encoded bytes between delimiters is dropped whole
+/// ([`LinkError::Oversize`]); [`max_encoded_len`] of the largest payload is always enough.
+/// Never panics, never allocates.
+#[derive(Debug, Clone)]
+pub struct FrameDecoder<const N: usize> {
+    buf: [u8; N],
+    len: usize,
+    overflow: bool,
+    next_seq: Option<u16>,
+    counters: LinkCounters,
+}
+
+impl<const N: usize> Default for FrameDecoder<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize> FrameDecoder<N> {
+    /// An empty decoder, waiting for the first delimiter-terminated frame.
+    pub const fn new() -> Self {
+        Self {
+            buf: [0; N],
+            len: 0,
+            overflow: false,
+            next_seq: None,
+            counters: LinkCounters::new(),
+        }
+    }
+
+    /// What the decoder has seen so far (framing counters only).
+    pub fn counters(&self) -> &LinkCounters {
+        &self.counters
+    }
+
+    /// Takes one byte. At a delimiter that ends a non-empty frame, returns that frame's
+    /// message or why it was dropped (already counted); otherwise `None`. The message borrows
+    /// the decoder's buffer until the next byte.
+    pub fn push(&mut self, byte: u8) -> Option<Result<Message<'_>, LinkError>> {
+        self.counters.bytes = self.counters.bytes.saturating_add(1);
+        if byte != DELIMITER {
+            if !self.overflow {
+                match self.buf.get_mut(self.len) {
+                    Some(slot) => {
+                        *slot = byte;
+                        self.len += 1;
+                    }
+                    None => self.overflow = true,
+                }
+            }
+            return None;
+        }
+        let len = core::mem::take(&mut self.len);
+        if core::mem::take(&mut self.overflow) {
+            self.counters.record(LinkError::Oversize);
+            return Some(Err(LinkError::Oversize));
+        }
+        if len == 0 {
+            return None;
+        }
+        let Self {
+            buf,
+            counters,
+            next_seq,
+            ..
+        } = self;
+        let frame = buf.get_mut(..len)?;
+        let result = match cobs_decode_in_place(frame) {
+            Ok(n) => {
+                let frame: &[u8] = frame;
+                parse_frame(frame.get(..n)?, next_seq, counters)
+            }
+            Err(e) => Err(e),
+        };
+        match result {
+            Ok(_) => bump(&mut counters.frames_ok),
+            Err(e) => counters.record(e),
+        }
+        Some(result)
+    }
+
+    /// Takes a slice of bytes, calling `on_message` for every frame that ends in it.
+    pub fn feed(&mut self, bytes: &[u8], mut on_message: impl FnMut(Result<Message<'_>, LinkError>)) {
+        for &byte in bytes {
+            if let Some(result) = self.push(byte) {
+                on_message(result);
+            }
+        }
+    }
+}
+
+/// Checks CRC and header of a COBS-decoded frame, tracks its sequence number, decodes the body.
+fn parse_frame<'b>(
+    frame: &'b [u8],
+    next_seq: &mut Option<u16>,
+    counters: &mut LinkCounters,
+) -> Result<Message<'b>, LinkError> {
+    let truncated = LinkError::Malformed(Malformed::Truncated);
+    let (payload, crc) = frame.split_last_chunk::<CRC_LEN>().ok_or(truncated)?;
+    if crc32(payload) != u32::from_le_bytes(*crc) {
+        return Err(LinkError::Crc);
+    }
+    let (&[version, code, s0, s1], body) = payload.split_first_chunk::<HEADER_LEN>().ok_or(truncated)?;
+    if version != PROTOCOL_VERSION {
+        return Err(LinkError::BadVersion(version));
+    }
+    let seq = u16::from_le_bytes([s0, s1]);
+    if let Some(expected) = *next_seq {
+        let ahead = seq.wrapping_sub(expected);
+        // Ahead: frames were lost. A little behind: a duplicate or a late frame; keep waiting
+        // for `expected`. Far behind: the sender restarted; follow it.
+        if ahead < 0x8000 {
+            counters.sequence_gaps = counters.sequence_gaps.saturating_add(u32::from(ahead));
+            *next_seq = Some(seq.wrapping_add(1));
+        } else if expected.wrapping_sub(seq) > 256 {
+            *next_seq = Some(seq.wrapping_add(1));
+        }
+    } else {
+        *next_seq = Some(seq.wrapping_add(1));
+    }
+    Message::decode(code, body)
+}
+
+// ---------------------------------------------------------------------------------------------
+// Receiver: depth frame assembly
+
+#[derive(Debug, Clone, Copy)]
+enum Phase {
+    /// Rows `0..next_row` are in the buffer.
+    Receiving { width: u16, height: u16, next_row: u16 },
+    /// All rows arrived; delivered with these intrinsics.
+    Complete(Intrinsics),
+    /// Given up; its remaining chunks are ignored.
+    Dropped,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Tracked {
+    frame_id: u32,
+    phase: Phase,
+}
+
+/// Assembles depth chunks into whole depth frames in a caller-provided buffer, one frame id at
+/// a time. A frame is delivered only when rows `0..height` arrived in order and intact, and
+/// only with intrinsics of its size; otherwise it is dropped whole and counted:
+///
+/// - a chunk behind the rows received (duplicate, overlap) or of a slightly older frame:
+///   dropped, [`LinkCounters::out_of_order_chunks`]; the frame in progress continues;
+/// - a gap in the rows, a first chunk that is not row 0, or a new frame id while a frame is
+///   incomplete: that frame is dropped, [`LinkCounters::missing_chunks`];
+/// - an image larger than the buffer: [`LinkCounters::frame_too_large`];
+/// - completion without intrinsics, or with intrinsics of another size:
+///   [`LinkCounters::no_intrinsics`], [`LinkCounters::intrinsics_mismatch`].
+#[derive(Debug)]
+pub struct DepthAssembler<'a> {
+    buf: &'a mut [u16],
+    intrinsics: Option<Intrinsics>,
+    tracked: Option<Tracked>,
+    counters: LinkCounters,
+}
+
+impl<'a> DepthAssembler<'a> {
+    /// An assembler for images of up to `buf.len()` pixels.
+    pub const fn new(buf: &'a mut [u16]) -> Self {
+        Self {
+            buf,
+            intrinsics: None,
+            tracked: None,
+            counters: LinkCounters::new(),
+        }
+    }
+
+    /// Intrinsics for the frames that complete from now on (the last received).
+    pub fn set_intrinsics(&mut self, intrinsics: Intrinsics) {
+        self.intrinsics = Some(intrinsics);
+    }
+
+    /// The last intrinsics set.
+    pub fn intrinsics(&self) -> Option<&Intrinsics> {
+        self.intrinsics.as_ref()
+    }
+
+    /// What the assembler has seen so far (assembly counters only).
+    pub fn counters(&self) -> &LinkCounters {
+        &self.counters
+    }
+
+    /// Id of the frame being received, if one is incomplete.
+    pub fn frame_in_progress(&self) -> Option<u32> {
+        match self.tracked {
+            Some(Tracked {
+                frame_id,
+                phase: Phase::Receiving { .. },
+            }) => Some(frame_id),
+            _ => None,
+        }
+    }
+
+    /// The last frame delivered, while no later chunk has started overwriting it.
+    pub fn completed_frame(&self) -> Option<DepthFrame<'_>> {
+        let Some(Tracked {
+            phase: Phase::Complete(intrinsics),
+            ..
+        }) = self.tracked
+        else {
+            return None;
+        };
+        let depth = self.buf.get(..intrinsics.pixel_count())?;
+        DepthFrame::new(intrinsics, depth).ok()
+    }
+
+    /// Takes one chunk. Returns the depth frame it completes, if any. An error says what
+    /// happened to this chunk; the counters are the full record (a chunk that starts a new
+    /// frame is accepted, yet the incomplete frame it displaces is counted as missing chunks).
+    pub fn push_chunk(&mut self, chunk: &DepthChunk<'_>) -> Result<Option<DepthFrame<'_>>, LinkError> {
+        if !self.accept(chunk)? {
+            return Ok(None);
+        }
+        let Some(Tracked {
+            frame_id,
+            phase: Phase::Receiving { width, height, .. },
+        }) = self.tracked
+        else {
+            return Ok(None);
+        };
+        let intrinsics = match self.intrinsics {
+            None => return Err(self.drop_frame(frame_id, LinkError::NoIntrinsics)),
+            Some(i) if i.width() != width || i.height() != height => {
+                return Err(self.drop_frame(frame_id, LinkError::IntrinsicsMismatch));
+            }
+            Some(i) => i,
+        };
+        self.tracked = Some(Tracked {
+            frame_id,
+            phase: Phase::Complete(intrinsics),
+        });
+        bump(&mut self.counters.depth_frames_complete);
+        Ok(self.completed_frame())
+    }
+
+    /// Routes a chunk; returns whether it completed its frame.
+    fn accept(&mut self, chunk: &DepthChunk<'_>) -> Result<bool, LinkError> {
+        let id = chunk.frame_id();
+        if let Some(tracked) = self.tracked {
+            if tracked.frame_id == id {
+                return match tracked.phase {
+                    Phase::Receiving {
+                        width,
+                        height,
+                        next_row,
+                    } => {
+                        if chunk.width() != width || chunk.height() != height {
+                            return Err(self.drop_frame(id, LinkError::ChunkMismatch));
+                        }
+                        match chunk.first_row().cmp(&next_row) {
+                            core::cmp::Ordering::Less => Err(self.count(LinkError::OutOfOrderChunk)),
+                            core::cmp::Ordering::Greater => {
+                                Err(self.drop_frame(id, LinkError::MissingChunks))
+                            }
+                            core::cmp::Ordering::Equal => self.store(chunk),
+                        }
+                    }
+                    Phase::Complete(_) => Err(self.count(LinkError::OutOfOrderChunk)),
+                    Phase::Dropped => Ok(false),
+                };
+            }
+            if tracked.frame_id.wrapping_sub(id) <= STALE_FRAME_WINDOW {
+                return Err(self.count(LinkError::OutOfOrderChunk));
+            }
+            if let Phase::Receiving { .. } = tracked.phase {
+                self.drop_frame(tracked.frame_id, LinkError::MissingChunks);
+            }
+        }
+        self.start_frame(chunk)
+    }
+
+    fn start_frame(&mut self, chunk: &DepthChunk<'_>) -> Result<bool, LinkError> {
+        let id = chunk.frame_id();
+        let pixels = usize::from(chunk.width()).checked_mul(usize::from(chunk.height()));
+        if pixels.is_none_or(|p| p > self.buf.len()) {
+            return Err(self.drop_frame(id, LinkError::FrameTooLarge));
+        }
+        if chunk.first_row() != 0 {
+            return Err(self.drop_frame(id, LinkError::MissingChunks));
+        }
+        self.tracked = Some(Tracked {
+            frame_id: id,
+            phase: Phase::Receiving {
+                width: chunk.width(),
+                height: chunk.height(),
+                next_row: 0,
+            },
+        });
+        self.store(chunk)
+    }
+
+    /// Copies an in-order chunk of the frame in progress; returns whether it was the last.
+    fn store(&mut self, chunk: &DepthChunk<'_>) -> Result<bool, LinkError> {
+        let Some(Tracked {
+            frame_id,
+            phase: Phase::Receiving { width, height, .. },
+        }) = self.tracked
+        else {
+            return Ok(false);
+        };
+        let start = usize::from(chunk.first_row()) * usize::from(width);
+        let end = start.checked_add(chunk.sample_count());
+        let Some(target) = end.and_then(|end| self.buf.get_mut(start..end)) else {
+            return Err(self.drop_frame(frame_id, LinkError::FrameTooLarge));
+        };
+        target
+            .iter_mut()
+            .zip(chunk.samples())
+            .for_each(|(dst, v)| *dst = v);
+        let next_row = chunk.first_row().saturating_add(chunk.row_count());
+        self.tracked = Some(Tracked {
+            frame_id,
+            phase: Phase::Receiving {
+                width,
+                height,
+                next_row,
+            },
+        });
+        Ok(next_row >= height)
+    }
+
+    fn count(&mut self, error: LinkError) -> LinkError {
+        self.counters.record(error);
+        error
+    }
+
+    fn drop_frame(&mut self, frame_id: u32, why: LinkError) -> LinkError {
+        self.counters.record(why);
+        bump(&mut self.counters.depth_frames_dropped);
+        self.tracked = Some(Tracked {
+            frame_id,
+            phase: Phase::Dropped,
+        });
+        why
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Receiver: both together
+
+/// What the receiving end of the link reports.
+#[derive(Debug, Clone, Copy)]
+pub enum LinkEvent<'f> {
+    /// A complete depth frame, with the pose received for it if the camera side sends poses.
+    Depth {
+        /// Image id from the chunks.
+        frame_id: u32,
+        /// The image and its intrinsics.
+        frame: DepthFrame<'f>,
+        /// The last Pose message, if it carried this frame id.
+        pose: Option<Pose>,
+    },
+    /// New intrinsics (also applied to the frames that follow).
+    Intrinsics(Intrinsics),
+    /// A camera pose (also kept for the depth frame of the same id).
+    Pose(Pose),
+    /// Camera-side liveness.
+    Heartbeat(Heartbeat),
+    /// A frame or chunk was dropped (already counted).
+    Error(LinkError),
+}
+
+/// The receiving end of the depth link: a [`FrameDecoder`] of `N` bytes and a
+/// [`DepthAssembler`] over a caller buffer.
+#[derive(Debug)]
+pub struct DepthReceiver<'a, const N: usize> {
+    decoder: FrameDecoder<N>,
+    assembler: DepthAssembler<'a>,
+    pose: Option<Pose>,
+}
+
+impl<'a, const N: usize> DepthReceiver<'a, N> {
+    /// A receiver for images of up to `depth_buffer.len()` pixels.
+    pub const fn new(depth_buffer: &'a mut [u16]) -> Self {
+        Self {
+            decoder: FrameDecoder::new(),
+            assembler: DepthAssembler::new(depth_buffer),
+            pose: None,
+        }
+    }
+
+    /// Takes bytes in any slicing, calling `on_event` for everything they complete.
+    pub fn feed(&mut self, bytes: &[u8], mut on_event: impl FnMut(LinkEvent<'_>)) {
+        for &byte in bytes {
+            let Some(result) = self.decoder.push(byte) else {
+                continue;
+            };
+            match result {
+                Err(e) => on_event(LinkEvent::Error(e)),
+                Ok(Message::Intrinsics(i)) => {
+                    self.assembler.set_intrinsics(i);
+                    on_event(LinkEvent::Intrinsics(i));
+                }
+                Ok(Message::Pose(p)) => {
+                    self.pose = Some(p);
+                    on_event(LinkEvent::Pose(p));
+                }
+                Ok(Message::Heartbeat(h)) => on_event(LinkEvent::Heartbeat(h)),
+                Ok(Message::DepthChunk(chunk)) => match self.assembler.push_chunk(&chunk) {
+                    Ok(Some(frame)) => {
+                        let frame_id = chunk.frame_id();
+                        let pose = self.pose.filter(|p| p.frame_id() == frame_id);
+                        on_event(LinkEvent::Depth {
+                            frame_id,
+                            frame,
+                            pose,
+                        });
+                    }
+                    Ok(None) => {}
+                    Err(e) => on_event(LinkEvent::Error(e)),
+                },
+            }
+        }
+    }
+
+    /// The last frame delivered, while no later chunk has started overwriting it.
+    pub fn completed_frame(&self) -> Option<DepthFrame<'_>> {
+        self.assembler.completed_frame()
+    }
+
+    /// Framing and assembly counters together.
+    pub fn counters(&self) -> LinkCounters {
+        self.decoder.counters().merged(self.assembler.counters())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+
+    use super::*;
+    use std::vec;
+    use std::vec::Vec;
+
+    /// Deterministic pseudo-random numbers (Knuth's MMIX LCG, high bits).
+    struct Lcg(u64);
+
+    impl Lcg {
+        fn next_u32(&mut self) -> u32 {
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (self.0 >> 32) as u32
+        }
+        fn below(&mut self, n: usize) -> usize {
+            ((u64::from(self.next_u32()) * n as u64) >> 32) as usize
+        }
+        fn byte(&mut self) -> u8 {
+            self.next_u32() as u8
+        }
+    }
+
+    const BIG: usize = max_depth_chunk_len(100, 10);
+
+    fn intrinsics(w: u16, h: u16) -> Intrinsics {
+        Intrinsics::from_hfov(w, h, 1.2).unwrap()
+    }
+
+    /// A plausible depth image: a slanted wall 0.5–6 m with noise, 5 % no-return pixels.
+    fn depth_image(w: u16, h: u16, seed: u64) -> Vec<u16> {
+        let mut rng = Lcg(seed);
+        (0..usize::from(w) * usize::from(h))
+            .map(|i| {
+                if rng.below(20) == 0 {
+                    0
+                } else {
+                    (500 + (i % usize::from(w)) * 50 + rng.below(40)) as u16
+                }
+            })
+            .collect()
+    }
+
+    /// The wire frames (each with both delimiters) of one image: intrinsics, then chunks.
+    fn image_frames(enc: &mut LinkEncoder, id: u32, w: u16, h: u16, rpc: u16) -> (Vec<u16>, Vec<Vec<u8>>) {
+        let depth = depth_image(w, h, u64::from(id) + 1);
+        let frame = DepthFrame::new(intrinsics(w, h), &depth).unwrap();
+        let mut scratch = vec![0u8; max_depth_chunk_len(w, rpc)];
+        let mut frames = Vec::new();
+        let sent = enc
+            .encode_depth_frame(id, &frame, rpc, &mut scratch, |f| frames.push(f.to_vec()))
+            .unwrap();
+        assert_eq!(sent, frames.iter().map(Vec::len).sum::<usize>());
+        (depth, frames)
+    }
+
+    struct Received {
+        images: Vec<(u32, Vec<u16>, Option<Pose>)>,
+        errors: Vec<LinkError>,
+        counters: LinkCounters,
+    }
+
+    /// Feeds `stream` in slices of the given lengths (cycled), into a receiver of `N` bytes.
+    fn receive_sliced<const N: usize>(
+        stream: &[u8],
+        pixels: usize,
+        slices: &mut dyn FnMut() -> usize,
+    ) -> Received {
+        let mut buf = vec![0u16; pixels];
+        let mut rx = DepthReceiver::<N>::new(&mut buf);
+        let (mut images, mut errors) = (Vec::new(), Vec::new());
+        let mut rest = stream;
+        while !rest.is_empty() {
+            let (now, later) = rest.split_at(slices().min(rest.len()));
+            rx.feed(now, |event| match event {
+                LinkEvent::Depth {
+                    frame_id,
+                    frame,
+                    pose,
+                } => {
+                    assert_eq!(frame.depth_mm().len(), frame.intrinsics().pixel_count());
+                    images.push((frame_id, frame.depth_mm().to_vec(), pose));
+                }
+                LinkEvent::Error(e) => errors.push(e),
+                _ => {}
+            });
+            rest = later;
+        }
+        Received {
+            images,
+            errors,
+            counters: rx.counters(),
+        }
+    }
+
+    fn receive(stream: &[u8]) -> Received {
+        receive_sliced::<BIG>(stream, 100 * 100, &mut || 1)
+    }
+
+    fn decode_one<const N: usize>(wire: &[u8]) -> Vec<Result<Message<'static>, LinkError>> {
+        // Messages borrow the decoder; chunk samples are copied (and leaked, test only) to outlive it.
+        let mut out = Vec::new();
+        let mut dec = FrameDecoder::<N>::new();
+        for &b in wire {
+            if let Some(r) = dec.push(b) {
+                out.push(r.map(|m| match m {
+                    Message::DepthChunk(c) => {
+                        let samples: Vec<u16> = c.samples().collect();
+                        let samples: &'static [u16] = std::boxed::Box::leak(samples.into_boxed_slice());
+                        Message::DepthChunk(
+                            DepthChunk::new(c.frame_id, c.width, c.height, c.first_row, samples).unwrap(),
+                        )
+                    }
+                    Message::Intrinsics(i) => Message::Intrinsics(i),
+                    Message::Pose(p) => Message::Pose(p),
+                    Message::Heartbeat(h) => Message::Heartbeat(h),
+                }));
+            }
+        }
+        out
+    }
+
+    /// COBS-encodes raw bytes (no CRC added) between two delimiters.
+    fn cobs_frame(raw: &[u8]) -> Vec<u8> {
+        let mut out = vec![0u8; max_encoded_len(raw.len())];
+        let mut w = CobsWriter::new(&mut out, 1);
+        raw.iter().for_each(|&b| w.put(b).unwrap());
+        let (code, code_at, end) = (w.code, w.code_at, w.pos);
+        out[code_at] = code;
+        out[end] = 0;
+        out.truncate(end + 1);
+        out
+    }
+
+    /// A frame around an arbitrary payload, with a correct CRC.
+    fn raw_frame(payload: &[u8]) -> Vec<u8> {
+        let mut raw = payload.to_vec();
+        raw.extend_from_slice(&crc32(payload).to_le_bytes());
+        cobs_frame(&raw)
+    }
+
+    /// Undoes the framing of one wire frame: payload and CRC.
+    fn unframe(frame: &[u8]) -> Vec<u8> {
+        let mut inner = frame.iter().copied().filter(|&b| b != 0).collect::<Vec<_>>();
+        let n = cobs_decode_in_place(&mut inner).unwrap();
+        inner.truncate(n);
+        inner
+    }
+
+    fn heartbeat_frame(seq: u16) -> Vec<u8> {
+        let mut out = [0u8; 64];
+        let n = encode_frame(seq, &Message::Heartbeat(Heartbeat::default()), &mut out).unwrap();
+        out[..n].to_vec()
+    }
+
+    fn errors_total(c: &LinkCounters) -> u32 {
+        c.crc_errors
+            + c.cobs_errors
+            + c.oversize
+            + c.bad_version
+            + c.unknown_type
+            + c.malformed
+            + c.out_of_order_chunks
+            + c.missing_chunks
+            + c.frame_too_large
+            + c.no_intrinsics
+            + c.intrinsics_mismatch
+    }
+
+    // Firmware keeps the receiving end in `static`s: the constructors are `const`.
+    const _: FrameDecoder<64> = FrameDecoder::new();
+    const _: LinkEncoder = LinkEncoder::new();
+
+    #[test]
+    fn crc32_matches_the_catalogue_check_value() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+        assert_eq!(crc32(b""), 0);
+    }
+
+    #[test]
+    fn cobs_round_trips_block_boundaries_and_zero_runs() {
+        let mut rng = Lcg(3);
+        let mut cases: Vec<Vec<u8>> = vec![vec![], vec![0], vec![0, 0], vec![1], vec![0, 1, 0]];
+        for n in [253, 254, 255, 256, 507, 508, 509, 1000] {
+            cases.push(vec![0x55; n]);
+            cases.push((0..n).map(|i| if i % 300 == 299 { 0 } else { 7 }).collect());
+            cases.push(
+                (0..n)
+                    .map(|_| if rng.below(4) == 0 { 0 } else { rng.byte() })
+                    .collect(),
+            );
+        }
+        for data in cases {
+            let framed = cobs_frame(&data);
+            let inner = &framed[1..framed.len() - 1];
+            assert!(!inner.contains(&0), "delimiter inside frame");
+            assert!(framed.len() <= max_encoded_len(data.len()) - CRC_LEN);
+            let mut buf = inner.to_vec();
+            let n = cobs_decode_in_place(&mut buf).unwrap();
+            assert_eq!(&buf[..n], &data[..]);
+        }
+        // A code byte promising more bytes than there are.
+        assert_eq!(cobs_decode_in_place(&mut [5, 1, 2]), Err(LinkError::Cobs));
+    }
+
+    #[test]
+    fn heartbeat_test_vector_in_the_module_doc() {
+        let hb = Heartbeat {
+            uptime_ms: 1000,
+            frames_sent: 7,
+            frames_skipped: 2,
+            sensor_errors: 0,
+        };
+        let mut out = [0u8; 64];
+        let n = encode_frame(1, &Message::Heartbeat(hb), &mut out).unwrap();
+        let hex: Vec<std::string::String> = out[..n].iter().map(|b| std::format!("{b:02X}")).collect();
+        std::println!("heartbeat frame: {}", hex.join(" "));
+        assert_eq!(
+            &out[..n],
+            &[
+                0x00, 0x04, 0x01, 0x04, 0x01, 0x03, 0xE8, 0x03, 0x01, 0x02, 0x07, 0x01, 0x01, 0x02, 0x02,
+                0x01, 0x01, 0x01, 0x01, 0x01, 0x01, 0x05, 0x7F, 0x60, 0xE7, 0x5D, 0x00
+            ]
+        );
+    }
+
+    #[test]
+    fn every_message_round_trips() {
+        let rows = depth_image(7, 3, 9);
+        let messages = [
+            Message::Intrinsics(Intrinsics::new(120.5, 121.0, 49.5, 39.25, 100, 80).unwrap()),
+            Message::DepthChunk(DepthChunk::new(0xDEAD_BEEF, 7, 10, 4, &rows).unwrap()),
+            Message::DepthChunk(DepthChunk::new(1, 7, 3, 0, &[0u16; 21]).unwrap()),
+            Message::Pose(Pose::new(42, [1.5, -2.0, 0.75], [0.0, 0.0, 0.6, 0.8]).unwrap()),
+            Message::Heartbeat(Heartbeat {
+                uptime_ms: u32::MAX,
+                frames_sent: 3,
+                frames_skipped: 0,
+                sensor_errors: 1,
+            }),
+        ];
+        for (seq, message) in messages.iter().enumerate() {
+            let seq = 65_534u16.wrapping_add(seq as u16);
+            let mut out = [0u8; 256];
+            let n = encode_frame(seq, message, &mut out).unwrap();
+            assert!(n <= max_encoded_len(message.payload_len()));
+            assert_eq!(unframe(&out[..n]).len(), message.payload_len() + CRC_LEN);
+            // One byte short of the encoded length fails cleanly.
+            assert_eq!(
+                encode_frame(seq, message, &mut out[..n - 1]),
+                Err(LinkError::BufferTooSmall)
+            );
+            let decoded = decode_one::<256>(&out[..n]);
+            assert_eq!(decoded.len(), 1);
+            assert_eq!(decoded[0].as_ref().unwrap(), message);
+        }
+    }
+
+    #[test]
+    fn pose_is_validated_and_converts_to_an_isometry() {
+        assert_eq!(
+            Pose::new(0, [f32::NAN, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]),
+            Err(PoseError::NotFinite)
+        );
+        assert_eq!(
+            Pose::new(0, [0.0; 3], [0.0, 0.0, 0.0, f32::INFINITY]),
+            Err(PoseError::NotFinite)
+        );
+        assert_eq!(
+            Pose::new(0, [0.0; 3], [0.0, 0.0, 0.0, 1.01]),
+            Err(PoseError::NotUnitQuaternion)
+        );
+        assert_eq!(
+            Pose::new(0, [0.0; 3], [0.0; 4]),
+            Err(PoseError::NotUnitQuaternion)
+        );
+        assert!(Pose::new(0, [0.0; 3], [0.0, 0.0, 0.0, 1.0009]).is_ok());
+        let iso = crate::explore::forward_camera_pose(&nalgebra::Point3::new(1.0, 2.0, 0.5), 0.7);
+        let pose = Pose::from_isometry(5, &iso).unwrap();
+        let back = pose.isometry();
+        assert!((back.translation.vector - iso.translation.vector).norm() < 1e-6);
+        assert!(back.rotation.angle_to(&iso.rotation) < 1e-5);
+    }
+
+    #[test]
+    fn depth_frame_reassembles_in_any_slicing() {
+        let mut enc = LinkEncoder::new();
+        let pose = Pose::new(7, [1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 1.0]).unwrap();
+        let mut stream = Vec::new();
+        let mut out = [0u8; 64];
+        let n = enc.encode(&Message::Pose(pose), &mut out).unwrap();
+        stream.extend_from_slice(&out[..n]);
+        let (depth, frames) = image_frames(&mut enc, 7, 100, 100, 10);
+        assert_eq!(frames.len(), 11);
+        frames.iter().for_each(|f| stream.extend_from_slice(f));
+
+        let byte_by_byte = receive(&stream);
+        assert_eq!(byte_by_byte.images, vec![(7, depth.clone(), Some(pose))]);
+        assert!(byte_by_byte.errors.is_empty());
+        let c = byte_by_byte.counters;
+        assert_eq!(
+            (c.frames_ok, c.depth_frames_complete, errors_total(&c)),
+            (12, 1, 0)
+        );
+        assert_eq!(c.bytes, stream.len() as u64);
+
+        let whole = receive_sliced::<BIG>(&stream, 100 * 100, &mut || usize::MAX);
+        assert_eq!(whole.images, byte_by_byte.images);
+        for seed in 0..50 {
+            let mut rng = Lcg(seed);
+            let max = [2, 17, 300, 5000][seed as usize % 4];
+            let got = receive_sliced::<BIG>(&stream, 100 * 100, &mut || rng.below(max));
+            assert_eq!(got.images, byte_by_byte.images, "seed {seed}");
+            assert_eq!(got.counters, byte_by_byte.counters, "seed {seed}");
+        }
+    }
+
+    #[test]
+    fn bandwidth_of_a_100_by_100_frame() {
+        const BYTES_PER_S: f64 = 92_160.0;
+        for rpc in [1u16, 5, 10, 20, 50, 100] {
+            let mut enc = LinkEncoder::new();
+            let (_, frames) = image_frames(&mut enc, 1, 100, 100, rpc);
+            let bytes: usize = frames.iter().map(Vec::len).sum();
+            let bound = max_encoded_len(HEADER_LEN + INTRINSICS_BODY_LEN)
+                + usize::from(100 / rpc) * max_depth_chunk_len(100, rpc);
+            assert!(bytes <= bound);
+            std::println!(
+                "100x100 frame, {rpc:3} rows/chunk: {bytes} bytes on the wire (bound {bound}, raw 20000, \
+                 +{:.2} %), {:.3} s at 921600 baud 8N1; decoder buffer {} B",
+                (bytes as f64 / 20_000.0 - 1.0) * 100.0,
+                bytes as f64 / BYTES_PER_S,
+                max_depth_chunk_len(100, rpc),
+            );
+            if rpc == 10 {
+                assert_eq!(bound, 31 + 10 * 2030);
+            }
+        }
+    }
+
+    /// Five 20×20 images in chunks of 5 rows: per image one Intrinsics frame and 4 chunks.
+    fn five_images() -> (Vec<Vec<u16>>, Vec<Vec<Vec<u8>>>) {
+        let mut enc = LinkEncoder::new();
+        (0..5).map(|id| image_frames(&mut enc, id, 20, 20, 5)).unzip()
+    }
+
+    fn ids(r: &Received) -> Vec<u32> {
+        r.images.iter().map(|(id, _, _)| *id).collect()
+    }
+
+    fn assert_images_intact(r: &Received, originals: &[Vec<u16>]) {
+        for (id, depth, _) in &r.images {
+            assert_eq!(depth, &originals[*id as usize], "image {id} delivered damaged");
+        }
+    }
+
+    #[test]
+    fn a_crc_error_loses_only_its_image() {
+        let (originals, mut images) = five_images();
+        let mut raw = unframe(&images[2][2]);
+        raw[40] ^= 0x10;
+        images[2][2] = cobs_frame(&raw);
+        let r = receive(&images.concat().concat());
+        assert_eq!(ids(&r), [0, 1, 3, 4]);
+        assert_images_intact(&r, &originals);
+        let c = r.counters;
+        assert_eq!(
+            (c.crc_errors, c.missing_chunks, c.depth_frames_dropped),
+            (1, 1, 1)
+        );
+        assert_eq!(
+            (c.sequence_gaps, errors_total(&c), c.depth_frames_complete),
+            (1, 2, 4)
+        );
+    }
+
+    #[test]
+    fn dropped_bytes_and_truncated_frames_lose_only_their_image() {
+        let (originals, images) = five_images();
+        type Damage = fn(&mut Vec<u8>);
+        let damages: [(&str, Damage); 4] = [
+            ("dropped byte", |f| {
+                f.remove(f.len() / 2);
+            }),
+            ("truncated, delimiter kept", |f| {
+                let n = f.len() / 2;
+                f[n] = 0;
+                f.truncate(n + 1);
+            }),
+            ("truncated, tail and delimiter lost", |f| f.truncate(f.len() / 2)),
+            ("leading delimiter lost", |f| {
+                f.remove(0);
+            }),
+        ];
+        for (name, damage) in damages {
+            for (image, chunk) in [(2, 1), (2, 4), (0, 1), (4, 2)] {
+                let mut damaged = images.clone();
+                damage(&mut damaged[image][chunk]);
+                let r = receive(&damaged.concat().concat());
+                assert_images_intact(&r, &originals);
+                let c = r.counters;
+                if name == "leading delimiter lost" {
+                    // The trailing delimiter of the previous frame still separates them.
+                    assert_eq!(ids(&r), [0, 1, 2, 3, 4], "{name}");
+                    assert_eq!(errors_total(&c), 0);
+                    continue;
+                }
+                let expect: Vec<u32> = (0..5).filter(|&i| i != image as u32).collect();
+                assert_eq!(ids(&r), expect, "{name}, image {image} chunk {chunk}");
+                assert_eq!(c.crc_errors + c.cobs_errors + c.malformed, 1, "{name}: {c:?}");
+                assert_eq!(
+                    (c.missing_chunks, c.depth_frames_dropped),
+                    (1, 1),
+                    "{name}: {c:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn garbage_between_frames_is_counted_and_skipped() {
+        let (originals, images) = five_images();
+        let mut rng = Lcg(11);
+        let mut stream = Vec::new();
+        let mut garbage_runs = 0;
+        for image in &images {
+            for frame in image {
+                // Non-zero garbage: exactly one bad frame per run thanks to the leading delimiter.
+                let n = 1 + rng.below(200);
+                stream.extend((0..n).map(|_| rng.byte() | 1));
+                garbage_runs += 1;
+                stream.extend_from_slice(frame);
+            }
+        }
+        let r = receive(&stream);
+        assert_eq!(ids(&r), [0, 1, 2, 3, 4]);
+        assert_images_intact(&r, &originals);
+        let c = r.counters;
+        assert_eq!(c.crc_errors + c.cobs_errors + c.malformed, garbage_runs);
+        assert_eq!(
+            (c.missing_chunks, c.depth_frames_dropped, c.sequence_gaps),
+            (0, 0, 0)
+        );
+
+        // A receiver that starts listening in the middle of a frame loses only that image.
+        let stream = images.concat().concat();
+        let start = images[0][0].len() + images[0][1].len() / 2;
+        let r = receive(&stream[start..]);
+        assert_eq!(ids(&r), [1, 2, 3, 4]);
+        assert_eq!(r.counters.missing_chunks, 1);
+    }
+
+    #[test]
+    fn single_bit_flips_anywhere_never_deliver_a_damaged_image() {
+        let (originals, images) = five_images();
+        let stream = images.concat().concat();
+        let mut rng = Lcg(5);
+        for _ in 0..400 {
+            let mut damaged = stream.clone();
+            let at = rng.below(damaged.len());
+            damaged[at] ^= 1 << rng.below(8);
+            let r = receive(&damaged);
+            assert_images_intact(&r, &originals);
+            assert!(r.images.len() >= 4, "one flip lost {} images", 5 - r.images.len());
+            if r.images.len() < 5 {
+                assert!(errors_total(&r.counters) >= 1);
+            }
+        }
+    }
+
+    fn oversize_boundary<const N: usize>(frame: &[u8]) -> LinkCounters {
+        let mut dec = FrameDecoder::<N>::new();
+        let mut stream = frame.to_vec();
+        stream.extend_from_slice(&heartbeat_frame(9));
+        dec.feed(&stream, |_| {});
+        *dec.counters()
+    }
+
+    #[test]
+    fn oversize_frames_are_dropped_whole_and_the_decoder_recovers() {
+        const SMALL: usize = max_depth_chunk_len(20, 5);
+        let mut enc = LinkEncoder::new();
+        let (first, mut stream) = image_frames(&mut enc, 0, 20, 20, 5);
+        let (_, big) = image_frames(&mut enc, 1, 20, 20, 20);
+        let (third, tail) = image_frames(&mut enc, 2, 20, 20, 5);
+        stream.extend(big);
+        stream.extend(tail);
+        let r = receive_sliced::<SMALL>(&stream.concat(), 400, &mut || 7);
+        assert_eq!(ids(&r), [0, 2]);
+        assert_eq!((r.images[0].1.clone(), r.images[1].1.clone()), (first, third));
+        let c = r.counters;
+        assert_eq!(
+            (
+                c.oversize,
+                c.frame_too_large,
+                c.depth_frames_dropped,
+                errors_total(&c)
+            ),
+            (1, 0, 0, 1)
+        );
+        assert!(r.errors.contains(&LinkError::Oversize));
+
+        // A 27-byte heartbeat frame has 25 bytes between its delimiters: N = 25 takes it.
+        let hb = heartbeat_frame(1);
+        assert_eq!(hb.len(), 27);
+        let c = oversize_boundary::<25>(&hb);
+        assert_eq!((c.frames_ok, c.oversize), (2, 0));
+        // N = 24 drops it, and the equally long heartbeat after it.
+        let c = oversize_boundary::<24>(&hb);
+        assert_eq!((c.frames_ok, c.oversize), (0, 2));
+    }
+
+    #[test]
+    fn chunk_order_duplicates_and_gaps() {
+        let mut enc = LinkEncoder::new();
+        let images: Vec<(Vec<u16>, Vec<Vec<u8>>)> =
+            (0..6).map(|id| image_frames(&mut enc, id, 20, 20, 5)).collect();
+        let originals: Vec<Vec<u16>> = images.iter().map(|(d, _)| d.clone()).collect();
+        let f = |id: usize, k: usize| images[id].1[k].clone(); // k = 0 intrinsics, 1..=4 chunks
+        let stream = [
+            // Image 0 with a duplicated chunk: delivered, one out-of-order chunk.
+            vec![f(0, 0), f(0, 1), f(0, 2), f(0, 2), f(0, 3), f(0, 4)],
+            // Image 1 with a late chunk of image 0 in it and a duplicate after completion.
+            vec![f(1, 0), f(1, 1), f(0, 3), f(1, 2), f(1, 3), f(1, 4), f(1, 4)],
+            // Image 2 with two chunks swapped: a gap, dropped whole.
+            vec![f(2, 0), f(2, 1), f(2, 3), f(2, 2), f(2, 4)],
+            // Image 3 cut short by image 4: dropped whole.
+            vec![f(3, 0), f(3, 1), f(3, 2)],
+            vec![f(4, 0), f(4, 1), f(4, 2), f(4, 3), f(4, 4)],
+            // Image 5 without its first chunk.
+            vec![f(5, 0), f(5, 2), f(5, 3), f(5, 4)],
+        ]
+        .concat()
+        .concat();
+        let r = receive(&stream);
+        assert_eq!(ids(&r), [0, 1, 4]);
+        assert_images_intact(&r, &originals);
+        let c = r.counters;
+        assert_eq!(c.out_of_order_chunks, 3);
+        assert_eq!(c.missing_chunks, 3);
+        assert_eq!((c.depth_frames_complete, c.depth_frames_dropped), (3, 3));
+        assert_eq!(c.crc_errors + c.cobs_errors + c.malformed, 0);
+    }
+
+    #[test]
+    fn frames_too_large_or_without_matching_intrinsics_are_dropped() {
+        let mut enc = LinkEncoder::new();
+        let (_, big) = image_frames(&mut enc, 0, 30, 30, 10);
+        let (small, small_frames) = image_frames(&mut enc, 1, 20, 20, 5);
+        let r = receive_sliced::<BIG>(&[big, small_frames.clone()].concat().concat(), 400, &mut || 64);
+        assert_eq!(ids(&r), [1]);
+        assert_eq!(r.images[0].1, small);
+        let c = r.counters;
+        assert_eq!(
+            (c.frame_too_large, c.depth_frames_dropped, errors_total(&c)),
+            (1, 1, 1)
+        );
+
+        // Chunks before any intrinsics.
+        let r = receive(&small_frames[1..].concat());
+        assert!(r.images.is_empty());
+        assert_eq!(
+            (r.counters.no_intrinsics, r.counters.depth_frames_dropped),
+            (1, 1)
+        );
+
+        // Intrinsics of another size.
+        let mut out = [0u8; 64];
+        let n = enc
+            .encode(&Message::Intrinsics(intrinsics(30, 20)), &mut out)
+            .unwrap();
+        let mut stream = out[..n].to_vec();
+        stream.extend(small_frames[1..].concat());
+        let r = receive(&stream);
+        assert!(r.images.is_empty());
+        assert_eq!(r.counters.intrinsics_mismatch, 1);
+        assert_eq!(r.errors, [LinkError::IntrinsicsMismatch]);
+    }
+
+    #[test]
+    fn bad_versions_types_and_bodies_are_counted_not_delivered() {
+        let mut body = Vec::new();
+        body.extend_from_slice(&[1, 4, 0, 0]);
+        body.extend_from_slice(&[0; HEARTBEAT_BODY_LEN]);
+        let mut cases: Vec<(Vec<u8>, LinkError)> = Vec::new();
+        let mut with = |edit: &dyn Fn(&mut Vec<u8>), e: LinkError| {
+            let mut p = body.clone();
+            edit(&mut p);
+            cases.push((p, e));
+        };
+        with(&|p| p[0] = 2, LinkError::BadVersion(2));
+        with(&|p| p[1] = 0x7F, LinkError::UnknownType(0x7F));
+        with(&|p| p[1] = 0, LinkError::UnknownType(0));
+        with(&|p| p.truncate(3), LinkError::Malformed(Malformed::Truncated));
+        with(&|p| p.truncate(0), LinkError::Malformed(Malformed::Truncated));
+        with(
+            &|p| {
+                p.pop();
+            },
+            LinkError::Malformed(Malformed::BodyLength),
+        );
+        with(&|p| p.push(0), LinkError::Malformed(Malformed::BodyLength));
+        let intrinsics_body = |fx: f32, cx: f32| {
+            let mut p = vec![1, 1, 0, 0];
+            for v in [fx, 50.0, cx, 40.0] {
+                p.extend_from_slice(&v.to_le_bytes());
+            }
+            p.extend_from_slice(&100u16.to_le_bytes());
+            p.extend_from_slice(&80u16.to_le_bytes());
+            p
+        };
+        cases.push((
+            intrinsics_body(f32::NAN, 50.0),
+            LinkError::Malformed(Malformed::Intrinsics(IntrinsicsError::BadFocalLength)),
+        ));
+        cases.push((
+            intrinsics_body(50.0, 150.0),
+            LinkError::Malformed(Malformed::Intrinsics(IntrinsicsError::PrincipalPointOutsideImage)),
+        ));
+        let mut pose = vec![1, 3, 0, 0, 0, 0, 0, 0];
+        for v in [0.0f32, 0.0, 0.0, 0.0, 0.0, 0.0, 1.1] {
+            pose.extend_from_slice(&v.to_le_bytes());
+        }
+        cases.push((
+            pose,
+            LinkError::Malformed(Malformed::Pose(PoseError::NotUnitQuaternion)),
+        ));
+        let chunk = |w: u16, h: u16, first: u16, rows: u16, samples: usize| {
+            let mut p = vec![1, 2, 0, 0, 0, 0, 0, 0];
+            for v in [w, h, first, rows] {
+                p.extend_from_slice(&v.to_le_bytes());
+            }
+            p.extend(std::iter::repeat_n(0x11, samples * 2));
+            p
+        };
+        cases.push((
+            chunk(4, 4, 3, 2, 8),
+            LinkError::Malformed(Malformed::ChunkGeometry),
+        ));
+        cases.push((
+            chunk(0, 4, 0, 1, 0),
+            LinkError::Malformed(Malformed::ChunkGeometry),
+        ));
+        cases.push((
+            chunk(4, 4, 0, 0, 0),
+            LinkError::Malformed(Malformed::ChunkGeometry),
+        ));
+        cases.push((chunk(4, 4, 0, 2, 7), LinkError::Malformed(Malformed::BodyLength)));
+        cases.push((chunk(4, 4, 0, 2, 9), LinkError::Malformed(Malformed::BodyLength)));
+        cases.push((
+            chunk(65535, 65535, 0, 65535, 0),
+            LinkError::Malformed(Malformed::BodyLength),
+        ));
+
+        for (payload, expected) in cases {
+            let mut stream = raw_frame(&payload);
+            stream.extend_from_slice(&heartbeat_frame(100));
+            let got = decode_one::<256>(&stream);
+            assert_eq!(got.len(), 2, "{expected:?}");
+            assert_eq!(got[0], Err(expected));
+            assert!(got[1].is_ok(), "decoder did not recover after {expected:?}");
+        }
+        // A bad CRC over an otherwise fine payload.
+        let mut frame = unframe(&heartbeat_frame(3));
+        *frame.last_mut().unwrap() ^= 0x80;
+        assert_eq!(decode_one::<256>(&cobs_frame(&frame)), [Err(LinkError::Crc)]);
+        // Not COBS: a code byte pointing past the end.
+        assert_eq!(decode_one::<256>(&[0, 9, 1, 1, 0]), [Err(LinkError::Cobs)]);
+    }
+
+    #[test]
+    fn sequence_gaps_count_lost_frames() {
+        let mut dec = FrameDecoder::<64>::new();
+        for seq in [0, 1, 2, 5, 5, 4, 6, 65535, 0] {
+            dec.feed(&heartbeat_frame(seq), |r| assert!(r.is_ok()));
+        }
+        // 3 and 4 lost before 5 (4 arrives late), then a restart at 65535 is followed.
+        assert_eq!(dec.counters().sequence_gaps, 2);
+        assert_eq!(dec.counters().frames_ok, 9);
+    }
+
+    #[test]
+    fn fuzz_random_bytes_never_panic() {
+        let mut rng = Lcg(0xF00D);
+        let mut buf = vec![0u16; 400];
+        let mut rx = DepthReceiver::<BIG>::new(&mut buf);
+        let mut small = FrameDecoder::<48>::new();
+        let mut delivered = 0u32;
+        let mut frames_seen = 0u32;
+        for i in 0..20_000 {
+            let len = rng.below(400);
+            let bytes: Vec<u8> = match i % 3 {
+                // Raw noise with occasional delimiters.
+                0 => (0..len)
+                    .map(|_| if rng.below(16) == 0 { 0 } else { rng.byte() })
+                    .collect(),
+                // Intact frames around random payloads with a plausible header: body parsing.
+                1 => {
+                    let mut p = vec![PROTOCOL_VERSION, 1 + rng.below(5) as u8, rng.byte(), rng.byte()];
+                    let body = [20, 32, 16, 12 + 2 * rng.below(40), rng.below(80)][rng.below(5)];
+                    p.extend((0..body).map(|_| {
+                        if rng.below(3) == 0 {
+                            rng.below(4) as u8
+                        } else {
+                            rng.byte()
+                        }
+                    }));
+                    raw_frame(&p)
+                }
+                // Intact small chunks of random geometry: assembly paths.
+                _ => {
+                    let (w, h) = (1 + rng.below(25) as u16, 1 + rng.below(25) as u16);
+                    // Half of them whole single-chunk images, which complete.
+                    let whole = rng.below(2) == 0;
+                    let first = if whole {
+                        0
+                    } else {
+                        rng.below(usize::from(h)) as u16
+                    };
+                    let rows = if whole {
+                        h
+                    } else {
+                        1 + rng.below(usize::from(h - first)) as u16
+                    };
+                    let depth = vec![rng.byte() as u16; usize::from(w) * usize::from(rows)];
+                    let id = if rng.below(2) == 0 {
+                        rng.below(4)
+                    } else {
+                        rng.below(1 << 20)
+                    } as u32;
+                    let chunk = DepthChunk::new(id, w, h, first, &depth).unwrap();
+                    let mut out = vec![0u8; max_encoded_len(depth_chunk_payload_len(w, rows))];
+                    let mut frames = Vec::new();
+                    if whole || rng.below(4) == 0 {
+                        let mut o = [0u8; 64];
+                        let n = encode_frame(0, &Message::Intrinsics(intrinsics(w, h)), &mut o).unwrap();
+                        frames.extend_from_slice(&o[..n]);
+                    }
+                    let n =
+                        encode_frame(rng.below(65536) as u16, &Message::DepthChunk(chunk), &mut out).unwrap();
+                    frames.extend_from_slice(&out[..n]);
+                    frames
+                }
+            };
+            let mut rest = &bytes[..];
+            while !rest.is_empty() {
+                let (now, later) = rest.split_at(rng.below(rest.len() + 1).max(1));
+                rx.feed(now, |e| {
+                    if let LinkEvent::Depth { frame, .. } = e {
+                        assert_eq!(frame.depth_mm().len(), frame.intrinsics().pixel_count());
+                        delivered += 1;
+                    }
+                });
+                small.feed(now, |_| frames_seen += 1);
+                rest = later;
+            }
+        }
+        let c = rx.counters();
+        std::println!("fuzz: {c:?}");
+        assert_eq!(c.depth_frames_complete, delivered);
+        assert!(c.frames_ok > 1000 && c.malformed > 100 && c.crc_errors > 100 && c.cobs_errors > 100);
+        assert!(c.missing_chunks > 0 && c.out_of_order_chunks > 0 && c.frame_too_large > 0);
+        assert!(delivered > 0 && frames_seen > 0 && small.counters().oversize > 0);
+    }
+
+    #[test]
+    fn random_link_damage_never_delivers_a_wrong_image() {
+        let mut enc = LinkEncoder::new();
+        let images: Vec<(Vec<u16>, Vec<Vec<u8>>)> =
+            (0..8).map(|id| image_frames(&mut enc, id, 20, 20, 5)).collect();
+        let originals: Vec<Vec<u16>> = images.iter().map(|(d, _)| d.clone()).collect();
+        let clean: Vec<Vec<u8>> = images.iter().flat_map(|(_, f)| f.clone()).collect();
+        let mut rng = Lcg(77);
+        let mut total = LinkCounters::default();
+        for _ in 0..300 {
+            // Frame-level faults: drop, duplicate, swap with the next.
+            let mut frames = clean.clone();
+            for _ in 0..rng.below(3) {
+                let i = rng.below(frames.len() - 1);
+                match rng.below(3) {
+                    0 => {
+                        frames.remove(i);
+                    }
+                    1 => frames.insert(i, frames[i].clone()),
+                    _ => frames.swap(i, i + 1),
+                }
+            }
+            // Byte-level faults: bit flips, dropped bytes, inserted noise.
+            let mut bytes = frames.concat();
+            for _ in 0..rng.below(4) {
+                let i = rng.below(bytes.len());
+                match rng.below(3) {
+                    0 => bytes[i] ^= 1 << rng.below(8),
+                    1 => {
+                        bytes.remove(i);
+                    }
+                    _ => bytes.insert(i, rng.byte()),
+                }
+            }
+            let r = receive_sliced::<BIG>(&bytes, 400, &mut || 1 + rng.below(64));
+            assert_images_intact(&r, &originals);
+            total = total.merged(&r.counters);
+        }
+        std::println!("damage: {total:?}");
+        assert!(total.depth_frames_complete > 1000 && total.depth_frames_dropped > 50);
+    }
+}
