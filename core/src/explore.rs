@@ -21,9 +21,10 @@
 //!
 //! Frontiers the camera cannot resolve from any reachable pose (for example unknown voxels
 //! inside the minimum range under the vehicle) would make the loop revisit the same place
-//! forever. The explorer notices when a plan targets the frontier it targeted last time while
-//! the vehicle already stands at that goal, and after [`ExplorerConfig::stall_visits`] such
-//! visits it *seals* the unknown voxels behind that frontier (Shade's stagnant-region sealing,
+//! forever (or alternate between two such places). The explorer notices when the vehicle stands
+//! at its last goal and either targets the same frontier again or learned nothing there (no
+//! voxel observed since the previous full plan), and after [`ExplorerConfig::stall_visits`] such
+//! visits in a row it *seals* the unknown voxels behind the targeted frontier (Shade's stagnant-region sealing,
 //! thesis §6.6.2), so the rest of the map can be explored. Sealed voxels are counted.
 //!
 //! Faults never panic: a plan that cannot be made returns [`PlanOutcome::Hold`] with the reason,
@@ -272,6 +273,8 @@ pub struct Explorer<'a> {
     intrinsics: Option<Intrinsics>,
     last_goal: Option<Goal>,
     fruitless_visits: u8,
+    /// Unexplored voxels at the previous full plan, to tell visits that taught nothing.
+    unexplored_at_last_plan: Option<u32>,
     status: Status,
 }
 
@@ -329,6 +332,7 @@ impl<'a> Explorer<'a> {
             intrinsics: None,
             last_goal: None,
             fruitless_visits: 0,
+            unexplored_at_last_plan: None,
             status: Status::default(),
         })
     }
@@ -481,6 +485,10 @@ impl<'a> Explorer<'a> {
             return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
         };
         self.mark_body(position);
+        let counts = self.map.counts();
+        let unexplored = counts.unknown - counts.sealed;
+        let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
+        self.unexplored_at_last_plan = Some(unexplored);
 
         // Each pass either returns or seals something and tries again; sealing is bounded by the
         // number of unknown voxels, the pass count keeps one call's work bounded too.
@@ -535,7 +543,7 @@ impl<'a> Explorer<'a> {
             self.status.streamline = Some(end);
             let goal = self.choose_goal(&end, yaw);
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
-            if self.is_fruitless_revisit(&goal, position) {
+            if self.is_fruitless_revisit(&goal, position, learned_nothing) {
                 self.fruitless_visits = self.fruitless_visits.saturating_add(1);
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
@@ -626,12 +634,15 @@ impl<'a> Explorer<'a> {
         }
     }
 
-    fn is_fruitless_revisit(&self, goal: &Goal, position: &Point3<f32>) -> bool {
+    /// The vehicle stands at its last goal and either targets the same frontier again or its
+    /// visit taught nothing (no voxel observed since the last full plan) — the signature of a
+    /// frontier the camera cannot resolve, including loops between two such goals.
+    fn is_fruitless_revisit(&self, goal: &Goal, position: &Point3<f32>, learned_nothing: bool) -> bool {
         let res = self.map.geometry().resolution();
         self.last_goal.is_some_and(|last| {
             !last.escape
-                && last.frontier.distance_sq(&goal.frontier) <= 2
                 && (last.position - position).norm() <= 1.5 * res
+                && (learned_nothing || last.frontier.distance_sq(&goal.frontier) <= 2)
         })
     }
 
