@@ -16,15 +16,16 @@
 
 use std::time::Instant;
 
-use harmonic_core::camera::DepthFrame;
+use harmonic_core::camera::{DepthFrame, Intrinsics};
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{
     forward_camera_pose, Clock, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
     SolverKind,
 };
+use harmonic_core::link::{self, DepthReceiver, LinkCounters, LinkEncoder, LinkEvent};
 use harmonic_core::map::{Dims, MapGeometry};
 use harmonic_core::solve::multigrid;
-use nalgebra::Point3;
+use nalgebra::{Isometry3, Point3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -198,6 +199,8 @@ pub struct Report {
     pub timing: Timing,
     /// Fault counters.
     pub errors: ErrorCounters,
+    /// Depth-link counters (frames decoded, errors by kind).
+    pub link: LinkCounters,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
 }
@@ -416,6 +419,84 @@ fn dump_problem(
     Ok(())
 }
 
+/// Decoder capacity of the simulated receiver: room for a chunk of [`LINK_ROWS_PER_CHUNK`] rows
+/// of an image up to 400 px wide.
+const LINK_DECODER_BYTES: usize = 8192;
+/// Rows per depth chunk (a 100 px frame then costs 20261 bytes, 0.22 s at 921600 baud).
+const LINK_ROWS_PER_CHUNK: u16 = 10;
+
+/// The depth link as the simulator runs it: the camera-side encoder writes every frame and its
+/// pose into an in-process byte pipe, and the core-side [`DepthReceiver`] decodes it, exactly
+/// as bytes from a UART would be. A frame reaches the explorer only if it survives the wire.
+struct DepthLink<'b> {
+    encoder: LinkEncoder,
+    receiver: DepthReceiver<'b, LINK_DECODER_BYTES>,
+    rows_per_chunk: u16,
+    scratch: Vec<u8>,
+    pipe: Vec<u8>,
+    pose_missing: u32,
+}
+
+impl<'b> DepthLink<'b> {
+    fn new(intrinsics: &Intrinsics, buffer: &'b mut [u16]) -> Self {
+        let width = intrinsics.width();
+        // The largest chunk height whose frame fits the decoder.
+        let rows = (1..=LINK_ROWS_PER_CHUNK)
+            .rev()
+            .find(|&r| link::max_depth_chunk_len(width, r) <= LINK_DECODER_BYTES)
+            .unwrap_or(1);
+        Self {
+            encoder: LinkEncoder::new(),
+            receiver: DepthReceiver::new(buffer),
+            rows_per_chunk: rows,
+            scratch: vec![0; link::max_depth_chunk_len(width, rows).max(link::max_encoded_len(64))],
+            pipe: Vec::new(),
+            pose_missing: 0,
+        }
+    }
+
+    /// Camera side: encodes the frame's pose and the frame into the pipe.
+    fn send(&mut self, frame_id: u32, frame: &DepthFrame<'_>, pose: &Isometry3<f32>) -> Result<(), SimError> {
+        let wire = |e: link::LinkError| SimError::Config(format!("depth link encoder: {e:?}"));
+        let pose = link::Pose::from_isometry(frame_id, pose)
+            .map_err(|e| SimError::Config(format!("camera pose: {e:?}")))?;
+        let n = self
+            .encoder
+            .encode(&link::Message::Pose(pose), &mut self.scratch)
+            .map_err(wire)?;
+        self.pipe.extend_from_slice(self.scratch.get(..n).unwrap_or(&[]));
+        let pipe = &mut self.pipe;
+        self.encoder
+            .encode_depth_frame(frame_id, frame, self.rows_per_chunk, &mut self.scratch, |bytes| {
+                pipe.extend_from_slice(bytes)
+            })
+            .map_err(wire)?;
+        Ok(())
+    }
+
+    /// Core side: decodes everything in the pipe and hands each complete frame with its pose
+    /// to `integrate`.
+    fn receive(&mut self, mut integrate: impl FnMut(&DepthFrame<'_>, &Isometry3<f32>)) {
+        let mut pose_missing = 0;
+        self.receiver.feed(&self.pipe, |event| {
+            if let LinkEvent::Depth { frame, pose, .. } = event {
+                match pose {
+                    Some(p) => integrate(&frame, &p.isometry()),
+                    None => pose_missing += 1,
+                }
+            }
+        });
+        self.pose_missing += pose_missing;
+        self.pipe.clear();
+    }
+
+    fn counters(&self) -> LinkCounters {
+        let mut c = self.receiver.counters();
+        c.depth_frames_dropped += self.pose_missing;
+        c
+    }
+}
+
 /// Runs one exploration of `scenario` to termination. `progress` is called after every step.
 pub fn run(
     scenario: &Scenario,
@@ -434,6 +515,8 @@ pub fn run(
         yaw: scenario.start_yaw,
     };
     let mut depth = Vec::new();
+    let mut link_buffer = vec![0u16; cfg.camera.intrinsics.pixel_count()];
+    let mut link = DepthLink::new(&cfg.camera.intrinsics, &mut link_buffer);
     let mut clock = HostClock(Instant::now());
     let mut steps = Vec::new();
     let (mut path, mut flight_time, mut collisions) = (0.0f64, 0.0f64, Vec::new());
@@ -448,12 +531,16 @@ pub fn run(
     for step in 1..=cfg.max_scans {
         let pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
         cfg.camera.render(&scenario.world, &pose, &mut rng, &mut depth);
+        // Camera side: the frame and its pose go onto the wire.
+        let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
+            .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
+        link.send(step, &frame, &pose)?;
+        // Core side: decode, reassemble, integrate.
         let t0 = Instant::now();
-        let integrated = DepthFrame::new(cfg.camera.intrinsics, &depth)
-            .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))
-            .map(|frame| explorer.integrate(&frame, &pose));
+        link.receive(|frame, camera_pose| {
+            let _ = explorer.integrate(frame, camera_pose);
+        });
         let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
-        integrated?.ok();
 
         let kept_before = explorer.status().plans_kept;
         let outcome = explorer.plan_timed(&vehicle.position, vehicle.yaw, &mut clock);
@@ -546,6 +633,7 @@ pub fn run(
         sealed_voxels: status.map.sealed,
         timing,
         errors: status.errors,
+        link: link.counters(),
         steps,
     })
 }

@@ -28,6 +28,18 @@ fn assert_complete(r: &Report) {
         r.scenario
     );
     assert_eq!(r.steps.len() as u32, r.scans, "one step record per scan");
+    // Every frame went over the depth link's wire format and arrived whole.
+    assert_eq!(
+        r.link.depth_frames_complete, r.scans,
+        "{}: {:?}",
+        r.scenario, r.link
+    );
+    assert_eq!(
+        r.link.crc_errors + r.link.malformed + r.link.missing_chunks,
+        0,
+        "{:?}",
+        r.link
+    );
 }
 
 #[test]
