@@ -217,7 +217,7 @@ impl Field<'_> {
                         continue;
                     }
                     let drop = (self.phi_at(n) - here) / libm::sqrtf(manhattan as f32);
-                    if drop > 0.0 && best.is_none_or(|(d, _)| drop > d) {
+                    if rises(here, self.phi_at(n)) && best.is_none_or(|(d, _)| drop > d) {
                         best = Some((drop, n));
                     }
                 }
@@ -277,7 +277,8 @@ pub fn trace(
         // twice and no plateau — a dead-end pocket at constant ψ — can trap the tracer.
         let next = rk4.and_then(|q| {
             let v = field.voxel_of(&q)?;
-            (field.in_domain(v) && (v == cell || field.phi_at(v) > field.phi_at(cell))).then_some((q, v))
+            (field.in_domain(v) && (v == cell || rises(field.phi_at(cell), field.phi_at(v))))
+                .then_some((q, v))
         });
         let (q, v) = match (field.frontier_neighbour(cell, &p), next) {
             // Next to a frontier: step into it (it is the highest ψ there is).
@@ -315,6 +316,14 @@ pub fn trace(
     end.length *= field.geometry.resolution();
     // Grid and map axes are parallel with one scale, so the unit direction carries over as is.
     Ok(end)
+}
+
+/// True if ψ rises from `a` to `b` by more than rounding: a few ulps of `a`. A dead-end pocket
+/// carries no flux, so its ψ equals its entrance's up to rounding; stepping into it on a
+/// one-ulp "rise" would strand the tracer on a plateau with no way up.
+#[inline]
+fn rises(a: f32, b: f32) -> bool {
+    b - a > 4.0 * f32::EPSILON * a.abs()
 }
 
 fn rk4_step(field: &Field<'_>, p: &Vector3<f32>, h: f32) -> Option<Vector3<f32>> {
