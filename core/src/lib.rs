@@ -29,6 +29,10 @@
 //! - [`link`] — the depth link's wire format: versioned messages (intrinsics, depth chunks,
 //!   pose, heartbeat) in COBS frames with a CRC-32, a streaming decoder that resynchronises
 //!   after damage, and the assembler that turns complete chunk sets into depth frames.
+//! - [`mavlink`] — the bridge to the flight stack: HEARTBEAT and position + yaw setpoints
+//!   (SET_POSITION_TARGET_LOCAL_NED) streamed at a steady rate, LOCAL_POSITION_NED / ATTITUDE /
+//!   ODOMETRY in as the vehicle pose with a staleness fault, the one map ↔ NED conversion, and
+//!   MAVLink 2 bytes through the `mavlink` crate.
 //!
 //! Frames: the map frame is right-handed, z up, metres; poses are `Isometry3<f32>`. The camera
 //! frame is x right, y down, z forward. Depth is `u16` millimetres, 0 = no return.
@@ -45,5 +49,6 @@ pub mod explore;
 pub mod integrate;
 pub mod link;
 pub mod map;
+pub mod mavlink;
 pub mod solve;
 pub mod streamline;

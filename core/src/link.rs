@@ -455,7 +455,7 @@ impl<'a> DepthChunk<'a> {
     ) -> Result<Self, LinkError> {
         let bad = LinkError::Malformed(Malformed::ChunkGeometry);
         let w = usize::from(width);
-        if w == 0 || depth_mm.len() % w != 0 {
+        if w == 0 || !depth_mm.len().is_multiple_of(w) {
             return Err(bad);
         }
         let row_count = u16::try_from(depth_mm.len() / w).map_err(|_| bad)?;

@@ -985,7 +985,7 @@ mod tests {
         // Old NumPy: 16-byte alignment, no growth padding.
         let dict = "{'descr': '|u1', 'fortran_order': False, 'shape': (4, 3, 2), }";
         let mut header = dict.to_string();
-        while (10 + header.len() + 1) % 16 != 0 {
+        while !(10 + header.len() + 1).is_multiple_of(16) {
             header.push(' ');
         }
         header.push('\n');

@@ -444,7 +444,7 @@ pub fn gauss_seidel(
             }
         }
         stats.iterations += 1;
-        if stats.iterations % CHECK_EVERY == 0 || stats.iterations == params.max_iterations {
+        if stats.iterations.is_multiple_of(CHECK_EVERY) || stats.iterations == params.max_iterations {
             res = residual(dims, labels, phi);
         }
     }

@@ -498,7 +498,7 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
 #[inline]
 fn axis_parents(c: usize, n: usize) -> [(Option<usize>, f32); 2] {
     let p = c / 2;
-    let other = if c % 2 == 0 {
+    let other = if c.is_multiple_of(2) {
         p.checked_sub(1)
     } else {
         Some(p + 1).filter(|&o| o < n)
