@@ -400,6 +400,25 @@ fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64)
     (r2, b2, e2)
 }
 
+/// Validates a solve's inputs, trims the buffers to the grid and sets the Dirichlet values
+/// ([`prepare`]): the common start of every solver.
+pub(crate) fn checked_problem<'l, 'p>(
+    dims: &Dims,
+    labels: &'l [Label],
+    psi: &'p mut [f32],
+    params: &SolveParams,
+) -> Result<(&'l [Label], &'p mut [f32]), SolveError> {
+    let n = dims.len();
+    let (Some(labels), Some(psi)) = (labels.get(..n), psi.get_mut(..n)) else {
+        return Err(SolveError::StorageTooSmall);
+    };
+    if !(params.tolerance.is_finite() && params.tolerance > 0.0) {
+        return Err(SolveError::BadTolerance);
+    }
+    prepare(labels, psi, params.warm_start);
+    Ok((labels, psi))
+}
+
 /// Lexicographic Gauss-Seidel, in place, until the relative residual reaches the tolerance or
 /// the sweep cap. The residual is evaluated every few sweeps (it costs about one sweep).
 pub fn gauss_seidel(
@@ -408,15 +427,7 @@ pub fn gauss_seidel(
     phi: &mut [f32],
     params: &SolveParams,
 ) -> Result<SolveStats, SolveError> {
-    let n = dims.len();
-    if labels.len() < n || phi.len() < n {
-        return Err(SolveError::StorageTooSmall);
-    }
-    if !(params.tolerance.is_finite() && params.tolerance > 0.0) {
-        return Err(SolveError::BadTolerance);
-    }
-    let (labels, phi) = (&labels[..n], &mut phi[..n]);
-    prepare(labels, phi, params.warm_start);
+    let (labels, phi) = checked_problem(dims, labels, phi, params)?;
     const CHECK_EVERY: u32 = 4;
     let mut res = residual(dims, labels, phi);
     let mut stats = SolveStats {
@@ -459,13 +470,17 @@ pub fn gauss_seidel(
 mod tests {
     use super::*;
 
+    /// A one-voxel corridor of `N` voxels: source at x = 0, frontier at x = N − 1.
+    fn corridor<const N: usize>() -> (Dims, [Label; N]) {
+        let mut labels = [Label::Interior; N];
+        labels[0] = Label::Source;
+        labels[N - 1] = Label::Frontier;
+        (Dims::new(N, 1, 1).unwrap(), labels)
+    }
+
     #[test]
     fn corridor_gives_a_linear_potential() {
-        // A 1-voxel corridor of 12 voxels: source at x = 0, frontier at x = 11.
-        let dims = Dims::new(12, 1, 1).unwrap();
-        let mut labels = [Label::Interior; 12];
-        labels[0] = Label::Source;
-        labels[11] = Label::Frontier;
+        let (dims, labels) = corridor::<12>();
         let mut phi = [0.0f32; 12];
         let params = SolveParams {
             tolerance: 1e-6,
@@ -503,10 +518,7 @@ mod tests {
 
     #[test]
     fn cycle_cap_is_reported() {
-        let dims = Dims::new(40, 1, 1).unwrap();
-        let mut labels = [Label::Interior; 40];
-        labels[0] = Label::Source;
-        labels[39] = Label::Frontier;
+        let (dims, labels) = corridor::<40>();
         let mut phi = [0.0f32; 40];
         let params = SolveParams {
             tolerance: 1e-6,

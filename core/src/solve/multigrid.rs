@@ -33,7 +33,7 @@
 
 use heapless::Vec as HVec;
 
-use super::{for_each_row, prepare, residual, row_flux, Residual, Rows, SolveError, SolveParams, SolveStats};
+use super::{for_each_row, residual, row_flux, Residual, Rows, SolveError, SolveParams, SolveStats};
 use crate::domain::Label;
 use crate::map::{Dims, VoxelIndex};
 
@@ -193,14 +193,7 @@ impl<'a> Multigrid<'a> {
         method: Method,
     ) -> Result<SolveStats, SolveError> {
         let n = self.fine.len();
-        if labels.len() < n || phi.len() < n {
-            return Err(SolveError::StorageTooSmall);
-        }
-        if !(params.tolerance.is_finite() && params.tolerance > 0.0) {
-            return Err(SolveError::BadTolerance);
-        }
-        let (labels, phi) = (&labels[..n], &mut phi[..n]);
-        prepare(labels, phi, params.warm_start);
+        let (labels, phi) = super::checked_problem(&self.fine, labels, phi, params)?;
         self.history.clear();
         let mut stats = SolveStats::default();
         stats.cell_updates += self.build_labels(labels);
