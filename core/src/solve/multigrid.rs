@@ -183,7 +183,7 @@ impl<'a> Multigrid<'a> {
         &self.history
     }
 
-    /// Solves `L φ = 0` on the domain given by `labels` (Dirichlet values set by [`prepare`]),
+    /// Solves `L φ = 0` on the domain given by `labels` (Dirichlet values set by [`super::prepare`]),
     /// in place in `phi`, to `params.tolerance` or `params.max_iterations` cycles.
     pub fn solve(
         &mut self,
