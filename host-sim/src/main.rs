@@ -168,6 +168,11 @@ struct ExploreArgs {
     /// Write every planning step's problem (labels .npy + source) here, for `harmonic-sim solve`.
     #[arg(long)]
     dump_problem: Option<PathBuf>,
+    /// Fly over MAVLink: the core's MAVLink bridge streams setpoints to an emulated flight
+    /// stack (PX4-like, in process) and plans from the pose it reports back; report.json then
+    /// has a `mavlink` section with the link's counters.
+    #[arg(long)]
+    mavlink: bool,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -255,6 +260,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     cfg.max_yaw_rate = args.max_yaw_rate.to_radians();
     cfg.max_scans = args.max_scans;
     cfg.dump_problem = args.dump_problem.clone();
+    cfg.mavlink = args.mavlink;
     std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
 
     // On a terminal: a live status line. Elsewhere (CI logs, pipes): a plain line every 25 steps.
@@ -392,6 +398,30 @@ fn print_summary(r: &Report) {
         ),
         ("wall time", format!("{:.1} s", r.wall_time_s)),
     ];
+    let mut rows = rows.to_vec();
+    if let Some(m) = &r.mavlink {
+        rows.push((
+            "mavlink out",
+            format!(
+                "{} setpoints, {} heartbeats, {} statustexts; max setpoint gap {} ms ({} > 500 ms)",
+                m.bridge.setpoints_sent,
+                m.bridge.heartbeats_sent,
+                m.bridge.status_texts_sent,
+                m.emulator.max_setpoint_gap_ms,
+                m.emulator.setpoint_gaps
+            ),
+        ));
+        rows.push((
+            "mavlink in",
+            format!(
+                "{} local positions, {} attitudes; {} rejected, {} stale events",
+                m.bridge.local_positions_received,
+                m.bridge.attitudes_received,
+                m.bridge.rejected(),
+                m.bridge.stale_events
+            ),
+        ));
+    }
     println!();
     for (k, v) in rows {
         println!("  {k:<20} {v}");

@@ -13,6 +13,14 @@
 //!
 //! It stops when the core reports `Complete`, after three consecutive `Hold`s (the fault is the
 //! termination reason), or at the scan limit.
+//!
+//! With [`SimConfig::mavlink`] the vehicle is not handed the waypoints. The core's
+//! [`Bridge`] streams them as MAVLink setpoints (the next waypoint along the plan, advancing
+//! within 0.1 m) over an in-process byte pipe to a [`FlightEmulator`]; the vehicle flies
+//! towards the emulator's current setpoint, and the emulator streams the vehicle's pose back
+//! over a second pipe into the bridge. The explorer plans from, and the depth frames are
+//! stamped with, the pose the bridge reports — not the simulator's ground truth. The link's
+//! counters end up in [`Report::mavlink`].
 
 use std::time::Instant;
 
@@ -24,6 +32,9 @@ use harmonic_core::explore::{
 };
 use harmonic_core::link::{self, DepthReceiver, LinkCounters, LinkEncoder, LinkEvent};
 use harmonic_core::map::{Dims, MapGeometry};
+use harmonic_core::mavlink::{
+    encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavlinkDecoder, MAX_FRAME_LEN,
+};
 use harmonic_core::solve::multigrid;
 use nalgebra::{Isometry3, Point3};
 use rand::SeedableRng;
@@ -31,6 +42,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::camera::DepthCamera;
+use crate::flight::{FlightCounters, FlightEmulator};
 use crate::metrics::{Coverage, GroundTruth};
 use crate::scenario::Scenario;
 
@@ -60,6 +72,9 @@ pub struct SimConfig {
     /// Write each full replan's problem (`step_NNNN.npy` labels and `step_NNNN.json` with the
     /// source voxel and the command that re-solves it) into this directory.
     pub dump_problem: Option<std::path::PathBuf>,
+    /// Fly over MAVLink: setpoints from the core's bridge to an emulated flight stack, the
+    /// pose back from it (see the [module documentation](self)). Default false.
+    pub mavlink: bool,
 }
 
 impl Default for SimConfig {
@@ -76,6 +91,7 @@ impl Default for SimConfig {
             max_scans: 3000,
             seed: 1,
             dump_problem: None,
+            mavlink: false,
         }
     }
 }
@@ -89,7 +105,7 @@ pub struct StepRecord {
     pub position: [f32; 3],
     /// Vehicle yaw at the scan, radians.
     pub yaw: f32,
-    /// "goal", "escape", "complete" or "hold:<fault>".
+    /// "goal", "escape", "complete" or "hold:FAULT".
     pub outcome: String,
     /// Frontier voxels in the vehicle's component.
     pub frontier: u32,
@@ -163,7 +179,7 @@ pub struct Report {
     pub planner: String,
     /// Solver name.
     pub solver: String,
-    /// "complete", "scan_limit" or "stuck:<fault>".
+    /// "complete", "scan_limit" or "stuck:FAULT".
     pub termination: String,
     /// Free-space coverage at the end.
     pub coverage_free: f64,
@@ -201,8 +217,25 @@ pub struct Report {
     pub errors: ErrorCounters,
     /// Depth-link counters (frames decoded, errors by kind).
     pub link: LinkCounters,
+    /// MAVLink counters; `None` unless the run flew over MAVLink ([`SimConfig::mavlink`]).
+    pub mavlink: Option<MavlinkReport>,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
+}
+
+/// What went over the MAVLink link of a [`SimConfig::mavlink`] run.
+#[derive(Debug, Clone, Serialize)]
+pub struct MavlinkReport {
+    /// The core's bridge: messages sent and received, faults, stale-pose events.
+    pub bridge: BridgeCounters,
+    /// The bridge's decoder of the emulator's bytes.
+    pub bridge_decoder: DecoderCounters,
+    /// The flight-stack emulator: setpoints taken and rejected, setpoint gaps, poses sent.
+    pub emulator: FlightCounters,
+    /// The emulator's decoder of the bridge's bytes.
+    pub emulator_decoder: DecoderCounters,
+    /// STATUSTEXTs the emulator received, in order.
+    pub status_texts: Vec<String>,
 }
 
 /// Errors that stop a run before it starts.
@@ -386,6 +419,189 @@ impl Vehicle {
     }
 }
 
+/// The MAVLink link of a [`SimConfig::mavlink`] run: the core's bridge on the companion side,
+/// the flight-stack emulator on the autopilot side, and a byte pipe each way.
+struct MavlinkLink {
+    bridge: Bridge,
+    decoder: MavlinkDecoder,
+    emulator: FlightEmulator,
+    /// Companion → autopilot bytes.
+    down: Vec<u8>,
+    /// Autopilot → companion bytes.
+    up: Vec<u8>,
+}
+
+/// How close (metres) the estimated position must come to a waypoint before the next one is
+/// streamed.
+const WAYPOINT_ADVANCE_M: f32 = 0.1;
+
+impl MavlinkLink {
+    fn new() -> Result<Self, SimError> {
+        let bridge = Bridge::new(BridgeConfig::default())
+            .map_err(|e| SimError::Config(format!("mavlink bridge: {e:?}")))?;
+        Ok(Self {
+            bridge,
+            decoder: MavlinkDecoder::new(),
+            emulator: FlightEmulator::new(),
+            down: Vec::new(),
+            up: Vec::new(),
+        })
+    }
+
+    /// Autopilot side: the emulator reports the vehicle's true pose (when due) and the bridge
+    /// takes in those bytes.
+    fn report_pose(&mut self, now_ms: u64, vehicle: &Vehicle) {
+        self.emulator
+            .poll(now_ms, &vehicle.position, vehicle.yaw, &mut self.up);
+        let bridge = &mut self.bridge;
+        self.decoder.push(&self.up, |header, message| {
+            let _ = bridge.handle(now_ms, header, message);
+        });
+        self.up.clear();
+    }
+
+    /// Companion side: the bridge emits what is due and the emulator takes in those bytes.
+    fn stream(&mut self, now_ms: u64) {
+        let down = &mut self.down;
+        self.bridge.poll(now_ms, |header, message| {
+            let mut frame = [0u8; MAX_FRAME_LEN];
+            if let Ok(n) = encode_v2(header, message, &mut frame) {
+                down.extend_from_slice(frame.get(..n).unwrap_or(&[]));
+            }
+        });
+        self.emulator.receive(now_ms, &self.down);
+        self.down.clear();
+    }
+
+    /// One exchange both ways at `now_ms`.
+    fn tick(&mut self, now_ms: u64, vehicle: &Vehicle) {
+        self.report_pose(now_ms, vehicle);
+        self.stream(now_ms);
+    }
+
+    /// The bridge's pose of the vehicle (map frame).
+    fn pose(&self, now_ms: u64) -> Result<(Point3<f32>, f32), SimError> {
+        self.bridge
+            .pose(now_ms)
+            .map(|p| (p.position, p.yaw))
+            .map_err(|e| SimError::Config(format!("mavlink pose at {now_ms} ms: {e:?}")))
+    }
+
+    fn report(&self) -> MavlinkReport {
+        MavlinkReport {
+            bridge: *self.bridge.counters(),
+            bridge_decoder: *self.decoder.counters(),
+            emulator: *self.emulator.counters(),
+            emulator_decoder: *self.emulator.decoder_counters(),
+            status_texts: self.emulator.status_texts().to_vec(),
+        }
+    }
+}
+
+fn to_ms(time_s: f64) -> u64 {
+    (time_s * 1e3).round() as u64
+}
+
+impl Vehicle {
+    /// Flies one leg over MAVLink, starting at simulated time `start_s`: streams the next
+    /// waypoint along `waypoints` as the setpoint (advancing when the bridge's pose is within
+    /// [`WAYPOINT_ADVANCE_M`] of it), moves towards the emulator's setpoint at most `budget`
+    /// metres, and on reaching the end turns to the goal yaw.
+    #[allow(clippy::too_many_arguments)]
+    fn fly_mavlink(
+        &mut self,
+        waypoints: &[Point3<f32>],
+        goal: &Goal,
+        budget: f32,
+        cfg: &SimConfig,
+        world: &crate::world::World,
+        link: &mut MavlinkLink,
+        start_s: f64,
+    ) -> Result<Leg, SimError> {
+        let mut leg = Leg::default();
+        let step_len = cfg.max_speed * cfg.dt;
+        let yaw_step = cfg.max_yaw_rate * cfg.dt;
+        let mut colliding = world.sphere_collides(&self.position, cfg.body_radius);
+        let mut travelled = 0.0f32;
+        let mut next = 0usize;
+        // Yaw of the current setpoint: along the segment towards the waypoint, as fixed when
+        // the waypoint was taken (so the setpoint does not change every tick).
+        let mut heading: Option<(usize, f32)> = None;
+        let mut turning = false;
+        // Generous: a leg is a few metres at most in receding-horizon mode.
+        let max_ticks = 200_000usize;
+        for _ in 0..max_ticks {
+            let now = to_ms(start_s + leg.time);
+            link.report_pose(now, self);
+            let (position, yaw) = link.pose(now)?;
+            while next + 1 < waypoints.len()
+                && waypoints
+                    .get(next)
+                    .is_some_and(|w| (w - position).norm() < WAYPOINT_ADVANCE_M)
+            {
+                next += 1;
+            }
+            // No waypoints: stay and turn.
+            let target = waypoints.get(next).copied().unwrap_or(position);
+            if next + 1 >= waypoints.len() && (target - position).norm() < 1e-3 {
+                turning = true;
+            }
+            if !turning && travelled >= budget {
+                // End of the receding horizon: stop where the vehicle is.
+                let _ = link.bridge.set_target(position, yaw);
+                link.stream(now);
+                return Ok(leg);
+            }
+            let target_yaw = if turning {
+                goal.yaw
+            } else {
+                match heading {
+                    Some((i, h)) if i == next => h,
+                    _ => {
+                        let seg = target - position;
+                        let dist = seg.norm();
+                        let horizontal = (seg.x * seg.x + seg.y * seg.y).sqrt();
+                        let h = if horizontal > 0.2 * dist {
+                            seg.y.atan2(seg.x)
+                        } else {
+                            yaw
+                        };
+                        heading = Some((next, h));
+                        h
+                    }
+                }
+            };
+            if turning && wrap_angle(goal.yaw - yaw).abs() < 1e-3 {
+                break;
+            }
+            let _ = link.bridge.set_target(target, target_yaw);
+            link.stream(now);
+
+            // The flight stack flies its setpoint.
+            let Some(setpoint) = link.emulator.setpoint() else {
+                leg.time += f64::from(cfg.dt);
+                continue;
+            };
+            let seg = setpoint.position - self.position;
+            let dist = seg.norm();
+            if dist > 1e-6 {
+                let s = step_len.min(dist).min(budget - travelled);
+                self.position += seg * (s / dist);
+                travelled += s;
+                leg.distance += f64::from(s);
+            }
+            self.slew_yaw(setpoint.yaw, yaw_step);
+            leg.time += f64::from(cfg.dt);
+            let now_colliding = world.sphere_collides(&self.position, cfg.body_radius);
+            if now_colliding && !colliding {
+                leg.collisions.push(self.position.coords.into());
+            }
+            colliding = now_colliding;
+        }
+        Ok(leg)
+    }
+}
+
 /// Writes the labels and source of one planning step for `harmonic-sim solve`.
 fn dump_problem(
     dir: &std::path::Path,
@@ -527,10 +743,28 @@ pub fn run(
     } else {
         cfg.replan_distance
     };
+    let mut mav = if cfg.mavlink {
+        let mut link = MavlinkLink::new()?;
+        let _ = link.bridge.exploration_started();
+        link.tick(0, &vehicle);
+        Some(link)
+    } else {
+        None
+    };
 
     for step in 1..=cfg.max_scans {
-        let pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
-        cfg.camera.render(&scenario.world, &pose, &mut rng, &mut depth);
+        // The pose the core believes: the simulator's truth, or over MAVLink what the flight
+        // stack reported.
+        let (position, yaw) = match &mav {
+            Some(m) => m.pose(to_ms(flight_time))?,
+            None => (vehicle.position, vehicle.yaw),
+        };
+        // The camera sees the world from where the vehicle truly is; the frame is stamped with
+        // the believed pose.
+        let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
+        cfg.camera
+            .render(&scenario.world, &true_pose, &mut rng, &mut depth);
+        let pose = forward_camera_pose(&position, yaw);
         // Camera side: the frame and its pose go onto the wire.
         let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
             .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
@@ -543,10 +777,10 @@ pub fn run(
         let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
 
         let kept_before = explorer.status().plans_kept;
-        let outcome = explorer.plan_timed(&vehicle.position, vehicle.yaw, &mut clock);
+        let outcome = explorer.plan_timed(&position, yaw, &mut clock);
         let status = *explorer.status();
         if let (Some(dir), true) = (&cfg.dump_problem, status.plans_kept == kept_before) {
-            dump_problem(dir, step, &explorer, &vehicle.position, cfg)?;
+            dump_problem(dir, step, &explorer, &position, cfg)?;
         }
         let coverage = truth.coverage(explorer.map());
         let label = match outcome {
@@ -557,8 +791,8 @@ pub fn run(
         };
         let record = StepRecord {
             step,
-            position: vehicle.position.coords.into(),
-            yaw: vehicle.yaw,
+            position: position.coords.into(),
+            yaw,
             outcome: label,
             frontier: status.domain.frontier,
             unknowns: status.domain.interior,
@@ -575,6 +809,13 @@ pub fn run(
         };
         progress(&record);
         steps.push(record);
+        if let Some(m) = mav.as_mut() {
+            m.bridge.apply(&outcome);
+            if !matches!(outcome, PlanOutcome::Goal(_)) {
+                // The hold setpoint and any STATUSTEXT go out now.
+                m.stream(to_ms(flight_time));
+            }
+        }
 
         match outcome {
             PlanOutcome::Complete => {
@@ -591,7 +832,18 @@ pub fn run(
             PlanOutcome::Goal(goal) => {
                 consecutive_holds = 0;
                 let waypoints: Vec<Point3<f32>> = explorer.waypoints().to_vec();
-                let leg = vehicle.fly(&waypoints, &goal, budget, cfg, &scenario.world);
+                let leg = match mav.as_mut() {
+                    Some(m) => vehicle.fly_mavlink(
+                        &waypoints,
+                        &goal,
+                        budget,
+                        cfg,
+                        &scenario.world,
+                        m,
+                        flight_time,
+                    )?,
+                    None => vehicle.fly(&waypoints, &goal, budget, cfg, &scenario.world),
+                };
                 path += leg.distance;
                 flight_time += leg.time;
                 collisions.extend(leg.collisions);
@@ -634,6 +886,7 @@ pub fn run(
         timing,
         errors: status.errors,
         link: link.counters(),
+        mavlink: mav.as_ref().map(MavlinkLink::report),
         steps,
     })
 }

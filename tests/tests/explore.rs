@@ -85,3 +85,42 @@ fn gauss_seidel_reference_plans_the_same_first_step() {
     }
     assert!((first[0] - first[1]).abs() < 0.05, "streamline lengths {first:?}");
 }
+
+#[test]
+fn apartment_explored_over_mavlink() {
+    // The core's MAVLink bridge drives an emulated flight stack; the explorer plans from the
+    // pose the flight stack reports back.
+    let scenario = Scenario::builtin("apartment").unwrap();
+    let cfg = SimConfig {
+        mavlink: true,
+        ..SimConfig::default()
+    };
+    let r = sim::run(&scenario, &cfg, |_| {}).expect("run starts");
+    assert_complete(&r);
+    let mav = r.mavlink.as_ref().expect("MAVLink counters in the report");
+    assert_eq!(
+        mav.emulator.setpoint_gaps, 0,
+        "setpoints slower than 2 Hz: {:?}",
+        mav.emulator
+    );
+    assert!(mav.emulator.max_setpoint_gap_ms <= 500, "{:?}", mav.emulator);
+    assert_eq!(mav.emulator.setpoints_rejected, 0, "{:?}", mav.emulator);
+    assert!(mav.emulator.setpoints_received > 10, "{:?}", mav.emulator);
+    assert_eq!(mav.bridge.stale_events, 0, "{:?}", mav.bridge);
+    assert_eq!(
+        mav.bridge.rejected() + mav.bridge.sequence_gaps,
+        0,
+        "{:?}",
+        mav.bridge
+    );
+    assert_eq!(
+        mav.emulator.status_texts_received as usize,
+        mav.status_texts.len()
+    );
+    assert_eq!(
+        mav.status_texts.last().map(String::as_str),
+        Some("exploration complete"),
+        "{:?}",
+        mav.status_texts
+    );
+}

@@ -1,0 +1,382 @@
+//! A flight-stack emulator: the part of PX4 or ArduPilot the core's MAVLink bridge talks to.
+//!
+//! [`FlightEmulator`] sits at the other end of the bridge's wire. It
+//!
+//! - decodes the bridge's MAVLink 2 bytes with the core's [`MavlinkDecoder`];
+//! - keeps the latest SET_POSITION_TARGET_LOCAL_NED as the vehicle's setpoint, converted into
+//!   the map frame with [`ned_to_map`] — only setpoints in `MAV_FRAME_LOCAL_NED` whose type
+//!   mask asks for position and yaw (velocity and acceleration ignored) are taken; anything
+//!   else is counted in [`FlightCounters::setpoints_rejected`] and ignored, as PX4 would not
+//!   fly it in offboard position mode;
+//! - measures the setpoint stream: PX4 leaves offboard mode when setpoints arrive slower than
+//!   2 Hz, so every gap longer than [`OFFBOARD_TIMEOUT_MS`] is counted;
+//! - collects the STATUSTEXTs it receives;
+//! - streams LOCAL_POSITION_NED and ATTITUDE of the simulated vehicle's true pose every
+//!   [`POSE_PERIOD_MS`] of simulated time (20 Hz), as system [`DEFAULT_SYSTEM_ID`], component
+//!   [`AUTOPILOT_COMPONENT_ID`] — the autopilot the bridge listens to by default — encoded with
+//!   [`encode_v2`].
+//!
+//! The emulator does not fly: the simulator moves the vehicle towards [`FlightEmulator::setpoint`]
+//! and hands the resulting pose to [`FlightEmulator::poll`].
+
+use harmonic_core::mavlink::common::{
+    MavFrame, MavModeFlag, MavState, MavType, ATTITUDE_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA,
+    SET_POSITION_TARGET_LOCAL_NED_DATA,
+};
+use harmonic_core::mavlink::{
+    encode_v2, map_to_ned, ned_to_map, DecoderCounters, MavHeader, MavMessage, MavlinkDecoder,
+    PositionTargetTypemask, AUTOPILOT_COMPONENT_ID, DEFAULT_SYSTEM_ID, MAX_FRAME_LEN,
+};
+use nalgebra::Point3;
+use serde::Serialize;
+
+/// Milliseconds between two pose reports (LOCAL_POSITION_NED + ATTITUDE): 50 ms, 20 Hz.
+pub const POSE_PERIOD_MS: u64 = 50;
+/// PX4 leaves offboard mode when no setpoint arrived for this long (2 Hz).
+pub const OFFBOARD_TIMEOUT_MS: u64 = 500;
+/// Milliseconds between the emulator's HEARTBEATs (1 Hz).
+pub const HEARTBEAT_PERIOD_MS: u64 = 1000;
+
+/// Type-mask bits that must be set for a position + yaw setpoint: velocity and acceleration
+/// ignored.
+const MUST_IGNORE: PositionTargetTypemask = PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VX_IGNORE
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VY_IGNORE)
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_VZ_IGNORE)
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AX_IGNORE)
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AY_IGNORE)
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_AZ_IGNORE);
+/// Type-mask bits that must be clear: position and yaw are used.
+const MUST_USE: PositionTargetTypemask = PositionTargetTypemask::POSITION_TARGET_TYPEMASK_X_IGNORE
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE)
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Z_IGNORE)
+    .union(PositionTargetTypemask::POSITION_TARGET_TYPEMASK_YAW_IGNORE);
+
+/// A setpoint as the emulator flies it, map frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlightSetpoint {
+    /// Target position, map frame, metres.
+    pub position: Point3<f32>,
+    /// Target yaw about map z, radians, counter-clockwise from +x.
+    pub yaw: f32,
+    /// Simulated time it arrived, ms.
+    pub at_ms: u64,
+}
+
+/// Counts of everything the emulator received and sent.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct FlightCounters {
+    /// SET_POSITION_TARGET_LOCAL_NEDs accepted as the setpoint.
+    pub setpoints_received: u32,
+    /// SET_POSITION_TARGET_LOCAL_NEDs ignored: another frame than `MAV_FRAME_LOCAL_NED`, a
+    /// type mask that is not position + yaw, another target, or values that are not finite.
+    pub setpoints_rejected: u32,
+    /// Gaps longer than [`OFFBOARD_TIMEOUT_MS`] between two accepted setpoints (each would
+    /// have dropped PX4 out of offboard mode).
+    pub setpoint_gaps: u32,
+    /// The longest gap between two accepted setpoints, ms.
+    pub max_setpoint_gap_ms: u64,
+    /// HEARTBEATs received from the companion.
+    pub heartbeats_received: u32,
+    /// STATUSTEXTs received.
+    pub status_texts_received: u32,
+    /// Other messages received, ignored.
+    pub other_received: u32,
+    /// LOCAL_POSITION_NEDs sent.
+    pub local_positions_sent: u32,
+    /// ATTITUDEs sent.
+    pub attitudes_sent: u32,
+    /// HEARTBEATs sent.
+    pub heartbeats_sent: u32,
+    /// Bytes sent.
+    pub bytes_sent: u64,
+}
+
+/// The emulated autopilot. See the [module documentation](self).
+#[derive(Debug)]
+pub struct FlightEmulator {
+    decoder: MavlinkDecoder,
+    setpoint: Option<FlightSetpoint>,
+    next_pose_ms: Option<u64>,
+    next_heartbeat_ms: Option<u64>,
+    sequence: u8,
+    counters: FlightCounters,
+    status_texts: Vec<String>,
+}
+
+impl Default for FlightEmulator {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl FlightEmulator {
+    /// An emulator with no setpoint yet.
+    pub fn new() -> Self {
+        Self {
+            decoder: MavlinkDecoder::new(),
+            setpoint: None,
+            next_pose_ms: None,
+            next_heartbeat_ms: None,
+            sequence: 0,
+            counters: FlightCounters::default(),
+            status_texts: Vec::new(),
+        }
+    }
+
+    /// The latest accepted setpoint, map frame; `None` before the first.
+    pub fn setpoint(&self) -> Option<FlightSetpoint> {
+        self.setpoint
+    }
+
+    /// Counts of everything received and sent.
+    pub fn counters(&self) -> &FlightCounters {
+        &self.counters
+    }
+
+    /// Counts of the decoder of the incoming bytes.
+    pub fn decoder_counters(&self) -> &DecoderCounters {
+        self.decoder.counters()
+    }
+
+    /// The STATUSTEXTs received, in order.
+    pub fn status_texts(&self) -> &[String] {
+        &self.status_texts
+    }
+
+    /// Takes in bytes from the companion computer that arrived at `now_ms`.
+    pub fn receive(&mut self, now_ms: u64, bytes: &[u8]) {
+        let mut messages = Vec::new();
+        self.decoder
+            .push(bytes, |header, message| messages.push((*header, message.clone())));
+        for (_, message) in messages {
+            self.take(now_ms, &message);
+        }
+    }
+
+    fn take(&mut self, now_ms: u64, message: &MavMessage) {
+        match message {
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(data) => match accepted_setpoint(data) {
+                Some((position, yaw)) => {
+                    if let Some(previous) = self.setpoint {
+                        let gap = now_ms.saturating_sub(previous.at_ms);
+                        self.counters.max_setpoint_gap_ms = self.counters.max_setpoint_gap_ms.max(gap);
+                        if gap > OFFBOARD_TIMEOUT_MS {
+                            self.counters.setpoint_gaps += 1;
+                        }
+                    }
+                    self.setpoint = Some(FlightSetpoint {
+                        position,
+                        yaw,
+                        at_ms: now_ms,
+                    });
+                    self.counters.setpoints_received += 1;
+                }
+                None => self.counters.setpoints_rejected += 1,
+            },
+            MavMessage::STATUSTEXT(data) => {
+                self.counters.status_texts_received += 1;
+                self.status_texts
+                    .push(data.text.to_str().unwrap_or("<not UTF-8>").to_string());
+            }
+            MavMessage::HEARTBEAT(_) => self.counters.heartbeats_received += 1,
+            _ => self.counters.other_received += 1,
+        }
+    }
+
+    /// Appends to `out` whatever is due at `now_ms`: a HEARTBEAT every
+    /// [`HEARTBEAT_PERIOD_MS`] and LOCAL_POSITION_NED + ATTITUDE of the vehicle at `position`
+    /// with `yaw` (map frame, level attitude) every [`POSE_PERIOD_MS`]. The first call sends
+    /// both at once.
+    pub fn poll(&mut self, now_ms: u64, position: &Point3<f32>, yaw: f32, out: &mut Vec<u8>) {
+        if self.next_heartbeat_ms.is_none_or(|due| now_ms >= due) {
+            self.next_heartbeat_ms = Some(now_ms + HEARTBEAT_PERIOD_MS);
+            let heartbeat = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+                custom_mode: 0,
+                mavtype: MavType::MAV_TYPE_QUADROTOR,
+                base_mode: MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED
+                    | MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                system_status: MavState::MAV_STATE_ACTIVE,
+                ..HEARTBEAT_DATA::DEFAULT
+            });
+            self.send(&heartbeat, out);
+            self.counters.heartbeats_sent += 1;
+        }
+        if self.next_pose_ms.is_none_or(|due| now_ms >= due) {
+            // Keep the 20 Hz grid unless the caller fell behind by more than a period.
+            self.next_pose_ms = Some(match self.next_pose_ms {
+                Some(due) if now_ms - due < POSE_PERIOD_MS => due + POSE_PERIOD_MS,
+                _ => now_ms + POSE_PERIOD_MS,
+            });
+            let ([x, y, z], yaw_ned) = map_to_ned(*position, yaw);
+            let time_boot_ms = now_ms as u32;
+            let local = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+                time_boot_ms,
+                x,
+                y,
+                z,
+                vx: 0.0,
+                vy: 0.0,
+                vz: 0.0,
+            });
+            self.send(&local, out);
+            self.counters.local_positions_sent += 1;
+            let attitude = MavMessage::ATTITUDE(ATTITUDE_DATA {
+                time_boot_ms,
+                roll: 0.0,
+                pitch: 0.0,
+                yaw: yaw_ned,
+                rollspeed: 0.0,
+                pitchspeed: 0.0,
+                yawspeed: 0.0,
+            });
+            self.send(&attitude, out);
+            self.counters.attitudes_sent += 1;
+        }
+    }
+
+    fn send(&mut self, message: &MavMessage, out: &mut Vec<u8>) {
+        let header = MavHeader {
+            system_id: u32::from(DEFAULT_SYSTEM_ID),
+            component_id: AUTOPILOT_COMPONENT_ID,
+            sequence: self.sequence,
+        };
+        self.sequence = self.sequence.wrapping_add(1);
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        // A buffer of MAX_FRAME_LEN always holds a frame.
+        if let Ok(n) = encode_v2(&header, message, &mut frame) {
+            out.extend_from_slice(&frame[..n]);
+            self.counters.bytes_sent += n as u64;
+        }
+    }
+}
+
+/// The map-frame position and yaw of a setpoint PX4 would fly in offboard position mode.
+fn accepted_setpoint(data: &SET_POSITION_TARGET_LOCAL_NED_DATA) -> Option<(Point3<f32>, f32)> {
+    let frame_ok = data.coordinate_frame == MavFrame::MAV_FRAME_LOCAL_NED;
+    let mask_ok = data.type_mask.contains(MUST_IGNORE) && !data.type_mask.intersects(MUST_USE);
+    let target_ok =
+        data.target_system == DEFAULT_SYSTEM_ID && data.target_component == AUTOPILOT_COMPONENT_ID;
+    let finite = [data.x, data.y, data.z, data.yaw].iter().all(|v| v.is_finite());
+    (frame_ok && mask_ok && target_ok && finite).then(|| ned_to_map([data.x, data.y, data.z], data.yaw))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use harmonic_core::mavlink::{Bridge, BridgeConfig, PositionTargetTypemask, POSITION_YAW_TYPEMASK};
+
+    fn encode(message: &MavMessage, sequence: u8) -> Vec<u8> {
+        let header = MavHeader {
+            system_id: 1,
+            component_id: 191,
+            sequence,
+        };
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        let n = encode_v2(&header, message, &mut frame).unwrap();
+        frame[..n].to_vec()
+    }
+
+    fn bridge_bytes(bridge: &mut Bridge, now: u64) -> Vec<u8> {
+        let mut bytes = Vec::new();
+        bridge.poll(now, |header, message| {
+            let mut frame = [0u8; MAX_FRAME_LEN];
+            let n = encode_v2(header, message, &mut frame).unwrap();
+            bytes.extend_from_slice(&frame[..n]);
+        });
+        bytes
+    }
+
+    #[test]
+    fn setpoint_is_decoded_and_pose_round_trips_through_the_bridge() {
+        let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
+        let mut emulator = FlightEmulator::new();
+        let target = Point3::new(1.25f32, -3.5, 1.1);
+        let target_yaw = 2.0f32;
+        bridge.set_target(target, target_yaw).unwrap();
+        bridge.exploration_started().unwrap();
+        emulator.receive(0, &bridge_bytes(&mut bridge, 0));
+
+        let sp = emulator.setpoint().expect("setpoint accepted");
+        assert!((sp.position - target).norm() < 1e-5, "{sp:?}");
+        assert!((sp.yaw - target_yaw).abs() < 1e-5, "{sp:?}");
+        assert_eq!(emulator.counters().setpoints_received, 1);
+        assert_eq!(emulator.counters().setpoints_rejected, 0);
+        assert_eq!(emulator.counters().heartbeats_received, 1);
+        assert_eq!(emulator.status_texts(), ["exploration started"]);
+
+        // Back: the vehicle's pose, as the bridge reads it.
+        let mut decoder = MavlinkDecoder::new();
+        for (now, position, yaw) in [
+            (0u64, Point3::new(0.5f32, 0.25, 1.0), 0.3f32),
+            (50, Point3::new(-2.0, 7.5, 2.75), -3.0),
+            (100, Point3::new(3.0, -1.0, 0.5), std::f32::consts::PI),
+        ] {
+            let mut bytes = Vec::new();
+            emulator.poll(now, &position, yaw, &mut bytes);
+            let mut messages = Vec::new();
+            decoder.push(&bytes, |h, m| messages.push((*h, m.clone())));
+            assert!(messages.len() >= 2);
+            for (h, m) in &messages {
+                bridge.handle(now, h, m).expect("accepted by the bridge");
+            }
+            let pose = bridge.pose(now).expect("fresh pose");
+            assert!((pose.position - position).norm() < 1e-4, "{pose:?} vs {position}");
+            let dyaw = harmonic_core::mavlink::wrap_angle(pose.yaw - yaw);
+            assert!(dyaw.abs() < 1e-4, "yaw {} vs {yaw}", pose.yaw);
+        }
+        assert_eq!(bridge.counters().sequence_gaps, 0);
+        assert_eq!(bridge.counters().local_positions_received, 3);
+        assert_eq!(bridge.counters().attitudes_received, 3);
+    }
+
+    #[test]
+    fn setpoints_in_other_frames_or_modes_are_rejected() {
+        let mut emulator = FlightEmulator::new();
+        let good = SET_POSITION_TARGET_LOCAL_NED_DATA {
+            x: 1.0,
+            y: 2.0,
+            z: -1.0,
+            yaw: 0.5,
+            type_mask: POSITION_YAW_TYPEMASK,
+            target_system: 1,
+            target_component: 1,
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            ..SET_POSITION_TARGET_LOCAL_NED_DATA::DEFAULT
+        };
+        let body = SET_POSITION_TARGET_LOCAL_NED_DATA {
+            coordinate_frame: MavFrame::MAV_FRAME_BODY_FRD,
+            ..good.clone()
+        };
+        let velocity = SET_POSITION_TARGET_LOCAL_NED_DATA {
+            type_mask: PositionTargetTypemask::POSITION_TARGET_TYPEMASK_X_IGNORE
+                | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Y_IGNORE
+                | PositionTargetTypemask::POSITION_TARGET_TYPEMASK_Z_IGNORE,
+            ..good.clone()
+        };
+        emulator.receive(0, &encode(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(body), 0));
+        emulator.receive(
+            0,
+            &encode(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(velocity), 1),
+        );
+        assert_eq!(emulator.setpoint(), None);
+        assert_eq!(emulator.counters().setpoints_rejected, 2);
+
+        emulator.receive(
+            100,
+            &encode(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(good.clone()), 2),
+        );
+        let sp = emulator.setpoint().unwrap();
+        // NED (north 1, east 2, down −1) is map (x 2, y 1, z 1).
+        assert!((sp.position - Point3::new(2.0, 1.0, 1.0)).norm() < 1e-6);
+        assert!((sp.yaw - (std::f32::consts::FRAC_PI_2 - 0.5)).abs() < 1e-6);
+
+        // 600 ms of silence: PX4 would have left offboard mode.
+        emulator.receive(
+            700,
+            &encode(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(good.clone()), 3),
+        );
+        emulator.receive(800, &encode(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(good), 4));
+        assert_eq!(emulator.counters().setpoint_gaps, 1);
+        assert_eq!(emulator.counters().max_setpoint_gap_ms, 600);
+    }
+}
