@@ -276,12 +276,16 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     );
     let report = sim::run(&scenario, &cfg, |s| {
         let line = format!(
-            "scans {:>4}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  solve {:>7.1} ms",
+            "scans {:>4}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  {}",
             s.step,
             s.coverage_free * 100.0,
             s.frontier,
             s.path_length_m,
-            s.solve_ms
+            if s.outcome == "kept" {
+                "goal kept".to_string()
+            } else {
+                format!("solve {:>7.1} ms", s.solve_ms)
+            }
         );
         if !args.quiet && !tty && s.step % 25 == 0 {
             eprintln!("{line}");

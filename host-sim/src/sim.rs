@@ -105,7 +105,8 @@ pub struct StepRecord {
     pub position: [f32; 3],
     /// Vehicle yaw at the scan, radians.
     pub yaw: f32,
-    /// "goal", "escape", "complete" or "hold:FAULT".
+    /// "goal" (a new plan), "kept" (the committed goal still stands; nothing was solved),
+    /// "escape", "complete" or "hold:FAULT".
     pub outcome: String,
     /// Frontier voxels in the vehicle's component.
     pub frontier: u32,
@@ -157,7 +158,8 @@ impl TimeStat {
     }
 }
 
-/// Per-phase timing over a run.
+/// Per-phase timing over a run: means and maxima over *all* steps, including steps that kept
+/// the committed goal and solved nothing (their solve time is 0; see `StepRecord::outcome`).
 #[derive(Debug, Clone, Copy, Default, Serialize)]
 pub struct Timing {
     /// Depth integration.
@@ -779,12 +781,14 @@ pub fn run(
         let kept_before = explorer.status().plans_kept;
         let outcome = explorer.plan_timed(&position, yaw, &mut clock);
         let status = *explorer.status();
-        if let (Some(dir), true) = (&cfg.dump_problem, status.plans_kept == kept_before) {
+        let kept = status.plans_kept > kept_before;
+        if let (Some(dir), false) = (&cfg.dump_problem, kept) {
             dump_problem(dir, step, &explorer, &position, cfg)?;
         }
         let coverage = truth.coverage(explorer.map());
         let label = match outcome {
             PlanOutcome::Goal(g) if g.escape => "escape".to_string(),
+            PlanOutcome::Goal(_) if kept => "kept".to_string(),
             PlanOutcome::Goal(_) => "goal".to_string(),
             PlanOutcome::Complete => "complete".to_string(),
             PlanOutcome::Hold(f) => format!("hold:{f:?}"),
