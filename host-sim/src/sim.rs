@@ -366,6 +366,18 @@ impl Vehicle {
         }
     }
 
+    /// Moves straight towards `target` by at most `max_step` metres; returns the distance moved.
+    fn step_towards(&mut self, target: &Point3<f32>, max_step: f32) -> f32 {
+        let seg = target - self.position;
+        let dist = seg.norm();
+        if dist <= 1e-6 {
+            return 0.0;
+        }
+        let s = max_step.max(0.0).min(dist);
+        self.position += seg * (s / dist);
+        s
+    }
+
     /// Flies along `waypoints` for at most `budget` metres, then (if the end was reached) turns
     /// to the goal yaw.
     fn fly(
@@ -379,14 +391,7 @@ impl Vehicle {
         let mut leg = Leg::default();
         let step_len = cfg.max_speed * cfg.dt;
         let yaw_step = cfg.max_yaw_rate * cfg.dt;
-        let mut colliding = world.sphere_collides(&self.position, cfg.body_radius);
-        let mut check = |p: &Point3<f32>, leg: &mut Leg| {
-            let now = world.sphere_collides(p, cfg.body_radius);
-            if now && !colliding {
-                leg.collisions.push(p.coords.into());
-            }
-            colliding = now;
-        };
+        let mut watch = CollisionWatch::start(world, &self.position, cfg.body_radius);
         let mut travelled = 0.0f32;
         for w in waypoints.iter() {
             loop {
@@ -398,16 +403,14 @@ impl Vehicle {
                 if travelled >= budget {
                     return leg;
                 }
-                let s = step_len.min(dist).min(budget - travelled);
-                let horizontal = (seg.x * seg.x + seg.y * seg.y).sqrt();
-                if horizontal > 0.2 * dist {
-                    self.slew_yaw(seg.y.atan2(seg.x), yaw_step);
+                if let Some(h) = travel_heading(&seg) {
+                    self.slew_yaw(h, yaw_step);
                 }
-                self.position += seg * (s / dist);
+                let s = self.step_towards(w, step_len.min(budget - travelled));
                 travelled += s;
                 leg.distance += f64::from(s);
                 leg.time += f64::from(cfg.dt);
-                check(&self.position, &mut leg);
+                watch.check(world, &self.position, cfg.body_radius, &mut leg);
             }
         }
         // Arrived: look where the planner asked.
@@ -419,6 +422,32 @@ impl Vehicle {
         }
         leg
     }
+}
+
+/// Counts collision events: the body sphere *entering* an obstacle, not every step inside it.
+struct CollisionWatch {
+    colliding: bool,
+}
+
+impl CollisionWatch {
+    fn start(world: &crate::world::World, p: &Point3<f32>, radius: f32) -> Self {
+        Self {
+            colliding: world.sphere_collides(p, radius),
+        }
+    }
+    fn check(&mut self, world: &crate::world::World, p: &Point3<f32>, radius: f32, leg: &mut Leg) {
+        let now = world.sphere_collides(p, radius);
+        if now && !self.colliding {
+            leg.collisions.push(p.coords.into());
+        }
+        self.colliding = now;
+    }
+}
+
+/// Heading of travel along `seg`, unless it is mostly vertical (then the yaw is kept).
+fn travel_heading(seg: &nalgebra::Vector3<f32>) -> Option<f32> {
+    let horizontal = (seg.x * seg.x + seg.y * seg.y).sqrt();
+    (horizontal > 0.2 * seg.norm()).then(|| seg.y.atan2(seg.x))
 }
 
 /// The MAVLink link of a [`SimConfig::mavlink`] run: the core's bridge on the companion side,
@@ -523,7 +552,7 @@ impl Vehicle {
         let mut leg = Leg::default();
         let step_len = cfg.max_speed * cfg.dt;
         let yaw_step = cfg.max_yaw_rate * cfg.dt;
-        let mut colliding = world.sphere_collides(&self.position, cfg.body_radius);
+        let mut watch = CollisionWatch::start(world, &self.position, cfg.body_radius);
         let mut travelled = 0.0f32;
         let mut next = 0usize;
         // Yaw of the current setpoint: along the segment towards the waypoint, as fixed when
@@ -560,14 +589,7 @@ impl Vehicle {
                 match heading {
                     Some((i, h)) if i == next => h,
                     _ => {
-                        let seg = target - position;
-                        let dist = seg.norm();
-                        let horizontal = (seg.x * seg.x + seg.y * seg.y).sqrt();
-                        let h = if horizontal > 0.2 * dist {
-                            seg.y.atan2(seg.x)
-                        } else {
-                            yaw
-                        };
+                        let h = travel_heading(&(target - position)).unwrap_or(yaw);
                         heading = Some((next, h));
                         h
                     }
@@ -584,21 +606,12 @@ impl Vehicle {
                 leg.time += f64::from(cfg.dt);
                 continue;
             };
-            let seg = setpoint.position - self.position;
-            let dist = seg.norm();
-            if dist > 1e-6 {
-                let s = step_len.min(dist).min(budget - travelled);
-                self.position += seg * (s / dist);
-                travelled += s;
-                leg.distance += f64::from(s);
-            }
+            let s = self.step_towards(&setpoint.position, step_len.min(budget - travelled));
+            travelled += s;
+            leg.distance += f64::from(s);
             self.slew_yaw(setpoint.yaw, yaw_step);
             leg.time += f64::from(cfg.dt);
-            let now_colliding = world.sphere_collides(&self.position, cfg.body_radius);
-            if now_colliding && !colliding {
-                leg.collisions.push(self.position.coords.into());
-            }
-            colliding = now_colliding;
+            watch.check(world, &self.position, cfg.body_radius, &mut leg);
         }
         Ok(leg)
     }
