@@ -178,17 +178,10 @@ pub fn build(
         return Err(DomainError::StorageTooSmall);
     }
     let labels = &mut labels[..n];
-    let mut stats = DomainStats::default();
-
-    for (i, l) in labels.iter_mut().enumerate() {
-        *l = if map.is_free(i) {
-            stats.free += 1;
-            Label::Candidate
-        } else {
-            Label::Outside
-        };
-    }
-    inflate(map, stencil, labels);
+    let mut stats = DomainStats {
+        free: safe_voxels(map, stencil, labels),
+        ..Default::default()
+    };
     let vehicle_i = dims.linear(vehicle);
     match labels.get(vehicle_i) {
         Some(Label::Candidate) => {}
@@ -370,9 +363,25 @@ impl Fill<'_> {
     }
 }
 
-/// The nearest voxel (by face-connected path through observed free space) that is free and not
-/// inflated, searching at most `max_visits` voxels. Used to get a vehicle that finds itself too
-/// close to a newly seen obstacle back into the domain. Overwrites `labels`.
+/// Labels every observed free voxel `Candidate`, then removes the unsafe ones ([`inflate`]):
+/// afterwards `Candidate` means "the vehicle's centre may be here". Returns the free count.
+fn safe_voxels(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) -> u32 {
+    let mut free = 0;
+    for (i, l) in labels.iter_mut().enumerate() {
+        *l = if map.is_free(i) {
+            free += 1;
+            Label::Candidate
+        } else {
+            Label::Outside
+        };
+    }
+    inflate(map, stencil, labels);
+    free
+}
+
+/// The nearest safe voxel (by face-connected path through observed free space, inflated and
+/// fringe voxels included) to a vehicle that a new observation left in unsafe space, searching
+/// at most `max_visits` voxels. Overwrites `labels`.
 pub fn escape_target(
     map: &VoxelMap<'_>,
     stencil: &InflationStencil,
@@ -383,65 +392,59 @@ pub fn escape_target(
 ) -> Option<VoxelIndex> {
     let dims = map.dims();
     let n = dims.len();
-    if labels.len() < n || queue.is_empty() {
+    let labels = labels.get_mut(..n)?;
+    if queue.is_empty() {
         return None;
     }
-    let labels = &mut labels[..n];
-    for (i, l) in labels.iter_mut().enumerate() {
-        *l = if map.is_free(i) {
-            Label::Candidate
-        } else {
-            Label::Outside
-        };
-    }
-    inflate(map, stencil, labels);
-    // Now Candidate = safe voxel. Walk free voxels breadth-first, marking visited as Source.
-    let mut visited = 0usize;
-    let (mut head, mut len) = (0usize, 0usize);
-    let cap = queue.len();
+    safe_voxels(map, stencil, labels);
     let start = dims.linear(vehicle);
-    let push = |labels: &mut [Label], queue: &mut [u32], i: usize, len: &mut usize, head: usize| {
-        if *len < cap {
-            if let Some(slot) = queue.get_mut((head + *len) % cap) {
-                *slot = i as u32;
-                *len += 1;
-            }
-        }
-        if let Some(l) = labels.get_mut(i) {
-            if *l == Label::Outside {
-                *l = Label::Source;
-            }
-        }
+    match labels.get(start) {
+        Some(Label::Candidate) => return Some(vehicle),
+        // The vehicle is there, so an unknown start voxel is passable too.
+        _ if map.is_free(start) || map.is_unknown(start) => {}
+        _ => return None,
+    }
+    // Walkable: free but unsafe. `Fill` marks what it has queued, so nothing is visited twice.
+    let walkable = |l: Option<&Label>| matches!(l, Some(Label::Outside | Label::Fringe));
+    let mut fill = Fill {
+        queue,
+        head: 0,
+        len: 0,
+        overflow: false,
     };
-    if labels.get(start) == Some(&Label::Candidate) {
-        return Some(vehicle);
-    }
-    if !map.is_free(start) && map.occupancy(start) != Occupancy::Unknown {
-        return None;
-    }
-    push(labels, queue, start, &mut len, head);
-    while len > 0 && visited < max_visits {
-        let i = queue.get(head).copied()? as usize;
-        head = (head + 1) % cap;
-        len -= 1;
-        visited += 1;
-        let v = dims.voxel(i);
-        let mut found = None;
-        dims.for_each_face_neighbour(v, |nb| {
-            if found.is_some() {
-                return;
+    fill.push(labels, start);
+    let mut visited = 0usize;
+    loop {
+        while let Some(i) = fill.pop() {
+            visited += 1;
+            if visited > max_visits {
+                return None;
             }
-            match labels.get(nb) {
-                Some(Label::Candidate) => found = Some(nb),
-                Some(Label::Outside) if map.is_free(nb) => push(labels, queue, nb, &mut len, head),
-                _ => {}
+            let mut found = None;
+            dims.for_each_face_neighbour(dims.voxel(i), |nb| {
+                if found.is_some() {
+                    return;
+                }
+                if labels.get(nb) == Some(&Label::Candidate) {
+                    found = Some(nb);
+                } else if walkable(labels.get(nb)) && map.is_free(nb) {
+                    fill.push(labels, nb);
+                }
+            });
+            if let Some(f) = found {
+                return Some(dims.voxel(f));
             }
-        });
-        if let Some(f) = found {
-            return Some(dims.voxel(f));
+        }
+        if !fill.overflow {
+            return None;
+        }
+        fill.overflow = false;
+        for i in 0..n {
+            if labels.get(i) == Some(&Label::Pending) {
+                fill.push(labels, i);
+            }
         }
     }
-    None
 }
 
 #[cfg(test)]
@@ -602,6 +605,31 @@ pub(crate) mod tests {
         let s1 = InflationStencil::new(1.0, 1.0).unwrap();
         let r = build(&map, &s1, VoxelIndex::new(2, 1, 0), &mut labels, &mut queue);
         assert_eq!(r, Err(DomainError::VehicleInInflatedSpace));
+    }
+
+    #[test]
+    fn escape_crosses_fringe_to_the_nearest_safe_voxel() {
+        // Radius 2 voxels: with an unknown column at x = 0, voxels x = 1, 2 are fringe and x = 3
+        // is the first safe one (the 5 × 5 cross-section keeps y = z = 2 clear of the edges).
+        // The vehicle at (1,2,2) must walk through fringe voxel (2,2,2) to reach (3,2,2).
+        let layer: &[&str] = &["?.......", "?.......", "?.......", "?.......", "?......."];
+        let (mut lo, mut st) = ([0i8; 200], [0u8; 200]);
+        let map = map_from_layers(&[layer, layer, layer, layer, layer], &mut lo, &mut st);
+        let stencil = InflationStencil::new(2.0, 1.0).unwrap();
+        let mut labels = [Label::Outside; 200];
+        let mut queue = [0u32; 2]; // tiny: exercises the overflow sweep
+        let vehicle = VoxelIndex::new(1, 2, 2);
+        assert_eq!(
+            build(&map, &stencil, vehicle, &mut labels, &mut queue),
+            Err(DomainError::VehicleInInflatedSpace)
+        );
+        let target = escape_target(&map, &stencil, vehicle, &mut labels, &mut queue, 100);
+        assert_eq!(target, Some(VoxelIndex::new(3, 2, 2)));
+        assert_eq!(
+            escape_target(&map, &stencil, vehicle, &mut labels, &mut queue, 1),
+            None,
+            "visit cap"
+        );
     }
 
     #[test]
