@@ -111,6 +111,8 @@ pub struct ExplorerStorage<'a> {
     pub coarse_values: &'a mut [f32],
     /// Multigrid coarse-level labels.
     pub coarse_labels: &'a mut [Label],
+    /// Multigrid coarse-level face conductances.
+    pub coarse_faces: &'a mut [[u8; 3]],
     /// MGPCG vectors (optional).
     pub krylov: &'a mut [f32],
 }
@@ -294,6 +296,7 @@ impl<'a> Explorer<'a> {
             queue,
             coarse_values,
             coarse_labels,
+            coarse_faces,
             krylov,
         } = storage;
         if labels.len() < n || phi.len() < n || queue.is_empty() {
@@ -306,6 +309,7 @@ impl<'a> Explorer<'a> {
                     MultigridStorage {
                         values: coarse_values,
                         labels: coarse_labels,
+                        faces: coarse_faces,
                         krylov,
                     },
                 )

@@ -42,6 +42,7 @@ fn hall_and_corridor(source: VoxelIndex) -> (Dims, Vec<Label>) {
 struct Solver {
     values: Vec<f32>,
     labels: Vec<Label>,
+    faces: Vec<[u8; 3]>,
     krylov: Vec<f32>,
 }
 
@@ -51,6 +52,7 @@ impl Solver {
         Self {
             values: vec![0.0; s.values],
             labels: vec![Label::Outside; s.labels],
+            faces: vec![[0; 3]; s.faces],
             krylov: vec![0.0; s.krylov],
         }
     }
@@ -58,6 +60,7 @@ impl Solver {
         let storage = MultigridStorage {
             values: &mut self.values,
             labels: &mut self.labels,
+            faces: &mut self.faces,
             krylov: &mut self.krylov,
         };
         let mut mg = Multigrid::new(dims, storage).unwrap();

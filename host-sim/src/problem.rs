@@ -177,14 +177,16 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
         SolverChoice::Multigrid => {
             let size = scratch_size(&dims);
-            let (mut values, mut clabels, mut krylov) = (
+            let (mut values, mut clabels, mut faces, mut krylov) = (
                 vec![0.0f32; size.values],
                 vec![Label::Outside; size.labels],
+                vec![[0u8; 3]; size.faces],
                 vec![0.0f32; size.krylov],
             );
             let storage = MultigridStorage {
                 values: &mut values,
                 labels: &mut clabels,
+                faces: &mut faces,
                 krylov: &mut krylov,
             };
             let mut mg =

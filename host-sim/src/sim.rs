@@ -272,6 +272,7 @@ pub struct HostStorage {
     queue: Vec<u32>,
     coarse_values: Vec<f32>,
     coarse_labels: Vec<Label>,
+    coarse_faces: Vec<[u8; 3]>,
     krylov: Vec<f32>,
 }
 
@@ -283,6 +284,7 @@ impl HostStorage {
         Self {
             coarse_values: vec![0.0; mg.values],
             coarse_labels: vec![Label::Outside; mg.labels],
+            coarse_faces: vec![[0; 3]; mg.faces],
             krylov: vec![0.0; mg.krylov],
             log_odds: vec![0; n],
             stamps: vec![0; n],
@@ -301,6 +303,7 @@ impl HostStorage {
             queue: &mut self.queue,
             coarse_values: &mut self.coarse_values,
             coarse_labels: &mut self.coarse_labels,
+            coarse_faces: &mut self.coarse_faces,
             krylov: &mut self.krylov,
         }
     }

@@ -23,6 +23,8 @@
 //! [`gauss_seidel`] is the seed paper's solver, kept as the reference: correct, not fast.
 //! [`multigrid`] is the production solver: O(cells) per solve.
 
+use core::cell::Cell;
+
 use crate::domain::Label;
 use crate::map::Dims;
 
@@ -77,6 +79,8 @@ pub enum SolveError {
     BadTolerance,
     /// The multigrid scratch storage does not fit the grid.
     ScratchTooSmall,
+    /// Plain V-cycles diverged (residual grew a thousandfold or became non-finite); φ was reset.
+    Diverged,
 }
 
 /// Value of the stored potential ψ = 1 − φ at the source.
@@ -105,66 +109,6 @@ pub(crate) fn clamp_to_bounds(labels: &[Label], psi: &mut [f32]) {
             *p = p.clamp(PSI_SOURCE, PSI_FRONTIER);
         }
     }
-}
-
-/// Calls `f` with the linear index of each face neighbour of voxel `i` at `(x, y, z)` that lies
-/// inside the grid. The solvers' hot loops already know the coordinates, so this avoids
-/// recomputing them from `i`.
-#[inline]
-pub(crate) fn each_face_neighbour(
-    dims: &Dims,
-    i: usize,
-    x: usize,
-    y: usize,
-    z: usize,
-    mut f: impl FnMut(usize),
-) {
-    let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
-    if x > 0 {
-        f(i - 1);
-    }
-    if x + 1 < dims.nx() {
-        f(i + 1);
-    }
-    if y > 0 {
-        f(i - nx);
-    }
-    if y + 1 < dims.ny() {
-        f(i + nx);
-    }
-    if z > 0 {
-        f(i - nxy);
-    }
-    if z + 1 < dims.nz() {
-        f(i + nxy);
-    }
-}
-
-/// Net flux into voxel `i` at `(x, y, z)`, `Σ (φ_j − φ_i)` over in-domain face neighbours `j`, and
-/// their count. Summing differences, rather than `Σ φ_j − count·φ_i`, avoids the cancellation
-/// that would otherwise put an f32 rounding floor of ~1e-6 under the relative residual.
-#[inline]
-pub(crate) fn neighbour_flux(
-    dims: &Dims,
-    labels: &[Label],
-    phi: &[f32],
-    i: usize,
-    x: usize,
-    y: usize,
-    z: usize,
-) -> (f32, u32) {
-    let centre = phi.get(i).copied().unwrap_or(0.0);
-    let mut flux = 0.0f32;
-    let mut count = 0u32;
-    each_face_neighbour(dims, i, x, y, z, |j| {
-        if let (Some(l), Some(p)) = (labels.get(j), phi.get(j)) {
-            if l.in_domain() {
-                flux += *p - centre;
-                count += 1;
-            }
-        }
-    });
-    (flux, count)
 }
 
 /// Residual of the current solution and the floor f32 rounding puts under it.
@@ -210,81 +154,34 @@ pub fn residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> Residual {
     }
 }
 
-/// The five neighbouring rows of one x-row of a grid buffer, `None` at the grid edge.
-pub(crate) struct Rows<'r, T> {
-    pub(crate) y_minus: Option<&'r [T]>,
-    pub(crate) y_plus: Option<&'r [T]>,
-    pub(crate) z_minus: Option<&'r [T]>,
-    pub(crate) z_plus: Option<&'r [T]>,
+/// Read access to one x-row of values, either plain or in place (`Cell`), so the same stencil
+/// code serves residuals and the in-place smoother. Out-of-range reads give 0.
+pub(crate) trait RowValues {
+    /// Value at `x`, 0 past either end.
+    fn at(&self, x: usize) -> f32;
 }
 
-impl<'r, T> Rows<'r, T> {
-    /// Rows around the row starting at `start` = index of (0, y, z), from the parts of the
-    /// buffer before it and after it (the row itself excluded).
-    pub(crate) fn around(dims: &Dims, y: usize, z: usize, before: &'r [T], after: &'r [T]) -> Self {
-        let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
-        let nxy = nx * ny;
-        let start = before.len();
-        Rows {
-            y_minus: if y > 0 {
-                before.get(start - nx..start)
-            } else {
-                None
-            },
-            z_minus: if z > 0 {
-                before.get(start - nxy..start - nxy + nx)
-            } else {
-                None
-            },
-            y_plus: if y + 1 < ny { after.get(..nx) } else { None },
-            z_plus: if z + 1 < nz {
-                after.get(nxy - nx..nxy)
-            } else {
-                None
-            },
-        }
+impl RowValues for [f32] {
+    #[inline(always)]
+    fn at(&self, x: usize) -> f32 {
+        self.get(x).copied().unwrap_or(0.0)
     }
 }
 
-/// Net flux `Σ (x_j − c)` into cell `x` of a row from its in-domain face neighbours, and their
-/// count (the row-sliced form of `solve::neighbour_flux`).
-#[inline]
-pub(crate) fn row_flux(
-    l_row: &[Label],
-    row: &[f32],
-    ls: &Rows<'_, Label>,
-    xs: &Rows<'_, f32>,
-    x: usize,
-    c: f32,
-) -> (f32, u32) {
-    let (mut flux, mut count) = (0.0f32, 0u32);
-    let mut add = |l: Option<&Label>, p: Option<&f32>| {
-        if let (Some(l), Some(p)) = (l, p) {
-            if l.in_domain() {
-                flux += *p - c;
-                count += 1;
-            }
-        }
-    };
-    if x > 0 {
-        add(l_row.get(x - 1), row.get(x - 1));
+impl RowValues for [Cell<f32>] {
+    #[inline(always)]
+    fn at(&self, x: usize) -> f32 {
+        self.get(x).map_or(0.0, Cell::get)
     }
-    add(l_row.get(x + 1), row.get(x + 1));
-    for (l, p) in [
-        (ls.y_minus, xs.y_minus),
-        (ls.y_plus, xs.y_plus),
-        (ls.z_minus, xs.z_minus),
-        (ls.z_plus, xs.z_plus),
-    ] {
-        if let (Some(l), Some(p)) = (l, p) {
-            add(l.get(x), p.get(x));
-        }
-    }
-    (flux, count)
 }
 
-/// One x-row of a grid buffer with its labels and the five neighbouring rows.
-pub(crate) struct RowView<'r> {
+/// The 7-point stencil around one x-row: the row's labels and the labels and values of its
+/// four neighbouring rows (y − 1, y + 1, z − 1, z + 1), empty at the grid edge.
+///
+/// The hot loops read neighbours with `get` on these slices: an absent row or a position past
+/// the row's end simply reads as "outside the domain", so edges need no separate code path, and
+/// the in-domain test becomes a 0/1 weight instead of a branch per face.
+pub(crate) struct Stencil<'r> {
     /// Row coordinates.
     pub(crate) y: usize,
     /// Row coordinates.
@@ -293,74 +190,241 @@ pub(crate) struct RowView<'r> {
     pub(crate) start: usize,
     /// The row's labels.
     pub(crate) labels: &'r [Label],
-    /// The row's values.
-    pub(crate) values: &'r [f32],
-    label_rows: Rows<'r, Label>,
-    value_rows: Rows<'r, f32>,
+    nl: [&'r [Label]; 4],
+    nv: [&'r [f32]; 4],
 }
 
-impl RowView<'_> {
-    /// Net flux into cell `x` of the row and the number of in-domain neighbours.
-    #[inline]
-    pub(crate) fn flux(&self, x: usize) -> (f32, u32) {
-        let c = self.values.get(x).copied().unwrap_or(0.0);
-        row_flux(self.labels, self.values, &self.label_rows, &self.value_rows, x, c)
+/// 1 / n for the neighbour counts a cell can have (0 for none: no update).
+const INV_COUNT: [f32; 8] = [0.0, 1.0, 0.5, 1.0 / 3.0, 0.25, 0.2, 1.0 / 6.0, 0.0];
+
+/// `1 / n` for a neighbour count, 0 for none.
+#[inline(always)]
+pub(crate) fn inv_count(n: u32) -> f32 {
+    INV_COUNT.get(n as usize & 7).copied().unwrap_or(0.0)
+}
+
+#[inline(always)]
+fn in_domain(l: Option<&Label>) -> bool {
+    l.is_some_and(|l| l.in_domain())
+}
+
+impl<'r> Stencil<'r> {
+    /// The stencil of row `(y, z)`, whose values are `before = values[..start]` and
+    /// `after = values[start + nx..]` around it.
+    pub(crate) fn new(
+        dims: &Dims,
+        y: usize,
+        z: usize,
+        labels: &'r [Label],
+        before: &'r [f32],
+        after: &'r [f32],
+    ) -> Self {
+        let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
+        let nxy = nx * ny;
+        let start = before.len();
+        let lrow =
+            |from: Option<usize>| -> &'r [Label] { from.and_then(|s| labels.get(s..s + nx)).unwrap_or(&[]) };
+        let below = |back: usize| -> Option<usize> { start.checked_sub(back) };
+        let (ym, zm) = (below(nx).filter(|_| y > 0), below(nxy).filter(|_| z > 0));
+        let (yp, zp) = (
+            Some(start + nx).filter(|_| y + 1 < ny),
+            Some(start + nxy).filter(|_| z + 1 < nz),
+        );
+        let vbefore =
+            |s: Option<usize>| -> &'r [f32] { s.and_then(|s| before.get(s..s + nx)).unwrap_or(&[]) };
+        // `after` starts at start + nx.
+        let vafter = |s: Option<usize>| -> &'r [f32] {
+            s.and_then(|s| after.get(s - start - nx..s - start))
+                .unwrap_or(&[])
+        };
+        Stencil {
+            y,
+            z,
+            start,
+            labels: lrow(Some(start)),
+            nl: [lrow(ym), lrow(yp), lrow(zm), lrow(zp)],
+            nv: [vbefore(ym), vafter(yp), vbefore(zm), vafter(zp)],
+        }
     }
+
+    /// Net flux `Σ (v_j − c)` into cell `x` (value `c`) of `row` from its in-domain face
+    /// neighbours, and their count.
+    #[inline(always)]
+    pub(crate) fn flux<V: RowValues + ?Sized>(&self, row: &V, x: usize, c: f32) -> (f32, u32) {
+        let (mut flux, mut n) = (0.0f32, 0u32);
+        let mut add = |w: bool, v: f32| {
+            n += u32::from(w);
+            flux += if w { v - c } else { 0.0 };
+        };
+        let left = x.wrapping_sub(1);
+        add(in_domain(self.labels.get(left)), row.at(left));
+        add(in_domain(self.labels.get(x + 1)), row.at(x + 1));
+        for (l, v) in self.nl.iter().zip(&self.nv) {
+            add(in_domain(l.get(x)), v.at(x));
+        }
+        (flux, n)
+    }
+
     /// Calls `f(label, value)` for each face neighbour of cell `x` inside the grid.
     #[inline]
-    pub(crate) fn each_neighbour(&self, x: usize, mut f: impl FnMut(&Label, f32)) {
-        let mut visit = |l: Option<&Label>, p: Option<&f32>| {
-            if let (Some(l), Some(p)) = (l, p) {
-                f(l, *p);
-            }
-        };
-        if x > 0 {
-            visit(self.labels.get(x - 1), self.values.get(x - 1));
-        }
-        visit(self.labels.get(x + 1), self.values.get(x + 1));
-        let (ls, xs) = (&self.label_rows, &self.value_rows);
-        for (l, p) in [
-            (ls.y_minus, xs.y_minus),
-            (ls.y_plus, xs.y_plus),
-            (ls.z_minus, xs.z_minus),
-            (ls.z_plus, xs.z_plus),
+    pub(crate) fn each_neighbour<V: RowValues + ?Sized>(
+        &self,
+        row: &V,
+        x: usize,
+        mut f: impl FnMut(&Label, f32),
+    ) {
+        let left = x.wrapping_sub(1);
+        for (l, v) in [
+            (self.labels.get(left), row.at(left)),
+            (self.labels.get(x + 1), row.at(x + 1)),
         ] {
-            if let (Some(l), Some(p)) = (l, p) {
-                visit(l.get(x), p.get(x));
+            if let Some(l) = l {
+                f(l, v);
+            }
+        }
+        for (ls, vs) in self.nl.iter().zip(&self.nv) {
+            if let Some(l) = ls.get(x) {
+                f(l, vs.at(x));
             }
         }
     }
 }
 
-/// Calls `f` with a [`RowView`] of every x-row of `values` (read-only).
-pub(crate) fn for_each_row(dims: &Dims, labels: &[Label], values: &[f32], mut f: impl FnMut(&RowView<'_>)) {
+/// The part of a [`Stencil`] away from the grid's y and z edges: all four neighbour rows
+/// exist and every slice has the row's length, so the loops over `1..nx − 1` read neighbours
+/// without branches (the compiler sees the lengths and drops the bounds checks).
+pub(crate) struct Inner<'r> {
+    pub(crate) l: &'r [Label],
+    pub(crate) nl: [&'r [Label]; 4],
+    pub(crate) nv: [&'r [f32]; 4],
+}
+
+impl<'r> Stencil<'r> {
+    /// The branch-free view of this row, if all four neighbour rows exist.
+    #[inline(always)]
+    pub(crate) fn inner(&self) -> Option<Inner<'r>> {
+        let n = self.labels.len();
+        let ok = self.nl.iter().all(|l| l.len() == n) && self.nv.iter().all(|v| v.len() == n);
+        ok.then_some(Inner {
+            l: self.labels,
+            nl: self.nl,
+            nv: self.nv,
+        })
+    }
+}
+
+/// 0/1 in-domain weight of a label, without a branch.
+#[inline(always)]
+pub(crate) fn weight(l: Label) -> bool {
+    (l as u8).wrapping_sub(1) < 3
+}
+
+/// Calls `f(x, r)` with the residual `r = b + Σ (v_j − v_x)` of every interior cell `x` of a
+/// read-only row (`b` = 0 where absent). Rows away from the y/z edges take a branch-free path.
+#[inline(always)]
+pub(crate) fn row_residuals<F: FnMut(usize, f32)>(
+    st: &Stencil<'_>,
+    row: &[f32],
+    b: Option<&[f32]>,
+    mut f: F,
+) {
+    let nx = row.len();
+    let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
+    let edge = |x: usize, f: &mut F| {
+        if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
+            f(x, bx(x) + st.flux(row, x, c).0);
+        }
+    };
+    let Some(inner) = st.inner().filter(|_| nx >= 3) else {
+        for x in 0..nx {
+            edge(x, &mut f);
+        }
+        return;
+    };
+    edge(0, &mut f);
+    let [l0, l1, l2, l3] = inner.nl;
+    let [v0, v1, v2, v3] = inner.nv;
+    let (Some(l), Some(l0), Some(l1), Some(l2), Some(l3)) = (
+        inner.l.get(..nx),
+        l0.get(..nx),
+        l1.get(..nx),
+        l2.get(..nx),
+        l3.get(..nx),
+    ) else {
+        return;
+    };
+    let (Some(v0), Some(v1), Some(v2), Some(v3)) = (v0.get(..nx), v1.get(..nx), v2.get(..nx), v3.get(..nx))
+    else {
+        return;
+    };
+    for x in 1..nx - 1 {
+        let (Some(&lc), Some(&c)) = (l.get(x), row.get(x)) else {
+            break;
+        };
+        if lc != Label::Interior {
+            continue;
+        }
+        let mut flux = 0.0f32;
+        let mut add = |lab: Option<&Label>, v: f32| {
+            flux += if lab.is_some_and(|&lab| weight(lab)) {
+                v - c
+            } else {
+                0.0
+            };
+        };
+        add(l.get(x - 1), row.at(x - 1));
+        add(l.get(x + 1), row.at(x + 1));
+        add(l0.get(x), v0.at(x));
+        add(l1.get(x), v1.at(x));
+        add(l2.get(x), v2.at(x));
+        add(l3.get(x), v3.at(x));
+        f(x, bx(x) + flux);
+    }
+    edge(nx - 1, &mut f);
+}
+
+/// Calls `f(stencil, row)` for every x-row of `values` (read-only).
+pub(crate) fn for_each_row(
+    dims: &Dims,
+    labels: &[Label],
+    values: &[f32],
+    mut f: impl FnMut(&Stencil<'_>, &[f32]),
+) {
     let (nx, ny) = (dims.nx(), dims.ny());
     for z in 0..dims.nz() {
         for y in 0..ny {
             let start = nx * (y + ny * z);
-            let (Some(x_before), Some(row), Some(x_after)) = (
+            let (Some(before), Some(row), Some(after)) = (
                 values.get(..start),
                 values.get(start..start + nx),
                 values.get(start + nx..),
             ) else {
-                continue;
+                return;
             };
-            let (Some(l_before), Some(l_row), Some(l_after)) = (
-                labels.get(..start),
-                labels.get(start..start + nx),
-                labels.get(start + nx..),
-            ) else {
-                continue;
-            };
-            f(&RowView {
-                y,
-                z,
-                start,
-                labels: l_row,
-                values: row,
-                label_rows: Rows::around(dims, y, z, l_before, l_after),
-                value_rows: Rows::around(dims, y, z, x_before, x_after),
-            });
+            f(&Stencil::new(dims, y, z, labels, before, after), row);
+        }
+    }
+}
+
+/// Calls `f(stencil, row)` for every x-row of `values`, with the row itself writable in place
+/// (as `Cell`s, so a cell's update can read its row neighbours).
+pub(crate) fn for_each_row_mut(
+    dims: &Dims,
+    labels: &[Label],
+    values: &mut [f32],
+    mut f: impl FnMut(&Stencil<'_>, &[Cell<f32>]),
+) {
+    let (nx, ny) = (dims.nx(), dims.ny());
+    for z in 0..dims.nz() {
+        for y in 0..ny {
+            let start = nx * (y + ny * z);
+            let (before, rest) = values.split_at_mut(start.min(values.len()));
+            if rest.len() < nx {
+                return;
+            }
+            let (row, after) = rest.split_at_mut(nx);
+            let row = Cell::from_mut(row).as_slice_of_cells();
+            f(&Stencil::new(dims, y, z, labels, before, after), row);
         }
     }
 }
@@ -369,18 +433,17 @@ pub(crate) fn for_each_row(dims: &Dims, labels: &[Label], values: &[f32], mut f:
 /// of the rounding estimate `e`, row by row.
 fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64) {
     let (mut r2, mut b2, mut e2) = (0.0f64, 0.0f64, 0.0f64);
-    for_each_row(dims, labels, psi, |row| {
+    for_each_row(dims, labels, psi, |st, row| {
         let (mut row_r, mut row_b, mut row_e) = (0.0f32, 0.0f32, 0.0f32);
-        for (x, l) in row.labels.iter().enumerate() {
+        for (x, (l, &c)) in st.labels.iter().zip(row).enumerate() {
             if *l != Label::Interior {
                 continue;
             }
-            let c = row.values.get(x).copied().unwrap_or(0.0);
-            let (r, count) = row.flux(x);
+            let (r, count) = st.flux(row, x, c);
             row_r += r * r;
             // b: Dirichlet neighbour values; e: rounding estimate from the squares.
             let (mut b, mut spread) = (0.0f32, (count as f32 * c) * (count as f32 * c));
-            row.each_neighbour(x, |l, p| {
+            st.each_neighbour(row, x, |l, p| {
                 match l {
                     Label::Frontier => b += PSI_FRONTIER,
                     Label::Source => b += PSI_SOURCE,
@@ -434,26 +497,20 @@ pub fn gauss_seidel(
         initial_residual: res.relative,
         ..Default::default()
     };
-    let nx = dims.nx();
     while !res.meets(params.tolerance) && stats.iterations < params.max_iterations {
-        for z in 0..dims.nz() {
-            for y in 0..dims.ny() {
-                let base = nx * (y + dims.ny() * z);
-                for x in 0..nx {
-                    let i = base + x;
-                    if labels.get(i) != Some(&Label::Interior) {
-                        continue;
-                    }
-                    let (flux, count) = neighbour_flux(dims, labels, phi, i, x, y, z);
-                    if count > 0 {
-                        if let Some(p) = phi.get_mut(i) {
-                            *p += flux / count as f32;
-                        }
-                        stats.cell_updates += 1;
-                    }
+        for_each_row_mut(dims, labels, phi, |st, row| {
+            for (x, (l, cell)) in st.labels.iter().zip(row).enumerate() {
+                if *l != Label::Interior {
+                    continue;
+                }
+                let c = cell.get();
+                let (flux, count) = st.flux(row, x, c);
+                if count > 0 {
+                    cell.set(c + flux * inv_count(count));
+                    stats.cell_updates += 1;
                 }
             }
-        }
+        });
         stats.iterations += 1;
         if stats.iterations.is_multiple_of(CHECK_EVERY) || stats.iterations == params.max_iterations {
             res = residual(dims, labels, phi);
