@@ -9,10 +9,12 @@
 
 pub mod bench;
 pub mod camera;
+pub mod fault;
 pub mod flight;
 pub mod metrics;
 pub mod npy;
 pub mod problem;
 pub mod scenario;
 pub mod sim;
+pub mod transport;
 pub mod world;
