@@ -16,5 +16,6 @@ pub mod npy;
 pub mod problem;
 pub mod scenario;
 pub mod sim;
+pub mod tlog;
 pub mod transport;
 pub mod world;
