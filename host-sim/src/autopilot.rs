@@ -126,7 +126,7 @@ pub struct TrafficReport {
     pub bytes_sent: u64,
     /// Bytes received.
     pub bytes_received: u64,
-    /// Messages that could not be sent (udpin before any peer spoke, socket errors).
+    /// Messages that could not be sent (the socket would block, or the peer refused them).
     pub unsent: u32,
     /// SET_POSITION_TARGET_LOCAL_NEDs sent.
     pub setpoints_sent: u32,
@@ -385,9 +385,14 @@ impl MavlinkLink {
         self.take_io_error()
     }
 
-    /// Bridge → autopilot: whatever the bridge has due at `now_ms` is encoded, logged,
-    /// counted and delivered.
+    /// Bridge → autopilot: whatever the bridge has due at `now_ms` is encoded and delivered;
+    /// what was delivered is logged and counted.
     pub fn push(&mut self, now_ms: u64) -> Result<(), String> {
+        if let Endpoint::Udp { peer: None, .. } = self.endpoint {
+            // udpin before anyone spoke: nowhere to send. The bridge keeps its HEARTBEAT and
+            // STATUSTEXTs due until there is.
+            return Ok(());
+        }
         let mut out = std::mem::take(&mut self.frames_out);
         out.clear();
         self.bridge.poll(now_ms, |header, message| {
@@ -397,7 +402,6 @@ impl MavlinkLink {
             }
         });
         for (frame, message) in &out {
-            self.log(now_ms, frame);
             let delivered = match &mut self.endpoint {
                 Endpoint::Emulator(emulator) => {
                     emulator.receive(now_ms, frame);
@@ -414,6 +418,7 @@ impl MavlinkLink {
                 },
             };
             if delivered {
+                self.log(now_ms, frame);
                 self.traffic.sent(now_ms, message, frame.len());
             } else {
                 self.traffic.report.unsent += 1;

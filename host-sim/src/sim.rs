@@ -894,6 +894,8 @@ pub fn run(
             }
         }
     }
+    // What is still travelling through an outside wire arrives before the counts are taken.
+    rig.link.settle().map_err(SimError::Link)?;
     let now = rig.now_ms();
     if let Some(m) = rig.mav.as_mut() {
         // Let the last setpoint and STATUSTEXT out, and close the log.
