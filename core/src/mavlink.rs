@@ -50,10 +50,10 @@ use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
 use crate::explore::{Fault, Goal, PlanOutcome};
 
 pub use ::mavlink::dialects::common::{self, MavComponent, MavMessage, MavSeverity, PositionTargetTypemask};
-pub use ::mavlink::{MavHeader, MavlinkVersion};
 /// The `mavlink` crate's message trait (`message_name`, `message_id`, `parse`), for hosts that
 /// must not depend on the crate themselves (its `std` and `embedded` features conflict).
 pub use ::mavlink::Message as MavlinkMessage;
+pub use ::mavlink::{MavHeader, MavlinkVersion};
 
 /// System id the bridge sends with by default. A companion computer shares the system id of the
 /// vehicle it sits on (MAVLink's convention; PX4 and ArduPilot vehicles default to 1) and is told

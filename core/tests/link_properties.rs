@@ -9,9 +9,7 @@
 //! Failure persistence is off, as in `properties.rs`.
 
 use harmonic_core::camera::{DepthFrame, Intrinsics};
-use harmonic_core::link::{
-    self, DepthReceiver, Heartbeat, LinkEncoder, LinkEvent, Message, Pose,
-};
+use harmonic_core::link::{self, DepthReceiver, Heartbeat, LinkEncoder, LinkEvent, Message, Pose};
 use proptest::prelude::*;
 
 const MAX_SIDE: u16 = 24;
@@ -51,14 +49,16 @@ fn image() -> impl Strategy<Value = Image> {
                 any::<bool>(),
             )
         })
-        .prop_map(|(width, height, rows_per_chunk, depth, pose, heartbeat_after)| Image {
-            width,
-            height,
-            rows_per_chunk,
-            depth,
-            pose,
-            heartbeat_after,
-        })
+        .prop_map(
+            |(width, height, rows_per_chunk, depth, pose, heartbeat_after)| Image {
+                width,
+                height,
+                rows_per_chunk,
+                depth,
+                pose,
+                heartbeat_after,
+            },
+        )
 }
 
 /// The wire bytes of `images` (ids 1, 2, …), as `LinkEncoder` writes them.
@@ -92,10 +92,13 @@ fn encode(images: &[Image]) -> Vec<u8> {
     wire
 }
 
+/// An image as delivered: id, width, height, depth, pose translation.
+type Delivered = (u32, u16, u16, Vec<u16>, Option<[f32; 3]>);
+
 /// What came out of a receiver.
 #[derive(Debug, Default, PartialEq)]
 struct Out {
-    images: Vec<(u32, u16, u16, Vec<u16>, Option<[f32; 3]>)>,
+    images: Vec<Delivered>,
     heartbeats: Vec<Heartbeat>,
 }
 
@@ -111,7 +114,11 @@ fn receive(wire: &[u8], cuts: &[f64]) -> Out {
     for end in ends {
         let end = end.clamp(start, wire.len());
         rx.feed(&wire[start..end], |event| match event {
-            LinkEvent::Depth { frame_id, frame, pose } => out.images.push((
+            LinkEvent::Depth {
+                frame_id,
+                frame,
+                pose,
+            } => out.images.push((
                 frame_id,
                 frame.intrinsics().width(),
                 frame.intrinsics().height(),

@@ -47,7 +47,10 @@ impl FromStr for MavlinkSpec {
     fn from_str(spec: &str) -> Result<Self, String> {
         let resolve = |rest: &str| -> Result<SocketAddr, String> {
             let Some((host, port)) = rest.rsplit_once(':') else {
-                return Err(format!("`{spec}`: expected {}:HOST:PORT", spec.split(':').next().unwrap_or("")));
+                return Err(format!(
+                    "`{spec}`: expected {}:HOST:PORT",
+                    spec.split(':').next().unwrap_or("")
+                ));
             };
             let port: u16 = port
                 .parse()
@@ -159,7 +162,9 @@ impl Traffic {
         let r = &mut self.report;
         r.messages_sent += 1;
         r.bytes_sent += bytes as u64;
-        *r.sent_by_type.entry(message.message_name().to_string()).or_insert(0) += 1;
+        *r.sent_by_type
+            .entry(message.message_name().to_string())
+            .or_insert(0) += 1;
         match message {
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(_) => {
                 r.setpoints_sent += 1;
@@ -230,6 +235,9 @@ pub struct TlogInfo {
     /// Frames recorded (both ways).
     pub records: u64,
 }
+
+/// A frame as it arrived, with its message if it decoded.
+type ReceivedFrame = (Vec<u8>, Option<(harmonic_core::mavlink::MavHeader, MavMessage)>);
 
 #[derive(Debug)]
 enum Endpoint {
@@ -368,7 +376,7 @@ impl MavlinkLink {
                 }
             }
         }
-        let mut frames: Vec<(Vec<u8>, Option<(harmonic_core::mavlink::MavHeader, MavMessage)>)> = Vec::new();
+        let mut frames: Vec<ReceivedFrame> = Vec::new();
         for bytes in &datagrams {
             self.traffic.report.bytes_received += bytes.len() as u64;
             self.decoder.push_frames(bytes, |raw, decoded| {
@@ -499,7 +507,10 @@ mod tests {
             MavlinkSpec::UdpIn("0.0.0.0:14540".parse().unwrap())
         );
         assert_eq!(
-            "udpout:127.0.0.1:14550".parse::<MavlinkSpec>().unwrap().to_string(),
+            "udpout:127.0.0.1:14550"
+                .parse::<MavlinkSpec>()
+                .unwrap()
+                .to_string(),
             "udpout:127.0.0.1:14550"
         );
         for (text, needle) in [

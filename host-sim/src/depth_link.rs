@@ -285,13 +285,11 @@ impl<'b> DepthLink<'b> {
         // closure cannot borrow `self` while the encoder does.
         let mut frames: Vec<Vec<u8>> = Vec::new();
         let mut scratch = std::mem::take(&mut self.scratch);
-        let result = self.encoder.encode_depth_frame(
-            frame_id,
-            frame,
-            self.rows_per_chunk,
-            &mut scratch,
-            |bytes| frames.push(bytes.to_vec()),
-        );
+        let result =
+            self.encoder
+                .encode_depth_frame(frame_id, frame, self.rows_per_chunk, &mut scratch, |bytes| {
+                    frames.push(bytes.to_vec())
+                });
         self.scratch = scratch;
         result.map_err(wire_err)?;
         for f in frames {
@@ -367,7 +365,11 @@ impl<'b> DepthLink<'b> {
         let now_s = self.now_s;
         let core = &mut self.core;
         self.receiver.feed(&self.inbox, |event| match event {
-            LinkEvent::Depth { frame_id, frame, pose } => match pose {
+            LinkEvent::Depth {
+                frame_id,
+                frame,
+                pose,
+            } => match pose {
                 Some(pose) => core.arrived.push(ArrivedFrame {
                     frame_id,
                     intrinsics: *frame.intrinsics(),
@@ -455,13 +457,22 @@ mod tests {
     fn image(w: u16, h: u16, seed: u16) -> (Intrinsics, Vec<u16>) {
         let intrinsics = Intrinsics::from_hfov(w, h, 1.3).unwrap();
         let depth = (0..usize::from(w) * usize::from(h))
-            .map(|i| if i % 17 == 0 { 0 } else { 500 + (i as u16 % 300) * 10 + seed })
+            .map(|i| {
+                if i % 17 == 0 {
+                    0
+                } else {
+                    500 + (i as u16 % 300) * 10 + seed
+                }
+            })
             .collect();
         (intrinsics, depth)
     }
 
     fn pose(x: f32) -> Isometry3<f32> {
-        Isometry3::from_parts(Translation3::new(x, 2.0, 1.0), UnitQuaternion::from_euler_angles(0.1, 0.2, 0.3))
+        Isometry3::from_parts(
+            Translation3::new(x, 2.0, 1.0),
+            UnitQuaternion::from_euler_angles(0.1, 0.2, 0.3),
+        )
     }
 
     /// Sends `n` images, each followed by ticks of `dt` until the wire is idle.
@@ -472,7 +483,8 @@ mod tests {
         for k in 0..n {
             let (_, depth) = image(intrinsics.width(), intrinsics.height(), k);
             let frame = DepthFrame::new(intrinsics, &depth).unwrap();
-            link.send_image(u32::from(k) + 1, &frame, &pose(f32::from(k))).unwrap();
+            link.send_image(u32::from(k) + 1, &frame, &pose(f32::from(k)))
+                .unwrap();
             while link.sending() {
                 t += dt;
                 link.tick(t).unwrap();
@@ -501,9 +513,17 @@ mod tests {
         // About 20 kB per image at 92160 bytes/s: 0.22 s each.
         let per_image = r.bytes_sent as f64 / 5.0 / 92_160.0;
         assert!(per_image > 0.2 && per_image < 0.23, "{per_image}");
-        assert!((r.transfer.mean_ms - per_image * 1e3).abs() < 2.0, "{:?}", r.transfer);
+        assert!(
+            (r.transfer.mean_ms - per_image * 1e3).abs() < 2.0,
+            "{:?}",
+            r.transfer
+        );
         // The run took at least the wire time; ticks of 10 ms add at most one each.
-        assert!(t >= r.wire_busy_s && t < r.wire_busy_s + 5.0 * 0.011, "{t} vs {}", r.wire_busy_s);
+        assert!(
+            t >= r.wire_busy_s && t < r.wire_busy_s + 5.0 * 0.011,
+            "{t} vs {}",
+            r.wire_busy_s
+        );
         assert_eq!((r.depth_frames_sent, r.receiver.depth_frames_complete), (5, 5));
         assert_eq!(r.bytes_sent, r.bytes_received);
         assert_eq!(r.link_frames_sent, u64::from(r.receiver.frames_ok));
@@ -558,6 +578,9 @@ mod tests {
         // lost every frame: each is counted at most once.
         let lost = 60 - arrived.len() as u32;
         let counted = r.frames_without_pose + r.receiver.depth_frames_dropped;
-        assert!(lost > 0 && counted > 0 && counted <= lost, "{lost} lost, {counted} counted");
+        assert!(
+            lost > 0 && counted > 0 && counted <= lost,
+            "{lost} lost, {counted} counted"
+        );
     }
 }

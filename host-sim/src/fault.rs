@@ -175,7 +175,11 @@ impl FaultInjector {
         rng.set_stream(FAULT_STREAM);
         let bits = Gap::new(config.bit_error_rate, &mut rng);
         let byte_drops = Gap::new(config.byte_drop, &mut rng);
-        let burst_rate = if config.burst_len == 0 { 0.0 } else { config.burst_rate };
+        let burst_rate = if config.burst_len == 0 {
+            0.0
+        } else {
+            config.burst_rate
+        };
         let bursts = Gap::new(burst_rate, &mut rng);
         Self {
             config,
@@ -319,7 +323,10 @@ mod tests {
         let (wire, c) = run(FaultConfig::default(), 1, &f);
         assert!(FaultConfig::default().is_clean());
         assert_eq!(wire, f.concat());
-        assert_eq!((c.frames_in, c.frames_out, c.bytes_in, c.bytes_out), (50, 50, wire.len() as u64, wire.len() as u64));
+        assert_eq!(
+            (c.frames_in, c.frames_out, c.bytes_in, c.bytes_out),
+            (50, 50, wire.len() as u64, wire.len() as u64)
+        );
     }
 
     #[test]
@@ -350,7 +357,10 @@ mod tests {
         let (wire, c) = run(config, 3, &f);
         let (_, rx) = decode(&wire);
         assert!(c.frames_dropped > 30 && c.frames_duplicated > 20, "{c:?}");
-        assert_eq!(u64::from(rx.frames_ok), 2000 - c.frames_dropped + c.frames_duplicated);
+        assert_eq!(
+            u64::from(rx.frames_ok),
+            2000 - c.frames_dropped + c.frames_duplicated
+        );
         // Every drop is a gap in the sequence numbers, unless the last frame itself was lost.
         let last_lost = u64::from(decode(&wire).0.last() != Some(&1999));
         assert_eq!(u64::from(rx.sequence_gaps) + last_lost, c.frames_dropped);
@@ -386,7 +396,10 @@ mod tests {
         let expected = bits_on_wire * ber;
         let flips = c.bits_flipped as f64;
         // Poisson: 5 standard deviations.
-        assert!((flips - expected).abs() < 5.0 * expected.sqrt(), "{flips} vs {expected}");
+        assert!(
+            (flips - expected).abs() < 5.0 * expected.sqrt(),
+            "{flips} vs {expected}"
+        );
         let (got, rx) = decode(&wire);
         // No damaged heartbeat gets through as a wrong one.
         assert!(got.windows(2).all(|w| w[0] < w[1]));

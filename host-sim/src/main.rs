@@ -11,9 +11,9 @@ use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::bench::{self, BenchSolver};
+use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::depth_link::{LinkConfig, DEFAULT_BAUD};
 use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
-use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::npy;
 use harmonic_sim::problem::{self, SolverChoice};
 use harmonic_sim::scenario::{builtin_names, Scenario};
@@ -36,7 +36,7 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Fly a simulated multirotor through a world until no reachable frontier is left.
-    Explore(ExploreArgs),
+    Explore(Box<ExploreArgs>),
     /// List the built-in scenarios.
     Scenarios,
     /// Benchmark the Laplace solvers on building-like grids (the numbers in BENCHMARKS.md).
@@ -267,7 +267,11 @@ fn parse_burst(s: &str) -> Result<(f64, u32), String> {
         None => DEFAULT_BURST_LEN,
         Some(l) => match l.parse::<u32>() {
             Ok(n) if n > 0 => n,
-            _ => return Err(format!("`{s}`: burst length `{l}` is not a positive number of bytes")),
+            _ => {
+                return Err(format!(
+                    "`{s}`: burst length `{l}` is not a positive number of bytes"
+                ))
+            }
         },
     };
     Ok((rate, len))
@@ -320,7 +324,7 @@ fn main() -> ExitCode {
             }
             Ok(())
         }
-        Command::Explore(args) => explore(args),
+        Command::Explore(args) => explore(*args),
         Command::Solve(args) => solve_problem(&args),
         Command::Tlog(args) => summarize_tlog(&args),
         Command::BenchSolve(args) => {

@@ -426,6 +426,12 @@ impl Track {
     }
 }
 
+/// What the flight helpers read: the settings and the true world.
+struct Scene<'a> {
+    cfg: &'a SimConfig,
+    world: &'a World,
+}
+
 /// What moves with time: the depth link, and the MAVLink link if the run flies over it.
 struct Rig<'b> {
     link: DepthLink<'b>,
@@ -474,7 +480,12 @@ impl Rig<'_> {
     /// Bridge → autopilot at the current time, then the vehicle follows the autopilot:
     /// towards the emulator's setpoint by at most `max_step` metres, or to where the remote
     /// autopilot says it is. Returns the distance moved. Without MAVLink, nothing.
-    fn push_and_follow(&mut self, vehicle: &mut Vehicle, max_step: f32, yaw_step: f32) -> Result<f32, SimError> {
+    fn push_and_follow(
+        &mut self,
+        vehicle: &mut Vehicle,
+        max_step: f32,
+        yaw_step: f32,
+    ) -> Result<f32, SimError> {
         let now = self.now_ms();
         let Some(mav) = self.mav.as_mut() else {
             return Ok(0.0);
@@ -514,8 +525,7 @@ impl Rig<'_> {
     fn believed_pose(
         &mut self,
         vehicle: &mut Vehicle,
-        cfg: &SimConfig,
-        world: &World,
+        scene: &Scene<'_>,
         track: &mut Track,
     ) -> Result<(Point3<f32>, f32), SimError> {
         let start = self.t_s;
@@ -531,7 +541,7 @@ impl Rig<'_> {
                 }
                 Err(_) => {
                     let moved = self.exchange(vehicle, 0.0, 0.0)?;
-                    track.moved(world, &vehicle.position, cfg.body_radius, moved);
+                    track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
                     self.advance()?;
                     if self.wall.is_some() {
                         crate::autopilot::nap();
@@ -546,15 +556,14 @@ impl Rig<'_> {
     fn wait_for_link(
         &mut self,
         vehicle: &mut Vehicle,
-        cfg: &SimConfig,
-        world: &World,
+        scene: &Scene<'_>,
         track: &mut Track,
     ) -> Result<(), SimError> {
-        let step = cfg.max_speed * cfg.dt;
-        let yaw_step = cfg.max_yaw_rate * cfg.dt;
+        let step = scene.cfg.max_speed * scene.cfg.dt;
+        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
         while self.link.sending() {
             let moved = self.exchange(vehicle, step, yaw_step)?;
-            track.moved(world, &vehicle.position, cfg.body_radius, moved);
+            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
             self.advance()?;
         }
         self.link.settle().map_err(SimError::Link)
@@ -568,12 +577,11 @@ impl Rig<'_> {
         waypoints: &[Point3<f32>],
         goal: &Goal,
         budget: f32,
-        cfg: &SimConfig,
-        world: &World,
+        scene: &Scene<'_>,
         track: &mut Track,
     ) -> Result<(), SimError> {
-        let step_len = cfg.max_speed * cfg.dt;
-        let yaw_step = cfg.max_yaw_rate * cfg.dt;
+        let step_len = scene.cfg.max_speed * scene.cfg.dt;
+        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
         let mut travelled = 0.0f32;
         for w in waypoints {
             loop {
@@ -589,7 +597,7 @@ impl Rig<'_> {
                 }
                 let s = vehicle.step_towards(w, step_len.min(budget - travelled));
                 travelled += s;
-                track.moved(world, &vehicle.position, cfg.body_radius, s);
+                track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, s);
                 self.advance()?;
             }
         }
@@ -607,19 +615,17 @@ impl Rig<'_> {
     /// (advancing when the bridge's pose is within [`WAYPOINT_ADVANCE_M`] of it), lets the
     /// vehicle follow the autopilot for at most `budget` metres, and on reaching the end turns
     /// to the goal yaw. At the end of the budget the setpoint becomes the believed position.
-    #[allow(clippy::too_many_arguments)]
     fn fly_mavlink(
         &mut self,
         vehicle: &mut Vehicle,
         waypoints: &[Point3<f32>],
         goal: &Goal,
         budget: f32,
-        cfg: &SimConfig,
-        world: &World,
+        scene: &Scene<'_>,
         track: &mut Track,
     ) -> Result<(), SimError> {
-        let step_len = cfg.max_speed * cfg.dt;
-        let yaw_step = cfg.max_yaw_rate * cfg.dt;
+        let step_len = scene.cfg.max_speed * scene.cfg.dt;
+        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
         let mut travelled = 0.0f32;
         let mut next = 0usize;
         // Yaw of the current setpoint: along the segment towards the waypoint, as fixed when
@@ -674,18 +680,18 @@ impl Rig<'_> {
                 return Ok(());
             }
             let _ = mav.bridge.set_target(target, target_yaw);
-            let moved = self.push_and_follow(vehicle, step_len.min((budget - travelled).max(0.0)), yaw_step)?;
+            let moved =
+                self.push_and_follow(vehicle, step_len.min((budget - travelled).max(0.0)), yaw_step)?;
             travelled += moved;
             if travelled > last_progress.1 + 0.01 {
                 last_progress = (self.t_s, travelled);
             }
-            track.moved(world, &vehicle.position, cfg.body_radius, moved);
+            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
             self.advance()?;
         }
         Ok(())
     }
 }
-
 
 /// Writes the labels and source of one planning step for `harmonic-sim solve`.
 fn dump_problem(
@@ -738,6 +744,7 @@ pub fn run(
         yaw: scenario.start_yaw,
     };
     let world = &scenario.world;
+    let scene = Scene { cfg, world };
     let mut depth = Vec::new();
     let mut link_buffer = vec![0u16; cfg.camera.intrinsics.pixel_count()];
     let link = DepthLink::open(&cfg.link, &cfg.camera.intrinsics, &mut link_buffer, cfg.seed)
@@ -775,7 +782,7 @@ pub fn run(
     rig.exchange(&mut vehicle, 0.0, 0.0)?;
     if remote {
         // The vehicle starts wherever the autopilot says.
-        let (position, yaw) = rig.believed_pose(&mut vehicle, cfg, world, &mut track)?;
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
         vehicle.position = position;
         vehicle.yaw = yaw;
         track = Track::start(world, &vehicle.position, cfg.body_radius);
@@ -786,7 +793,7 @@ pub fn run(
         taken = step;
         // The camera sees the world from where the vehicle truly is; the frame is stamped with
         // the pose the core believes.
-        let (position, yaw) = rig.believed_pose(&mut vehicle, cfg, world, &mut track)?;
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
         let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
         cfg.camera.render(world, &true_pose, &mut rng, &mut depth);
         let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
@@ -794,7 +801,7 @@ pub fn run(
         rig.link
             .send_image(step, &frame, &forward_camera_pose(&position, yaw))
             .map_err(SimError::Link)?;
-        rig.wait_for_link(&mut vehicle, cfg, world, &mut track)?;
+        rig.wait_for_link(&mut vehicle, &scene, &mut track)?;
 
         // Core side: integrate whatever arrived whole.
         let t0 = Instant::now();
@@ -810,7 +817,7 @@ pub fn run(
         let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
 
         // Plan from where the vehicle is now (it may have drifted while the frame was sent).
-        let (position, yaw) = rig.believed_pose(&mut vehicle, cfg, world, &mut track)?;
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
         let status_before = *explorer.status();
         let outcome = if integrated > 0 {
             steps_without_frame = 0;
@@ -844,9 +851,21 @@ pub fn run(
             unknowns: status.domain.interior,
             coverage_free: coverage.free,
             integrate_ms,
-            domain_ms: if planned { ms(status.phase_ticks.domain) } else { 0.0 },
-            solve_ms: if planned { ms(status.phase_ticks.solve) } else { 0.0 },
-            streamline_ms: if planned { ms(status.phase_ticks.streamline) } else { 0.0 },
+            domain_ms: if planned {
+                ms(status.phase_ticks.domain)
+            } else {
+                0.0
+            },
+            solve_ms: if planned {
+                ms(status.phase_ticks.solve)
+            } else {
+                0.0
+            },
+            streamline_ms: if planned {
+                ms(status.phase_ticks.streamline)
+            } else {
+                0.0
+            },
             solver_iterations: status.solve.iterations,
             solver_residual: status.solve.residual,
             solver_updates: status.solve.cell_updates,
@@ -887,9 +906,9 @@ pub fn run(
                 consecutive_holds = 0;
                 let waypoints: Vec<Point3<f32>> = explorer.waypoints().to_vec();
                 if rig.mav.is_some() {
-                    rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, cfg, world, &mut track)?;
+                    rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
                 } else {
-                    rig.fly_direct(&mut vehicle, &waypoints, &goal, budget, cfg, world, &mut track)?;
+                    rig.fly_direct(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
                 }
             }
         }

@@ -225,7 +225,10 @@ pub fn format_summary(summary: &TlogSummary) -> String {
         "{} records over {:.1} s ({} undecoded)\n",
         summary.records, duration, summary.undecoded
     ));
-    out.push_str(&format!("{:<4} {:<32} {:>8} {:>9}\n", "dir", "message", "count", "rate Hz"));
+    out.push_str(&format!(
+        "{:<4} {:<32} {:>8} {:>9}\n",
+        "dir", "message", "count", "rate Hz"
+    ));
     for (dir, side) in [("out", &summary.sent), ("in", &summary.received)] {
         for (name, count) in side {
             let rate = if duration > 0.0 {
@@ -316,16 +319,16 @@ mod tests {
         log.extend_from_slice(&f);
         assert_eq!(read_records(&log).unwrap().len(), 1);
         for cut in 1..log.len() {
-            assert_eq!(
-                read_records(&log[..cut]),
-                Err(TlogError::Truncated { offset: 0 })
-            );
+            assert_eq!(read_records(&log[..cut]), Err(TlogError::Truncated { offset: 0 }));
         }
         let mut bad = log.clone();
         bad[8] = 0x42;
         assert_eq!(
             read_records(&bad),
-            Err(TlogError::NotMavlink { offset: 8, byte: 0x42 })
+            Err(TlogError::NotMavlink {
+                offset: 8,
+                byte: 0x42
+            })
         );
         // A flipped payload bit: the record splits fine but does not decode.
         let mut flipped = log.clone();

@@ -113,7 +113,9 @@ impl FromStr for TransportSpec {
             ("sim" | "tcp" | "tcp-listen" | "serial", _) => {
                 Err(format!("`{spec}`: malformed; expected one of {SYNTAX}"))
             }
-            _ => Err(format!("`{spec}`: unknown transport `{kind}` (expected {SYNTAX})")),
+            _ => Err(format!(
+                "`{spec}`: unknown transport `{kind}` (expected {SYNTAX})"
+            )),
         }
     }
 }
@@ -125,10 +127,7 @@ impl fmt::Display for TransportSpec {
             Self::Tcp { host, port } => write!(f, "tcp:{host}:{port}"),
             Self::TcpListen { host, port } => write!(f, "tcp-listen:{host}:{port}"),
             Self::Serial { path, baud: None } => write!(f, "serial:{path}"),
-            Self::Serial {
-                path,
-                baud: Some(b),
-            } => write!(f, "serial:{path}:{b}"),
+            Self::Serial { path, baud: Some(b) } => write!(f, "serial:{path}:{b}"),
         }
     }
 }
@@ -462,7 +461,9 @@ mod tests {
             let mut buf = [0u8; 1024];
             let mut total = 0usize;
             let start = Instant::now();
-            while !stop.load(std::sync::atomic::Ordering::Relaxed) && start.elapsed() < Duration::from_secs(20) {
+            while !stop.load(std::sync::atomic::Ordering::Relaxed)
+                && start.elapsed() < Duration::from_secs(20)
+            {
                 match master.read(&mut buf) {
                     Ok(n) => {
                         master.write_all(&buf[..n]).unwrap();
@@ -495,12 +496,9 @@ mod tests {
 
     #[test]
     fn opening_a_missing_device_or_closed_port_is_an_error() {
-        let e = open(
-            &"serial:/dev/no-such-tty".parse().unwrap(),
-            921600,
-        )
-        .err()
-        .unwrap();
+        let e = open(&"serial:/dev/no-such-tty".parse().unwrap(), 921600)
+            .err()
+            .unwrap();
         assert!(e.contains("/dev/no-such-tty"), "{e}");
         let port = {
             let l = TcpListener::bind("127.0.0.1:0").unwrap();

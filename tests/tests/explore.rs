@@ -42,7 +42,11 @@ fn assert_complete(r: &Report) {
 fn assert_clean_link(r: &Report) {
     let l = &r.link;
     assert_eq!(
-        (l.depth_frames_sent, l.depth_frames_integrated, l.depth_frames_lost),
+        (
+            l.depth_frames_sent,
+            l.depth_frames_integrated,
+            l.depth_frames_lost
+        ),
         (r.scans, r.scans, 0),
         "{l:?}"
     );
@@ -59,12 +63,19 @@ fn assert_clean_link(r: &Report) {
     // Bandwidth is real: the wire was busy for every frame's bytes at the baud rate.
     let bytes_per_s = f64::from(l.baud) / 10.0;
     assert!((l.wire_busy_s - l.bytes_sent as f64 / bytes_per_s).abs() < 1e-6);
-    assert!(l.transfer.mean_ms > 200.0 && l.transfer.max_ms < 240.0, "{:?}", l.transfer);
+    assert!(
+        l.transfer.mean_ms > 200.0 && l.transfer.max_ms < 240.0,
+        "{:?}",
+        l.transfer
+    );
     assert!(r.flight_time_s > l.wire_busy_s);
     // The camera side's 1 Hz heartbeat arrived all along.
     assert!(l.heartbeats_received as f64 >= r.flight_time_s - 1.0, "{l:?}");
     // A heartbeat may wait behind a depth frame already on the wire.
-    assert!(l.max_heartbeat_gap_ms <= 1000.0 + l.transfer.max_ms + 50.0, "{l:?}");
+    assert!(
+        l.max_heartbeat_gap_ms <= 1000.0 + l.transfer.max_ms + 50.0,
+        "{l:?}"
+    );
 }
 
 #[test]
@@ -132,7 +143,10 @@ fn assert_mavlink_healthy(r: &Report) {
     let mav = r.mavlink.as_ref().expect("MAVLink counters in the report");
     let emulator = mav.emulator.expect("emulator counters");
     let t = &mav.traffic;
-    assert_eq!(emulator.setpoint_gaps, 0, "setpoints slower than 2 Hz: {emulator:?}");
+    assert_eq!(
+        emulator.setpoint_gaps, 0,
+        "setpoints slower than 2 Hz: {emulator:?}"
+    );
     // 10 Hz stream, 50 ms ticks: a frame on the wire for 220 ms must not open a gap.
     assert!(t.max_setpoint_gap_ms <= 150, "{t:?}");
     assert!(t.setpoint_rate_hz >= 5.0, "{t:?}");
@@ -152,9 +166,18 @@ fn assert_mavlink_healthy(r: &Report) {
     assert_eq!(t.messages_sent, mav.emulator_decoder.unwrap().messages);
     assert_eq!(t.messages_received, mav.bridge_decoder.messages);
     // Pose reports at 20 Hz over the whole flight.
-    assert!(f64::from(mav.bridge.local_positions_received) >= 19.0 * r.flight_time_s, "{:?}", mav.bridge);
+    assert!(
+        f64::from(mav.bridge.local_positions_received) >= 19.0 * r.flight_time_s,
+        "{:?}",
+        mav.bridge
+    );
     assert_eq!(mav.bridge.stale_events, 0, "{:?}", mav.bridge);
-    assert_eq!(mav.bridge.rejected() + mav.bridge.sequence_gaps, 0, "{:?}", mav.bridge);
+    assert_eq!(
+        mav.bridge.rejected() + mav.bridge.sequence_gaps,
+        0,
+        "{:?}",
+        mav.bridge
+    );
     assert_eq!(emulator.status_texts_received as usize, mav.status_texts.len());
     assert_eq!(
         mav.status_texts.last().map(String::as_str),
@@ -191,10 +214,19 @@ fn apartment_explored_over_a_faulty_link() {
     let l = &r.link;
     let injected = l.injected.expect("fault counters in the report");
     let c = &l.receiver;
-    assert!(injected.frames_dropped > 0 && injected.bits_flipped > 0, "{injected:?}");
-    assert!(c.crc_errors > 0 && c.sequence_gaps > 0 && c.missing_chunks > 0, "{c:?}");
+    assert!(
+        injected.frames_dropped > 0 && injected.bits_flipped > 0,
+        "{injected:?}"
+    );
+    assert!(
+        c.crc_errors > 0 && c.sequence_gaps > 0 && c.missing_chunks > 0,
+        "{c:?}"
+    );
     assert!(l.depth_frames_lost > 0, "{l:?}");
-    assert_eq!(l.depth_frames_sent, l.depth_frames_integrated + l.depth_frames_lost);
+    assert_eq!(
+        l.depth_frames_sent,
+        l.depth_frames_integrated + l.depth_frames_lost
+    );
     assert_eq!(l.depth_frames_integrated, r.scans);
     // What the injector did is what the receiver saw: each frame dropped or damaged is lost
     // (the delimiters on both sides of a frame keep damage from spreading to its neighbours),
@@ -209,5 +241,8 @@ fn apartment_explored_over_a_faulty_link() {
     // Steps whose frame did not arrive planned nothing.
     let no_frame = r.steps.iter().filter(|s| s.outcome == "no_frame").count() as u32;
     assert_eq!(no_frame, r.steps_taken - r.scans);
-    assert!(r.steps.iter().all(|s| (s.outcome == "no_frame") == (s.frames_integrated == 0)));
+    assert!(r
+        .steps
+        .iter()
+        .all(|s| (s.outcome == "no_frame") == (s.frames_integrated == 0)));
 }

@@ -190,7 +190,14 @@ fn mavlink_udpout_to_a_fake_autopilot() {
     let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
     let addr = socket.local_addr().unwrap();
     let stop = Arc::new(AtomicBool::new(false));
-    let peer = fake_autopilot(socket, None, scenario.start_position, scenario.start_yaw, 2.0, stop.clone());
+    let peer = fake_autopilot(
+        socket,
+        None,
+        scenario.start_position,
+        scenario.start_yaw,
+        2.0,
+        stop.clone(),
+    );
     // The first plans look around the start corner; the fifth leaves it.
     let r = remote_run(MavlinkSpec::UdpOut(addr), 6, None);
     stop.store(true, Ordering::Relaxed);
@@ -198,7 +205,10 @@ fn mavlink_udpout_to_a_fake_autopilot() {
 
     let mav = r.mavlink.as_ref().unwrap();
     assert_eq!(mav.endpoint, format!("udpout:{addr}"));
-    assert!(mav.emulator.is_none(), "no in-process emulator against a remote autopilot");
+    assert!(
+        mav.emulator.is_none(),
+        "no in-process emulator against a remote autopilot"
+    );
     // The setpoints arrived over UDP, and were flown.
     assert!(autopilot.setpoints_received > 10, "{autopilot:?}");
     assert_eq!(autopilot.setpoints_rejected, 0);
@@ -211,31 +221,52 @@ fn mavlink_udpout_to_a_fake_autopilot() {
         Some(&mav.bridge.local_positions_received)
     );
     assert_eq!(r.scans, 6);
-    assert!(r.path_length_m > 1.0, "the remote vehicle flew {} m", r.path_length_m);
+    assert!(
+        r.path_length_m > 1.0,
+        "the remote vehicle flew {} m",
+        r.path_length_m
+    );
     let first = Point3::from(r.steps[0].position);
     assert!((first - scenario.start_position).norm() < 0.05);
     let last = Point3::from(r.steps.last().unwrap().position);
     assert!((last - scenario.start_position).norm() > 0.5);
     // The vehicle ends where the autopilot has it (it held its last setpoint).
     assert!((last_position - last).norm() < 1.2, "{last_position} vs {last}");
-    assert_eq!(mav.status_texts.first().map(String::as_str), Some("exploration started"));
+    assert_eq!(
+        mav.status_texts.first().map(String::as_str),
+        Some("exploration started")
+    );
 }
 
 #[test]
 fn mavlink_udpin_answers_the_autopilot_and_records_a_tlog() {
     let scenario = apartment();
     // The simulator listens; the autopilot sends to it first (PX4 sends to 14540 on its own).
-    let port = UdpSocket::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let port = UdpSocket::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
     let listen: std::net::SocketAddr = ([127, 0, 0, 1], port).into();
     let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
     let stop = Arc::new(AtomicBool::new(false));
-    let peer = fake_autopilot(socket, Some(listen), scenario.start_position, scenario.start_yaw, 2.0, stop.clone());
+    let peer = fake_autopilot(
+        socket,
+        Some(listen),
+        scenario.start_position,
+        scenario.start_yaw,
+        2.0,
+        stop.clone(),
+    );
     let path = std::env::temp_dir().join(format!("harmonic-udpin-{}.tlog", std::process::id()));
     let r = remote_run(MavlinkSpec::UdpIn(listen), 2, Some(path.clone()));
     stop.store(true, Ordering::Relaxed);
     let (autopilot, _) = peer.join().unwrap();
     let mav = r.mavlink.as_ref().unwrap();
-    assert!(autopilot.setpoints_received > 5 && autopilot.heartbeats_received > 0, "{autopilot:?}");
+    assert!(
+        autopilot.setpoints_received > 5 && autopilot.heartbeats_received > 0,
+        "{autopilot:?}"
+    );
     assert!(mav.bridge.local_positions_received > 10);
     // Wall-clock timestamps in the log of a remote run.
     let records = tlog::read_records(&std::fs::read(&path).unwrap()).unwrap();
@@ -244,7 +275,10 @@ fn mavlink_udpin_answers_the_autopilot_and_records_a_tlog() {
         .unwrap()
         .as_micros() as u64;
     let first = records.first().unwrap().timestamp_us;
-    assert!(first <= now_us && now_us - first < 120_000_000, "{first} vs {now_us}");
+    assert!(
+        first <= now_us && now_us - first < 120_000_000,
+        "{first} vs {now_us}"
+    );
     let summary = tlog::summarize(&records, 191);
     assert_eq!(summary.sent, mav.traffic.sent_by_type);
     assert_eq!(summary.received, mav.traffic.received_by_type);
@@ -275,7 +309,11 @@ fn tlog_holds_every_message_sent_and_received() {
     assert_eq!(records[0].timestamp_us, tlog::SIM_EPOCH_US);
     assert!(records.windows(2).all(|w| w[0].timestamp_us <= w[1].timestamp_us));
     let span = records.last().unwrap().timestamp_us - records[0].timestamp_us;
-    assert!((span as f64 * 1e-6 - r.flight_time_s).abs() < 0.11, "{span} µs vs {} s", r.flight_time_s);
+    assert!(
+        (span as f64 * 1e-6 - r.flight_time_s).abs() < 0.11,
+        "{span} µs vs {} s",
+        r.flight_time_s
+    );
     // Every record decodes, into exactly the messages counted each way.
     let summary = tlog::summarize(&records, 191);
     assert_eq!(summary.undecoded, 0);
