@@ -45,6 +45,38 @@ enum Command {
     Solve(SolveArgs),
     /// Summarise a MAVLink .tlog: messages per direction and type, with rates.
     Tlog(TlogArgs),
+    /// Be the far end of a TCP depth link: send every byte back, as a loopback plug would.
+    LinkEcho(LinkEchoArgs),
+}
+
+#[derive(clap::Args)]
+struct LinkEchoArgs {
+    /// Listen on HOST:PORT for `explore --link tcp:HOST:PORT` (one connection, then exit).
+    #[arg(long, conflicts_with = "connect", required_unless_present = "connect")]
+    listen: Option<String>,
+    /// Connect to `explore --link tcp-listen:HOST:PORT` instead.
+    #[arg(long)]
+    connect: Option<String>,
+}
+
+fn link_echo(args: &LinkEchoArgs) -> Result<(), String> {
+    let stream = match (&args.listen, &args.connect) {
+        (Some(addr), _) => {
+            let listener = std::net::TcpListener::bind(addr).map_err(|e| format!("--listen {addr}: {e}"))?;
+            eprintln!("link-echo: listening on {addr}");
+            listener
+                .accept()
+                .map(|(s, _)| s)
+                .map_err(|e| format!("--listen {addr}: {e}"))?
+        }
+        (None, Some(addr)) => {
+            std::net::TcpStream::connect(addr).map_err(|e| format!("--connect {addr}: {e}"))?
+        }
+        (None, None) => return Err("give --listen HOST:PORT or --connect HOST:PORT".into()),
+    };
+    let bytes = harmonic_sim::transport::echo(stream).map_err(|e| format!("link-echo: {e}"))?;
+    eprintln!("link-echo: {bytes} bytes sent back");
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -327,6 +359,7 @@ fn main() -> ExitCode {
         Command::Explore(args) => explore(*args),
         Command::Solve(args) => solve_problem(&args),
         Command::Tlog(args) => summarize_tlog(&args),
+        Command::LinkEcho(args) => link_echo(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -393,17 +426,25 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_spinner()),
     );
+    let mut scans = 0u32;
     let report = sim::run(&scenario, &cfg, |s| {
+        scans += s.frames_integrated;
+        // Steps whose frame was lost on the link are counted apart from scans.
+        let lost = if s.step > scans {
+            format!(" ({} steps)", s.step)
+        } else {
+            String::new()
+        };
         let line = format!(
-            "scans {:>4}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  {}",
-            s.step,
+            "scans {:>4}{lost}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  {}",
+            scans,
             s.coverage_free * 100.0,
             s.frontier,
             s.path_length_m,
-            if s.outcome == "kept" {
-                "goal kept".to_string()
-            } else {
-                format!("solve {:>7.1} ms", s.solve_ms)
+            match s.outcome.as_str() {
+                "kept" => "goal kept".to_string(),
+                "no_frame" => "no frame".to_string(),
+                _ => format!("solve {:>7.1} ms", s.solve_ms),
             }
         );
         if !args.quiet && !tty && s.step % 25 == 0 {
