@@ -6,7 +6,8 @@
 //!   delimiters included): each frame is dropped with probability [`FaultConfig::frame_drop`];
 //!   otherwise duplicated with [`FaultConfig::frame_duplicate`] (sent twice in a row), and held
 //!   back with [`FaultConfig::frame_reorder`] to go out after the next frame sent (a frame
-//!   with no frame after it goes out at [`FaultInjector::flush`]);
+//!   with no frame after it goes out in order at [`FaultInjector::flush`]: the depth link
+//!   flushes after each image and each heartbeat, so frames are reordered within them);
 //! - **byte faults**, on the bytes as they go out, in this order per byte: the byte is lost
 //!   with [`FaultConfig::byte_drop`] (a receiver overrun); a noise burst starts with
 //!   [`FaultConfig::burst_rate`] and replaces [`FaultConfig::burst_len`] bytes by random ones
@@ -90,7 +91,7 @@ pub struct FaultCounters {
     pub frames_dropped: u64,
     /// Frames sent twice.
     pub frames_duplicated: u64,
-    /// Frames held back and sent after the next frame.
+    /// Frames sent after the frame that followed them.
     pub frames_reordered: u64,
     /// Frames put on the wire with at least one byte fault in them.
     pub frames_damaged: u64,
@@ -213,17 +214,21 @@ impl FaultInjector {
             1
         };
         if self.held.is_none() && self.chance(self.config.frame_reorder) {
-            self.counters.frames_reordered += 1;
             self.held = Some((frame.to_vec(), copies));
             return;
         }
         for _ in 0..copies {
             self.transmit(frame, wire);
         }
-        self.flush(wire);
+        if self.held.is_some() {
+            // The held frame goes out after this one: reordered.
+            self.counters.frames_reordered += 1;
+            self.flush(wire);
+        }
     }
 
-    /// Sends a frame held back for reordering, if any (call when no frame follows soon).
+    /// Sends a frame held back for reordering, if any, in its place (call when no frame
+    /// follows soon; it does not count as reordered).
     pub fn flush(&mut self, wire: &mut Vec<u8>) {
         if let Some((frame, copies)) = self.held.take() {
             for _ in 0..copies {
@@ -381,6 +386,13 @@ mod tests {
         assert_eq!(swapped, c.frames_reordered);
         assert!(c.frames_reordered > 50);
         assert_eq!(u64::from(rx.frames_ok), 1000);
+        // A frame held with nothing after it goes out in order at the flush, uncounted.
+        let always = FaultConfig {
+            frame_reorder: 1.0,
+            ..FaultConfig::default()
+        };
+        let (wire, c) = run(always, 5, &f[..1]);
+        assert_eq!((wire, c.frames_reordered), (f[0].clone(), 0));
     }
 
     #[test]
