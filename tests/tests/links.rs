@@ -213,8 +213,8 @@ fn mavlink_udpout_to_a_fake_autopilot() {
     assert!(autopilot.setpoints_received > 10, "{autopilot:?}");
     assert_eq!(autopilot.setpoints_rejected, 0);
     assert_eq!(autopilot.setpoints_received, mav.traffic.setpoints_sent);
-    // Wall-clock time: a plan computed between two setpoints delays one (PX4's offboard
-    // loss timeout, COM_OF_LOSS_T, is 1 s by default); loaded test machines are slow.
+    // Wall-clock time: a plan computed between two setpoints delays one, and loaded test
+    // machines are slow; the 10 Hz stream must still never stop for a second.
     assert!(autopilot.max_setpoint_gap_ms < 1000, "{autopilot:?}");
     // The pose came back over UDP; the explorer planned from it and the vehicle moved.
     assert!(mav.bridge.local_positions_received > 20 && mav.bridge.attitudes_received > 20);
