@@ -44,12 +44,15 @@ use ::mavlink::dialects::common::{
     MavAutopilot, MavFrame, MavModeFlag, MavState, MavType, ATTITUDE_DATA, HEARTBEAT_DATA,
     LOCAL_POSITION_NED_DATA, ODOMETRY_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA, STATUSTEXT_DATA,
 };
-use ::mavlink::{MAVLinkMessageRaw, MAVLinkV2MessageRaw, Message as _};
+use ::mavlink::{MAVLinkMessageRaw, MAVLinkV2MessageRaw};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
 
 use crate::explore::{Fault, Goal, PlanOutcome};
 
 pub use ::mavlink::dialects::common::{self, MavComponent, MavMessage, MavSeverity, PositionTargetTypemask};
+/// The `mavlink` crate's message trait (`message_name`, `message_id`, `parse`), for hosts that
+/// must not depend on the crate themselves (its `std` and `embedded` features conflict).
+pub use ::mavlink::Message as MavlinkMessage;
 pub use ::mavlink::{MavHeader, MavlinkVersion};
 
 /// System id the bridge sends with by default. A companion computer shares the system id of the
@@ -1160,12 +1163,27 @@ impl MavlinkDecoder {
     /// Takes in `bytes` and calls `on_message` for every message completed by them, in order.
     /// A frame cut across pushes is completed by a later push.
     pub fn push(&mut self, bytes: &[u8], mut on_message: impl FnMut(&MavHeader, &MavMessage)) {
+        self.push_frames(bytes, |_, decoded| {
+            if let Some((header, message)) = decoded {
+                on_message(header, message);
+            }
+        });
+    }
+
+    /// Like [`MavlinkDecoder::push`], but hands out every frame with a valid checksum as the
+    /// bytes it arrived in (for logs that must keep them exactly, such as a `.tlog`), with its
+    /// message if the payload decoded (`None`: counted in [`DecoderCounters::parse_errors`]).
+    pub fn push_frames(
+        &mut self,
+        bytes: &[u8],
+        mut on_frame: impl FnMut(&[u8], Option<(&MavHeader, &MavMessage)>),
+    ) {
         self.counters.bytes = self.counters.bytes.saturating_add(bytes.len() as u64);
         let mut rest = bytes;
         while !rest.is_empty() {
             let taken = self.reader.get_mut().fill(rest);
             rest = rest.get(taken..).unwrap_or(&[]);
-            self.drain(&mut on_message);
+            self.drain(&mut on_frame);
         }
     }
 
@@ -1182,14 +1200,14 @@ impl MavlinkDecoder {
         Ok(n)
     }
 
-    fn drain(&mut self, on_message: &mut impl FnMut(&MavHeader, &MavMessage)) {
+    fn drain(&mut self, on_frame: &mut impl FnMut(&[u8], Option<(&MavHeader, &MavMessage)>)) {
         // The reader returns an error only when the window is empty (end of input).
         while let Ok(raw) = self.reader.read_any_raw_message::<MavMessage>() {
-            let frame_len = match &raw {
-                MAVLinkMessageRaw::V1(frame) => frame.raw_bytes().len(),
-                MAVLinkMessageRaw::V2(frame) => frame.raw_bytes().len(),
+            let frame = match &raw {
+                MAVLinkMessageRaw::V1(frame) => frame.raw_bytes(),
+                MAVLinkMessageRaw::V2(frame) => frame.raw_bytes(),
             };
-            self.counters.framed_bytes = self.counters.framed_bytes.saturating_add(frame_len as u64);
+            self.counters.framed_bytes = self.counters.framed_bytes.saturating_add(frame.len() as u64);
             bump(&mut self.counters.frames);
             let header = MavHeader {
                 system_id: raw.system_id(),
@@ -1199,9 +1217,12 @@ impl MavlinkDecoder {
             match MavMessage::parse(raw.version(), raw.message_id(), raw.payload()) {
                 Ok(message) => {
                     bump(&mut self.counters.messages);
-                    on_message(&header, &message);
+                    on_frame(frame, Some((&header, &message)));
                 }
-                Err(_) => bump(&mut self.counters.parse_errors),
+                Err(_) => {
+                    bump(&mut self.counters.parse_errors);
+                    on_frame(frame, None);
+                }
             }
         }
     }
@@ -1993,6 +2014,36 @@ mod tests {
         decoder.push(&buf[..n], |_, m| got.push(m.clone()));
         assert_eq!(got.last(), Some(&messages[4]));
         assert!(decoder.counters().unframed_bytes() > 0);
+    }
+
+    #[test]
+    fn decoder_hands_out_frames_as_they_arrived() {
+        let messages = sample_messages();
+        let mut wire = std::vec![0x55, 0xFD, 0x01];
+        let mut sent = Vec::new();
+        for (i, m) in messages.iter().enumerate() {
+            let mut buf = [0u8; MAX_FRAME_LEN];
+            let n = encode_v2(&header(i as u8), m, &mut buf).unwrap();
+            wire.extend_from_slice(&buf[..n]);
+            sent.push(buf[..n].to_vec());
+        }
+        let mut decoder = MavlinkDecoder::new();
+        let mut frames = Vec::new();
+        let mut decoded = Vec::new();
+        // Odd slices, so frames straddle pushes.
+        for piece in wire.chunks(7) {
+            decoder.push_frames(piece, |raw, message| {
+                frames.push(raw.to_vec());
+                decoded.push(message.map(|(h, m)| (h.sequence, m.clone())));
+            });
+        }
+        assert_eq!(frames, sent);
+        for (i, d) in decoded.iter().enumerate() {
+            assert_eq!(d.as_ref(), Some(&(i as u8, messages[i].clone())));
+        }
+        let c = decoder.counters();
+        assert_eq!(c.framed_bytes, sent.iter().map(|f| f.len() as u64).sum::<u64>());
+        assert_eq!(c.unframed_bytes(), 3);
     }
 
     #[test]

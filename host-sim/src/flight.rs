@@ -12,16 +12,18 @@
 //!   2 Hz, so every gap longer than [`OFFBOARD_TIMEOUT_MS`] is counted;
 //! - collects the STATUSTEXTs it receives;
 //! - streams LOCAL_POSITION_NED and ATTITUDE of the simulated vehicle's true pose every
-//!   [`POSE_PERIOD_MS`] of simulated time (20 Hz), as system [`DEFAULT_SYSTEM_ID`], component
+//!   [`POSE_PERIOD_MS`] of simulated time (20 Hz), and with [`FlightEmulator::with_odometry`]
+//!   ODOMETRY as well (PX4 streams all three), as system [`DEFAULT_SYSTEM_ID`], component
 //!   [`AUTOPILOT_COMPONENT_ID`] — the autopilot the bridge listens to by default — encoded with
-//!   [`encode_v2`].
+//!   [`encode_v2`]. Velocities (and the yaw rate) are the change of the pose since the last
+//!   report, as an estimator would give them; roll and pitch are level.
 //!
 //! The emulator does not fly: the simulator moves the vehicle towards [`FlightEmulator::setpoint`]
 //! and hands the resulting pose to [`FlightEmulator::poll`].
 
 use harmonic_core::mavlink::common::{
     MavFrame, MavModeFlag, MavState, MavType, ATTITUDE_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA,
-    SET_POSITION_TARGET_LOCAL_NED_DATA,
+    ODOMETRY_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA,
 };
 use harmonic_core::mavlink::{
     encode_v2, map_to_ned, ned_to_map, DecoderCounters, MavHeader, MavMessage, MavlinkDecoder,
@@ -85,6 +87,8 @@ pub struct FlightCounters {
     pub local_positions_sent: u32,
     /// ATTITUDEs sent.
     pub attitudes_sent: u32,
+    /// ODOMETRYs sent (only [`FlightEmulator::with_odometry`]).
+    pub odometries_sent: u32,
     /// HEARTBEATs sent.
     pub heartbeats_sent: u32,
     /// Bytes sent.
@@ -101,6 +105,9 @@ pub struct FlightEmulator {
     sequence: u8,
     counters: FlightCounters,
     status_texts: Vec<String>,
+    odometry: bool,
+    /// The last reported pose (NED position, NED yaw, ms), for velocities.
+    last_report: Option<([f32; 3], f32, u64)>,
 }
 
 impl Default for FlightEmulator {
@@ -120,7 +127,16 @@ impl FlightEmulator {
             sequence: 0,
             counters: FlightCounters::default(),
             status_texts: Vec::new(),
+            odometry: false,
+            last_report: None,
         }
+    }
+
+    /// Also streams ODOMETRY (position, attitude quaternion, body-frame velocities) with every
+    /// pose report, as PX4 does.
+    pub fn with_odometry(mut self, odometry: bool) -> Self {
+        self.odometry = odometry;
+        self
     }
 
     /// The latest accepted setpoint, map frame; `None` before the first.
@@ -208,15 +224,25 @@ impl FlightEmulator {
                 _ => now_ms + POSE_PERIOD_MS,
             });
             let ([x, y, z], yaw_ned) = map_to_ned(*position, yaw);
+            // Velocities: the change since the last report (zero for the first).
+            let (velocity, yaw_rate) = match self.last_report {
+                Some((p, y0, t)) if now_ms > t => {
+                    let dt = (now_ms - t) as f32 * 1e-3;
+                    let v = [(x - p[0]) / dt, (y - p[1]) / dt, (z - p[2]) / dt];
+                    (v, harmonic_core::mavlink::wrap_angle(yaw_ned - y0) / dt)
+                }
+                _ => ([0.0; 3], 0.0),
+            };
+            self.last_report = Some(([x, y, z], yaw_ned, now_ms));
             let time_boot_ms = now_ms as u32;
             let local = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
                 time_boot_ms,
                 x,
                 y,
                 z,
-                vx: 0.0,
-                vy: 0.0,
-                vz: 0.0,
+                vx: velocity[0],
+                vy: velocity[1],
+                vz: velocity[2],
             });
             self.send(&local, out);
             self.counters.local_positions_sent += 1;
@@ -227,10 +253,32 @@ impl FlightEmulator {
                 yaw: yaw_ned,
                 rollspeed: 0.0,
                 pitchspeed: 0.0,
-                yawspeed: 0.0,
+                yawspeed: yaw_rate,
             });
             self.send(&attitude, out);
             self.counters.attitudes_sent += 1;
+            if self.odometry {
+                // Body FRD → NED is a pure yaw: q = (cos ψ/2, 0, 0, sin ψ/2). ODOMETRY's
+                // velocities are in the child (body) frame.
+                let (s, c) = (yaw_ned * 0.5).sin_cos();
+                let (sy, cy) = yaw_ned.sin_cos();
+                let odometry = MavMessage::ODOMETRY(ODOMETRY_DATA {
+                    time_usec: now_ms * 1000,
+                    x,
+                    y,
+                    z,
+                    q: [c, 0.0, 0.0, s],
+                    vx: cy * velocity[0] + sy * velocity[1],
+                    vy: -sy * velocity[0] + cy * velocity[1],
+                    vz: velocity[2],
+                    yawspeed: yaw_rate,
+                    frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
+                    child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+                    ..ODOMETRY_DATA::DEFAULT
+                });
+                self.send(&odometry, out);
+                self.counters.odometries_sent += 1;
+            }
         }
     }
 
@@ -378,5 +426,39 @@ mod tests {
         emulator.receive(800, &encode(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(good), 4));
         assert_eq!(emulator.counters().setpoint_gaps, 1);
         assert_eq!(emulator.counters().max_setpoint_gap_ms, 600);
+    }
+
+    #[test]
+    fn reports_carry_velocities_and_optional_odometry() {
+        let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
+        let mut emulator = FlightEmulator::new().with_odometry(true);
+        let mut decoder = MavlinkDecoder::new();
+        let mut local = Vec::new();
+        let mut odometry = Vec::new();
+        // Flying map +x (East) at 2 m/s, heading East.
+        for (now, x) in [(0u64, 0.0f32), (50, 0.1), (100, 0.2)] {
+            let mut bytes = Vec::new();
+            emulator.poll(now, &Point3::new(x, 0.0, 1.0), 0.0, &mut bytes);
+            decoder.push(&bytes, |h, m| {
+                bridge.handle(now, h, m).unwrap();
+                match m {
+                    MavMessage::LOCAL_POSITION_NED(d) => local.push(d.clone()),
+                    MavMessage::ODOMETRY(d) => odometry.push(d.clone()),
+                    _ => {}
+                }
+            });
+        }
+        assert_eq!(emulator.counters().odometries_sent, 3);
+        assert_eq!(bridge.counters().odometries_received, 3);
+        // NED: East is y.
+        let last = local.last().unwrap();
+        assert!((last.vy - 2.0).abs() < 1e-3 && last.vx.abs() < 1e-3, "{last:?}");
+        // Body FRD, heading East: all forward.
+        let odo = odometry.last().unwrap();
+        assert!((odo.vx - 2.0).abs() < 1e-3 && odo.vy.abs() < 1e-3, "{odo:?}");
+        let pose = bridge.pose(100).unwrap();
+        assert_eq!(pose.source, harmonic_core::mavlink::PoseSource::Odometry);
+        assert!((pose.position - Point3::new(0.2, 0.0, 1.0)).norm() < 1e-5);
+        assert!(pose.yaw.abs() < 1e-5, "{}", pose.yaw);
     }
 }

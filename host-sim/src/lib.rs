@@ -2,17 +2,26 @@
 //!
 //! The `std` host simulator around `harmonic-core`: box worlds from scenario files
 //! ([`scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`camera`]),
-//! a multirotor that flies the core's plans ([`sim`]), directly or over MAVLink through an
-//! emulated flight stack ([`flight`]), and ground-truth coverage metrics
-//! ([`metrics`]). The simulator renders and flies; every decision is the core's.
+//! a multirotor that flies the core's plans ([`sim`]), directly or over MAVLink
+//! ([`autopilot`]) through an emulated flight stack ([`flight`]) or a real autopilot over UDP,
+//! and ground-truth coverage metrics ([`metrics`]). Depth reaches the core over the depth link
+//! ([`depth_link`]): the core's wire format at a baud rate, over a transport ([`transport`]:
+//! in-process pipe, TCP, serial), through an optional fault injector ([`fault`]). MAVLink
+//! traffic can be recorded as a `.tlog` ([`tlog`]). The simulator renders and flies; every
+//! decision is the core's.
 #![warn(missing_docs)]
 
+pub mod autopilot;
 pub mod bench;
 pub mod camera;
+pub mod depth_link;
+pub mod fault;
 pub mod flight;
 pub mod metrics;
 pub mod npy;
 pub mod problem;
 pub mod scenario;
 pub mod sim;
+pub mod tlog;
+pub mod transport;
 pub mod world;

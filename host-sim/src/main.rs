@@ -3,17 +3,23 @@
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;
+use std::str::FromStr;
 
 use clap::{Parser, Subcommand};
 use harmonic_core::explore::SolverKind;
 use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
+use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::bench::{self, BenchSolver};
 use harmonic_sim::camera::StereoNoise;
+use harmonic_sim::depth_link::{LinkConfig, DEFAULT_BAUD};
+use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
 use harmonic_sim::npy;
 use harmonic_sim::problem::{self, SolverChoice};
 use harmonic_sim::scenario::{builtin_names, Scenario};
 use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::tlog;
+use harmonic_sim::transport::TransportSpec;
 use indicatif::{ProgressBar, ProgressStyle};
 
 #[derive(Parser)]
@@ -30,13 +36,71 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Fly a simulated multirotor through a world until no reachable frontier is left.
-    Explore(ExploreArgs),
+    Explore(Box<ExploreArgs>),
     /// List the built-in scenarios.
     Scenarios,
     /// Benchmark the Laplace solvers on building-like grids (the numbers in BENCHMARKS.md).
     BenchSolve(BenchSolveArgs),
     /// Solve one planning problem from a .npy label grid and print a JSON line of statistics.
     Solve(SolveArgs),
+    /// Summarise a MAVLink .tlog: messages per direction and type, with rates.
+    Tlog(TlogArgs),
+    /// Be the far end of a TCP depth link: send every byte back, as a loopback plug would.
+    LinkEcho(LinkEchoArgs),
+}
+
+#[derive(clap::Args)]
+struct LinkEchoArgs {
+    /// Listen on HOST:PORT for `explore --link tcp:HOST:PORT` (one connection, then exit).
+    #[arg(long, conflicts_with = "connect", required_unless_present = "connect")]
+    listen: Option<String>,
+    /// Connect to `explore --link tcp-listen:HOST:PORT` instead.
+    #[arg(long)]
+    connect: Option<String>,
+}
+
+fn link_echo(args: &LinkEchoArgs) -> Result<(), String> {
+    let stream = match (&args.listen, &args.connect) {
+        (Some(addr), _) => {
+            let listener = std::net::TcpListener::bind(addr).map_err(|e| format!("--listen {addr}: {e}"))?;
+            eprintln!("link-echo: listening on {addr}");
+            listener
+                .accept()
+                .map(|(s, _)| s)
+                .map_err(|e| format!("--listen {addr}: {e}"))?
+        }
+        (None, Some(addr)) => {
+            std::net::TcpStream::connect(addr).map_err(|e| format!("--connect {addr}: {e}"))?
+        }
+        (None, None) => return Err("give --listen HOST:PORT or --connect HOST:PORT".into()),
+    };
+    let bytes = harmonic_sim::transport::echo(stream).map_err(|e| format!("link-echo: {e}"))?;
+    eprintln!("link-echo: {bytes} bytes sent back");
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct TlogArgs {
+    /// The .tlog file (8-byte big-endian µs timestamp before each MAVLink frame).
+    file: PathBuf,
+    /// Component id whose messages count as sent ("out"): the companion computer's.
+    #[arg(long, default_value_t = 191)]
+    companion_component: u8,
+    /// Print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+fn summarize_tlog(args: &TlogArgs) -> Result<(), String> {
+    let bytes = std::fs::read(&args.file).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    let records = tlog::read_records(&bytes).map_err(|e| format!("{}: {e}", args.file.display()))?;
+    let summary = tlog::summarize(&records, args.companion_component);
+    if args.json {
+        println!("{}", serde_json::to_string(&summary).map_err(|e| e.to_string())?);
+    } else {
+        print!("{}", tlog::format_summary(&summary));
+    }
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -168,14 +232,81 @@ struct ExploreArgs {
     /// Write every planning step's problem (labels .npy + source) here, for `harmonic-sim solve`.
     #[arg(long)]
     dump_problem: Option<PathBuf>,
-    /// Fly over MAVLink: the core's MAVLink bridge streams setpoints to an emulated flight
-    /// stack (PX4-like, in process) and plans from the pose it reports back; report.json then
-    /// has a `mavlink` section with the link's counters.
-    #[arg(long)]
-    mavlink: bool,
+    /// Depth-link transport: `sim` (in-process pipe), `tcp:HOST:PORT` (connect),
+    /// `tcp-listen:[HOST:]PORT` (wait for the peer) or `serial:PATH[:BAUD]`. Over TCP and serial
+    /// the far end must send the bytes back (echo, loopback plug): both link ends run here.
+    #[arg(long, default_value = "sim", value_parser = TransportSpec::from_str)]
+    link: TransportSpec,
+    /// Depth-link baud rate (10 bits per byte on the wire, in simulated time).
+    #[arg(long, default_value_t = DEFAULT_BAUD, value_parser = parse_baud)]
+    link_baud: u32,
+    /// Link fault: bit error rate (probability per data bit).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    link_ber: f64,
+    /// Link fault: probability that a whole link frame (a depth chunk, pose, ...) is lost.
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    link_drop: f64,
+    /// Link fault: probability that a link frame is sent twice.
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    link_dup: f64,
+    /// Link fault: probability that a link frame is swapped with the next one.
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    link_reorder: f64,
+    /// Link fault: probability that a byte is lost (receiver overrun).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    link_byte_drop: f64,
+    /// Link fault: noise bursts, `RATE[:BYTES]`: a burst starts at a byte with probability
+    /// RATE and replaces BYTES bytes (default 32) by random ones.
+    #[arg(long, value_parser = parse_burst)]
+    link_burst: Option<(f64, u32)>,
+    /// Fly over MAVLink: `emulator` (the default when no value is given: an in-process
+    /// PX4-like flight stack), `udpin:HOST:PORT` or `udpout:HOST:PORT` (a real autopilot or
+    /// SITL; MAVProxy's address syntax). The explorer plans from the pose the autopilot reports.
+    #[arg(long, num_args = 0..=1, default_missing_value = "emulator", value_parser = MavlinkSpec::from_str)]
+    mavlink: Option<MavlinkSpec>,
+    /// The emulator also streams ODOMETRY (the bridge then prefers it).
+    #[arg(long, requires = "mavlink")]
+    odometry: bool,
+    /// Record every MAVLink frame both ways in this .tlog file (QGroundControl/MAVProxy format).
+    #[arg(long, requires = "mavlink")]
+    tlog: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
+}
+
+fn parse_baud(s: &str) -> Result<u32, String> {
+    match s.parse::<u32>() {
+        Ok(v) if v > 0 => Ok(v),
+        _ => Err(format!("expected a baud rate (a positive integer), got `{s}`")),
+    }
+}
+
+fn parse_probability(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("expected a probability between 0 and 1, got `{s}`")),
+    }
+}
+
+fn parse_burst(s: &str) -> Result<(f64, u32), String> {
+    let (rate, len) = match s.split_once(':') {
+        Some((r, l)) => (r, Some(l)),
+        None => (s, None),
+    };
+    let rate = parse_probability(rate).map_err(|e| format!("`{s}`: {e} (RATE[:BYTES])"))?;
+    let len = match len {
+        None => DEFAULT_BURST_LEN,
+        Some(l) => match l.parse::<u32>() {
+            Ok(n) if n > 0 => n,
+            _ => {
+                return Err(format!(
+                    "`{s}`: burst length `{l}` is not a positive number of bytes"
+                ))
+            }
+        },
+    };
+    Ok((rate, len))
 }
 
 fn parse_positive(s: &str) -> Result<f32, String> {
@@ -225,8 +356,10 @@ fn main() -> ExitCode {
             }
             Ok(())
         }
-        Command::Explore(args) => explore(args),
+        Command::Explore(args) => explore(*args),
         Command::Solve(args) => solve_problem(&args),
+        Command::Tlog(args) => summarize_tlog(&args),
+        Command::LinkEcho(args) => link_echo(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -260,7 +393,26 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     cfg.max_yaw_rate = args.max_yaw_rate.to_radians();
     cfg.max_scans = args.max_scans;
     cfg.dump_problem = args.dump_problem.clone();
-    cfg.mavlink = args.mavlink;
+    let (burst_rate, burst_len) = args.link_burst.unwrap_or((0.0, DEFAULT_BURST_LEN));
+    cfg.link = LinkConfig {
+        transport: args.link.clone(),
+        baud: args.link_baud,
+        faults: FaultConfig {
+            bit_error_rate: args.link_ber,
+            byte_drop: args.link_byte_drop,
+            frame_drop: args.link_drop,
+            frame_duplicate: args.link_dup,
+            frame_reorder: args.link_reorder,
+            burst_rate,
+            burst_len,
+        },
+    };
+    cfg.mavlink = args.mavlink.clone().map(|spec| MavlinkConfig {
+        spec,
+        odometry: args.odometry,
+        tlog: args.tlog.clone(),
+        ..MavlinkConfig::default()
+    });
     std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
 
     // On a terminal: a live status line. Elsewhere (CI logs, pipes): a plain line every 25 steps.
@@ -274,17 +426,25 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {msg}")
             .unwrap_or_else(|_| ProgressStyle::default_spinner()),
     );
+    let mut scans = 0u32;
     let report = sim::run(&scenario, &cfg, |s| {
+        scans += s.frames_integrated;
+        // Steps whose frame was lost on the link are counted apart from scans.
+        let lost = if s.step > scans {
+            format!(" ({} steps)", s.step)
+        } else {
+            String::new()
+        };
         let line = format!(
-            "scans {:>4}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  {}",
-            s.step,
+            "scans {:>4}{lost}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  {}",
+            scans,
             s.coverage_free * 100.0,
             s.frontier,
             s.path_length_m,
-            if s.outcome == "kept" {
-                "goal kept".to_string()
-            } else {
-                format!("solve {:>7.1} ms", s.solve_ms)
+            match s.outcome.as_str() {
+                "kept" => "goal kept".to_string(),
+                "no_frame" => "no frame".to_string(),
+                _ => format!("solve {:>7.1} ms", s.solve_ms),
             }
         );
         if !args.quiet && !tty && s.step % 25 == 0 {
@@ -403,28 +563,74 @@ fn print_summary(r: &Report) {
         ("wall time", format!("{:.1} s", r.wall_time_s)),
     ];
     let mut rows = rows.to_vec();
+    let l = &r.link;
+    rows.push((
+        "depth link",
+        format!(
+            "{} at {} baud: {} frames sent, {} integrated, {} lost; {:.0} ms per frame (max {:.0})",
+            l.transport,
+            l.baud,
+            l.depth_frames_sent,
+            l.depth_frames_integrated,
+            l.depth_frames_lost,
+            l.transfer.mean_ms,
+            l.transfer.max_ms
+        ),
+    ));
+    let c = &l.receiver;
+    rows.push((
+        "link errors",
+        format!(
+            "crc {}, cobs {}, oversize {}, malformed {}, seq gaps {}, out-of-order {}, missing chunks {}, no pose {}",
+            c.crc_errors,
+            c.cobs_errors,
+            c.oversize,
+            c.malformed,
+            c.sequence_gaps,
+            c.out_of_order_chunks,
+            c.missing_chunks,
+            l.frames_without_pose
+        ),
+    ));
+    if let Some(f) = &l.injected {
+        rows.push((
+            "link faults",
+            format!(
+                "{} frames dropped, {} duplicated, {} reordered; {} bits flipped, {} bytes dropped, {} bursts",
+                f.frames_dropped, f.frames_duplicated, f.frames_reordered, f.bits_flipped, f.bytes_dropped, f.bursts
+            ),
+        ));
+    }
     if let Some(m) = &r.mavlink {
+        let t = &m.traffic;
+        rows.push((
+            "mavlink",
+            format!(
+                "{}: {} messages out, {} in; setpoints {:.1} Hz, max gap {} ms",
+                m.endpoint, t.messages_sent, t.messages_received, t.setpoint_rate_hz, t.max_setpoint_gap_ms
+            ),
+        ));
         rows.push((
             "mavlink out",
             format!(
-                "{} setpoints, {} heartbeats, {} statustexts; max setpoint gap {} ms ({} > 500 ms)",
-                m.bridge.setpoints_sent,
-                m.bridge.heartbeats_sent,
-                m.bridge.status_texts_sent,
-                m.emulator.max_setpoint_gap_ms,
-                m.emulator.setpoint_gaps
+                "{} setpoints, {} heartbeats, {} statustexts",
+                m.bridge.setpoints_sent, m.bridge.heartbeats_sent, m.bridge.status_texts_sent,
             ),
         ));
         rows.push((
             "mavlink in",
             format!(
-                "{} local positions, {} attitudes; {} rejected, {} stale events",
+                "{} local positions, {} attitudes, {} odometries; {} rejected, {} stale events",
                 m.bridge.local_positions_received,
                 m.bridge.attitudes_received,
+                m.bridge.odometries_received,
                 m.bridge.rejected(),
                 m.bridge.stale_events
             ),
         ));
+        if let Some(t) = &m.tlog {
+            rows.push(("tlog", format!("{} ({} records)", t.path, t.records)));
+        }
     }
     println!();
     for (k, v) in rows {

@@ -1,50 +1,66 @@
-//! The closed loop: render a depth frame, hand it to the core, fly the core's plan, repeat.
+//! The closed loop: render a depth frame, send it over the depth link, let the core integrate
+//! it and plan, fly the plan, repeat.
 //!
 //! The simulator never plans for the core. Each step it
 //!
-//! 1. renders the depth camera at the vehicle's true pose and passes the frame and camera pose to
-//!    [`Explorer::integrate`];
-//! 2. asks [`Explorer::plan`] where to go;
-//! 3. flies the returned waypoints with simple multirotor kinematics (speed and yaw-rate
-//!    limits, fixed time step), for at most `replan_distance` metres (receding horizon) or the
-//!    whole path with `follow_full_path`, turning to the goal yaw on arrival;
-//! 4. checks the vehicle's body sphere against the true world at every time step and counts
+//! 1. renders the depth camera at the vehicle's true pose and sends the frame, stamped with the
+//!    pose the core believes, over the depth link ([`crate::depth_link`]: the link's wire
+//!    format at its baud rate, through the configured transport and fault injector);
+//! 2. keeps time running while the frame is on the wire (about 0.22 s at 921600 baud): the
+//!    vehicle hovers, and over MAVLink the bridge keeps streaming its setpoint;
+//! 3. hands every image that arrived whole to [`Explorer::integrate`] and asks
+//!    [`Explorer::plan`] where to go — unless nothing arrived: then nothing changed for the
+//!    planner, the vehicle holds, and the next step captures again;
+//! 4. flies the returned waypoints with simple multirotor kinematics (speed and yaw-rate limits,
+//!    fixed time step), for at most `replan_distance` metres (receding horizon) or the whole
+//!    path with `follow_full_path`, turning to the goal yaw on arrival;
+//! 5. checks the vehicle's body sphere against the true world at every time step and counts
 //!    collisions.
 //!
-//! It stops when the core reports `Complete`, after three consecutive `Hold`s (the fault is the
-//! termination reason), or at the scan limit.
+//! It stops when the core reports `Complete`, after three consecutive `Hold`s on fresh data
+//! (the fault is the termination reason), after [`LINK_DEAD_STEPS`] steps in a row without a
+//! frame (`stuck:link`), or at the scan limit.
 //!
-//! With [`SimConfig::mavlink`] the vehicle is not handed the waypoints. The core's
-//! [`Bridge`] streams them as MAVLink setpoints (the next waypoint along the plan, advancing
-//! within 0.1 m) over an in-process byte pipe to a [`FlightEmulator`]; the vehicle flies
-//! towards the emulator's current setpoint, and the emulator streams the vehicle's pose back
-//! over a second pipe into the bridge. The explorer plans from, and the depth frames are
-//! stamped with, the pose the bridge reports — not the simulator's ground truth. The link's
-//! counters end up in [`Report::mavlink`].
+//! With [`SimConfig::mavlink`] the vehicle is not handed the waypoints. The core's `Bridge`
+//! streams them as MAVLink setpoints (the next waypoint along the plan, advancing within
+//! [`WAYPOINT_ADVANCE_M`]) to the autopilot ([`crate::autopilot`]): the in-process flight-stack
+//! emulator, which the vehicle follows, or a real autopilot over UDP, which flies the vehicle
+//! itself (time is then the wall clock, and the vehicle is wherever the autopilot says). The
+//! explorer plans from, and the depth frames are stamped with, the pose the bridge reports —
+//! not the simulator's ground truth.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-use harmonic_core::camera::{DepthFrame, Intrinsics};
+use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{
     forward_camera_pose, Clock, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
     SolverKind,
 };
-use harmonic_core::link::{self, DepthReceiver, LinkCounters, LinkEncoder, LinkEvent};
 use harmonic_core::map::{Dims, MapGeometry};
-use harmonic_core::mavlink::{
-    encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavlinkDecoder, MAX_FRAME_LEN,
-};
 use harmonic_core::solve::multigrid;
-use nalgebra::{Isometry3, Point3};
+use nalgebra::Point3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
+use crate::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::camera::DepthCamera;
-use crate::flight::{FlightCounters, FlightEmulator};
+use crate::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::metrics::{Coverage, GroundTruth};
 use crate::scenario::Scenario;
+use crate::world::World;
+
+/// Steps in a row without a depth frame after which the run gives up (`stuck:link`).
+pub const LINK_DEAD_STEPS: u32 = 100;
+/// How close (metres) the believed position must come to a waypoint before the next one is
+/// streamed.
+pub const WAYPOINT_ADVANCE_M: f32 = 0.1;
+/// Against a remote autopilot: how long to wait for a fresh pose before giving up, s.
+pub const REMOTE_POSE_TIMEOUT_S: f64 = 15.0;
+/// Against a remote autopilot: a leg in which the vehicle makes no progress for this long
+/// (not armed, not in offboard mode) ends, s.
+pub const REMOTE_STALL_S: f64 = 20.0;
 
 /// Simulation settings.
 #[derive(Debug, Clone)]
@@ -65,16 +81,18 @@ pub struct SimConfig {
     pub replan_distance: f32,
     /// Fly every streamline to its end before scanning again (the paper's mode).
     pub follow_full_path: bool,
-    /// Stop after this many scans.
+    /// Stop after this many steps (captures).
     pub max_scans: u32,
-    /// Seed for sensor noise.
+    /// Seed for sensor noise and link faults.
     pub seed: u64,
     /// Write each full replan's problem (`step_NNNN.npy` labels and `step_NNNN.json` with the
     /// source voxel and the command that re-solves it) into this directory.
     pub dump_problem: Option<std::path::PathBuf>,
-    /// Fly over MAVLink: setpoints from the core's bridge to an emulated flight stack, the
-    /// pose back from it (see the [module documentation](self)). Default false.
-    pub mavlink: bool,
+    /// The depth link: transport, baud rate, faults.
+    pub link: LinkConfig,
+    /// Fly over MAVLink (see the [module documentation](self)); `None`: the vehicle flies the
+    /// waypoints directly.
+    pub mavlink: Option<MavlinkConfig>,
 }
 
 impl Default for SimConfig {
@@ -91,23 +109,27 @@ impl Default for SimConfig {
             max_scans: 3000,
             seed: 1,
             dump_problem: None,
-            mavlink: false,
+            link: LinkConfig::default(),
+            mavlink: None,
         }
     }
 }
 
-/// One scan-and-plan step.
+/// One capture-and-plan step.
 #[derive(Debug, Clone, Serialize)]
 pub struct StepRecord {
-    /// Step number (= scans so far).
+    /// Step number (= captures so far).
     pub step: u32,
-    /// Vehicle position at the scan, map frame.
+    /// Vehicle position the plan started from, map frame.
     pub position: [f32; 3],
-    /// Vehicle yaw at the scan, radians.
+    /// Vehicle yaw at the plan, radians.
     pub yaw: f32,
     /// "goal" (a new plan), "kept" (the committed goal still stands; nothing was solved),
-    /// "escape", "complete" or "hold:FAULT".
+    /// "escape", "complete", "hold:FAULT", or "no_frame" (no depth frame arrived whole; no
+    /// plan).
     pub outcome: String,
+    /// Depth frames integrated before this step's plan.
+    pub frames_integrated: u32,
     /// Frontier voxels in the vehicle's component.
     pub frontier: u32,
     /// Interior unknowns solved for.
@@ -181,7 +203,7 @@ pub struct Report {
     pub planner: String,
     /// Solver name.
     pub solver: String,
-    /// "complete", "scan_limit" or "stuck:FAULT".
+    /// "complete", "scan_limit", "stuck:FAULT" or "stuck:link".
     pub termination: String,
     /// Free-space coverage at the end.
     pub coverage_free: f64,
@@ -193,6 +215,8 @@ pub struct Report {
     pub path_length_m: f64,
     /// Depth frames integrated.
     pub scans: u32,
+    /// Steps (captures), with or without a frame arriving.
+    pub steps_taken: u32,
     /// Collision events (body sphere entering an obstacle).
     pub collisions: u32,
     /// Where each collision began, map frame.
@@ -201,7 +225,8 @@ pub struct Report {
     pub integration_ops: u64,
     /// Solver cell updates.
     pub planning_ops: u64,
-    /// Simulated flight time, s.
+    /// Simulated time of the run, flight and waiting for the link, s (wall-clock time against
+    /// a remote autopilot).
     pub flight_time_s: f64,
     /// Wall-clock time of the run, s.
     pub wall_time_s: f64,
@@ -217,30 +242,17 @@ pub struct Report {
     pub timing: Timing,
     /// Fault counters.
     pub errors: ErrorCounters,
-    /// Depth-link counters (frames decoded, errors by kind).
-    pub link: LinkCounters,
-    /// MAVLink counters; `None` unless the run flew over MAVLink ([`SimConfig::mavlink`]).
+    /// The depth link: frames sent, integrated and lost, the receiver's error counters,
+    /// injected faults, bytes, transfer time.
+    pub link: LinkReport,
+    /// MAVLink: messages each way by type, setpoint rate and gaps, the bridge's and emulator's
+    /// counters; `None` unless the run flew over MAVLink ([`SimConfig::mavlink`]).
     pub mavlink: Option<MavlinkReport>,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
 }
 
-/// What went over the MAVLink link of a [`SimConfig::mavlink`] run.
-#[derive(Debug, Clone, Serialize)]
-pub struct MavlinkReport {
-    /// The core's bridge: messages sent and received, faults, stale-pose events.
-    pub bridge: BridgeCounters,
-    /// The bridge's decoder of the emulator's bytes.
-    pub bridge_decoder: DecoderCounters,
-    /// The flight-stack emulator: setpoints taken and rejected, setpoint gaps, poses sent.
-    pub emulator: FlightCounters,
-    /// The emulator's decoder of the bridge's bytes.
-    pub emulator_decoder: DecoderCounters,
-    /// STATUSTEXTs the emulator received, in order.
-    pub status_texts: Vec<String>,
-}
-
-/// Errors that stop a run before it starts.
+/// Errors that stop a run.
 #[derive(Debug)]
 pub enum SimError {
     /// The scenario's grid does not fit the core's limits.
@@ -249,6 +261,10 @@ pub enum SimError {
     Config(String),
     /// A problem dump could not be written.
     Dump(String),
+    /// The depth link could not be opened or failed.
+    Link(String),
+    /// The MAVLink link could not be opened or failed.
+    Mavlink(String),
 }
 
 impl std::fmt::Display for SimError {
@@ -257,6 +273,8 @@ impl std::fmt::Display for SimError {
             SimError::Grid(s) => write!(f, "grid: {s}"),
             SimError::Config(s) => write!(f, "explorer configuration: {s}"),
             SimError::Dump(s) => write!(f, "--dump-problem: {s}"),
+            SimError::Link(s) => write!(f, "depth link: {s}"),
+            SimError::Mavlink(s) => write!(f, "mavlink: {s}"),
         }
     }
 }
@@ -339,14 +357,6 @@ pub struct Vehicle {
     pub yaw: f32,
 }
 
-/// What one flight leg did.
-#[derive(Debug, Clone, Default)]
-struct Leg {
-    distance: f64,
-    time: f64,
-    collisions: Vec<[f32; 3]>,
-}
-
 fn wrap_angle(a: f32) -> f32 {
     let mut a = a % std::f32::consts::TAU;
     if a > std::f32::consts::PI {
@@ -355,6 +365,10 @@ fn wrap_angle(a: f32) -> f32 {
         a += std::f32::consts::TAU;
     }
     a
+}
+
+fn to_ms(time_s: f64) -> u64 {
+    (time_s * 1e3).round().max(0.0) as u64
 }
 
 impl Vehicle {
@@ -380,71 +394,6 @@ impl Vehicle {
         self.position += seg * (s / dist);
         s
     }
-
-    /// Flies along `waypoints` for at most `budget` metres, then (if the end was reached) turns
-    /// to the goal yaw.
-    fn fly(
-        &mut self,
-        waypoints: &[Point3<f32>],
-        goal: &Goal,
-        budget: f32,
-        cfg: &SimConfig,
-        world: &crate::world::World,
-    ) -> Leg {
-        let mut leg = Leg::default();
-        let step_len = cfg.max_speed * cfg.dt;
-        let yaw_step = cfg.max_yaw_rate * cfg.dt;
-        let mut watch = CollisionWatch::start(world, &self.position, cfg.body_radius);
-        let mut travelled = 0.0f32;
-        for w in waypoints.iter() {
-            loop {
-                let seg = w - self.position;
-                let dist = seg.norm();
-                if dist < 1e-5 {
-                    break;
-                }
-                if travelled >= budget {
-                    return leg;
-                }
-                if let Some(h) = travel_heading(&seg) {
-                    self.slew_yaw(h, yaw_step);
-                }
-                let s = self.step_towards(w, step_len.min(budget - travelled));
-                travelled += s;
-                leg.distance += f64::from(s);
-                leg.time += f64::from(cfg.dt);
-                watch.check(world, &self.position, cfg.body_radius, &mut leg);
-            }
-        }
-        // Arrived: look where the planner asked.
-        for _ in 0..1000 {
-            if self.slew_yaw(goal.yaw, yaw_step) {
-                break;
-            }
-            leg.time += f64::from(cfg.dt);
-        }
-        leg
-    }
-}
-
-/// Counts collision events: the body sphere *entering* an obstacle, not every step inside it.
-struct CollisionWatch {
-    colliding: bool,
-}
-
-impl CollisionWatch {
-    fn start(world: &crate::world::World, p: &Point3<f32>, radius: f32) -> Self {
-        Self {
-            colliding: world.sphere_collides(p, radius),
-        }
-    }
-    fn check(&mut self, world: &crate::world::World, p: &Point3<f32>, radius: f32, leg: &mut Leg) {
-        let now = world.sphere_collides(p, radius);
-        if now && !self.colliding {
-            leg.collisions.push(p.coords.into());
-        }
-        self.colliding = now;
-    }
 }
 
 /// Heading of travel along `seg`, unless it is mostly vertical (then the yaw is kept).
@@ -453,121 +402,253 @@ fn travel_heading(seg: &nalgebra::Vector3<f32>) -> Option<f32> {
     (horizontal > 0.2 * seg.norm()).then(|| seg.y.atan2(seg.x))
 }
 
-/// The MAVLink link of a [`SimConfig::mavlink`] run: the core's bridge on the companion side,
-/// the flight-stack emulator on the autopilot side, and a byte pipe each way.
-struct MavlinkLink {
-    bridge: Bridge,
-    decoder: MavlinkDecoder,
-    emulator: FlightEmulator,
-    /// Companion → autopilot bytes.
-    down: Vec<u8>,
-    /// Autopilot → companion bytes.
-    up: Vec<u8>,
+/// The vehicle's track over the run: distance flown and collision events (the body sphere
+/// *entering* an obstacle, not every step inside it).
+struct Track {
+    distance: f64,
+    collisions: Vec<[f32; 3]>,
+    colliding: bool,
 }
 
-/// How close (metres) the estimated position must come to a waypoint before the next one is
-/// streamed.
-const WAYPOINT_ADVANCE_M: f32 = 0.1;
+impl Track {
+    fn start(world: &World, p: &Point3<f32>, radius: f32) -> Self {
+        Self {
+            distance: 0.0,
+            collisions: Vec::new(),
+            colliding: world.sphere_collides(p, radius),
+        }
+    }
 
-impl MavlinkLink {
-    fn new() -> Result<Self, SimError> {
-        let bridge = Bridge::new(BridgeConfig::default())
-            .map_err(|e| SimError::Config(format!("mavlink bridge: {e:?}")))?;
-        Ok(Self {
-            bridge,
-            decoder: MavlinkDecoder::new(),
-            emulator: FlightEmulator::new(),
-            down: Vec::new(),
-            up: Vec::new(),
+    fn moved(&mut self, world: &World, p: &Point3<f32>, radius: f32, distance: f32) {
+        self.distance += f64::from(distance);
+        let now = world.sphere_collides(p, radius);
+        if now && !self.colliding {
+            self.collisions.push(p.coords.into());
+        }
+        self.colliding = now;
+    }
+}
+
+/// What the flight helpers read: the settings and the true world.
+struct Scene<'a> {
+    cfg: &'a SimConfig,
+    world: &'a World,
+}
+
+/// What moves with time: the depth link, and the MAVLink link if the run flies over it.
+struct Rig<'b> {
+    link: DepthLink<'b>,
+    mav: Option<MavlinkLink>,
+    /// Time since the start of the run, s: simulated, or the wall clock against a remote
+    /// autopilot.
+    t_s: f64,
+    dt: f64,
+    /// Against a remote autopilot: the wall-clock start.
+    wall: Option<Instant>,
+}
+
+impl Rig<'_> {
+    fn now_ms(&self) -> u64 {
+        to_ms(self.t_s)
+    }
+
+    /// One time step: against a remote autopilot, sleeps until the wall clock has caught up
+    /// (or jumps to it, if planning took longer); then the depth link moves its bytes.
+    fn advance(&mut self) -> Result<(), SimError> {
+        self.t_s += self.dt;
+        if let Some(start) = self.wall {
+            let target = Duration::from_secs_f64(self.t_s);
+            let elapsed = start.elapsed();
+            if elapsed < target {
+                std::thread::sleep(target - elapsed);
+            } else {
+                self.t_s = elapsed.as_secs_f64();
+            }
+        }
+        self.link.tick(self.t_s).map_err(SimError::Link)
+    }
+
+    /// Autopilot → bridge at the current time: the emulator reports the vehicle (when due),
+    /// or what a remote autopilot sent is read.
+    fn pull(&mut self, vehicle: &Vehicle) -> Result<(), SimError> {
+        let now = self.now_ms();
+        match self.mav.as_mut() {
+            Some(mav) => mav
+                .pull(now, &vehicle.position, vehicle.yaw)
+                .map_err(SimError::Mavlink),
+            None => Ok(()),
+        }
+    }
+
+    /// Bridge → autopilot at the current time, then the vehicle follows the autopilot:
+    /// towards the emulator's setpoint by at most `max_step` metres, or to where the remote
+    /// autopilot says it is. Returns the distance moved. Without MAVLink, nothing.
+    fn push_and_follow(
+        &mut self,
+        vehicle: &mut Vehicle,
+        max_step: f32,
+        yaw_step: f32,
+    ) -> Result<f32, SimError> {
+        let now = self.now_ms();
+        let Some(mav) = self.mav.as_mut() else {
+            return Ok(0.0);
+        };
+        mav.push(now).map_err(SimError::Mavlink)?;
+        if mav.is_remote() {
+            return Ok(match mav.pose(now) {
+                Ok((position, yaw)) => {
+                    let moved = (position - vehicle.position).norm();
+                    vehicle.position = position;
+                    vehicle.yaw = yaw;
+                    moved
+                }
+                // Stale: the bridge holds; the vehicle stays where it was last seen.
+                Err(_) => 0.0,
+            });
+        }
+        Ok(match mav.emulator_setpoint() {
+            Some(setpoint) => {
+                let s = vehicle.step_towards(&setpoint.position, max_step);
+                vehicle.slew_yaw(setpoint.yaw, yaw_step);
+                s
+            }
+            None => 0.0,
         })
     }
 
-    /// Autopilot side: the emulator reports the vehicle's true pose (when due) and the bridge
-    /// takes in those bytes.
-    fn report_pose(&mut self, now_ms: u64, vehicle: &Vehicle) {
-        self.emulator
-            .poll(now_ms, &vehicle.position, vehicle.yaw, &mut self.up);
-        let bridge = &mut self.bridge;
-        self.decoder.push(&self.up, |header, message| {
-            let _ = bridge.handle(now_ms, header, message);
-        });
-        self.up.clear();
+    /// One MAVLink exchange both ways; see [`Rig::push_and_follow`].
+    fn exchange(&mut self, vehicle: &mut Vehicle, max_step: f32, yaw_step: f32) -> Result<f32, SimError> {
+        self.pull(vehicle)?;
+        self.push_and_follow(vehicle, max_step, yaw_step)
     }
 
-    /// Companion side: the bridge emits what is due and the emulator takes in those bytes.
-    fn stream(&mut self, now_ms: u64) {
-        let down = &mut self.down;
-        self.bridge.poll(now_ms, |header, message| {
-            let mut frame = [0u8; MAX_FRAME_LEN];
-            if let Ok(n) = encode_v2(header, message, &mut frame) {
-                down.extend_from_slice(frame.get(..n).unwrap_or(&[]));
+    /// The pose the core believes: the truth without MAVLink, else the bridge's. Against a
+    /// remote autopilot whose pose is stale, waits (streaming) for a fresh one, at most
+    /// [`REMOTE_POSE_TIMEOUT_S`].
+    fn believed_pose(
+        &mut self,
+        vehicle: &mut Vehicle,
+        scene: &Scene<'_>,
+        track: &mut Track,
+    ) -> Result<(Point3<f32>, f32), SimError> {
+        let start = self.t_s;
+        loop {
+            let now = self.now_ms();
+            let Some(mav) = self.mav.as_ref() else {
+                return Ok((vehicle.position, vehicle.yaw));
+            };
+            match mav.pose(now) {
+                Ok(pose) => return Ok(pose),
+                Err(e) if !mav.is_remote() || self.t_s - start > REMOTE_POSE_TIMEOUT_S => {
+                    return Err(SimError::Mavlink(e))
+                }
+                Err(_) => {
+                    let moved = self.exchange(vehicle, 0.0, 0.0)?;
+                    track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+                    self.advance()?;
+                    if self.wall.is_some() {
+                        crate::autopilot::nap();
+                    }
+                }
             }
-        });
-        self.emulator.receive(now_ms, &self.down);
-        self.down.clear();
-    }
-
-    /// One exchange both ways at `now_ms`.
-    fn tick(&mut self, now_ms: u64, vehicle: &Vehicle) {
-        self.report_pose(now_ms, vehicle);
-        self.stream(now_ms);
-    }
-
-    /// The bridge's pose of the vehicle (map frame).
-    fn pose(&self, now_ms: u64) -> Result<(Point3<f32>, f32), SimError> {
-        self.bridge
-            .pose(now_ms)
-            .map(|p| (p.position, p.yaw))
-            .map_err(|e| SimError::Config(format!("mavlink pose at {now_ms} ms: {e:?}")))
-    }
-
-    fn report(&self) -> MavlinkReport {
-        MavlinkReport {
-            bridge: *self.bridge.counters(),
-            bridge_decoder: *self.decoder.counters(),
-            emulator: *self.emulator.counters(),
-            emulator_decoder: *self.emulator.decoder_counters(),
-            status_texts: self.emulator.status_texts().to_vec(),
         }
     }
-}
 
-fn to_ms(time_s: f64) -> u64 {
-    (time_s * 1e3).round() as u64
-}
-
-impl Vehicle {
-    /// Flies one leg over MAVLink, starting at simulated time `start_s`: streams the next
-    /// waypoint along `waypoints` as the setpoint (advancing when the bridge's pose is within
-    /// [`WAYPOINT_ADVANCE_M`] of it), moves towards the emulator's setpoint at most `budget`
-    /// metres, and on reaching the end turns to the goal yaw.
-    #[allow(clippy::too_many_arguments)]
-    fn fly_mavlink(
+    /// Waits while the depth link is sending, the vehicle following the autopilot's setpoint
+    /// (or hovering, without MAVLink); then lets an outside wire deliver its last bytes.
+    fn wait_for_link(
         &mut self,
+        vehicle: &mut Vehicle,
+        scene: &Scene<'_>,
+        track: &mut Track,
+    ) -> Result<(), SimError> {
+        let step = scene.cfg.max_speed * scene.cfg.dt;
+        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
+        while self.link.sending() {
+            let moved = self.exchange(vehicle, step, yaw_step)?;
+            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+            self.advance()?;
+        }
+        self.link.settle().map_err(SimError::Link)
+    }
+
+    /// Flies along `waypoints` directly (no MAVLink) for at most `budget` metres, then, if the
+    /// end was reached, turns to the goal yaw.
+    fn fly_direct(
+        &mut self,
+        vehicle: &mut Vehicle,
         waypoints: &[Point3<f32>],
         goal: &Goal,
         budget: f32,
-        cfg: &SimConfig,
-        world: &crate::world::World,
-        link: &mut MavlinkLink,
-        start_s: f64,
-    ) -> Result<Leg, SimError> {
-        let mut leg = Leg::default();
-        let step_len = cfg.max_speed * cfg.dt;
-        let yaw_step = cfg.max_yaw_rate * cfg.dt;
-        let mut watch = CollisionWatch::start(world, &self.position, cfg.body_radius);
+        scene: &Scene<'_>,
+        track: &mut Track,
+    ) -> Result<(), SimError> {
+        let step_len = scene.cfg.max_speed * scene.cfg.dt;
+        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
+        let mut travelled = 0.0f32;
+        for w in waypoints {
+            loop {
+                let seg = w - vehicle.position;
+                if seg.norm() < 1e-5 {
+                    break;
+                }
+                if travelled >= budget {
+                    return Ok(());
+                }
+                if let Some(h) = travel_heading(&seg) {
+                    vehicle.slew_yaw(h, yaw_step);
+                }
+                let s = vehicle.step_towards(w, step_len.min(budget - travelled));
+                travelled += s;
+                track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, s);
+                self.advance()?;
+            }
+        }
+        // Arrived: look where the planner asked.
+        for _ in 0..1000 {
+            if vehicle.slew_yaw(goal.yaw, yaw_step) {
+                break;
+            }
+            self.advance()?;
+        }
+        Ok(())
+    }
+
+    /// Flies one leg over MAVLink: streams the next waypoint along `waypoints` as the setpoint
+    /// (advancing when the bridge's pose is within [`WAYPOINT_ADVANCE_M`] of it), lets the
+    /// vehicle follow the autopilot for at most `budget` metres, and on reaching the end turns
+    /// to the goal yaw. At the end of the budget the setpoint becomes the believed position.
+    fn fly_mavlink(
+        &mut self,
+        vehicle: &mut Vehicle,
+        waypoints: &[Point3<f32>],
+        goal: &Goal,
+        budget: f32,
+        scene: &Scene<'_>,
+        track: &mut Track,
+    ) -> Result<(), SimError> {
+        let step_len = scene.cfg.max_speed * scene.cfg.dt;
+        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
         let mut travelled = 0.0f32;
         let mut next = 0usize;
         // Yaw of the current setpoint: along the segment towards the waypoint, as fixed when
         // the waypoint was taken (so the setpoint does not change every tick).
         let mut heading: Option<(usize, f32)> = None;
         let mut turning = false;
+        let mut last_progress = (self.t_s, 0.0f32);
         // Generous: a leg is a few metres at most in receding-horizon mode.
-        let max_ticks = 200_000usize;
-        for _ in 0..max_ticks {
-            let now = to_ms(start_s + leg.time);
-            link.report_pose(now, self);
-            let (position, yaw) = link.pose(now)?;
+        for _ in 0..200_000usize {
+            self.pull(vehicle)?;
+            let now = self.now_ms();
+            let Some(mav) = self.mav.as_mut() else {
+                return Ok(());
+            };
+            let (position, yaw) = match mav.pose(now) {
+                Ok(pose) => pose,
+                Err(e) if !mav.is_remote() => return Err(SimError::Mavlink(e)),
+                // A remote pose gone stale: the bridge holds; keep exchanging until it is back.
+                Err(_) => (vehicle.position, vehicle.yaw),
+            };
             while next + 1 < waypoints.len()
                 && waypoints
                     .get(next)
@@ -580,11 +661,11 @@ impl Vehicle {
             if next + 1 >= waypoints.len() && (target - position).norm() < 1e-3 {
                 turning = true;
             }
-            if !turning && travelled >= budget {
+            let stalled = self.wall.is_some() && self.t_s - last_progress.0 > REMOTE_STALL_S;
+            if (!turning && travelled >= budget) || stalled {
                 // End of the receding horizon: stop where the vehicle is.
-                let _ = link.bridge.set_target(position, yaw);
-                link.stream(now);
-                return Ok(leg);
+                let _ = mav.bridge.set_target(position, yaw);
+                return Ok(());
             }
             let target_yaw = if turning {
                 goal.yaw
@@ -599,24 +680,19 @@ impl Vehicle {
                 }
             };
             if turning && wrap_angle(goal.yaw - yaw).abs() < 1e-3 {
-                break;
+                return Ok(());
             }
-            let _ = link.bridge.set_target(target, target_yaw);
-            link.stream(now);
-
-            // The flight stack flies its setpoint.
-            let Some(setpoint) = link.emulator.setpoint() else {
-                leg.time += f64::from(cfg.dt);
-                continue;
-            };
-            let s = self.step_towards(&setpoint.position, step_len.min(budget - travelled));
-            travelled += s;
-            leg.distance += f64::from(s);
-            self.slew_yaw(setpoint.yaw, yaw_step);
-            leg.time += f64::from(cfg.dt);
-            watch.check(world, &self.position, cfg.body_radius, &mut leg);
+            let _ = mav.bridge.set_target(target, target_yaw);
+            let moved =
+                self.push_and_follow(vehicle, step_len.min((budget - travelled).max(0.0)), yaw_step)?;
+            travelled += moved;
+            if travelled > last_progress.1 + 0.01 {
+                last_progress = (self.t_s, travelled);
+            }
+            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+            self.advance()?;
         }
-        Ok(leg)
+        Ok(())
     }
 }
 
@@ -653,84 +729,6 @@ fn dump_problem(
     Ok(())
 }
 
-/// Decoder capacity of the simulated receiver: room for a chunk of [`LINK_ROWS_PER_CHUNK`] rows
-/// of an image up to 400 px wide.
-const LINK_DECODER_BYTES: usize = 8192;
-/// Rows per depth chunk (a 100 px frame then costs 20261 bytes, 0.22 s at 921600 baud).
-const LINK_ROWS_PER_CHUNK: u16 = 10;
-
-/// The depth link as the simulator runs it: the camera-side encoder writes every frame and its
-/// pose into an in-process byte pipe, and the core-side [`DepthReceiver`] decodes it, exactly
-/// as bytes from a UART would be. A frame reaches the explorer only if it survives the wire.
-struct DepthLink<'b> {
-    encoder: LinkEncoder,
-    receiver: DepthReceiver<'b, LINK_DECODER_BYTES>,
-    rows_per_chunk: u16,
-    scratch: Vec<u8>,
-    pipe: Vec<u8>,
-    pose_missing: u32,
-}
-
-impl<'b> DepthLink<'b> {
-    fn new(intrinsics: &Intrinsics, buffer: &'b mut [u16]) -> Self {
-        let width = intrinsics.width();
-        // The largest chunk height whose frame fits the decoder.
-        let rows = (1..=LINK_ROWS_PER_CHUNK)
-            .rev()
-            .find(|&r| link::max_depth_chunk_len(width, r) <= LINK_DECODER_BYTES)
-            .unwrap_or(1);
-        Self {
-            encoder: LinkEncoder::new(),
-            receiver: DepthReceiver::new(buffer),
-            rows_per_chunk: rows,
-            scratch: vec![0; link::max_depth_chunk_len(width, rows).max(link::max_encoded_len(64))],
-            pipe: Vec::new(),
-            pose_missing: 0,
-        }
-    }
-
-    /// Camera side: encodes the frame's pose and the frame into the pipe.
-    fn send(&mut self, frame_id: u32, frame: &DepthFrame<'_>, pose: &Isometry3<f32>) -> Result<(), SimError> {
-        let wire = |e: link::LinkError| SimError::Config(format!("depth link encoder: {e:?}"));
-        let pose = link::Pose::from_isometry(frame_id, pose)
-            .map_err(|e| SimError::Config(format!("camera pose: {e:?}")))?;
-        let n = self
-            .encoder
-            .encode(&link::Message::Pose(pose), &mut self.scratch)
-            .map_err(wire)?;
-        self.pipe.extend_from_slice(self.scratch.get(..n).unwrap_or(&[]));
-        let pipe = &mut self.pipe;
-        self.encoder
-            .encode_depth_frame(frame_id, frame, self.rows_per_chunk, &mut self.scratch, |bytes| {
-                pipe.extend_from_slice(bytes)
-            })
-            .map_err(wire)?;
-        Ok(())
-    }
-
-    /// Core side: decodes everything in the pipe and hands each complete frame with its pose
-    /// to `integrate`.
-    fn receive(&mut self, mut integrate: impl FnMut(&DepthFrame<'_>, &Isometry3<f32>)) {
-        let mut pose_missing = 0;
-        self.receiver.feed(&self.pipe, |event| {
-            if let LinkEvent::Depth { frame, pose, .. } = event {
-                match pose {
-                    Some(p) => integrate(&frame, &p.isometry()),
-                    None => pose_missing += 1,
-                }
-            }
-        });
-        self.pose_missing += pose_missing;
-        self.pipe.clear();
-    }
-
-    fn counters(&self) -> LinkCounters {
-        let mut c = self.receiver.counters();
-        c.depth_frames_dropped += self.pose_missing;
-        c
-    }
-}
-
 /// Runs one exploration of `scenario` to termination. `progress` is called after every step.
 pub fn run(
     scenario: &Scenario,
@@ -748,95 +746,153 @@ pub fn run(
         position: scenario.start_position,
         yaw: scenario.start_yaw,
     };
+    let world = &scenario.world;
+    let scene = Scene { cfg, world };
     let mut depth = Vec::new();
     let mut link_buffer = vec![0u16; cfg.camera.intrinsics.pixel_count()];
-    let mut link = DepthLink::new(&cfg.camera.intrinsics, &mut link_buffer);
+    let link = DepthLink::open(&cfg.link, &cfg.camera.intrinsics, &mut link_buffer, cfg.seed)
+        .map_err(SimError::Link)?;
+    let mav = cfg
+        .mavlink
+        .as_ref()
+        .map(MavlinkLink::open)
+        .transpose()
+        .map_err(SimError::Mavlink)?;
+    let remote = mav.as_ref().is_some_and(MavlinkLink::is_remote);
+    let mut rig = Rig {
+        link,
+        mav,
+        t_s: 0.0,
+        dt: f64::from(cfg.dt),
+        wall: remote.then(Instant::now),
+    };
     let mut clock = HostClock(Instant::now());
     let mut steps = Vec::new();
-    let (mut path, mut flight_time, mut collisions) = (0.0f64, 0.0f64, Vec::new());
+    let mut track = Track::start(world, &vehicle.position, cfg.body_radius);
     let mut consecutive_holds = 0u32;
+    let mut steps_without_frame = 0u32;
     let mut termination = String::from("scan_limit");
     let budget = if cfg.follow_full_path {
         f32::INFINITY
     } else {
         cfg.replan_distance
     };
-    let mut mav = if cfg.mavlink {
-        let mut link = MavlinkLink::new()?;
-        let _ = link.bridge.exploration_started();
-        link.tick(0, &vehicle);
-        Some(link)
-    } else {
-        None
-    };
 
+    rig.link.tick(0.0).map_err(SimError::Link)?;
+    if let Some(m) = rig.mav.as_mut() {
+        let _ = m.bridge.exploration_started();
+    }
+    rig.exchange(&mut vehicle, 0.0, 0.0)?;
+    if remote {
+        // The vehicle starts wherever the autopilot says.
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        vehicle.position = position;
+        vehicle.yaw = yaw;
+        track = Track::start(world, &vehicle.position, cfg.body_radius);
+    }
+
+    let mut taken = 0u32;
     for step in 1..=cfg.max_scans {
-        // The pose the core believes: the simulator's truth, or over MAVLink what the flight
-        // stack reported.
-        let (position, yaw) = match &mav {
-            Some(m) => m.pose(to_ms(flight_time))?,
-            None => (vehicle.position, vehicle.yaw),
-        };
+        taken = step;
         // The camera sees the world from where the vehicle truly is; the frame is stamped with
-        // the believed pose.
+        // the pose the core believes.
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
         let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
-        cfg.camera
-            .render(&scenario.world, &true_pose, &mut rng, &mut depth);
-        let pose = forward_camera_pose(&position, yaw);
-        // Camera side: the frame and its pose go onto the wire.
+        cfg.camera.render(world, &true_pose, &mut rng, &mut depth);
         let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
             .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
-        link.send(step, &frame, &pose)?;
-        // Core side: decode, reassemble, integrate.
+        rig.link
+            .send_image(step, &frame, &forward_camera_pose(&position, yaw))
+            .map_err(SimError::Link)?;
+        rig.wait_for_link(&mut vehicle, &scene, &mut track)?;
+
+        // Core side: integrate whatever arrived whole.
         let t0 = Instant::now();
-        link.receive(|frame, camera_pose| {
-            let _ = explorer.integrate(frame, camera_pose);
-        });
+        let mut integrated = 0u32;
+        for arrived in rig.link.take_arrived() {
+            if let Some(frame) = arrived.frame() {
+                if explorer.integrate(&frame, &arrived.camera_pose).is_ok() {
+                    integrated += 1;
+                    rig.link.note_integrated();
+                }
+            }
+        }
         let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
 
-        let kept_before = explorer.status().plans_kept;
-        let outcome = explorer.plan_timed(&position, yaw, &mut clock);
+        // Plan from where the vehicle is now (it may have drifted while the frame was sent).
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        let status_before = *explorer.status();
+        let outcome = if integrated > 0 {
+            steps_without_frame = 0;
+            Some(explorer.plan_timed(&position, yaw, &mut clock))
+        } else {
+            steps_without_frame += 1;
+            None
+        };
         let status = *explorer.status();
-        let kept = status.plans_kept > kept_before;
-        if let (Some(dir), false) = (&cfg.dump_problem, kept) {
+        let kept = status.plans_kept > status_before.plans_kept;
+        if let (Some(dir), Some(_), false) = (&cfg.dump_problem, &outcome, kept) {
             dump_problem(dir, step, &explorer, &position, cfg)?;
         }
         let coverage = truth.coverage(explorer.map());
         let label = match outcome {
-            PlanOutcome::Goal(g) if g.escape => "escape".to_string(),
-            PlanOutcome::Goal(_) if kept => "kept".to_string(),
-            PlanOutcome::Goal(_) => "goal".to_string(),
-            PlanOutcome::Complete => "complete".to_string(),
-            PlanOutcome::Hold(f) => format!("hold:{f:?}"),
+            None => "no_frame".to_string(),
+            Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
+            Some(PlanOutcome::Goal(_)) if kept => "kept".to_string(),
+            Some(PlanOutcome::Goal(_)) => "goal".to_string(),
+            Some(PlanOutcome::Complete) => "complete".to_string(),
+            Some(PlanOutcome::Hold(f)) => format!("hold:{f:?}"),
         };
+        let planned = outcome.is_some();
         let record = StepRecord {
             step,
             position: position.coords.into(),
             yaw,
             outcome: label,
+            frames_integrated: integrated,
             frontier: status.domain.frontier,
             unknowns: status.domain.interior,
             coverage_free: coverage.free,
             integrate_ms,
-            domain_ms: ms(status.phase_ticks.domain),
-            solve_ms: ms(status.phase_ticks.solve),
-            streamline_ms: ms(status.phase_ticks.streamline),
+            domain_ms: if planned {
+                ms(status.phase_ticks.domain)
+            } else {
+                0.0
+            },
+            solve_ms: if planned {
+                ms(status.phase_ticks.solve)
+            } else {
+                0.0
+            },
+            streamline_ms: if planned {
+                ms(status.phase_ticks.streamline)
+            } else {
+                0.0
+            },
             solver_iterations: status.solve.iterations,
             solver_residual: status.solve.residual,
             solver_updates: status.solve.cell_updates,
             streamline_m: status.streamline.map(|s| s.length).unwrap_or(0.0),
-            path_length_m: path,
+            path_length_m: track.distance,
         };
         progress(&record);
         steps.push(record);
-        if let Some(m) = mav.as_mut() {
+
+        let Some(outcome) = outcome else {
+            if steps_without_frame >= LINK_DEAD_STEPS {
+                termination = "stuck:link".into();
+                break;
+            }
+            continue;
+        };
+        let now = rig.now_ms();
+        if let Some(m) = rig.mav.as_mut() {
             m.bridge.apply(&outcome);
             if !matches!(outcome, PlanOutcome::Goal(_)) {
                 // The hold setpoint and any STATUSTEXT go out now.
-                m.stream(to_ms(flight_time));
+                m.push(now).map_err(SimError::Mavlink)?;
             }
         }
-
         match outcome {
             PlanOutcome::Complete => {
                 termination = "complete".into();
@@ -852,23 +908,21 @@ pub fn run(
             PlanOutcome::Goal(goal) => {
                 consecutive_holds = 0;
                 let waypoints: Vec<Point3<f32>> = explorer.waypoints().to_vec();
-                let leg = match mav.as_mut() {
-                    Some(m) => vehicle.fly_mavlink(
-                        &waypoints,
-                        &goal,
-                        budget,
-                        cfg,
-                        &scenario.world,
-                        m,
-                        flight_time,
-                    )?,
-                    None => vehicle.fly(&waypoints, &goal, budget, cfg, &scenario.world),
-                };
-                path += leg.distance;
-                flight_time += leg.time;
-                collisions.extend(leg.collisions);
+                if rig.mav.is_some() {
+                    rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
+                } else {
+                    rig.fly_direct(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
+                }
             }
         }
+    }
+    // What is still travelling through an outside wire arrives before the counts are taken.
+    rig.link.settle().map_err(SimError::Link)?;
+    let now = rig.now_ms();
+    if let Some(m) = rig.mav.as_mut() {
+        // Let the last setpoint and STATUSTEXT out, and close the log.
+        m.push(now).map_err(SimError::Mavlink)?;
+        m.finish().map_err(SimError::Mavlink)?;
     }
 
     let status = *explorer.status();
@@ -891,13 +945,14 @@ pub fn run(
         coverage_free: coverage.free,
         coverage_surface: coverage.surface,
         free_marked_occupied: coverage.free_marked_occupied,
-        path_length_m: path,
+        path_length_m: track.distance,
         scans: status.frames,
-        collisions: collisions.len() as u32,
-        collision_points: collisions,
+        steps_taken: taken,
+        collisions: track.collisions.len() as u32,
+        collision_points: track.collisions,
         integration_ops: status.integration_ops,
         planning_ops: status.planning_ops,
-        flight_time_s: flight_time,
+        flight_time_s: rig.t_s,
         wall_time_s: wall.elapsed().as_secs_f64(),
         grid: [dims.nx(), dims.ny(), dims.nz()],
         resolution: geometry.resolution(),
@@ -905,8 +960,8 @@ pub fn run(
         sealed_voxels: status.map.sealed,
         timing,
         errors: status.errors,
-        link: link.counters(),
-        mavlink: mav.as_ref().map(MavlinkLink::report),
+        link: rig.link.report(),
+        mavlink: rig.mav.as_ref().map(MavlinkLink::report),
         steps,
     })
 }

@@ -142,3 +142,120 @@ fn solve_rejects_fortran_order_and_bad_source_with_exit_code_2() {
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).contains("outside the grid"));
 }
+
+#[test]
+fn bad_link_and_mavlink_options_name_the_problem() {
+    for (args, needle) in [
+        (vec!["--link", "tcp:5760"], "expected tcp:HOST:PORT"),
+        (vec!["--link", "udp:1.2.3.4:5"], "unknown transport `udp`"),
+        (vec!["--mavlink", "udpin:14540"], "expected udpin:HOST:PORT"),
+        (vec!["--link-ber", "2"], "probability between 0 and 1"),
+        (vec!["--link-burst", "0.001:0"], "burst length `0`"),
+        (vec!["--link-baud", "0"], "baud rate"),
+        (vec!["--tlog", "x.tlog"], "--mavlink"),
+    ] {
+        let out = sim().arg("explore").args(&args).output().unwrap();
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        // The problem is named at the top (clap puts a missing option on the second line).
+        let top: String = err.lines().take(2).collect();
+        assert!(top.contains(needle), "{args:?}: {err}");
+    }
+    // Errors found when the run starts: one line, naming the transport.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let spec = format!("tcp:127.0.0.1:{port}");
+    for args in [
+        vec!["--link", spec.as_str()],
+        vec!["--link", "serial:/dev/no-such-tty"],
+    ] {
+        let out = sim()
+            .arg("explore")
+            .args(&args)
+            .args(["--quiet", "--out"])
+            .arg(std::env::temp_dir().join("harmonic-unused"))
+            .output()
+            .unwrap();
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+        assert!(err.contains(args[1]), "{err}");
+    }
+}
+
+#[test]
+fn explore_records_a_tlog_that_the_tlog_command_reads_back() {
+    let dir = std::env::temp_dir().join(format!("harmonic-cli-tlog-{}", std::process::id()));
+    let tlog = dir.join("run.tlog");
+    let out = sim()
+        .args([
+            "explore",
+            "--scenario",
+            "apartment",
+            "--link",
+            "sim",
+            "--mavlink",
+            "--link-drop",
+            "0.05",
+            "--max-scans",
+            "5",
+            "--quiet",
+            "--tlog",
+        ])
+        .arg(&tlog)
+        .arg("--out")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        stdout.contains("depth link") && stdout.contains("mavlink") && stdout.contains("link faults"),
+        "{stdout}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    let link = &report["link"];
+    for key in [
+        "depth_frames_sent",
+        "depth_frames_integrated",
+        "depth_frames_lost",
+        "transfer",
+        "receiver",
+        "injected",
+    ] {
+        assert!(link.get(key).is_some(), "report.json link lacks `{key}`: {link}");
+    }
+    assert_eq!(link["transport"], "sim");
+    assert_eq!(link["baud"], 921600);
+    assert!(link["injected"]["frames_dropped"].as_u64().is_some());
+    let traffic = &report["mavlink"]["traffic"];
+    assert_eq!(report["mavlink"]["endpoint"], "emulator");
+
+    let out = sim().arg("tlog").arg(&tlog).arg("--json").output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(summary["sent"], traffic["sent_by_type"]);
+    assert_eq!(summary["received"], traffic["received_by_type"]);
+    assert_eq!(summary["undecoded"], 0);
+    let out = sim().arg("tlog").arg(&tlog).output().unwrap();
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        table.contains("SET_POSITION_TARGET_LOCAL_NED") && table.contains("ATTITUDE"),
+        "{table}"
+    );
+
+    // Not a tlog: one line naming the file and the problem.
+    let bogus = dir.join("report.json");
+    let out = sim().arg("tlog").arg(&bogus).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("report.json") && err.contains("MAVLink start marker"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}

@@ -1,12 +1,18 @@
 //! End to end: every built-in scenario explored to completion by the core, through the
 //! simulator's camera and vehicle, judged against the true world.
 
+use harmonic_sim::autopilot::MavlinkConfig;
+use harmonic_sim::depth_link::LinkConfig;
+use harmonic_sim::fault::FaultConfig;
 use harmonic_sim::scenario::{builtin_names, Scenario};
 use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::transport::TransportSpec;
 
 fn explore(name: &str) -> Report {
     let scenario = Scenario::builtin(name).expect("built-in scenario");
-    sim::run(&scenario, &SimConfig::default(), |_| {}).expect("run starts")
+    let r = sim::run(&scenario, &SimConfig::default(), |_| {}).expect("run starts");
+    assert_clean_link(&r);
+    r
 }
 
 fn assert_complete(r: &Report) {
@@ -27,18 +33,48 @@ fn assert_complete(r: &Report) {
         "{}: implausibly short run",
         r.scenario
     );
-    assert_eq!(r.steps.len() as u32, r.scans, "one step record per scan");
-    // Every frame went over the depth link's wire format and arrived whole.
+    assert_eq!(r.steps.len() as u32, r.steps_taken, "one step record per capture");
+    // Every integrated frame went over the depth link's wire format.
+    assert_eq!(r.link.depth_frames_integrated, r.scans, "{:?}", r.link);
+}
+
+/// A clean link: every frame sent arrived whole and was integrated, nothing was damaged.
+fn assert_clean_link(r: &Report) {
+    let l = &r.link;
     assert_eq!(
-        r.link.depth_frames_complete, r.scans,
-        "{}: {:?}",
-        r.scenario, r.link
+        (
+            l.depth_frames_sent,
+            l.depth_frames_integrated,
+            l.depth_frames_lost
+        ),
+        (r.scans, r.scans, 0),
+        "{l:?}"
     );
+    assert_eq!(r.steps_taken, r.scans);
+    assert_eq!(l.receiver.depth_frames_complete, r.scans, "{l:?}");
+    let c = &l.receiver;
     assert_eq!(
-        r.link.crc_errors + r.link.malformed + r.link.missing_chunks,
+        c.crc_errors + c.cobs_errors + c.malformed + c.missing_chunks + c.sequence_gaps + c.oversize,
         0,
+        "{c:?}"
+    );
+    assert_eq!(l.bytes_sent, l.bytes_received);
+    assert!(l.injected.is_none());
+    // Bandwidth is real: the wire was busy for every frame's bytes at the baud rate.
+    let bytes_per_s = f64::from(l.baud) / 10.0;
+    assert!((l.wire_busy_s - l.bytes_sent as f64 / bytes_per_s).abs() < 1e-6);
+    assert!(
+        l.transfer.mean_ms > 200.0 && l.transfer.max_ms < 240.0,
         "{:?}",
-        r.link
+        l.transfer
+    );
+    assert!(r.flight_time_s > l.wire_busy_s);
+    // The camera side's 1 Hz heartbeat arrived all along.
+    assert!(l.heartbeats_received as f64 >= r.flight_time_s - 1.0, "{l:?}");
+    // A heartbeat may wait behind a depth frame already on the wire.
+    assert!(
+        l.max_heartbeat_gap_ms <= 1000.0 + l.transfer.max_ms + 50.0,
+        "{l:?}"
     );
 }
 
@@ -86,26 +122,55 @@ fn gauss_seidel_reference_plans_the_same_first_step() {
     assert!((first[0] - first[1]).abs() < 0.05, "streamline lengths {first:?}");
 }
 
-#[test]
-fn apartment_explored_over_mavlink() {
-    // The core's MAVLink bridge drives an emulated flight stack; the explorer plans from the
-    // pose the flight stack reports back.
-    let scenario = Scenario::builtin("apartment").unwrap();
-    let cfg = SimConfig {
-        mavlink: true,
+/// Over the depth link and MAVLink to the flight-stack emulator: what
+/// `explore --link sim --mavlink emulator` runs.
+fn over_link_and_mavlink(faults: FaultConfig) -> SimConfig {
+    SimConfig {
+        link: LinkConfig {
+            transport: TransportSpec::Sim,
+            faults,
+            ..LinkConfig::default()
+        },
+        mavlink: Some(MavlinkConfig::default()),
         ..SimConfig::default()
-    };
-    let r = sim::run(&scenario, &cfg, |_| {}).expect("run starts");
-    assert_complete(&r);
+    }
+}
+
+/// The MAVLink side of a completed run against the emulator: setpoints streamed at ≥ 5 Hz
+/// without a gap PX4 would notice — also while depth frames were on the wire —, every message
+/// accounted for at both ends, the pose back without faults.
+fn assert_mavlink_healthy(r: &Report) {
     let mav = r.mavlink.as_ref().expect("MAVLink counters in the report");
+    let emulator = mav.emulator.expect("emulator counters");
+    let t = &mav.traffic;
     assert_eq!(
-        mav.emulator.setpoint_gaps, 0,
-        "setpoints slower than 2 Hz: {:?}",
-        mav.emulator
+        emulator.setpoint_gaps, 0,
+        "setpoints slower than 2 Hz: {emulator:?}"
     );
-    assert!(mav.emulator.max_setpoint_gap_ms <= 500, "{:?}", mav.emulator);
-    assert_eq!(mav.emulator.setpoints_rejected, 0, "{:?}", mav.emulator);
-    assert!(mav.emulator.setpoints_received > 10, "{:?}", mav.emulator);
+    // 10 Hz stream, 50 ms ticks: a frame on the wire for 220 ms must not open a gap.
+    assert!(t.max_setpoint_gap_ms <= 150, "{t:?}");
+    assert!(t.setpoint_rate_hz >= 5.0, "{t:?}");
+    assert_eq!(emulator.max_setpoint_gap_ms, t.max_setpoint_gap_ms);
+    assert_eq!(emulator.setpoints_rejected, 0, "{emulator:?}");
+    assert_eq!(emulator.setpoints_received, mav.bridge.setpoints_sent);
+    assert_eq!(
+        t.sent_by_type.get("SET_POSITION_TARGET_LOCAL_NED"),
+        Some(&mav.bridge.setpoints_sent)
+    );
+    assert_eq!(t.sent_by_type.get("HEARTBEAT"), Some(&mav.bridge.heartbeats_sent));
+    assert_eq!(
+        t.received_by_type.get("LOCAL_POSITION_NED"),
+        Some(&mav.bridge.local_positions_received)
+    );
+    assert_eq!(emulator.local_positions_sent, mav.bridge.local_positions_received);
+    assert_eq!(t.messages_sent, mav.emulator_decoder.unwrap().messages);
+    assert_eq!(t.messages_received, mav.bridge_decoder.messages);
+    // Pose reports at 20 Hz over the whole flight.
+    assert!(
+        f64::from(mav.bridge.local_positions_received) >= 19.0 * r.flight_time_s,
+        "{:?}",
+        mav.bridge
+    );
     assert_eq!(mav.bridge.stale_events, 0, "{:?}", mav.bridge);
     assert_eq!(
         mav.bridge.rejected() + mav.bridge.sequence_gaps,
@@ -113,14 +178,71 @@ fn apartment_explored_over_mavlink() {
         "{:?}",
         mav.bridge
     );
-    assert_eq!(
-        mav.emulator.status_texts_received as usize,
-        mav.status_texts.len()
-    );
+    assert_eq!(emulator.status_texts_received as usize, mav.status_texts.len());
     assert_eq!(
         mav.status_texts.last().map(String::as_str),
         Some("exploration complete"),
         "{:?}",
         mav.status_texts
     );
+}
+
+#[test]
+fn apartment_explored_over_link_and_mavlink() {
+    // The core's MAVLink bridge drives an emulated flight stack; the explorer plans from the
+    // pose the flight stack reports back; depth arrives over the paced link.
+    let scenario = Scenario::builtin("apartment").unwrap();
+    let r = sim::run(&scenario, &over_link_and_mavlink(FaultConfig::default()), |_| {}).expect("run starts");
+    assert_complete(&r);
+    assert_clean_link(&r);
+    assert_mavlink_healthy(&r);
+}
+
+#[test]
+fn apartment_explored_over_a_faulty_link() {
+    // `--link-ber 1e-5 --link-drop 0.01`: at 20 kB per frame, most frames lose a chunk. The
+    // vehicle holds until one arrives whole; the exploration still completes.
+    let faults = FaultConfig {
+        bit_error_rate: 1e-5,
+        frame_drop: 0.01,
+        ..FaultConfig::default()
+    };
+    let scenario = Scenario::builtin("apartment").unwrap();
+    let r = sim::run(&scenario, &over_link_and_mavlink(faults), |_| {}).expect("run starts");
+    assert_complete(&r);
+    assert_mavlink_healthy(&r);
+    let l = &r.link;
+    let injected = l.injected.expect("fault counters in the report");
+    let c = &l.receiver;
+    assert!(
+        injected.frames_dropped > 0 && injected.bits_flipped > 0,
+        "{injected:?}"
+    );
+    assert!(
+        c.crc_errors > 0 && c.sequence_gaps > 0 && c.missing_chunks > 0,
+        "{c:?}"
+    );
+    assert!(l.depth_frames_lost > 0, "{l:?}");
+    assert_eq!(
+        l.depth_frames_sent,
+        l.depth_frames_integrated + l.depth_frames_lost
+    );
+    assert_eq!(l.depth_frames_integrated, r.scans);
+    // What the injector did is what the receiver saw: each frame dropped or damaged is lost
+    // (the delimiters on both sides of a frame keep damage from spreading to its neighbours),
+    // and shows as a gap in the sequence numbers (unless it was the very last frame).
+    assert_eq!(
+        u64::from(c.frames_ok),
+        l.link_frames_sent - injected.frames_dropped - injected.frames_damaged,
+        "{c:?} {injected:?}"
+    );
+    let lost = injected.frames_dropped + injected.frames_damaged;
+    assert!(u64::from(c.sequence_gaps) <= lost && u64::from(c.sequence_gaps) + 1 >= lost);
+    // Steps whose frame did not arrive planned nothing.
+    let no_frame = r.steps.iter().filter(|s| s.outcome == "no_frame").count() as u32;
+    assert_eq!(no_frame, r.steps_taken - r.scans);
+    assert!(r
+        .steps
+        .iter()
+        .all(|s| (s.outcome == "no_frame") == (s.frames_integrated == 0)));
 }

@@ -1,0 +1,545 @@
+//! The MAVLink side of a run: the core's [`Bridge`] on the companion computer, and the
+//! autopilot it talks to — the in-process [`FlightEmulator`], or a real PX4/ArduPilot (SITL or
+//! hardware through a router) or ground station over UDP.
+//!
+//! | `--mavlink` | autopilot |
+//! |---|---|
+//! | `emulator` (or no value) | [`FlightEmulator`] in process; bytes through a pipe each way; simulated time |
+//! | `udpin:HOST:PORT` | listen on `HOST:PORT`, answer whoever sent last (MAVProxy's `udpin`); wall-clock time |
+//! | `udpout:HOST:PORT` | send to `HOST:PORT`, take answers on the local port (MAVProxy's `udpout`); wall-clock time |
+//!
+//! Every MAVLink frame each way is decoded, counted by message name in [`TrafficReport`], and
+//! written to the `.tlog` if one is open (see [`crate::tlog`]). Against a remote autopilot the
+//! vehicle is wherever it says (LOCAL_POSITION_NED + ATTITUDE or ODOMETRY, through the bridge);
+//! the simulator renders depth there.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::net::{SocketAddr, ToSocketAddrs, UdpSocket};
+use std::path::PathBuf;
+use std::str::FromStr;
+use std::time::Duration;
+
+use harmonic_core::mavlink::{
+    encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavMessage, MavlinkDecoder,
+    MavlinkMessage, MAX_FRAME_LEN,
+};
+use nalgebra::Point3;
+use serde::Serialize;
+
+use crate::flight::{FlightCounters, FlightEmulator, FlightSetpoint};
+use crate::tlog::{TlogWriter, SIM_EPOCH_US};
+
+/// Which autopilot the bridge talks to (`--mavlink`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum MavlinkSpec {
+    /// The in-process flight-stack emulator.
+    Emulator,
+    /// Listen on an address; answer the last sender.
+    UdpIn(SocketAddr),
+    /// Send to an address.
+    UdpOut(SocketAddr),
+}
+
+impl FromStr for MavlinkSpec {
+    type Err = String;
+
+    fn from_str(spec: &str) -> Result<Self, String> {
+        let resolve = |rest: &str| -> Result<SocketAddr, String> {
+            let Some((host, port)) = rest.rsplit_once(':') else {
+                return Err(format!(
+                    "`{spec}`: expected {}:HOST:PORT",
+                    spec.split(':').next().unwrap_or("")
+                ));
+            };
+            let port: u16 = port
+                .parse()
+                .map_err(|_| format!("`{spec}`: `{port}` is not a port number (0-65535)"))?;
+            let host = host.trim_start_matches('[').trim_end_matches(']');
+            (host, port)
+                .to_socket_addrs()
+                .map_err(|e| format!("`{spec}`: {e}"))?
+                .next()
+                .ok_or_else(|| format!("`{spec}`: `{host}` has no address"))
+        };
+        match spec.split_once(':') {
+            None if spec == "emulator" => Ok(Self::Emulator),
+            Some(("udpin", rest)) => Ok(Self::UdpIn(resolve(rest)?)),
+            Some(("udpout", rest)) => Ok(Self::UdpOut(resolve(rest)?)),
+            _ => Err(format!(
+                "`{spec}`: unknown MAVLink endpoint (expected emulator, udpin:HOST:PORT or udpout:HOST:PORT)"
+            )),
+        }
+    }
+}
+
+impl fmt::Display for MavlinkSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Emulator => write!(f, "emulator"),
+            Self::UdpIn(a) => write!(f, "udpin:{a}"),
+            Self::UdpOut(a) => write!(f, "udpout:{a}"),
+        }
+    }
+}
+
+impl MavlinkSpec {
+    /// True for a real autopilot: time is the wall clock, the vehicle flies itself.
+    pub fn is_remote(&self) -> bool {
+        !matches!(self, Self::Emulator)
+    }
+}
+
+/// How the MAVLink side of a run is set up.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MavlinkConfig {
+    /// The autopilot.
+    pub spec: MavlinkSpec,
+    /// The bridge's configuration.
+    pub bridge: BridgeConfig,
+    /// The emulator also streams ODOMETRY.
+    pub odometry: bool,
+    /// Record every frame both ways in this `.tlog`.
+    pub tlog: Option<PathBuf>,
+}
+
+impl Default for MavlinkConfig {
+    fn default() -> Self {
+        Self {
+            spec: MavlinkSpec::Emulator,
+            bridge: BridgeConfig::default(),
+            odometry: false,
+            tlog: None,
+        }
+    }
+}
+
+/// Messages each way, as seen at the companion computer; part of `report.json`.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct TrafficReport {
+    /// Messages sent.
+    pub messages_sent: u32,
+    /// Messages received (decoded, from anyone).
+    pub messages_received: u32,
+    /// Messages sent, by name.
+    pub sent_by_type: BTreeMap<String, u32>,
+    /// Messages received, by name.
+    pub received_by_type: BTreeMap<String, u32>,
+    /// Bytes sent.
+    pub bytes_sent: u64,
+    /// Bytes received.
+    pub bytes_received: u64,
+    /// Messages that could not be sent (the socket would block, or the peer refused them).
+    pub unsent: u32,
+    /// SET_POSITION_TARGET_LOCAL_NEDs sent.
+    pub setpoints_sent: u32,
+    /// Setpoints per second between the first and the last.
+    pub setpoint_rate_hz: f64,
+    /// Longest time between two setpoints sent, ms.
+    pub max_setpoint_gap_ms: u64,
+    /// Time from the first to the last message either way, s.
+    pub duration_s: f64,
+}
+
+#[derive(Debug, Default)]
+struct Traffic {
+    report: TrafficReport,
+    first_ms: Option<u64>,
+    last_ms: u64,
+    first_setpoint_ms: Option<u64>,
+    last_setpoint_ms: Option<u64>,
+    status_texts: Vec<String>,
+}
+
+impl Traffic {
+    fn seen(&mut self, now_ms: u64) {
+        self.first_ms.get_or_insert(now_ms);
+        self.last_ms = self.last_ms.max(now_ms);
+    }
+
+    fn sent(&mut self, now_ms: u64, message: &MavMessage, bytes: usize) {
+        self.seen(now_ms);
+        let r = &mut self.report;
+        r.messages_sent += 1;
+        r.bytes_sent += bytes as u64;
+        *r.sent_by_type
+            .entry(message.message_name().to_string())
+            .or_insert(0) += 1;
+        match message {
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(_) => {
+                r.setpoints_sent += 1;
+                if let Some(last) = self.last_setpoint_ms {
+                    r.max_setpoint_gap_ms = r.max_setpoint_gap_ms.max(now_ms.saturating_sub(last));
+                }
+                self.first_setpoint_ms.get_or_insert(now_ms);
+                self.last_setpoint_ms = Some(now_ms);
+            }
+            MavMessage::STATUSTEXT(data) => self
+                .status_texts
+                .push(data.text.to_str().unwrap_or("<not UTF-8>").to_string()),
+            _ => {}
+        }
+    }
+
+    fn received(&mut self, now_ms: u64, message: &MavMessage) {
+        self.seen(now_ms);
+        self.report.messages_received += 1;
+        *self
+            .report
+            .received_by_type
+            .entry(message.message_name().to_string())
+            .or_insert(0) += 1;
+    }
+
+    fn report(&self) -> TrafficReport {
+        let mut r = self.report.clone();
+        r.duration_s = self
+            .first_ms
+            .map(|first| self.last_ms.saturating_sub(first) as f64 * 1e-3)
+            .unwrap_or(0.0);
+        if let (Some(a), Some(b)) = (self.first_setpoint_ms, self.last_setpoint_ms) {
+            if b > a {
+                r.setpoint_rate_hz = f64::from(r.setpoints_sent.saturating_sub(1)) / ((b - a) as f64 * 1e-3);
+            }
+        }
+        r
+    }
+}
+
+/// What went over MAVLink in a run; part of `report.json`.
+#[derive(Debug, Clone, Serialize)]
+pub struct MavlinkReport {
+    /// The autopilot (`--mavlink`).
+    pub endpoint: String,
+    /// Messages each way by type, setpoint rate and longest gap.
+    pub traffic: TrafficReport,
+    /// The core's bridge: messages sent and received, faults, stale-pose events.
+    pub bridge: BridgeCounters,
+    /// The bridge's decoder of the autopilot's bytes.
+    pub bridge_decoder: DecoderCounters,
+    /// The flight-stack emulator: setpoints taken and rejected, setpoint gaps, poses sent.
+    pub emulator: Option<FlightCounters>,
+    /// The emulator's decoder of the bridge's bytes.
+    pub emulator_decoder: Option<DecoderCounters>,
+    /// STATUSTEXTs the bridge sent, in order.
+    pub status_texts: Vec<String>,
+    /// The `.tlog` written, and its records.
+    pub tlog: Option<TlogInfo>,
+}
+
+/// The `.tlog` of a run.
+#[derive(Debug, Clone, Serialize)]
+pub struct TlogInfo {
+    /// Where it is.
+    pub path: String,
+    /// Frames recorded (both ways).
+    pub records: u64,
+}
+
+/// A frame as it arrived, with its message if it decoded.
+type ReceivedFrame = (Vec<u8>, Option<(harmonic_core::mavlink::MavHeader, MavMessage)>);
+
+#[derive(Debug)]
+enum Endpoint {
+    Emulator(Box<FlightEmulator>),
+    Udp {
+        socket: UdpSocket,
+        /// Where messages go: fixed for udpout, the last sender for udpin.
+        peer: Option<SocketAddr>,
+        learn_peer: bool,
+    },
+}
+
+/// The MAVLink link of a run. See the [module documentation](self).
+#[derive(Debug)]
+pub struct MavlinkLink {
+    /// The core's bridge.
+    pub bridge: Bridge,
+    label: String,
+    decoder: MavlinkDecoder,
+    endpoint: Endpoint,
+    traffic: Traffic,
+    tlog: Option<TlogWriter>,
+    /// Timestamp of time 0 in the `.tlog`, µs since the epoch.
+    epoch_us: u64,
+    frames_out: Vec<(Vec<u8>, MavMessage)>,
+    io_error: Option<String>,
+}
+
+impl MavlinkLink {
+    /// Opens the link `config` describes (binds the UDP socket, creates the `.tlog`).
+    pub fn open(config: &MavlinkConfig) -> Result<Self, String> {
+        let bridge = Bridge::new(config.bridge).map_err(|e| format!("mavlink bridge: {e:?}"))?;
+        let label = config.spec.to_string();
+        let err = |e: std::io::Error| format!("--mavlink {label}: {e}");
+        let endpoint = match &config.spec {
+            MavlinkSpec::Emulator => {
+                Endpoint::Emulator(Box::new(FlightEmulator::new().with_odometry(config.odometry)))
+            }
+            MavlinkSpec::UdpIn(addr) => {
+                let socket = UdpSocket::bind(addr).map_err(err)?;
+                socket.set_nonblocking(true).map_err(err)?;
+                Endpoint::Udp {
+                    socket,
+                    peer: None,
+                    learn_peer: true,
+                }
+            }
+            MavlinkSpec::UdpOut(addr) => {
+                let local: SocketAddr = if addr.is_ipv4() {
+                    ([0, 0, 0, 0], 0).into()
+                } else {
+                    ([0u16; 8], 0).into()
+                };
+                let socket = UdpSocket::bind(local).map_err(err)?;
+                socket.set_nonblocking(true).map_err(err)?;
+                Endpoint::Udp {
+                    socket,
+                    peer: Some(*addr),
+                    learn_peer: false,
+                }
+            }
+        };
+        let epoch_us = if config.spec.is_remote() {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_micros() as u64)
+                .unwrap_or(0)
+        } else {
+            SIM_EPOCH_US
+        };
+        let tlog = config.tlog.as_deref().map(TlogWriter::create).transpose()?;
+        Ok(Self {
+            bridge,
+            label,
+            decoder: MavlinkDecoder::new(),
+            endpoint,
+            traffic: Traffic::default(),
+            tlog,
+            epoch_us,
+            frames_out: Vec::new(),
+            io_error: None,
+        })
+    }
+
+    /// The local address of the UDP socket, if there is one.
+    pub fn local_addr(&self) -> Option<SocketAddr> {
+        match &self.endpoint {
+            Endpoint::Udp { socket, .. } => socket.local_addr().ok(),
+            Endpoint::Emulator(_) => None,
+        }
+    }
+
+    /// True against a real autopilot.
+    pub fn is_remote(&self) -> bool {
+        matches!(self.endpoint, Endpoint::Udp { .. })
+    }
+
+    fn log(&mut self, now_ms: u64, frame: &[u8]) {
+        if let Some(tlog) = self.tlog.as_mut() {
+            if let Err(e) = tlog.write(self.epoch_us + now_ms * 1000, frame) {
+                self.io_error.get_or_insert(e);
+            }
+        }
+    }
+
+    /// Autopilot → bridge: the emulator reports the vehicle at `position`/`yaw` (map frame)
+    /// when due, or the datagrams that arrived are read; every frame is logged, counted and
+    /// handed to the bridge.
+    pub fn pull(&mut self, now_ms: u64, position: &Point3<f32>, yaw: f32) -> Result<(), String> {
+        let mut datagrams: Vec<Vec<u8>> = Vec::new();
+        match &mut self.endpoint {
+            Endpoint::Emulator(emulator) => {
+                let mut bytes = Vec::new();
+                emulator.poll(now_ms, position, yaw, &mut bytes);
+                datagrams.push(bytes);
+            }
+            Endpoint::Udp {
+                socket,
+                peer,
+                learn_peer,
+            } => {
+                let mut buf = [0u8; 65536];
+                loop {
+                    match socket.recv_from(&mut buf) {
+                        Ok((n, from)) => {
+                            if *learn_peer {
+                                *peer = Some(from);
+                            }
+                            datagrams.push(buf[..n].to_vec());
+                        }
+                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                        // An ICMP "port unreachable" for an earlier send (nobody listening yet).
+                        Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => break,
+                        Err(e) => return Err(format!("--mavlink {}: {e}", self.label)),
+                    }
+                }
+            }
+        }
+        let mut frames: Vec<ReceivedFrame> = Vec::new();
+        for bytes in &datagrams {
+            self.traffic.report.bytes_received += bytes.len() as u64;
+            self.decoder.push_frames(bytes, |raw, decoded| {
+                frames.push((raw.to_vec(), decoded.map(|(h, m)| (*h, m.clone()))));
+            });
+        }
+        for (raw, decoded) in frames {
+            self.log(now_ms, &raw);
+            if let Some((header, message)) = decoded {
+                self.traffic.received(now_ms, &message);
+                let _ = self.bridge.handle(now_ms, &header, &message);
+            }
+        }
+        self.take_io_error()
+    }
+
+    /// Bridge → autopilot: whatever the bridge has due at `now_ms` is encoded and delivered;
+    /// what was delivered is logged and counted.
+    pub fn push(&mut self, now_ms: u64) -> Result<(), String> {
+        if let Endpoint::Udp { peer: None, .. } = self.endpoint {
+            // udpin before anyone spoke: nowhere to send. The bridge keeps its HEARTBEAT and
+            // STATUSTEXTs due until there is.
+            return Ok(());
+        }
+        let mut out = std::mem::take(&mut self.frames_out);
+        out.clear();
+        self.bridge.poll(now_ms, |header, message| {
+            let mut frame = [0u8; MAX_FRAME_LEN];
+            if let Ok(n) = encode_v2(header, message, &mut frame) {
+                out.push((frame.get(..n).unwrap_or(&[]).to_vec(), message.clone()));
+            }
+        });
+        for (frame, message) in &out {
+            let delivered = match &mut self.endpoint {
+                Endpoint::Emulator(emulator) => {
+                    emulator.receive(now_ms, frame);
+                    true
+                }
+                Endpoint::Udp { socket, peer, .. } => match peer {
+                    Some(to) => match socket.send_to(frame, *to) {
+                        Ok(_) => true,
+                        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => false,
+                        Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => false,
+                        Err(e) => return Err(format!("--mavlink {}: {e}", self.label)),
+                    },
+                    None => false,
+                },
+            };
+            if delivered {
+                self.log(now_ms, frame);
+                self.traffic.sent(now_ms, message, frame.len());
+            } else {
+                self.traffic.report.unsent += 1;
+            }
+        }
+        self.frames_out = out;
+        self.take_io_error()
+    }
+
+    fn take_io_error(&mut self) -> Result<(), String> {
+        match self.io_error.take() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// The bridge's pose of the vehicle (map frame), or why there is none.
+    pub fn pose(&self, now_ms: u64) -> Result<(Point3<f32>, f32), String> {
+        self.bridge
+            .pose(now_ms)
+            .map(|p| (p.position, p.yaw))
+            .map_err(|e| format!("no vehicle pose from {} at {now_ms} ms: {e:?}", self.label))
+    }
+
+    /// The emulator's current setpoint (what the emulated vehicle flies to); `None` against a
+    /// remote autopilot, or before the first setpoint.
+    pub fn emulator_setpoint(&self) -> Option<FlightSetpoint> {
+        match &self.endpoint {
+            Endpoint::Emulator(emulator) => emulator.setpoint(),
+            Endpoint::Udp { .. } => None,
+        }
+    }
+
+    /// Flushes the `.tlog`.
+    pub fn finish(&mut self) -> Result<(), String> {
+        match self.tlog.as_mut() {
+            Some(t) => t.flush(),
+            None => Ok(()),
+        }
+    }
+
+    /// Everything counted so far.
+    pub fn report(&self) -> MavlinkReport {
+        let (emulator, emulator_decoder) = match &self.endpoint {
+            Endpoint::Emulator(e) => (Some(*e.counters()), Some(*e.decoder_counters())),
+            Endpoint::Udp { .. } => (None, None),
+        };
+        MavlinkReport {
+            endpoint: self.label.clone(),
+            traffic: self.traffic.report(),
+            bridge: *self.bridge.counters(),
+            bridge_decoder: *self.decoder.counters(),
+            emulator,
+            emulator_decoder,
+            status_texts: self.traffic.status_texts.clone(),
+            tlog: self.tlog.as_ref().map(|t| TlogInfo {
+                path: t.path().display().to_string(),
+                records: t.records(),
+            }),
+        }
+    }
+}
+
+/// Sleeps a little; the granularity of waiting for a remote autopilot.
+pub(crate) fn nap() {
+    std::thread::sleep(Duration::from_millis(2));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn endpoint_specs_parse_and_name_their_problems() {
+        assert_eq!("emulator".parse::<MavlinkSpec>().unwrap(), MavlinkSpec::Emulator);
+        assert_eq!(
+            "udpin:0.0.0.0:14540".parse::<MavlinkSpec>().unwrap(),
+            MavlinkSpec::UdpIn("0.0.0.0:14540".parse().unwrap())
+        );
+        assert_eq!(
+            "udpout:127.0.0.1:14550"
+                .parse::<MavlinkSpec>()
+                .unwrap()
+                .to_string(),
+            "udpout:127.0.0.1:14550"
+        );
+        for (text, needle) in [
+            ("tcp:1.2.3.4:5760", "unknown MAVLink endpoint"),
+            ("udpin:14540", "expected udpin:HOST:PORT"),
+            ("udpout:127.0.0.1:x", "`x` is not a port number"),
+            ("emulator:1", "unknown MAVLink endpoint"),
+        ] {
+            let e = text.parse::<MavlinkSpec>().unwrap_err();
+            assert!(e.contains(needle) && e.contains(text), "{text}: {e}");
+        }
+    }
+
+    #[test]
+    fn traffic_counts_rate_and_gaps() {
+        use harmonic_core::mavlink::common::{HEARTBEAT_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA};
+        let mut t = Traffic::default();
+        let sp = MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA::DEFAULT);
+        for now in [0u64, 100, 200, 450, 550] {
+            t.sent(now, &sp, 10);
+        }
+        t.sent(600, &MavMessage::HEARTBEAT(HEARTBEAT_DATA::DEFAULT), 5);
+        t.received(700, &MavMessage::HEARTBEAT(HEARTBEAT_DATA::DEFAULT));
+        let r = t.report();
+        assert_eq!((r.setpoints_sent, r.max_setpoint_gap_ms), (5, 250));
+        assert!((r.setpoint_rate_hz - 4.0 / 0.55).abs() < 1e-9);
+        assert_eq!(r.sent_by_type.get("SET_POSITION_TARGET_LOCAL_NED"), Some(&5));
+        assert_eq!(r.received_by_type.get("HEARTBEAT"), Some(&1));
+        assert_eq!((r.messages_sent, r.bytes_sent), (6, 55));
+        assert!((r.duration_s - 0.7).abs() < 1e-9);
+    }
+}
