@@ -130,8 +130,10 @@ impl BenchSolver {
 }
 
 /// Measures a cold solve and a warm re-solve of the rooms problem on `dims`, `repeat` times each
-/// (median reported).
-pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -> [SolveRow; 2] {
+/// (median reported). `start` is `cold` (multigrid: full multigrid from the labels; Gauss-Seidel:
+/// ψ = 0) and `warm` (from the previous solution after one scan); multigrid adds `zero`, a cold
+/// solve from ψ = 0 without full multigrid, to show what each start is worth.
+pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -> Vec<SolveRow> {
     let cold = rooms_with_doors(dims, 0);
     let warm = rooms_with_doors(dims, 1);
     let size = scratch_size(&dims);
@@ -140,7 +142,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
     let mut faces = vec![[0u8; 3]; size.faces];
     let mut krylov = vec![0.0f32; size.krylov];
     let mut psi = vec![0.0f32; dims.len()];
-    let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool| -> SolveStats {
+    let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool, fmg: bool| -> SolveStats {
         let params = SolveParams {
             tolerance,
             max_iterations: 1_000_000,
@@ -155,6 +157,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
                     krylov: &mut krylov,
                 };
                 let mut mg = Multigrid::new(dims, storage).expect("scratch sized by scratch_size");
+                mg.set_full_multigrid(fmg);
                 mg.solve(labels, psi, &params, method).expect("valid problem")
             }
             BenchSolver::GaussSeidel => gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),
@@ -173,21 +176,34 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
         ms,
         cell_updates: stats.cell_updates,
     };
-    let (mut cold_times, mut warm_times) = (Vec::new(), Vec::new());
-    let (mut cold_stats, mut warm_stats) = (SolveStats::default(), SolveStats::default());
+    let is_mg = matches!(solver, BenchSolver::Multigrid(_));
+    let (mut cold_times, mut zero_times, mut warm_times) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut cold_stats, mut zero_stats, mut warm_stats) = (
+        SolveStats::default(),
+        SolveStats::default(),
+        SolveStats::default(),
+    );
     for _ in 0..repeat.max(1) {
+        if is_mg {
+            psi.fill(0.0);
+            let t = Instant::now();
+            zero_stats = run(&cold.labels, &mut psi, false, false);
+            zero_times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
         psi.fill(0.0);
         let t = Instant::now();
-        cold_stats = run(&cold.labels, &mut psi, false);
+        cold_stats = run(&cold.labels, &mut psi, false, true);
         cold_times.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
-        warm_stats = run(&warm.labels, &mut psi, true);
+        warm_stats = run(&warm.labels, &mut psi, true, true);
         warm_times.push(t.elapsed().as_secs_f64() * 1e3);
     }
-    [
-        row(&cold, "cold", cold_stats, median(cold_times)),
-        row(&warm, "warm", warm_stats, median(warm_times)),
-    ]
+    let mut rows = vec![row(&cold, "cold", cold_stats, median(cold_times))];
+    if is_mg {
+        rows.push(row(&cold, "zero", zero_stats, median(zero_times)));
+    }
+    rows.push(row(&warm, "warm", warm_stats, median(warm_times)));
+    rows
 }
 
 #[cfg(test)]
@@ -205,15 +221,15 @@ mod tests {
     }
 
     #[test]
-    fn warm_start_needs_fewer_iterations_than_cold() {
+    fn warm_and_full_multigrid_starts_beat_a_zero_start() {
         let dims = Dims::new(32, 32, 16).unwrap();
-        let [cold, warm] = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-6, 1);
-        assert!(cold.converged && warm.converged, "{cold:?} {warm:?}");
-        assert!(
-            warm.iterations < cold.iterations,
-            "warm {} vs cold {}",
-            warm.iterations,
-            cold.iterations
-        );
+        for method in [Method::Pcg, Method::VCycle] {
+            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-6, 1);
+            let get = |start: &str| rows.iter().find(|r| r.start == start).unwrap();
+            let (cold, zero, warm) = (get("cold"), get("zero"), get("warm"));
+            assert!(cold.converged && zero.converged && warm.converged, "{rows:?}");
+            assert!(warm.iterations < zero.iterations, "{method:?}: {rows:?}");
+            assert!(cold.iterations < zero.iterations, "{method:?}: {rows:?}");
+        }
     }
 }

@@ -140,7 +140,69 @@ pub fn relative_residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> f32 {
 
 /// Residual and rounding floor of the current ψ.
 pub fn residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> Residual {
-    let (r2, b2, e2) = residual_norms(dims, labels, psi);
+    residual_with(dims, labels, psi, dirichlet_norm2(dims, labels))
+}
+
+/// `‖b‖²`: the squared norm of the Dirichlet contributions to the interior rows (each frontier
+/// neighbour adds ψ = 1; the source adds 0). It depends on the labels only, so a solver
+/// computes it once per solve.
+pub(crate) fn dirichlet_norm2(dims: &Dims, labels: &[Label]) -> f64 {
+    let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
+    let nxy = nx * ny;
+    let frontier = |i: usize| u32::from(labels.get(i) == Some(&Label::Frontier));
+    let mut total = 0.0f64;
+    for z in 0..nz {
+        for y in 0..ny {
+            let start = nx * (y + ny * z);
+            let mut row = 0.0f32;
+            for x in 0..nx {
+                let i = start + x;
+                if labels.get(i) != Some(&Label::Interior) {
+                    continue;
+                }
+                let mut n = 0;
+                if x > 0 {
+                    n += frontier(i - 1);
+                }
+                if x + 1 < nx {
+                    n += frontier(i + 1);
+                }
+                if y > 0 {
+                    n += frontier(i - nx);
+                }
+                if y + 1 < ny {
+                    n += frontier(i + nx);
+                }
+                if z > 0 {
+                    n += frontier(i - nxy);
+                }
+                if z + 1 < nz {
+                    n += frontier(i + nxy);
+                }
+                let b = n as f32 * PSI_FRONTIER;
+                row += b * b;
+            }
+            total += f64::from(row);
+        }
+    }
+    total
+}
+
+/// [`residual`] with `‖b‖²` given. The rounding floor uses `Σⱼ ψⱼ² ≈ deg_i·ψᵢ²`, which keeps it
+/// in the same branch-free pass as the residual.
+pub(crate) fn residual_with(dims: &Dims, labels: &[Label], psi: &[f32], b2: f64) -> Residual {
+    let (mut r2, mut e2) = (0.0f64, 0.0f64);
+    for_each_row(dims, labels, psi, |st, row| {
+        let (mut row_r, mut row_e) = (0.0f32, 0.0f32);
+        row_residuals(st, row, None, |x, r, n| {
+            let c = row.at(x);
+            let n = n as f32;
+            row_r += r * r;
+            row_e += (n + n * n) * c * c;
+        });
+        r2 += f64::from(row_r);
+        e2 += f64::from(row_e) * f64::from(f32::EPSILON * f32::EPSILON) / 12.0;
+    });
     if b2 == 0.0 {
         Residual {
             relative: 0.0,
@@ -264,30 +326,6 @@ impl<'r> Stencil<'r> {
         }
         (flux, n)
     }
-
-    /// Calls `f(label, value)` for each face neighbour of cell `x` inside the grid.
-    #[inline]
-    pub(crate) fn each_neighbour<V: RowValues + ?Sized>(
-        &self,
-        row: &V,
-        x: usize,
-        mut f: impl FnMut(&Label, f32),
-    ) {
-        let left = x.wrapping_sub(1);
-        for (l, v) in [
-            (self.labels.get(left), row.at(left)),
-            (self.labels.get(x + 1), row.at(x + 1)),
-        ] {
-            if let Some(l) = l {
-                f(l, v);
-            }
-        }
-        for (ls, vs) in self.nl.iter().zip(&self.nv) {
-            if let Some(l) = ls.get(x) {
-                f(l, vs.at(x));
-            }
-        }
-    }
 }
 
 /// The part of a [`Stencil`] away from the grid's y and z edges: all four neighbour rows
@@ -322,7 +360,7 @@ pub(crate) fn weight(l: Label) -> bool {
 /// Calls `f(x, r)` with the residual `r = b + Σ (v_j − v_x)` of every interior cell `x` of a
 /// read-only row (`b` = 0 where absent). Rows away from the y/z edges take a branch-free path.
 #[inline(always)]
-pub(crate) fn row_residuals<F: FnMut(usize, f32)>(
+pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
     st: &Stencil<'_>,
     row: &[f32],
     b: Option<&[f32]>,
@@ -332,7 +370,8 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32)>(
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
     let edge = |x: usize, f: &mut F| {
         if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
-            f(x, bx(x) + st.flux(row, x, c).0);
+            let (flux, n) = st.flux(row, x, c);
+            f(x, bx(x) + flux, n);
         }
     };
     let Some(inner) = st.inner().filter(|_| nx >= 3) else {
@@ -365,12 +404,11 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32)>(
             continue;
         }
         let mut flux = 0.0f32;
+        let mut n = 0u32;
         let mut add = |lab: Option<&Label>, v: f32| {
-            flux += if lab.is_some_and(|&lab| weight(lab)) {
-                v - c
-            } else {
-                0.0
-            };
+            let w = lab.is_some_and(|&lab| weight(lab));
+            n += u32::from(w);
+            flux += if w { v - c } else { 0.0 };
         };
         add(l.get(x - 1), row.at(x - 1));
         add(l.get(x + 1), row.at(x + 1));
@@ -378,7 +416,7 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32)>(
         add(l1.get(x), v1.at(x));
         add(l2.get(x), v2.at(x));
         add(l3.get(x), v3.at(x));
-        f(x, bx(x) + flux);
+        f(x, bx(x) + flux, n);
     }
     edge(nx - 1, &mut f);
 }
@@ -429,40 +467,6 @@ pub(crate) fn for_each_row_mut(
     }
 }
 
-/// Squared norms of the residual, of the right-hand side `b` (the Dirichlet contributions) and
-/// of the rounding estimate `e`, row by row.
-fn residual_norms(dims: &Dims, labels: &[Label], psi: &[f32]) -> (f64, f64, f64) {
-    let (mut r2, mut b2, mut e2) = (0.0f64, 0.0f64, 0.0f64);
-    for_each_row(dims, labels, psi, |st, row| {
-        let (mut row_r, mut row_b, mut row_e) = (0.0f32, 0.0f32, 0.0f32);
-        for (x, (l, &c)) in st.labels.iter().zip(row).enumerate() {
-            if *l != Label::Interior {
-                continue;
-            }
-            let (r, count) = st.flux(row, x, c);
-            row_r += r * r;
-            // b: Dirichlet neighbour values; e: rounding estimate from the squares.
-            let (mut b, mut spread) = (0.0f32, (count as f32 * c) * (count as f32 * c));
-            st.each_neighbour(row, x, |l, p| {
-                match l {
-                    Label::Frontier => b += PSI_FRONTIER,
-                    Label::Source => b += PSI_SOURCE,
-                    _ => {}
-                }
-                if l.in_domain() {
-                    spread += p * p;
-                }
-            });
-            row_b += b * b;
-            row_e += f32::EPSILON * f32::EPSILON * spread / 12.0;
-        }
-        r2 += f64::from(row_r);
-        b2 += f64::from(row_b);
-        e2 += f64::from(row_e);
-    });
-    (r2, b2, e2)
-}
-
 /// Validates a solve's inputs, trims the buffers to the grid and sets the Dirichlet values
 /// ([`prepare`]): the common start of every solver.
 pub(crate) fn checked_problem<'l, 'p>(
@@ -492,7 +496,12 @@ pub fn gauss_seidel(
 ) -> Result<SolveStats, SolveError> {
     let (labels, phi) = checked_problem(dims, labels, phi, params)?;
     const CHECK_EVERY: u32 = 4;
-    let mut res = residual(dims, labels, phi);
+    let b2 = dirichlet_norm2(dims, labels);
+    if b2 == 0.0 {
+        // No interior cell touches a frontier: ψ = 0 (the source's value) is exact.
+        prepare(labels, phi, false);
+    }
+    let mut res = residual_with(dims, labels, phi, b2);
     let mut stats = SolveStats {
         initial_residual: res.relative,
         ..Default::default()
@@ -513,7 +522,7 @@ pub fn gauss_seidel(
         });
         stats.iterations += 1;
         if stats.iterations.is_multiple_of(CHECK_EVERY) || stats.iterations == params.max_iterations {
-            res = residual(dims, labels, phi);
+            res = residual_with(dims, labels, phi, b2);
         }
     }
     clamp_to_bounds(labels, phi);

@@ -43,7 +43,7 @@ use core::cell::Cell;
 use heapless::Vec as HVec;
 
 use super::{
-    for_each_row, for_each_row_mut, inv_count, residual, Residual, RowValues, SolveError, SolveParams,
+    for_each_row, for_each_row_mut, inv_count, residual_with, Residual, RowValues, SolveError, SolveParams,
     SolveStats,
 };
 use crate::domain::Label;
@@ -57,6 +57,8 @@ const PRE_SWEEPS: u32 = 2;
 const POST_SWEEPS: u32 = 2;
 /// Most CG restarts from the true residual (defect-correction passes) per solve.
 const MAX_RESTARTS: u32 = 6;
+/// Source voxels that pin the coarse potentials of a full-multigrid start.
+const MAX_PINS: usize = 64;
 /// A V-cycle solve whose residual grows past this multiple of its start is reported diverged.
 const DIVERGED: f32 = 1e3;
 /// Symmetric sweeps on the coarsest level.
@@ -145,6 +147,9 @@ pub struct Multigrid<'a> {
     faces: &'a mut [[u8; 3]],
     krylov: &'a mut [f32],
     history: HVec<f32, 64>,
+    /// Source voxels of the current problem (first [`MAX_PINS`]), for full multigrid.
+    pins: HVec<[usize; 3], MAX_PINS>,
+    full_multigrid: bool,
 }
 
 /// One level's view: its labels, unknowns and right-hand side (`None` = 0, with Dirichlet
@@ -194,7 +199,14 @@ impl<'a> Multigrid<'a> {
             faces: storage.faces,
             krylov,
             history: HVec::new(),
+            pins: HVec::new(),
+            full_multigrid: true,
         })
+    }
+
+    /// Whether cold solves (`warm_start == false`) start with full multigrid (the default).
+    pub fn set_full_multigrid(&mut self, on: bool) {
+        self.full_multigrid = on;
     }
 
     /// Number of levels including the fine one.
@@ -224,8 +236,19 @@ impl<'a> Multigrid<'a> {
         self.history.clear();
         let mut stats = SolveStats::default();
         stats.cell_updates += self.build_labels(labels);
-        let mut res = residual(&self.fine, labels, phi);
+        let b2 = super::dirichlet_norm2(&self.fine, labels);
+        if b2 == 0.0 {
+            // No interior cell touches a frontier: every interior component holds only the
+            // source's value, and ψ = 0 there is the exact solution.
+            super::prepare(labels, phi, false);
+        }
+        let mut res = residual_with(&self.fine, labels, phi, b2);
         stats.initial_residual = res.relative;
+        if !params.warm_start && self.full_multigrid && b2 > 0.0 {
+            stats.cell_updates += self.full_multigrid(labels, phi);
+            res = residual_with(&self.fine, labels, phi, b2);
+            stats.cell_updates += n as u64;
+        }
         let use_pcg = match method {
             Method::Auto => self.has_krylov(),
             Method::VCycle => false,
@@ -237,7 +260,7 @@ impl<'a> Multigrid<'a> {
             }
         };
         if use_pcg {
-            res = self.pcg(labels, phi, params, res, &mut stats);
+            res = self.pcg(labels, phi, params, res, b2, &mut stats);
         } else {
             while !res.meets(params.tolerance) && stats.iterations < params.max_iterations {
                 let fine = View {
@@ -249,7 +272,7 @@ impl<'a> Multigrid<'a> {
                 };
                 stats.cell_updates += vcycle(fine, &self.levels, self.values, self.labels, self.faces);
                 stats.iterations += 1;
-                res = residual(&self.fine, labels, phi);
+                res = residual_with(&self.fine, labels, phi, b2);
                 stats.cell_updates += n as u64;
                 let _ = self.history.push(res.relative);
                 let limit = DIVERGED * stats.initial_residual.max(params.tolerance);
@@ -268,9 +291,122 @@ impl<'a> Multigrid<'a> {
         Ok(stats)
     }
 
+    /// Full multigrid start for a cold solve: solves the problem itself (not an error
+    /// equation) on the coarsest level, then on each finer level interpolates that solution
+    /// and improves it with one V-cycle, and finally interpolates onto the fine grid. Coarse
+    /// levels absorb the source into interior cells (see `coarsen`), so the coarse cells holding
+    /// a source voxel are pinned at ψ = 0 after every step instead. Returns cell updates.
+    fn full_multigrid(&mut self, labels: &[Label], phi: &mut [f32]) -> u64 {
+        let mut work = 0u64;
+        let levels = self.levels.clone();
+        let Some(coarsest) = levels.len().checked_sub(1) else {
+            return 0;
+        };
+        for k in (0..=coarsest).rev() {
+            let Some(level) = levels.get(k).copied() else {
+                continue;
+            };
+            let n = level.dims.len();
+            let lo = level.label_offset;
+            let (Some(clabels), Some(cfaces)) = (self.labels.get(lo..lo + n), self.faces.get(lo..lo + n))
+            else {
+                return work;
+            };
+            let (head, rest) = self
+                .values
+                .split_at_mut((level.offset + 2 * n).min(self.values.len()));
+            let Some(mine) = head.get_mut(level.offset..) else {
+                return work;
+            };
+            let (x, b) = mine.split_at_mut(n.min(mine.len()));
+            b.fill(0.0);
+            for (v, l) in x.iter_mut().zip(clabels) {
+                *v = if *l == Label::Frontier {
+                    super::PSI_FRONTIER
+                } else {
+                    0.0
+                };
+            }
+            let rest_levels: HVec<Level, MAX_LEVELS> = levels
+                .iter()
+                .skip(k + 1)
+                .map(|l| Level {
+                    offset: l.offset - (level.offset + 2 * n),
+                    ..*l
+                })
+                .collect();
+            if let Some(coarser) = rest_levels.first() {
+                // Interpolate the coarser solution (it sits at the start of `rest`).
+                let cn = coarser.dims.len();
+                let cl = self
+                    .labels
+                    .get(coarser.label_offset..coarser.label_offset + cn)
+                    .unwrap_or(&[]);
+                let cx = rest.get(coarser.offset..coarser.offset + cn).unwrap_or(&[]);
+                let mut view = View {
+                    dims: level.dims,
+                    labels: clabels,
+                    faces: Some(cfaces),
+                    x: &mut *x,
+                    b: None,
+                };
+                interpolate_into(&mut view, &coarser.dims, cl, cx, true);
+            }
+            pin_sources(&self.pins, k + 1, &level.dims, x);
+            let mut view = View {
+                dims: level.dims,
+                labels: clabels,
+                faces: Some(cfaces),
+                x: &mut *x,
+                b: Some(&*b),
+            };
+            if rest_levels.is_empty() {
+                for _ in 0..COARSEST_SWEEPS {
+                    work += relax(&mut view, 0) + relax(&mut view, 1);
+                    pin_sources(&self.pins, k + 1, &level.dims, view.x);
+                }
+            } else {
+                work += vcycle(view, &rest_levels, rest, self.labels, self.faces);
+                pin_sources(&self.pins, k + 1, &level.dims, x);
+            }
+        }
+        // The fine grid: interpolate the first coarse level's solution onto the interior.
+        if let Some(level) = levels.first() {
+            let n = level.dims.len();
+            let cl = self
+                .labels
+                .get(level.label_offset..level.label_offset + n)
+                .unwrap_or(&[]);
+            let cx = self.values.get(level.offset..level.offset + n).unwrap_or(&[]);
+            let mut view = View {
+                dims: self.fine,
+                labels,
+                faces: None,
+                x: phi,
+                b: None,
+            };
+            interpolate_into(&mut view, &level.dims, cl, cx, true);
+            work += self.fine.len() as u64;
+        }
+        work
+    }
+
     /// Coarse labels and face conductances from the fine labels. Returns cells touched.
     fn build_labels(&mut self, fine_labels: &[Label]) -> u64 {
         let mut work = 0u64;
+        self.pins.clear();
+        for (i, l) in fine_labels.iter().enumerate() {
+            if *l == Label::Source {
+                let v = self.fine.voxel(i);
+                if self
+                    .pins
+                    .push([usize::from(v.x), usize::from(v.y), usize::from(v.z)])
+                    .is_err()
+                {
+                    break;
+                }
+            }
+        }
         let mut prev_dims = self.fine;
         let mut prev_offset: Option<usize> = None;
         for level in self.levels.iter() {
@@ -305,6 +441,7 @@ impl<'a> Multigrid<'a> {
         phi: &mut [f32],
         params: &SolveParams,
         mut res: Residual,
+        b2: f64,
         stats: &mut SolveStats,
     ) -> Residual {
         let Self {
@@ -315,6 +452,7 @@ impl<'a> Multigrid<'a> {
             faces,
             krylov,
             history,
+            ..
         } = self;
         let dims = *fine;
         let n = dims.len();
@@ -332,25 +470,8 @@ impl<'a> Multigrid<'a> {
         let (r, rest) = krylov.split_at_mut(n);
         let (p, rest) = rest.split_at_mut(n);
         let z = &mut rest[..n];
-        // r = residual of φ; b-norm for the relative residual.
-        let b_norm = {
-            let mut b2 = 0.0f64;
-            residual_into(&dims, labels, phi, None, r);
-            let mut rows = RowSum::default();
-            for (i, l) in labels.iter().enumerate() {
-                if *l == Label::Interior {
-                    let mut b = 0.0f32;
-                    dims.for_each_face_neighbour(dims.voxel(i), |j| {
-                        if labels.get(j) == Some(&Label::Frontier) {
-                            b += super::PSI_FRONTIER;
-                        }
-                    });
-                    rows.add(b * b, &mut b2);
-                }
-            }
-            rows.finish(&mut b2);
-            libm::sqrt(b2)
-        };
+        residual_into(&dims, labels, phi, None, r);
+        let b_norm = libm::sqrt(b2);
         if b_norm == 0.0 {
             return res;
         }
@@ -360,7 +481,7 @@ impl<'a> Multigrid<'a> {
         for pass in 0..MAX_RESTARTS {
             if pass > 0 {
                 residual_into(&dims, labels, phi, None, r);
-                res = residual(&dims, labels, phi);
+                res = residual_with(&dims, labels, phi, b2);
                 stats.cell_updates += 2 * n as u64;
             }
             if res.meets(params.tolerance) || stats.iterations >= params.max_iterations {
@@ -409,7 +530,7 @@ impl<'a> Multigrid<'a> {
         }
         // Report the true residual, not the recurrence's.
         stats.cell_updates += n as u64;
-        residual(&dims, labels, phi)
+        residual_with(&dims, labels, phi, b2)
     }
 }
 
@@ -553,28 +674,20 @@ fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 3]], colour: usize) -> u64 {
     updates
 }
 
-/// Sums of squares row by row in f32, rows in f64.
-#[derive(Default)]
-struct RowSum {
-    row: f32,
-    count: u32,
-}
-
-impl RowSum {
-    fn add(&mut self, v: f32, total: &mut f64) {
-        self.row += v;
-        self.count += 1;
-        if self.count == 64 {
-            self.finish(total);
+/// Sets ψ = 0 at the cells of a level `depth` halvings below the fine grid that hold a
+/// source voxel.
+fn pin_sources(pins: &[[usize; 3]], depth: usize, dims: &Dims, x: &mut [f32]) {
+    for &[px, py, pz] in pins {
+        let (cx, cy, cz) = (px >> depth, py >> depth, pz >> depth);
+        if cx < dims.nx() && cy < dims.ny() && cz < dims.nz() {
+            if let Some(v) = x.get_mut(cx + dims.nx() * (cy + dims.ny() * cz)) {
+                *v = super::PSI_SOURCE;
+            }
         }
     }
-    fn finish(&mut self, total: &mut f64) {
-        *total += f64::from(self.row);
-        self.row = 0.0;
-        self.count = 0;
-    }
 }
 
+/// Dot product summed in f32 over chunks of 64, chunks in f64.
 fn dot(a: &[f32], b: &[f32]) -> f64 {
     let mut total = 0.0f64;
     for (ca, cb) in a.chunks(64).zip(b.chunks(64)) {
@@ -601,7 +714,7 @@ fn residual_into(dims: &Dims, labels: &[Label], x: &[f32], b: Option<&[f32]>, ou
             return;
         };
         out_row.fill(0.0);
-        super::row_residuals(st, row, b_row, |x, r| {
+        super::row_residuals(st, row, b_row, |x, r, _| {
             if let Some(o) = out_row.get_mut(x) {
                 *o = r;
             }
@@ -808,7 +921,7 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
             // Mask only: coarse values are not read here.
             let parents = Parents::of(y, z, coarse, clabels, &zeros);
             let (starts, n) = parent_rows(y, z, coarse);
-            let mut scatter = |x: usize, r: f32| {
+            let mut scatter = |x: usize, r: f32, _n: u32| {
                 let (_, den) = parents.interpolate(x);
                 if den <= 0.0 {
                     return;
@@ -844,7 +957,7 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
                         if fine.labels.get(i) == Some(&Label::Interior) {
                             let (flux, _) = weighted_flux(faces, x_all, i, fnx, nxy);
                             let b = fine.b.map_or(0.0, |b| b.at(i));
-                            scatter(x, b + flux * (1.0 / f32::from(FACE_ONE)));
+                            scatter(x, b + flux * (1.0 / f32::from(FACE_ONE)), 0);
                         }
                     }
                 }
@@ -856,6 +969,11 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
 /// `x_f += P x_c` on interior fine cells: trilinear interpolation renormalised over the coarse
 /// cells that are not outside (Dirichlet ones count with their value).
 fn prolongate(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32]) {
+    interpolate_into(fine, coarse, clabels, cx, false);
+}
+
+/// `x_f ← P x_c` (`set`) or `x_f += P x_c` on interior fine cells.
+fn interpolate_into(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32], set: bool) {
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
     for z in 0..fine.dims.nz() {
         for y in 0..fny {
@@ -871,7 +989,7 @@ fn prolongate(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32])
                 if *l == Label::Interior {
                     let (num, den) = parents.interpolate(x);
                     if den > 0.0 {
-                        *v += num / den;
+                        *v = num / den + if set { 0.0 } else { *v };
                     }
                 }
             }
