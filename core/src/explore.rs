@@ -112,7 +112,7 @@ pub struct ExplorerStorage<'a> {
     /// Multigrid coarse-level labels.
     pub coarse_labels: &'a mut [Label],
     /// Multigrid coarse-level face conductances.
-    pub coarse_faces: &'a mut [[u8; 3]],
+    pub coarse_faces: &'a mut [[u8; 4]],
     /// MGPCG vectors (optional).
     pub krylov: &'a mut [f32],
 }

@@ -42,7 +42,7 @@ fn hall_and_corridor(source: VoxelIndex) -> (Dims, Vec<Label>) {
 struct Solver {
     values: Vec<f32>,
     labels: Vec<Label>,
-    faces: Vec<[u8; 3]>,
+    faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
 }
 
@@ -52,7 +52,7 @@ impl Solver {
         Self {
             values: vec![0.0; s.values],
             labels: vec![Label::Outside; s.labels],
-            faces: vec![[0; 3]; s.faces],
+            faces: vec![[0; 4]; s.faces],
             krylov: vec![0.0; s.krylov],
         }
     }

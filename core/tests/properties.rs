@@ -269,7 +269,7 @@ fn solve_mg(b: &Built, method: Method) -> (Vec<f32>, SolveStats) {
     let size = scratch_size(&dims);
     let mut values = vec![0.0f32; size.values];
     let mut clabels = vec![Label::Outside; size.labels];
-    let mut faces = vec![[0u8; 3]; size.faces];
+    let mut faces = vec![[0u8; 4]; size.faces];
     let mut krylov = vec![0.0f32; size.krylov];
     let mut mg = Multigrid::new(
         dims,

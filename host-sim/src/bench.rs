@@ -139,7 +139,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
     let size = scratch_size(&dims);
     let mut values = vec![0.0f32; size.values];
     let mut clabels = vec![Label::Outside; size.labels];
-    let mut faces = vec![[0u8; 3]; size.faces];
+    let mut faces = vec![[0u8; 4]; size.faces];
     let mut krylov = vec![0.0f32; size.krylov];
     let mut psi = vec![0.0f32; dims.len()];
     let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool, fmg: bool| -> SolveStats {

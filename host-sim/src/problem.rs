@@ -180,7 +180,7 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
             let (mut values, mut clabels, mut faces, mut krylov) = (
                 vec![0.0f32; size.values],
                 vec![Label::Outside; size.labels],
-                vec![[0u8; 3]; size.faces],
+                vec![[0u8; 4]; size.faces],
                 vec![0.0f32; size.krylov],
             );
             let storage = MultigridStorage {

@@ -290,7 +290,7 @@ pub struct HostStorage {
     queue: Vec<u32>,
     coarse_values: Vec<f32>,
     coarse_labels: Vec<Label>,
-    coarse_faces: Vec<[u8; 3]>,
+    coarse_faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
 }
 
@@ -302,7 +302,7 @@ impl HostStorage {
         Self {
             coarse_values: vec![0.0; mg.values],
             coarse_labels: vec![Label::Outside; mg.labels],
-            coarse_faces: vec![[0; 3]; mg.faces],
+            coarse_faces: vec![[0; 4]; mg.faces],
             krylov: vec![0.0; mg.krylov],
             log_odds: vec![0; n],
             stamps: vec![0; n],
