@@ -115,8 +115,8 @@ fn every_streamline_from_the_hall_reaches_the_far_frontier() {
     let mut solver = Solver::new(&dims);
     for source in sources {
         let (dims, labels) = hall_and_corridor(source);
-        {
-            let method = Method::Pcg;
+        // MGPCG is the host's solver; plain V-cycles are the firmware's.
+        for method in [Method::Pcg, Method::VCycle] {
             let psi = solver.solve(dims, &labels, method);
             // The hall really is a reservoir: φ = 1 − ψ stays close to 1 all over it.
             let corner = dims.linear(VoxelIndex::new((HALL - 2) as u16, 1, 1));
