@@ -968,6 +968,37 @@ impl<'c> Parents<'c> {
     }
 }
 
+impl Parents<'_> {
+    /// Collapses the parent rows along y and z: `cv[c] = Σ w·v[c]` and `cm[c] = Σ w·m[c]`
+    /// (`m` = 1 where the coarse cell is not outside). Interpolating at a fine `x` then reads
+    /// two entries of each instead of eight labels and values. `cv` may be empty (mask only).
+    fn collapse(&self, cv: &mut [f32], cm: &mut [f32]) {
+        cv.fill(0.0);
+        cm.fill(0.0);
+        for &(l, v, w) in &self.rows {
+            for (m, l) in cm.iter_mut().zip(l) {
+                *m += if *l != Label::Outside { w } else { 0.0 };
+            }
+            for (c, v) in cv.iter_mut().zip(v) {
+                *c += w * v;
+            }
+        }
+    }
+}
+
+/// [`Parents::interpolate`] from collapsed rows.
+#[inline(always)]
+fn interpolate_collapsed(cv: &[f32], cm: &[f32], x: usize) -> (f32, f32) {
+    let (c0, c1) = fine_to_coarse_x(x);
+    (
+        0.75 * cv.at(c0) + 0.25 * cv.at(c1),
+        0.75 * cm.at(c0) + 0.25 * cm.at(c1),
+    )
+}
+
+/// Longest coarse row the transfers collapse on the stack; longer rows take the per-cell path.
+const ROW_BUF: usize = 256;
+
 /// The two coarse parents of fine `x` along the x axis: its own (weight ¾) and the neighbour
 /// on its side (¼; `usize::MAX` past the low edge, which reads as absent).
 #[inline(always)]
@@ -992,19 +1023,42 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
     let nxy = fnx * fny;
     let x_all: &[f32] = fine.x;
+    let (mut cm_buf, mut acc_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
+    let collapsed = cnx <= ROW_BUF;
     for z in 0..fine.dims.nz() {
         for y in 0..fny {
             let start = fnx * (y + fny * z);
             // Mask only: coarse values are not read here.
             let parents = Parents::of(y, z, coarse, clabels, &zeros);
             let (starts, n) = parent_rows(y, z, coarse);
+            let cm = cm_buf.get_mut(..cnx).unwrap_or(&mut []);
+            let acc = acc_buf.get_mut(..cnx).unwrap_or(&mut []);
+            if collapsed {
+                parents.collapse(&mut [], cm);
+                acc.fill(0.0);
+            }
+            let cm: &[f32] = cm;
             let mut scatter = |x: usize, r: f32, _n: u32| {
+                let (c0, c1) = fine_to_coarse_x(x);
+                if collapsed {
+                    // Along x into the row accumulator; the y/z weights follow per row below.
+                    let (_, den) = interpolate_collapsed(&[], cm, x);
+                    if den > 0.0 {
+                        let s = 0.5 * r / den;
+                        if let Some(a) = acc.get_mut(c0) {
+                            *a += 0.75 * s;
+                        }
+                        if let Some(a) = acc.get_mut(c1) {
+                            *a += 0.25 * s;
+                        }
+                    }
+                    return;
+                }
                 let (_, den) = parents.interpolate(x);
                 if den <= 0.0 {
                     return;
                 }
                 let s = 0.5 * r / den;
-                let (c0, c1) = fine_to_coarse_x(x);
                 for (&(row_start, wyz), &(l, _, _)) in starts.iter().take(n).zip(&parents.rows) {
                     for (c, wx) in [(c0, 0.75), (c1, 0.25)] {
                         if c < cnx && l.get(c) == Some(&Label::Interior) {
@@ -1039,6 +1093,19 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
                     }
                 }
             }
+            if collapsed {
+                let acc: &[f32] = acc_buf.get(..cnx).unwrap_or(&[]);
+                for (&(row_start, wyz), &(l, _, _)) in starts.iter().take(n).zip(&parents.rows) {
+                    let Some(b_row) = cb.get_mut(row_start..row_start + cnx) else {
+                        continue;
+                    };
+                    for ((b, a), l) in b_row.iter_mut().zip(acc).zip(l) {
+                        if *l == Label::Interior {
+                            *b += wyz * a;
+                        }
+                    }
+                }
+            }
         }
     }
 }
@@ -1052,6 +1119,8 @@ fn prolongate(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32])
 /// `x_f ← P x_c` (`set`) or `x_f += P x_c` on interior fine cells.
 fn interpolate_into(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32], set: bool) {
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
+    let cnx = coarse.nx();
+    let (mut cv_buf, mut cm_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
     for z in 0..fine.dims.nz() {
         for y in 0..fny {
             let start = fnx * (y + fny * z);
@@ -1062,9 +1131,22 @@ fn interpolate_into(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &
                 continue;
             };
             let parents = Parents::of(y, z, coarse, clabels, cx);
+            let (Some(cv), Some(cm)) = (cv_buf.get_mut(..cnx), cm_buf.get_mut(..cnx)) else {
+                // Longer rows than the stack buffers: interpolate cell by cell.
+                for (x, (l, v)) in l_row.iter().zip(row.iter_mut()).enumerate() {
+                    if *l == Label::Interior {
+                        let (num, den) = parents.interpolate(x);
+                        if den > 0.0 {
+                            *v = num / den + if set { 0.0 } else { *v };
+                        }
+                    }
+                }
+                continue;
+            };
+            parents.collapse(cv, cm);
             for (x, (l, v)) in l_row.iter().zip(row.iter_mut()).enumerate() {
                 if *l == Label::Interior {
-                    let (num, den) = parents.interpolate(x);
+                    let (num, den) = interpolate_collapsed(cv, cm, x);
                     if den > 0.0 {
                         *v = num / den + if set { 0.0 } else { *v };
                     }
