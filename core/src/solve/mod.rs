@@ -351,6 +351,49 @@ impl<'r> Stencil<'r> {
     }
 }
 
+impl<'r> Inner<'r> {
+    /// Every slice cut to exactly `nx` entries (the row length), or `None` if one is shorter.
+    /// Cutting here, in the caller's inlined code, is what lets the compiler see the lengths.
+    #[inline(always)]
+    pub(crate) fn cut(&self, nx: usize) -> Option<Cut<'r>> {
+        let [l0, l1, l2, l3] = self.nl;
+        let [v0, v1, v2, v3] = self.nv;
+        Some(Cut {
+            l: self.l.get(..nx)?,
+            nl: [l0.get(..nx)?, l1.get(..nx)?, l2.get(..nx)?, l3.get(..nx)?],
+            nv: [v0.get(..nx)?, v1.get(..nx)?, v2.get(..nx)?, v3.get(..nx)?],
+        })
+    }
+}
+
+/// An [`Inner`] row whose slices all have the row's length.
+pub(crate) struct Cut<'r> {
+    pub(crate) l: &'r [Label],
+    nl: [&'r [Label]; 4],
+    nv: [&'r [f32]; 4],
+}
+
+impl Cut<'_> {
+    /// Net flux into cell `x` (value `c`, `0 < x < nx − 1`) of `row` and the number of
+    /// in-domain neighbours; the in-domain tests are 0/1 weights, not branches.
+    #[inline(always)]
+    pub(crate) fn flux<V: RowValues + ?Sized>(&self, row: &V, x: usize, c: f32) -> (f32, u32) {
+        let mut flux = 0.0f32;
+        let mut n = 0u32;
+        let mut add = |lab: Option<&Label>, v: f32| {
+            let w = lab.is_some_and(|&lab| weight(lab));
+            n += u32::from(w);
+            flux += if w { v - c } else { 0.0 };
+        };
+        add(self.l.get(x.wrapping_sub(1)), row.at(x.wrapping_sub(1)));
+        add(self.l.get(x + 1), row.at(x + 1));
+        for (l, v) in self.nl.iter().zip(&self.nv) {
+            add(l.get(x), v.at(x));
+        }
+        (flux, n)
+    }
+}
+
 /// 0/1 in-domain weight of a label, without a branch.
 #[inline(always)]
 pub(crate) fn weight(l: Label) -> bool {
@@ -381,42 +424,17 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
         return;
     };
     edge(0, &mut f);
-    let [l0, l1, l2, l3] = inner.nl;
-    let [v0, v1, v2, v3] = inner.nv;
-    let (Some(l), Some(l0), Some(l1), Some(l2), Some(l3)) = (
-        inner.l.get(..nx),
-        l0.get(..nx),
-        l1.get(..nx),
-        l2.get(..nx),
-        l3.get(..nx),
-    ) else {
-        return;
-    };
-    let (Some(v0), Some(v1), Some(v2), Some(v3)) = (v0.get(..nx), v1.get(..nx), v2.get(..nx), v3.get(..nx))
-    else {
+    let Some(cut) = inner.cut(nx) else {
         return;
     };
     for x in 1..nx - 1 {
-        let (Some(&lc), Some(&c)) = (l.get(x), row.get(x)) else {
+        let (Some(&lc), Some(&c)) = (cut.l.get(x), row.get(x)) else {
             break;
         };
-        if lc != Label::Interior {
-            continue;
+        if lc == Label::Interior {
+            let (flux, n) = cut.flux(row, x, c);
+            f(x, bx(x) + flux, n);
         }
-        let mut flux = 0.0f32;
-        let mut n = 0u32;
-        let mut add = |lab: Option<&Label>, v: f32| {
-            let w = lab.is_some_and(|&lab| weight(lab));
-            n += u32::from(w);
-            flux += if w { v - c } else { 0.0 };
-        };
-        add(l.get(x - 1), row.at(x - 1));
-        add(l.get(x + 1), row.at(x + 1));
-        add(l0.get(x), v0.at(x));
-        add(l1.get(x), v1.at(x));
-        add(l2.get(x), v2.at(x));
-        add(l3.get(x), v3.at(x));
-        f(x, bx(x) + flux, n);
     }
     edge(nx - 1, &mut f);
 }

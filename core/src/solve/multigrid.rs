@@ -280,23 +280,21 @@ impl<'a> Multigrid<'a> {
             // Aim at half the tolerance, as the CG passes do: the error left is up to the
             // condition number times the residual, and long corridors have a large one.
             while !res.meets(0.5 * params.tolerance) && stats.iterations < params.max_iterations {
-                let mut fine = View {
+                let fine = View {
                     dims: self.fine,
                     labels,
                     faces: None,
                     x: &mut *phi,
                     b: None,
                 };
-                stats.cell_updates += local_smooth(&mut fine, &self.pins);
-                stats.cell_updates += vcycle(fine, &self.levels, self.values, self.labels, self.faces);
-                let mut fine = View {
-                    dims: self.fine,
-                    labels,
-                    faces: None,
-                    x: &mut *phi,
-                    b: None,
-                };
-                stats.cell_updates += local_smooth(&mut fine, &self.pins);
+                stats.cell_updates += fine_cycle(
+                    fine,
+                    &self.levels,
+                    self.values,
+                    self.labels,
+                    self.faces,
+                    &self.pins,
+                );
                 stats.iterations += 1;
                 res = residual_with(&self.fine, labels, phi, b2);
                 stats.cell_updates += n as u64;
@@ -488,23 +486,14 @@ impl<'a> Multigrid<'a> {
         let n = dims.len();
         let mut precondition = |r: &[f32], z: &mut [f32]| -> u64 {
             z.fill(0.0);
-            let mut view = View {
+            let fine = View {
                 dims,
                 labels,
                 faces: None,
-                x: &mut *z,
+                x: z,
                 b: Some(r),
             };
-            let mut work = local_smooth(&mut view, pins);
-            work += vcycle(view, levels, values, coarse_labels, faces);
-            let mut view = View {
-                dims,
-                labels,
-                faces: None,
-                x: &mut *z,
-                b: Some(r),
-            };
-            work + local_smooth(&mut view, pins)
+            fine_cycle(fine, levels, values, coarse_labels, faces, pins)
         };
         let (r, rest) = krylov.split_at_mut(n);
         let (p, rest) = rest.split_at_mut(n);
@@ -847,45 +836,20 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
 /// bounds checks and the in-domain tests become selects.
 #[inline(always)]
 fn relax_inner(inner: &super::Inner<'_>, row: &[Cell<f32>], b: Option<&[f32]>, start: usize) -> u64 {
-    use super::weight;
     let nx = row.len();
-    let [l0, l1, l2, l3] = inner.nl;
-    let [v0, v1, v2, v3] = inner.nv;
-    let (Some(l), Some(l0), Some(l1), Some(l2), Some(l3)) = (
-        inner.l.get(..nx),
-        l0.get(..nx),
-        l1.get(..nx),
-        l2.get(..nx),
-        l3.get(..nx),
-    ) else {
-        return 0;
-    };
-    let (Some(v0), Some(v1), Some(v2), Some(v3)) = (v0.get(..nx), v1.get(..nx), v2.get(..nx), v3.get(..nx))
-    else {
+    let Some(cut) = inner.cut(nx) else {
         return 0;
     };
     let b = b.and_then(|b| b.get(..nx));
     let mut updates = 0u64;
     let mut x = start;
     while x + 1 < nx {
-        let (Some(&lc), Some(cell)) = (l.get(x), row.get(x)) else {
+        let (Some(&lc), Some(cell)) = (cut.l.get(x), row.get(x)) else {
             break;
         };
         if lc == Label::Interior {
             let c = cell.get();
-            let mut flux = 0.0f32;
-            let mut n = 0u32;
-            let mut add = |lab: Option<&Label>, v: f32| {
-                let w = lab.is_some_and(|&lab| weight(lab));
-                n += u32::from(w);
-                flux += if w { v - c } else { 0.0 };
-            };
-            add(l.get(x - 1), row.at(x - 1));
-            add(l.get(x + 1), row.at(x + 1));
-            add(l0.get(x), v0.at(x));
-            add(l1.get(x), v1.at(x));
-            add(l2.get(x), v2.at(x));
-            add(l3.get(x), v3.at(x));
+            let (flux, n) = cut.flux(row, x, c);
             let bx = b.map_or(0.0, |b| b.at(x));
             cell.set(c + (flux + bx) * inv_count(n));
             updates += u64::from(n > 0);
@@ -1228,6 +1192,46 @@ fn local_smooth(v: &mut View<'_>, pins: &[[usize; 3]]) -> u64 {
         }
     }
     work
+}
+
+/// One fine-level cycle: [`local_smooth`] at the source, a V-cycle, [`local_smooth`] again.
+fn fine_cycle(
+    mut fine: View<'_>,
+    levels: &[Level],
+    values: &mut [f32],
+    labels: &[Label],
+    faces: &[[u8; 4]],
+    pins: &[[usize; 3]],
+) -> u64 {
+    let mut work = local_smooth(&mut fine, pins);
+    let View {
+        dims,
+        labels: fl,
+        faces: ff,
+        x,
+        b,
+    } = fine;
+    work += vcycle(
+        View {
+            dims,
+            labels: fl,
+            faces: ff,
+            x: &mut *x,
+            b,
+        },
+        levels,
+        values,
+        labels,
+        faces,
+    );
+    let mut fine = View {
+        dims,
+        labels: fl,
+        faces: ff,
+        x,
+        b,
+    };
+    work + local_smooth(&mut fine, pins)
 }
 
 /// One V-cycle ([`PRE_SWEEPS`], [`POST_SWEEPS`]) on `fine` with the coarse `levels`. Returns
