@@ -458,7 +458,7 @@ pub(crate) mod tests {
     pub(crate) fn map_from_layers<'a>(
         layers: &[&[&str]],
         lo: &'a mut [i8],
-        st: &'a mut [u8],
+        st: &'a mut [u32],
     ) -> VoxelMap<'a> {
         let (nz, ny, nx) = (layers.len(), layers[0].len(), layers[0][0].len());
         let g = MapGeometry::new(Dims::new(nx, ny, nz).unwrap(), Point3::origin(), 1.0).unwrap();
@@ -480,7 +480,7 @@ pub(crate) mod tests {
 
     #[test]
     fn frontier_is_free_next_to_unknown() {
-        let (mut lo, mut st) = ([0i8; 16], [0u8; 16]);
+        let (mut lo, mut st) = ([0i8; 16], [0u32; 1]);
         let layers: &[&[&str]] = &[&["....", ".#..", "...?", "...."]];
         let map = map_from_layers(layers, &mut lo, &mut st);
         let mut frontier = heapless::Vec::<(u16, u16), 16>::new();
@@ -497,7 +497,7 @@ pub(crate) mod tests {
 
     #[test]
     fn frontier_ignores_occupied_and_sealed_neighbours() {
-        let (mut lo, mut st) = ([0i8; 6], [0u8; 6]);
+        let (mut lo, mut st) = ([0i8; 6], [0u32; 1]);
         let layers: &[&[&str]] = &[&["..#", ".?."]];
         let mut map = map_from_layers(layers, &mut lo, &mut st);
         assert!(!map.is_frontier(VoxelIndex::new(1, 0, 0)) || map.is_unexplored(4));
@@ -515,7 +515,7 @@ pub(crate) mod tests {
 
     #[test]
     fn component_without_frontier_is_excluded_and_inflation_removes_wall_neighbours() {
-        let (mut lo, mut st) = ([0i8; 40], [0u8; 40]);
+        let (mut lo, mut st) = ([0i8; 40], [0u32; 2]);
         // One unknown voxel at (4,1); rows 2 and 3 lead around it, so the far side is reached
         // without passing through a frontier voxel.
         let layers: &[&[&str]] = &[&["..........", "....?.#...", "......#...", ".........."]];
@@ -545,7 +545,7 @@ pub(crate) mod tests {
         )));
 
         // A room behind a wall whose only gap is unknown is another component.
-        let (mut lo2, mut st2) = ([0i8; 21], [0u8; 21]);
+        let (mut lo2, mut st2) = ([0i8; 21], [0u32; 1]);
         let pocket: &[&[&str]] = &[&[".......", "##?####", "......."]];
         let map2 = map_from_layers(pocket, &mut lo2, &mut st2);
         let mut labels2 = [Label::Outside; 21];
@@ -565,7 +565,7 @@ pub(crate) mod tests {
         assert_eq!(stats2.excluded, 11);
 
         // Radius 1 voxel needs a grid at least 3 layers thick (the z edges are walls too).
-        let (mut lo3, mut st3) = ([0i8; 120], [0u8; 120]);
+        let (mut lo3, mut st3) = ([0i8; 120], [0u32; 4]);
         let layer: &[&str] = layers[0];
         let map3 = map_from_layers(&[layer, layer, layer], &mut lo3, &mut st3);
         let g3 = *map3.geometry();
@@ -592,7 +592,7 @@ pub(crate) mod tests {
 
     #[test]
     fn vehicle_outside_free_space_is_an_error() {
-        let (mut lo, mut st) = ([0i8; 16], [0u8; 16]);
+        let (mut lo, mut st) = ([0i8; 16], [0u32; 1]);
         let layers: &[&[&str]] = &[&["....", ".#..", "....", "?..."]];
         let map = map_from_layers(layers, &mut lo, &mut st);
         let mut labels = [Label::Outside; 16];
@@ -613,7 +613,7 @@ pub(crate) mod tests {
         // is the first safe one (the 5 × 5 cross-section keeps y = z = 2 clear of the edges).
         // The vehicle at (1,2,2) must walk through fringe voxel (2,2,2) to reach (3,2,2).
         let layer: &[&str] = &["?.......", "?.......", "?.......", "?.......", "?......."];
-        let (mut lo, mut st) = ([0i8; 200], [0u8; 200]);
+        let (mut lo, mut st) = ([0i8; 200], [0u32; 7]);
         let map = map_from_layers(&[layer, layer, layer, layer, layer], &mut lo, &mut st);
         let stencil = InflationStencil::new(2.0, 1.0).unwrap();
         let mut labels = [Label::Outside; 200];

@@ -92,15 +92,20 @@ impl Default for ExplorerConfig {
     }
 }
 
-/// Buffers an explorer works in, each with at least one entry per voxel (`queue`: any length
-/// ≥ 1; a few thousand entries keep the flood fill to one pass). The multigrid buffers are sized
-/// by [`crate::solve::multigrid::scratch_size`]; they may be empty when the solver is Gauss-Seidel, and
-/// `krylov` may be empty to run plain V-cycles in less memory.
+/// Buffers an explorer works in, each with at least one entry per voxel except `touched`
+/// ([`map::touched_words`](crate::map::touched_words): one bit per voxel) and `queue` (any
+/// length ≥ 1; a few thousand entries keep the flood fill to one pass). The multigrid buffers
+/// are sized by [`crate::solve::multigrid::scratch_size`]; they may be empty when the solver is
+/// Gauss-Seidel, and `krylov` may be empty to run plain V-cycles in less memory.
+///
+/// [`ExplorerStorage::bytes`] adds it up: 1.125 bytes of map, 1 byte of labels and 4 bytes of ψ
+/// per voxel, plus the multigrid levels (about 1.3 bytes per voxel) and the queue — 64 × 64 × 32
+/// voxels with V-cycles and a 2048-entry queue need 957 KiB.
 pub struct ExplorerStorage<'a> {
     /// Map log-odds.
     pub log_odds: &'a mut [i8],
-    /// Map observation stamps.
-    pub stamps: &'a mut [u8],
+    /// Map "updated this frame" bits.
+    pub touched: &'a mut [u32],
     /// Domain labels.
     pub labels: &'a mut [Label],
     /// Potential φ.
@@ -113,6 +118,21 @@ pub struct ExplorerStorage<'a> {
     pub coarse_labels: &'a mut [Label],
     /// MGPCG vectors (optional).
     pub krylov: &'a mut [f32],
+}
+
+impl ExplorerStorage<'_> {
+    /// Bytes of all the buffers together.
+    pub fn bytes(&self) -> usize {
+        use core::mem::size_of_val;
+        size_of_val(self.log_odds)
+            + size_of_val(self.touched)
+            + size_of_val(self.labels)
+            + size_of_val(self.phi)
+            + size_of_val(self.queue)
+            + size_of_val(self.coarse_values)
+            + size_of_val(self.coarse_labels)
+            + size_of_val(self.krylov)
+    }
 }
 
 /// Why an explorer could not be built.
@@ -288,7 +308,7 @@ impl<'a> Explorer<'a> {
         let n = geometry.dims().len();
         let ExplorerStorage {
             log_odds,
-            stamps,
+            touched,
             labels,
             phi,
             queue,
@@ -313,7 +333,7 @@ impl<'a> Explorer<'a> {
             ),
             SolverKind::GaussSeidel => None,
         };
-        let map = VoxelMap::new(geometry, config.log_odds, log_odds, stamps).map_err(ConfigError::Map)?;
+        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
         let labels = &mut labels[..n];

@@ -381,7 +381,7 @@ mod tests {
 
     struct Fixture {
         lo: [i8; 4096],
-        st: [u8; 4096],
+        st: [u32; 128],
     }
 
     fn looking_along_x() -> Isometry3<f32> {
@@ -395,7 +395,7 @@ mod tests {
     fn single_pixel_marks_free_ray_and_occupied_endpoint() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
@@ -423,7 +423,7 @@ mod tests {
     fn no_return_clears_to_max_range_and_too_close_is_invalid() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
@@ -469,7 +469,7 @@ mod tests {
     fn occupied_wins_within_one_frame() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
@@ -498,7 +498,7 @@ mod tests {
     fn bad_pose_is_rejected() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();

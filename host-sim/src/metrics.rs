@@ -157,7 +157,7 @@ mod tests {
         assert_eq!(t.reachable_free(), 512);
         // Surface: the inner faces of six walls, 8×8 each, no edges (they face no free voxel).
         assert_eq!(t.surface_voxels(), 6 * 64);
-        let (mut lo, mut st) = (vec![0i8; 1000], vec![0u8; 1000]);
+        let (mut lo, mut st) = (vec![0i8; 1000], vec![0u32; 32]);
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
         let c0 = t.coverage(&map);
         assert_eq!((c0.free, c0.surface), (0.0, 0.0));

@@ -31,7 +31,7 @@ use harmonic_core::explore::{
     SolverKind,
 };
 use harmonic_core::link::{self, DepthReceiver, LinkCounters, LinkEncoder, LinkEvent};
-use harmonic_core::map::{Dims, MapGeometry};
+use harmonic_core::map::{self, Dims, MapGeometry};
 use harmonic_core::mavlink::{
     encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavlinkDecoder, MAX_FRAME_LEN,
 };
@@ -266,7 +266,7 @@ impl std::error::Error for SimError {}
 /// Host-owned buffers for one explorer.
 pub struct HostStorage {
     log_odds: Vec<i8>,
-    stamps: Vec<u8>,
+    touched: Vec<u32>,
     labels: Vec<Label>,
     phi: Vec<f32>,
     queue: Vec<u32>,
@@ -285,7 +285,7 @@ impl HostStorage {
             coarse_labels: vec![Label::Outside; mg.labels],
             krylov: vec![0.0; mg.krylov],
             log_odds: vec![0; n],
-            stamps: vec![0; n],
+            touched: vec![0; map::touched_words(dims)],
             labels: vec![Label::Outside; n],
             phi: vec![0.0; n],
             queue: vec![0; 16 * 1024],
@@ -295,7 +295,7 @@ impl HostStorage {
     pub fn lend(&mut self) -> ExplorerStorage<'_> {
         ExplorerStorage {
             log_odds: &mut self.log_odds,
-            stamps: &mut self.stamps,
+            touched: &mut self.touched,
             labels: &mut self.labels,
             phi: &mut self.phi,
             queue: &mut self.queue,
