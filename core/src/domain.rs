@@ -29,6 +29,7 @@ use crate::map::{Occupancy, VoxelIndex, VoxelMap};
 /// Role of a voxel in the Laplace problem. After [`build`] only `Outside`, `Interior`,
 /// `Frontier` and `Source` remain; the other variants are transient states of the build.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[repr(u8)]
 pub enum Label {
     /// Not part of the problem (unknown, occupied, inflated or another component).
@@ -73,6 +74,7 @@ pub struct InflationStencil {
 
 /// Domain-building errors.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum DomainError {
     /// The vehicle radius is negative, not finite, or larger than the supported maximum.
     BadRadius,
@@ -146,6 +148,7 @@ fn cube_distance_sq(d: [i32; 3]) -> f32 {
 
 /// What a domain build found.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct DomainStats {
     /// Observed free voxels.
     pub free: u32,

@@ -137,6 +137,7 @@ impl ExplorerStorage<'_> {
 
 /// Why an explorer could not be built.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ConfigError {
     /// Map geometry or storage problem.
     Map(MapError),
@@ -150,6 +151,7 @@ pub enum ConfigError {
 
 /// Why a plan was not made or a frame not integrated. Each has a counter in [`ErrorCounters`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Fault {
     /// Vehicle position not finite.
     BadPose,
@@ -167,6 +169,7 @@ pub enum Fault {
 
 /// Counts of every fault and notable event since start.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct ErrorCounters {
     /// Frames rejected for a bad camera pose or range settings.
@@ -189,6 +192,7 @@ pub struct ErrorCounters {
 
 /// How exploration stands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Termination {
     /// Still frontiers to visit.
     #[default]
@@ -199,6 +203,7 @@ pub enum Termination {
 
 /// A place to fly to and the direction to look in when there.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Goal {
     /// Goal position, map frame.
     pub position: Point3<f32>,
@@ -212,6 +217,7 @@ pub struct Goal {
 
 /// Result of [`Explorer::plan`].
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum PlanOutcome {
     /// Fly to the goal through [`Explorer::waypoints`].
     Goal(Goal),
@@ -240,6 +246,7 @@ impl Clock for NoClock {
 
 /// Ticks spent in each planning phase of the last plan.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct PhaseTicks {
     /// Domain and boundary conditions (including re-builds after sealing).
     pub domain: u64,
@@ -251,6 +258,7 @@ pub struct PhaseTicks {
 
 /// Everything the explorer reports.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Status {
     /// Voxel counts after the last plan.
     pub map: MapCounts,

@@ -40,6 +40,7 @@ impl Default for IntegrationParams {
 
 /// What one frame's integration did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct IntegrationStats {
     /// Pixels looked at (after the stride).
     pub pixels: u32,
@@ -61,6 +62,7 @@ pub struct IntegrationStats {
 
 /// Why a frame was not integrated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum IntegrateError {
     /// The camera pose has a non-finite translation or rotation.
     BadPose,

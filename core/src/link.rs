@@ -177,6 +177,7 @@ impl MessageType {
 
 /// Why a message body was rejected although its frame was intact.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Malformed {
     /// The frame is shorter than a header and a CRC.
     Truncated,
@@ -193,6 +194,7 @@ pub enum Malformed {
 /// Everything that can go wrong on the link. Each variant but [`LinkError::BufferTooSmall`]
 /// (a sender-side error) has a counter in [`LinkCounters`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum LinkError {
     /// Sender: the output buffer cannot hold the encoded frame.
     BufferTooSmall,
@@ -228,6 +230,7 @@ pub enum LinkError {
 /// Counts of link traffic and of every fault since start. The decoder and the assembler each
 /// count what they see; [`LinkCounters::merged`] adds them up.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct LinkCounters {
     /// Bytes received.
@@ -340,6 +343,7 @@ impl LinkCounters {
 
 /// Why a pose was rejected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum PoseError {
     /// A translation or quaternion component is not finite.
     NotFinite,

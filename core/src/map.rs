@@ -28,6 +28,7 @@ pub const MAX_AXIS: usize = 2048;
 
 /// Integer voxel coordinates inside a grid.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct VoxelIndex {
     /// Column along map x.
     pub x: u16,
@@ -142,6 +143,7 @@ impl Dims {
 
 /// Map errors: bad geometry or storage that does not fit it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum MapError {
     /// An axis has zero voxels or more than [`MAX_AXIS`].
     BadDimensions,
@@ -216,6 +218,7 @@ impl MapGeometry {
 
 /// The occupancy state of one voxel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Occupancy {
     /// Never observed.
     Unknown,
@@ -296,6 +299,7 @@ pub const fn touched_words(dims: &Dims) -> usize {
 
 /// Counts of voxels by state.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct MapCounts {
     /// Observed free voxels.
     pub free: u32,

@@ -182,6 +182,7 @@ impl Default for BridgeConfig {
 
 /// Why a [`BridgeConfig`] was refused.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum BridgeConfigError {
     /// The heartbeat period is zero.
     HeartbeatPeriod,
@@ -239,6 +240,7 @@ pub struct VehiclePose {
 
 /// Why there is no pose to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum PoseFault {
     /// Nothing usable has arrived yet (for LOCAL_POSITION_NED + ATTITUDE: not both).
     NoPose,
@@ -284,6 +286,7 @@ pub enum InputError {
 /// Why [`Bridge::set_goal`] or [`Bridge::set_target`] kept the current setpoint. Counted in
 /// [`BridgeCounters::goals_refused`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum GoalError {
     /// Position or yaw not finite.
     NotFinite,
@@ -297,6 +300,7 @@ pub struct QueueFull;
 
 /// Counts of every message and fault of a [`Bridge`] since start.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct BridgeCounters {
     /// HEARTBEATs sent.
@@ -1049,6 +1053,7 @@ pub fn write_v2<W: embedded_io::Write>(
 
 /// Counts of what a [`MavlinkDecoder`] saw.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct DecoderCounters {
     /// Bytes pushed in.
