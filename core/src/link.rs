@@ -757,7 +757,7 @@ pub fn crc32(bytes: &[u8]) -> u32 {
 }
 
 /// Streaming COBS encoder into a slice, computing the CRC of what it is given as payload.
-struct CobsWriter<'o> {
+pub(crate) struct CobsWriter<'o> {
     out: &'o mut [u8],
     /// Where the code byte of the open group goes.
     code_at: usize,
@@ -770,7 +770,7 @@ struct CobsWriter<'o> {
 
 impl<'o> CobsWriter<'o> {
     /// An encoder whose first group starts at `out[start]`.
-    fn new(out: &'o mut [u8], start: usize) -> Self {
+    pub(crate) fn new(out: &'o mut [u8], start: usize) -> Self {
         Self {
             out,
             code_at: start,
@@ -808,14 +808,14 @@ impl<'o> CobsWriter<'o> {
     }
 
     /// Payload bytes: into the CRC and the encoding.
-    fn payload(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+    pub(crate) fn payload(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
         self.crc = crc32_update(self.crc, bytes);
         bytes.iter().try_for_each(|&b| self.put(b))
     }
 
     /// Appends the CRC, closes the last group and writes the trailing delimiter. Returns the
     /// length of `out` used.
-    fn finish(mut self) -> Result<usize, LinkError> {
+    pub(crate) fn finish(mut self) -> Result<usize, LinkError> {
         for b in (!self.crc).to_le_bytes() {
             self.put(b)?;
         }
@@ -827,7 +827,7 @@ impl<'o> CobsWriter<'o> {
 }
 
 /// Decodes COBS in place (the output never overtakes the input); returns the decoded length.
-fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
+pub(crate) fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
     let len = buf.len();
     let (mut read, mut write) = (0, 0);
     while read < len {
