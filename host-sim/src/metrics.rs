@@ -110,9 +110,15 @@ impl GroundTruth {
 
     /// Coverage of `map` (which must be on the same grid).
     pub fn coverage(&self, map: &VoxelMap<'_>) -> Coverage {
+        self.coverage_of(|i| map.occupancy(i))
+    }
+
+    /// Coverage of a map given as the occupancy of each voxel index (on the same grid): a map
+    /// that lives elsewhere, say in the firmware of a processor-in-the-loop run.
+    pub fn coverage_of(&self, occupancy: impl Fn(usize) -> Occupancy) -> Coverage {
         let (mut free_seen, mut surf_seen, mut false_occ) = (0usize, 0usize, 0usize);
         for i in 0..self.reachable.len() {
-            let occ = map.occupancy(i);
+            let occ = occupancy(i);
             if self.reachable[i] {
                 match occ {
                     Occupancy::Free => free_seen += 1,

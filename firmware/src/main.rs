@@ -1,0 +1,88 @@
+//! The firmware image: boots, builds the explorer in a `static`, and runs the loop of
+//! [`harmonic_fw::app`] over UART0 (depth link) and UART1 (MAVLink) forever, feeding the
+//! watchdog on every pass. On the host this binary only explains how to build the real one.
+#![cfg_attr(target_os = "none", no_std)]
+#![cfg_attr(target_os = "none", no_main)]
+
+#[cfg(target_os = "none")]
+mod image {
+    use cortex_m_rt::entry;
+    use harmonic_fw::app::{Event, Firmware, Storage, BAUD, NX, NY, NZ, RESOLUTION};
+    use harmonic_fw::board::timer::Ticks;
+    use harmonic_fw::board::uart::{Uart, UART0, UART1};
+    use harmonic_fw::board::watchdog::{self, Watchdog};
+    use harmonic_fw::board::{halt, PCLK_HZ};
+
+    /// Seconds without a pass of the loop before the watchdog reports a stall (of the board
+    /// clock; under QEMU's `-icount shift=0`, 10⁹ instructions per second).
+    const WATCHDOG_S: u32 = 60;
+
+    #[entry]
+    fn main() -> ! {
+        // cortex-m-rt hands this out as `&'static mut`, once: the one place the state lives.
+        static mut STORAGE: Storage = Storage::new();
+
+        // SAFETY: each peripheral is set up once, here, and owned by what it returns.
+        let (mut ticks, mut dog, mut link, mut mav) = unsafe {
+            (
+                Ticks::start(),
+                Watchdog::start(WATCHDOG_S),
+                Uart::new(UART0, BAUD),
+                Uart::new(UART1, BAUD),
+            )
+        };
+        defmt::info!(
+            "harmonic-fw: {=usize}x{=usize}x{=usize} grid at {=f32} m, state {=usize} bytes; depth link on UART0, MAVLink on UART1",
+            NX,
+            NY,
+            NZ,
+            RESOLUTION,
+            core::mem::size_of::<Storage>()
+        );
+        let mut firmware = match Firmware::new(STORAGE, PCLK_HZ) {
+            Ok(f) => f,
+            Err(e) => {
+                defmt::error!("explorer refused its configuration: {}", e);
+                halt(2)
+            }
+        };
+        defmt::info!(
+            "watchdog period {=u32} s; waiting for depth frames",
+            dog.period_s()
+        );
+        loop {
+            dog.feed();
+            match firmware.poll(&mut link, &mut mav, &mut ticks, watchdog::set_phase) {
+                Ok(Some(Event::Planned(r))) => {
+                    defmt::info!(
+                        "frame {=u32}: {} frontier {=u32} interior {=u32} iterations {=u32} ticks integrate {=u64} domain {=u64} solve {=u64} streamline {=u64}",
+                        r.frame_id,
+                        r.outcome,
+                        r.frontier,
+                        r.interior,
+                        r.solver_iterations,
+                        r.integrate_ticks,
+                        r.domain_ticks,
+                        r.solve_ticks,
+                        r.streamline_ticks
+                    );
+                }
+                Ok(Some(Event::FrameWithoutPose(id))) => {
+                    defmt::warn!("depth frame {=u32} without pose, dropped", id)
+                }
+                Ok(Some(Event::LinkError(e))) => defmt::warn!("depth link: {}", e),
+                Ok(None) => {}
+                Err(e) => defmt::error!("stream error: {}", e),
+            }
+        }
+    }
+}
+
+#[cfg(not(target_os = "none"))]
+fn main() {
+    eprintln!(
+        "harmonic-fw is the Cortex-M4F firmware: build and run it with\n  \
+         cargo run -p harmonic-fw --release --target thumbv7em-none-eabihf"
+    );
+    std::process::exit(2);
+}
