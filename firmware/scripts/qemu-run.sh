@@ -13,7 +13,7 @@ elf="${1:?usage: qemu-run.sh FIRMWARE.elf}"
 shift
 qemu=(qemu-system-arm -machine mps2-an386 -cpu cortex-m4
       -display none -monitor none -nodefaults -nic none
-      -icount shift=0,align=off,sleep=off
+      -icount shift=0,align=off
       -semihosting-config enable=on,target=native
       -serial "${HARMONIC_FW_UART0:-null}" -serial "${HARMONIC_FW_UART1:-null}"
       -kernel "$elf" "$@")

@@ -143,6 +143,8 @@ pub enum Event {
     FrameWithoutPose(u32),
     /// A link frame or chunk was dropped.
     LinkError(LinkError),
+    /// A flight tick was answered, at this autopilot time (ms).
+    FlightTick(u64),
 }
 
 /// Follows a plan's waypoints one setpoint at a time: the first waypoint the vehicle is not yet
@@ -280,6 +282,11 @@ impl<'a> Firmware<'a> {
         })
     }
 
+    /// Bytes received so far on the depth link and on MAVLink.
+    pub fn bytes_received(&self) -> (u64, u64) {
+        (self.receiver.counters().bytes, self.mavlink.counters().bytes)
+    }
+
     /// The explorer.
     pub fn explorer(&self) -> &Explorer<'a> {
         &self.explorer
@@ -300,19 +307,22 @@ impl<'a> Firmware<'a> {
         C: Clock,
     {
         let mut buf = [0u8; 256];
+        let mut ticked = None;
         if mav.read_ready().map_err(|_| IoError::Mavlink)? {
             let n = mav.read(&mut buf).map_err(|_| IoError::Mavlink)?;
-            self.on_mavlink(buf.get(..n).unwrap_or(&[]), mav)?;
+            if self.on_mavlink(buf.get(..n).unwrap_or(&[]), mav)? {
+                ticked = Some(Event::FlightTick(self.now_ms));
+            }
         }
         if !link.read_ready().map_err(|_| IoError::Link)? {
-            return Ok(None);
+            return Ok(ticked);
         }
         let n = link.read(&mut buf).map_err(|_| IoError::Link)?;
         let Self {
             receiver, explorer, ..
         } = self;
         let mut integrated = None;
-        let mut event = None;
+        let mut event = ticked;
         receiver.feed(buf.get(..n).unwrap_or(&[]), |e| match e {
             LinkEvent::Depth {
                 frame_id,
@@ -339,8 +349,8 @@ impl<'a> Firmware<'a> {
         Ok(event)
     }
 
-    /// MAVLink bytes from the autopilot.
-    fn on_mavlink<M: Write>(&mut self, bytes: &[u8], mav: &mut M) -> Result<(), IoError> {
+    /// MAVLink bytes from the autopilot; true if they ended a flight tick.
+    fn on_mavlink<M: Write>(&mut self, bytes: &[u8], mav: &mut M) -> Result<bool, IoError> {
         let Self {
             mavlink,
             bridge,
@@ -367,12 +377,13 @@ impl<'a> Firmware<'a> {
         if let Some(ts1) = timesync {
             self.flight_tick(mav)?;
             let reply = MavMessage::TIMESYNC(TIMESYNC_DATA {
-                tc1: i64::try_from(self.now_ms.saturating_mul(1_000_000)).unwrap_or(i64::MAX),
+                // tc1 = 0 would read as a request: at time 0 answer with 1 ns.
+                tc1: i64::try_from(self.now_ms.saturating_mul(1_000_000)).unwrap_or(i64::MAX).max(1),
                 ts1,
             });
             self.send_mavlink(&reply, mav)?;
         }
-        Ok(())
+        Ok(timesync.is_some())
     }
 
     /// Advances along the plan and streams what is due.

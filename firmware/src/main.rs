@@ -50,9 +50,19 @@ mod image {
             "watchdog period {=u32} s; waiting for depth frames",
             dog.period_s()
         );
+        let mut passes = 0u32;
         loop {
+            passes = passes.wrapping_add(1);
+            if passes % 4096 == 0 {
+                let (l, m) = firmware.bytes_received();
+                defmt::debug!("pass {=u32}: link {=u64} B, mavlink {=u64} B", passes, l, m);
+            }
             dog.feed();
-            match firmware.poll(&mut link, &mut mav, &mut ticks, watchdog::set_phase) {
+            let phase = |p| {
+                watchdog::set_phase(p);
+                defmt::debug!("{} from tick {=u64}", p, harmonic_fw::board::timer::now());
+            };
+            match firmware.poll(&mut link, &mut mav, &mut ticks, phase) {
                 Ok(Some(Event::Planned(r))) => {
                     defmt::info!(
                         "frame {=u32}: {} frontier {=u32} interior {=u32} iterations {=u32} ticks integrate {=u64} domain {=u64} solve {=u64} streamline {=u64}",
@@ -71,6 +81,7 @@ mod image {
                     defmt::warn!("depth frame {=u32} without pose, dropped", id)
                 }
                 Ok(Some(Event::LinkError(e))) => defmt::warn!("depth link: {}", e),
+                Ok(Some(Event::FlightTick(ms))) => defmt::debug!("flight tick at {=u64} ms", ms),
                 Ok(None) => {}
                 Err(e) => defmt::error!("stream error: {}", e),
             }

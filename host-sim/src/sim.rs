@@ -144,7 +144,7 @@ pub struct TimeStat {
 }
 
 impl TimeStat {
-    fn of(values: impl Iterator<Item = f64>) -> Self {
+    pub(crate) fn of(values: impl Iterator<Item = f64>) -> Self {
         let (mut n, mut sum, mut max) = (0usize, 0.0f64, 0.0f64);
         for v in values {
             n += 1;
@@ -221,6 +221,8 @@ pub struct Report {
     pub link: LinkCounters,
     /// MAVLink counters; `None` unless the run flew over MAVLink ([`SimConfig::mavlink`]).
     pub mavlink: Option<MavlinkReport>,
+    /// Processor-in-the-loop details; `None` unless the firmware flew ([`crate::pil`]).
+    pub pil: Option<crate::pil::PilReport>,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
 }
@@ -338,13 +340,13 @@ pub struct Vehicle {
 
 /// What one flight leg did.
 #[derive(Debug, Clone, Default)]
-struct Leg {
-    distance: f64,
-    time: f64,
-    collisions: Vec<[f32; 3]>,
+pub(crate) struct Leg {
+    pub(crate) distance: f64,
+    pub(crate) time: f64,
+    pub(crate) collisions: Vec<[f32; 3]>,
 }
 
-fn wrap_angle(a: f32) -> f32 {
+pub(crate) fn wrap_angle(a: f32) -> f32 {
     let mut a = a % std::f32::consts::TAU;
     if a > std::f32::consts::PI {
         a -= std::f32::consts::TAU;
@@ -355,7 +357,7 @@ fn wrap_angle(a: f32) -> f32 {
 }
 
 impl Vehicle {
-    fn slew_yaw(&mut self, target: f32, max_step: f32) -> bool {
+    pub(crate) fn slew_yaw(&mut self, target: f32, max_step: f32) -> bool {
         let e = wrap_angle(target - self.yaw);
         if e.abs() <= max_step {
             self.yaw = wrap_angle(target);
@@ -367,7 +369,7 @@ impl Vehicle {
     }
 
     /// Moves straight towards `target` by at most `max_step` metres; returns the distance moved.
-    fn step_towards(&mut self, target: &Point3<f32>, max_step: f32) -> f32 {
+    pub(crate) fn step_towards(&mut self, target: &Point3<f32>, max_step: f32) -> f32 {
         let seg = target - self.position;
         let dist = seg.norm();
         if dist <= 1e-6 {
@@ -425,17 +427,17 @@ impl Vehicle {
 }
 
 /// Counts collision events: the body sphere *entering* an obstacle, not every step inside it.
-struct CollisionWatch {
+pub(crate) struct CollisionWatch {
     colliding: bool,
 }
 
 impl CollisionWatch {
-    fn start(world: &crate::world::World, p: &Point3<f32>, radius: f32) -> Self {
+    pub(crate) fn start(world: &crate::world::World, p: &Point3<f32>, radius: f32) -> Self {
         Self {
             colliding: world.sphere_collides(p, radius),
         }
     }
-    fn check(&mut self, world: &crate::world::World, p: &Point3<f32>, radius: f32, leg: &mut Leg) {
+    pub(crate) fn check(&mut self, world: &crate::world::World, p: &Point3<f32>, radius: f32, leg: &mut Leg) {
         let now = world.sphere_collides(p, radius);
         if now && !self.colliding {
             leg.collisions.push(p.coords.into());
@@ -904,6 +906,7 @@ pub fn run(
         errors: status.errors,
         link: link.counters(),
         mavlink: mav.as_ref().map(MavlinkLink::report),
+        pil: None,
         steps,
     })
 }

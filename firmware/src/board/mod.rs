@@ -28,6 +28,25 @@ unsafe impl cortex_m::interrupt::InterruptNumber for Irq {
     }
 }
 
+/// Sleeps until an interrupt unless one of `inputs` already has a byte. Interrupts are off
+/// between the check and `wfi`, so a byte arriving in between still wakes it.
+pub fn wait_for_input(inputs: &[&uart::Uart]) {
+    cortex_m::interrupt::free(|_| {
+        if !inputs.iter().any(|u| u.has_input()) {
+            cortex_m::asm::wfi();
+        }
+    });
+}
+
+/// Unmasks the receive interrupts of `uarts` (they only wake [`wait_for_input`]).
+pub fn enable_rx_interrupts(uarts: &[&uart::Uart]) {
+    for u in uarts {
+        // SAFETY: the handler only acknowledges the interrupt; no critical section relies on
+        // these lines being masked.
+        unsafe { cortex_m::peripheral::NVIC::unmask(Irq(u.rx_irq())) };
+    }
+}
+
 /// Stops the board and hands `code` to whoever runs it: QEMU exits with it (semihosting).
 pub fn halt(code: i32) -> ! {
     cortex_m::interrupt::disable();
@@ -38,6 +57,10 @@ pub fn halt(code: i32) -> ! {
 unsafe fn DefaultHandler(irqn: i16) {
     if irqn == timer::TIMER0_IRQ as i16 {
         timer::on_wrap();
+    } else if irqn == 0 {
+        uart::on_rx_interrupt(uart::UART0);
+    } else if irqn == 2 {
+        uart::on_rx_interrupt(uart::UART1);
     } else {
         defmt::warn!("unexpected interrupt {}", irqn);
     }

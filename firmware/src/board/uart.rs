@@ -13,12 +13,15 @@ pub const UART1: usize = 0x4000_5000;
 const DATA: usize = 0x00;
 const STATE: usize = 0x04;
 const CTRL: usize = 0x08;
+const INTSTATUS: usize = 0x0C;
 const BAUDDIV: usize = 0x10;
 
 const STATE_TX_FULL: u32 = 1 << 0;
 const STATE_RX_FULL: u32 = 1 << 1;
 const CTRL_TX_EN: u32 = 1 << 0;
 const CTRL_RX_EN: u32 = 1 << 1;
+const CTRL_RX_INT_EN: u32 = 1 << 3;
+const INT_RX: u32 = 1 << 1;
 
 /// One CMSDK UART, owned: [`Uart::new`] takes its base address once.
 pub struct Uart {
@@ -35,8 +38,18 @@ impl Uart {
         // The divider must be at least 16 or the UART does not run.
         let div = (super::PCLK_HZ / baud.max(1)).max(16);
         uart.write_reg(BAUDDIV, div);
-        uart.write_reg(CTRL, CTRL_TX_EN | CTRL_RX_EN);
+        uart.write_reg(CTRL, CTRL_TX_EN | CTRL_RX_EN | CTRL_RX_INT_EN);
         uart
+    }
+
+    /// The NVIC line of this UART's receive interrupt on mps2-an386 (UART0: 0, UART1: 2).
+    pub fn rx_irq(&self) -> u16 {
+        (((self.base - UART0) / 0x1000) * 2) as u16
+    }
+
+    /// True if a received byte is waiting.
+    pub fn has_input(&self) -> bool {
+        self.rx_ready()
     }
 
     fn read_reg(&self, offset: usize) -> u32 {
@@ -79,6 +92,7 @@ impl embedded_io::Read for Uart {
             }
             while !self.rx_ready() {}
             *slot = self.read_reg(DATA) as u8;
+            super::timer::kick_uart_pacer();
             n += 1;
         }
         Ok(n)
@@ -97,4 +111,11 @@ impl embedded_io::Write for Uart {
         while self.read_reg(STATE) & STATE_TX_FULL != 0 {}
         Ok(())
     }
+}
+
+/// A receive interrupt of the UART at `base`: acknowledge it. (It only wakes the main loop from
+/// `wfi`; the loop reads the byte.)
+pub fn on_rx_interrupt(base: usize) {
+    // SAFETY: writing INTSTATUS only clears the UART's interrupt flags.
+    unsafe { write_volatile((base + INTSTATUS) as *mut u32, INT_RX) };
 }
