@@ -282,11 +282,6 @@ impl<'a> Firmware<'a> {
         })
     }
 
-    /// Bytes received so far on the depth link and on MAVLink.
-    pub fn bytes_received(&self) -> (u64, u64) {
-        (self.receiver.counters().bytes, self.mavlink.counters().bytes)
-    }
-
     /// The explorer.
     pub fn explorer(&self) -> &Explorer<'a> {
         &self.explorer

@@ -75,31 +75,3 @@ pub fn on_wrap() {
     unsafe { write_volatile(reg(INTCLEAR), 1) };
     WRAPS.fetch_add(1, Ordering::AcqRel);
 }
-
-const TIMER1: usize = 0x4000_1000;
-
-/// Re-arms timer 1 (see [`start_uart_pacer`]): a timer whose deadline moves earlier wakes
-/// QEMU's main loop, which then hands the UART its next received byte.
-pub fn kick_uart_pacer() {
-    // SAFETY: timer 1 belongs to the pacer; writing VALUE only restarts its count.
-    unsafe { write_volatile((TIMER1 + VALUE) as *mut u32, 25) };
-}
-
-/// Starts timer 1 running with a short period and its interrupt masked: nothing in the firmware
-/// waits for it. Its only effect is on QEMU, whose CMSDK UART model does not ask for the next
-/// received byte when the guest reads one; QEMU's main loop delivers it on its next pass, and a
-/// running timer makes those passes come every `period_ticks` instead of when the host is idle.
-/// Without it, bulk input (a 20 kB depth frame) trickles in at a few bytes per second. Harmless
-/// on hardware; a retarget drops it.
-///
-/// # Safety
-/// Call once; nothing else may use timer 1.
-pub unsafe fn start_uart_pacer(period_ticks: u32) {
-    // SAFETY: timer 1's register block, ours by the contract above.
-    unsafe {
-        write_volatile((TIMER1 + CTRL) as *mut u32, 0);
-        write_volatile((TIMER1 + RELOAD) as *mut u32, period_ticks.max(1));
-        write_volatile((TIMER1 + VALUE) as *mut u32, period_ticks.max(1));
-        write_volatile((TIMER1 + CTRL) as *mut u32, CTRL_ENABLE);
-    }
-}

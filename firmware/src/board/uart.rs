@@ -92,7 +92,6 @@ impl embedded_io::Read for Uart {
             }
             while !self.rx_ready() {}
             *slot = self.read_reg(DATA) as u8;
-            super::timer::kick_uart_pacer();
             n += 1;
         }
         Ok(n)
