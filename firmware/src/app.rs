@@ -373,7 +373,9 @@ impl<'a> Firmware<'a> {
             self.flight_tick(mav)?;
             let reply = MavMessage::TIMESYNC(TIMESYNC_DATA {
                 // tc1 = 0 would read as a request: at time 0 answer with 1 ns.
-                tc1: i64::try_from(self.now_ms.saturating_mul(1_000_000)).unwrap_or(i64::MAX).max(1),
+                tc1: i64::try_from(self.now_ms.saturating_mul(1_000_000))
+                    .unwrap_or(i64::MAX)
+                    .max(1),
                 ts1,
             });
             self.send_mavlink(&reply, mav)?;

@@ -22,6 +22,8 @@ mod image {
         // cortex-m-rt hands this out as `&'static mut`, once: the one place the state lives.
         static mut STORAGE: Storage = Storage::new();
 
+        // SAFETY: first thing on the main stack; the memory below it is unused.
+        unsafe { harmonic_fw::board::stack::paint() };
         // SAFETY: each peripheral is set up once, here, and owned by what it returns.
         let (mut ticks, mut dog, mut link, mut mav) = unsafe {
             (
@@ -74,6 +76,11 @@ mod image {
                         r.domain_ticks,
                         r.solve_ticks,
                         r.streamline_ticks
+                    );
+                    defmt::info!(
+                        "stack high-water {=usize} of {=usize} bytes",
+                        harmonic_fw::board::stack::high_water(),
+                        harmonic_fw::board::stack::room()
                     );
                 }
                 Ok(Some(Event::FrameWithoutPose(id))) => {

@@ -320,7 +320,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
                 format!("solve {:>7.1} ms", s.solve_ms)
             }
         );
-        if !args.quiet && !tty && s.step % 25 == 0 {
+        if !args.quiet && !tty && s.step.is_multiple_of(25) {
             eprintln!("{line}");
         }
         bar.set_message(line);
@@ -363,10 +363,18 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
     println!("firmware {}", elf.display());
     println!("| memory | bytes | KiB |");
     println!("|---|---|---|");
-    println!("| flash (.vector_table + .text + .rodata + .data) | {} | {:.1} |", size.flash, kib(size.flash));
+    println!(
+        "| flash (.vector_table + .text + .rodata + .data) | {} | {:.1} |",
+        size.flash,
+        kib(size.flash)
+    );
     println!("| .data | {} | {:.1} |", size.data, kib(size.data));
     println!("| .bss + .uninit | {} | {:.1} |", size.bss, kib(size.bss));
-    println!("| stack reserve | {} | {:.1} |", size.stack_reserve, kib(size.stack_reserve));
+    println!(
+        "| stack reserve | {} | {:.1} |",
+        size.stack_reserve,
+        kib(size.stack_reserve)
+    );
     println!(
         "| **RAM (.data + .bss + stack reserve)** | **{}** | **{:.1}** of {:.0} ({:.1} % used) |",
         size.ram,
@@ -375,7 +383,10 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
         size.ram as f64 * 100.0 / RAM_BUDGET as f64
     );
     if size.ram > RAM_BUDGET {
-        return Err(format!("the image needs {} bytes of RAM, more than the {RAM_BUDGET} budget", size.ram));
+        return Err(format!(
+            "the image needs {} bytes of RAM, more than the {RAM_BUDGET} budget",
+            size.ram
+        ));
     }
     if args.sizes_only {
         return Ok(());
@@ -387,16 +398,22 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
         qemu: args.qemu.clone(),
         out: args.out.clone(),
     };
-    eprintln!("exploring {} with the firmware under QEMU (-icount shift=0) ...", args.scenario);
+    eprintln!(
+        "exploring {} with the firmware under QEMU (-icount shift=0) ...",
+        args.scenario
+    );
     let report = pil::run(&scenario, &cfg, &pil_cfg, |s| {
-        if s.step % 10 == 0 {
+        if s.step.is_multiple_of(10) {
             eprintln!("  scan {}: {}", s.step, s.outcome);
         }
     })
     .map_err(|e| e.to_string())?;
     let path = args.out.join("report.json");
-    std::fs::write(&path, serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?)
-        .map_err(|e| format!("{}: {e}", path.display()))?;
+    std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?,
+    )
+    .map_err(|e| format!("{}: {e}", path.display()))?;
     let Some(p) = &report.pil else {
         return Err("no processor-in-the-loop data in the report".into());
     };
@@ -408,7 +425,13 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
         .filter(|(s, _)| s.outcome == "goal")
         .map(|(s, i)| (s.unknowns as usize, *i))
         .collect();
-    let mean = |v: &[u64]| if v.is_empty() { 0.0 } else { v.iter().sum::<u64>() as f64 / v.len() as f64 };
+    let mean = |v: &[u64]| {
+        if v.is_empty() {
+            0.0
+        } else {
+            v.iter().sum::<u64>() as f64 / v.len() as f64
+        }
+    };
     let max = |v: &[u64]| v.iter().copied().max().unwrap_or(0);
     let m = |x: f64| x / 1e6;
     let integrate: Vec<u64> = p.steps.iter().map(|s| s[0]).collect();
@@ -430,11 +453,30 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
     );
     println!("| phase (instructions, millions) | mean | max |");
     println!("|---|---|---|");
-    println!("| integrate one 100x100 frame | {:.1} | {:.1} |", m(mean(&integrate)), m(max(&integrate) as f64));
-    println!("| domain (boundary conditions) | {:.1} | {:.1} |", m(mean(&domain)), m(max(&domain) as f64));
-    println!("| cold solve (first plan, {cold_unknowns} unknowns) | {:.1} | |", m(cold as f64));
-    println!("| warm re-solve | {:.1} | {:.1} |", m(mean(&warm)), m(max(&warm) as f64));
-    println!("| streamline + goal | {:.2} | {:.2} |", m(mean(&streamline)), m(max(&streamline) as f64));
+    println!(
+        "| integrate one 100x100 frame | {:.1} | {:.1} |",
+        m(mean(&integrate)),
+        m(max(&integrate) as f64)
+    );
+    println!(
+        "| domain (boundary conditions) | {:.1} | {:.1} |",
+        m(mean(&domain)),
+        m(max(&domain) as f64)
+    );
+    println!(
+        "| cold solve (first plan, {cold_unknowns} unknowns) | {:.1} | |",
+        m(cold as f64)
+    );
+    println!(
+        "| warm re-solve | {:.1} | {:.1} |",
+        m(mean(&warm)),
+        m(max(&warm) as f64)
+    );
+    println!(
+        "| streamline + goal | {:.2} | {:.2} |",
+        m(mean(&streamline)),
+        m(max(&streamline) as f64)
+    );
     println!(
         "| **full planning cycle** (domain + solve + streamline) | **{:.1}** | **{:.1}** |",
         m(mean(&cycle)),

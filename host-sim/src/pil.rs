@@ -114,13 +114,22 @@ pub fn build_firmware(target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let status = Command::new(cargo)
         .current_dir(&workspace)
-        .args(["build", "-p", "harmonic-fw", "--release", "--target", "thumbv7em-none-eabihf"])
+        .args([
+            "build",
+            "-p",
+            "harmonic-fw",
+            "--release",
+            "--target",
+            "thumbv7em-none-eabihf",
+        ])
         .arg("--target-dir")
         .arg(&target_dir)
         .status()
         .map_err(|e| SimError::Config(format!("cargo build of the firmware: {e}")))?;
     if !status.success() {
-        return Err(SimError::Config(format!("cargo build of the firmware failed ({status})")));
+        return Err(SimError::Config(format!(
+            "cargo build of the firmware failed ({status})"
+        )));
     }
     Ok(target_dir.join("thumbv7em-none-eabihf/release/harmonic-fw"))
 }
@@ -193,7 +202,11 @@ impl Board {
             .stdout(defmt)
             .stderr(qemu_log)
             .spawn()
-            .map_err(|e| SimError::Config(format!("cannot start {qemu}: {e} (is qemu-system-arm installed?)")))?;
+            .map_err(|e| {
+                SimError::Config(format!(
+                    "cannot start {qemu}: {e} (is qemu-system-arm installed?)"
+                ))
+            })?;
         let streams = accept(&l0, &mut child).and_then(|link| Ok((link, accept(&l1, &mut child)?)));
         let (link, mav) = match streams {
             Ok(s) => s,
@@ -239,10 +252,14 @@ fn accept(listener: &TcpListener, child: &mut Child) -> Result<TcpStream, SimErr
             }
             Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
                 if let Ok(Some(status)) = child.try_wait() {
-                    return Err(SimError::Config(format!("QEMU exited before connecting: {status}")));
+                    return Err(SimError::Config(format!(
+                        "QEMU exited before connecting: {status}"
+                    )));
                 }
                 if start.elapsed() > Duration::from_secs(30) {
-                    return Err(SimError::Config("QEMU did not connect its UARTs within 30 s".into()));
+                    return Err(SimError::Config(
+                        "QEMU did not connect its UARTs within 30 s".into(),
+                    ));
                 }
                 std::thread::sleep(Duration::from_millis(10));
             }
@@ -269,7 +286,9 @@ fn read_some(stream: &mut TcpStream, buf: &mut [u8]) -> Result<usize, SimError> 
         Err(e)
             if matches!(
                 e.kind(),
-                std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut | std::io::ErrorKind::Interrupted
+                std::io::ErrorKind::WouldBlock
+                    | std::io::ErrorKind::TimedOut
+                    | std::io::ErrorKind::Interrupted
             ) =>
         {
             Ok(0)
@@ -291,8 +310,11 @@ impl Autopilot {
     /// One flight tick at `now_ms`: pose out, TIMESYNC out, the firmware's answer in.
     fn tick(&mut self, board: &mut Board, now_ms: u64, vehicle: &Vehicle) -> Result<(), SimError> {
         let mut out = Vec::new();
-        self.emulator.poll(now_ms, &vehicle.position, vehicle.yaw, &mut out);
-        let ts1 = i64::try_from(now_ms).unwrap_or(i64::MAX).saturating_mul(1_000_000);
+        self.emulator
+            .poll(now_ms, &vehicle.position, vehicle.yaw, &mut out);
+        let ts1 = i64::try_from(now_ms)
+            .unwrap_or(i64::MAX)
+            .saturating_mul(1_000_000);
         let header = MavHeader {
             system_id: u32::from(harmonic_core::mavlink::DEFAULT_SYSTEM_ID),
             component_id: harmonic_core::mavlink::AUTOPILOT_COMPONENT_ID,
@@ -300,8 +322,12 @@ impl Autopilot {
         };
         self.sequence = self.sequence.wrapping_add(1);
         let mut frame = [0u8; MAX_FRAME_LEN];
-        let n = encode_v2(&header, &MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 0, ts1 }), &mut frame)
-            .map_err(|e| SimError::Config(format!("TIMESYNC: {e:?}")))?;
+        let n = encode_v2(
+            &header,
+            &MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 0, ts1 }),
+            &mut frame,
+        )
+        .map_err(|e| SimError::Config(format!("TIMESYNC: {e:?}")))?;
         out.extend_from_slice(&frame[..n]);
         board.mav.write_all(&out).map_err(io("UART1 write"))?;
         self.ticks += 1;
@@ -380,7 +406,9 @@ impl Camera {
                     Some(Ok(Downlink::Report(r))) if r.frame_id == frame_id => return Ok(r),
                     Some(Ok(m @ Downlink::MapSlice { first, count, .. })) => {
                         for k in 0..usize::from(count) {
-                            if let (Some(slot), Some(state)) = (map.get_mut(first as usize + k), m.slice_state(k)) {
+                            if let (Some(slot), Some(state)) =
+                                (map.get_mut(first as usize + k), m.slice_state(k))
+                            {
                                 *slot = state;
                             }
                         }
@@ -423,7 +451,10 @@ pub fn run(
         None => build_firmware(None)?,
     };
     if !elf.is_file() {
-        return Err(SimError::Config(format!("firmware ELF {} not found", elf.display())));
+        return Err(SimError::Config(format!(
+            "firmware ELF {} not found",
+            elf.display()
+        )));
     }
     let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
     let mut board = Board::start(&pil.qemu, &elf, &pil.out)?;
@@ -541,7 +572,15 @@ pub fn run(
             }
             _ => {
                 consecutive_holds = 0;
-                let leg = fly(&mut board, &mut autopilot, &mut vehicle, &mut now_ms, budget, cfg, scenario)?;
+                let leg = fly(
+                    &mut board,
+                    &mut autopilot,
+                    &mut vehicle,
+                    &mut now_ms,
+                    budget,
+                    cfg,
+                    scenario,
+                )?;
                 path += leg.distance;
                 collisions.extend(leg.collisions);
             }
@@ -652,7 +691,8 @@ fn fly(
 fn check_fits(scenario: &Scenario, geometry: &MapGeometry) -> Result<(), SimError> {
     let dims: Dims = geometry.dims();
     let max = geometry.origin()
-        + nalgebra::Vector3::new(dims.nx() as f32, dims.ny() as f32, dims.nz() as f32) * geometry.resolution();
+        + nalgebra::Vector3::new(dims.nx() as f32, dims.ny() as f32, dims.nz() as f32)
+            * geometry.resolution();
     let b = &scenario.world.bounds;
     let inside = (0..3).all(|k| b.min[k] >= geometry.origin()[k] - 1e-4 && b.max[k] <= max[k] + 1e-4);
     if (scenario.resolution - geometry.resolution()).abs() > 1e-6 || !inside {
@@ -728,7 +768,11 @@ pub struct ImageSize {
 pub fn image_size(elf: &Path) -> Result<ImageSize, String> {
     let bytes = std::fs::read(elf).map_err(|e| format!("{}: {e}", elf.display()))?;
     let bad = || format!("{}: not a 32-bit little-endian ELF", elf.display());
-    let u16_at = |o: usize| bytes.get(o..o + 2).map(|b| u16::from_le_bytes([b[0], b[1]]) as usize);
+    let u16_at = |o: usize| {
+        bytes
+            .get(o..o + 2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]) as usize)
+    };
     let u32_at = |o: usize| {
         bytes
             .get(o..o + 4)

@@ -5,6 +5,7 @@
 //! exploration loop in [`crate::app`] sees only `embedded-io` streams and a
 //! [`Clock`](harmonic_core::explore::Clock).
 
+pub mod stack;
 pub mod timer;
 pub mod uart;
 pub mod watchdog;
