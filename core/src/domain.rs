@@ -62,8 +62,9 @@ impl Label {
 
 /// Largest supported inflation radius, voxels.
 pub const MAX_INFLATION_VOXELS: usize = 6;
-/// Capacity of the inflation stencil (a ball of radius [`MAX_INFLATION_VOXELS`] + 1).
-const STENCIL_CAPACITY: usize = 2200;
+/// Capacity of the inflation stencil: the offsets within [`MAX_INFLATION_VOXELS`] (1284 of
+/// them; the explorer carries the stencil, and on the MCU every byte of it is stack at start-up).
+const STENCIL_CAPACITY: usize = 1284;
 
 /// The set of voxel offsets within the vehicle radius, precomputed once.
 #[derive(Debug, Clone)]
@@ -643,5 +644,11 @@ pub(crate) mod tests {
         assert!(InflationStencil::new(-1.0, 0.1).is_err());
         assert!(InflationStencil::new(f32::NAN, 0.1).is_err());
         assert!(InflationStencil::new(10.0, 0.1).is_err());
+        let largest = InflationStencil::new(MAX_INFLATION_VOXELS as f32, 1.0).unwrap();
+        assert_eq!(
+            largest.len(),
+            STENCIL_CAPACITY,
+            "the capacity fits the largest radius exactly"
+        );
     }
 }

@@ -19,6 +19,8 @@
 //! it (lockstep). A flight build that must stream setpoints during a long plan would run the
 //! bridge from a timer interrupt on the board clock instead.
 
+use core::mem::MaybeUninit;
+
 use embedded_io::{Read, ReadReady, Write};
 use harmonic_core::domain::Label;
 use harmonic_core::downlink::{self, PlanReport, MAP_SLICE_VOXELS};
@@ -227,9 +229,44 @@ fn travel_heading(seg: &nalgebra::Vector3<f32>) -> Option<f32> {
     (horizontal > 0.2 * seg.norm()).then(|| libm::atan2f(seg.y, seg.x))
 }
 
+/// Builds the explorer over `storage`, in place in `slot` (a `static` on the MCU), and returns
+/// it with the depth-image buffer. Its own function, so its stack frame (the explorer under
+/// construction) is gone before the rest of the firmware is built.
+#[inline(never)]
+pub fn build_explorer<'a>(
+    storage: &'a mut Storage,
+    slot: &'a mut MaybeUninit<Explorer<'a>>,
+) -> Result<(&'a mut Explorer<'a>, &'a mut [u16]), ConfigError> {
+    let Storage {
+        log_odds,
+        touched,
+        labels,
+        phi,
+        queue,
+        coarse_values,
+        coarse_labels,
+        depth,
+    } = storage;
+    let explorer = Explorer::new(
+        geometry(),
+        explorer_config(),
+        ExplorerStorage {
+            log_odds,
+            touched,
+            labels,
+            phi,
+            queue,
+            coarse_values,
+            coarse_labels,
+            krylov: &mut [],
+        },
+    )?;
+    Ok((slot.write(explorer), depth))
+}
+
 /// The firmware: explorer, link receiver, MAVLink bridge and the glue between them.
 pub struct Firmware<'a> {
-    explorer: Explorer<'a>,
+    explorer: &'a mut Explorer<'a>,
     receiver: DepthReceiver<'a, LINK_DECODER_BYTES>,
     mavlink: MavlinkDecoder,
     bridge: Bridge,
@@ -241,34 +278,16 @@ pub struct Firmware<'a> {
 }
 
 impl<'a> Firmware<'a> {
-    /// Builds the firmware over `storage`; `tick_hz` is the rate of the clock later passed to
-    /// [`Firmware::poll`].
-    pub fn new(storage: &'a mut Storage, tick_hz: u32) -> Result<Self, ConfigError> {
-        let Storage {
-            log_odds,
-            touched,
-            labels,
-            phi,
-            queue,
-            coarse_values,
-            coarse_labels,
-            depth,
-        } = storage;
-        let explorer = Explorer::new(
-            geometry(),
-            explorer_config(),
-            ExplorerStorage {
-                log_odds,
-                touched,
-                labels,
-                phi,
-                queue,
-                coarse_values,
-                coarse_labels,
-                krylov: &mut [],
-            },
-        )?;
-        let bridge = Bridge::new(BridgeConfig::default()).map_err(|_| ConfigError::StorageTooSmall)?;
+    /// Builds the firmware around `explorer` (see [`build_explorer`]) and the depth-image
+    /// buffer; `tick_hz` is the rate of the clock later passed to [`Firmware::poll`].
+    pub fn new(
+        explorer: &'a mut Explorer<'a>,
+        depth: &'a mut [u16],
+        tick_hz: u32,
+    ) -> Result<Self, ConfigError> {
+        let mut bridge = Bridge::new(BridgeConfig::default()).map_err(|_| ConfigError::StorageTooSmall)?;
+        // Sent with the first flight tick (the queue is empty: this cannot be refused).
+        let _ = bridge.exploration_started();
         Ok(Self {
             explorer,
             receiver: DepthReceiver::new(depth),
@@ -284,7 +303,7 @@ impl<'a> Firmware<'a> {
 
     /// The explorer.
     pub fn explorer(&self) -> &Explorer<'a> {
-        &self.explorer
+        self.explorer
     }
 
     /// One pass: takes what both streams have ready and acts on it. `phase` is told what the

@@ -6,8 +6,11 @@
 
 #[cfg(target_os = "none")]
 mod image {
+    use core::mem::MaybeUninit;
+
     use cortex_m_rt::entry;
-    use harmonic_fw::app::{Event, Firmware, Storage, BAUD, NX, NY, NZ, RESOLUTION};
+    use harmonic_core::explore::Explorer;
+    use harmonic_fw::app::{build_explorer, Event, Firmware, Storage, BAUD, NX, NY, NZ, RESOLUTION};
     use harmonic_fw::board::timer::Ticks;
     use harmonic_fw::board::uart::{Uart, UART0, UART1};
     use harmonic_fw::board::watchdog::{self, Watchdog};
@@ -21,6 +24,8 @@ mod image {
     fn main() -> ! {
         // cortex-m-rt hands this out as `&'static mut`, once: the one place the state lives.
         static mut STORAGE: Storage = Storage::new();
+        static mut EXPLORER: MaybeUninit<Explorer<'static>> = MaybeUninit::uninit();
+        static mut FIRMWARE: MaybeUninit<Firmware<'static>> = MaybeUninit::uninit();
 
         // SAFETY: first thing on the main stack; the memory below it is unused.
         unsafe { harmonic_fw::board::stack::paint() };
@@ -41,16 +46,22 @@ mod image {
             RESOLUTION,
             core::mem::size_of::<Storage>()
         );
-        let mut firmware = match Firmware::new(STORAGE, PCLK_HZ) {
-            Ok(f) => f,
+        // The firmware's own state (explorer, link decoder, bridge: about 12 KiB) is static too,
+        // so the planning stack starts near the top of RAM.
+        let built = build_explorer(STORAGE, EXPLORER)
+            .and_then(|(explorer, depth)| Firmware::new(explorer, depth, PCLK_HZ));
+        let firmware = match built {
+            Ok(f) => FIRMWARE.write(f),
             Err(e) => {
                 defmt::error!("explorer refused its configuration: {}", e);
                 halt(2)
             }
         };
         defmt::info!(
-            "watchdog period {=u32} s; waiting for depth frames",
-            dog.period_s()
+            "watchdog period {=u32} s; stack used so far {=usize} of {=usize} bytes; waiting for depth frames",
+            dog.period_s(),
+            harmonic_fw::board::stack::high_water(),
+            harmonic_fw::board::stack::room()
         );
         harmonic_fw::board::enable_rx_interrupts(&[&link, &mav]);
         loop {

@@ -586,6 +586,10 @@ pub fn run(
             }
         }
     }
+    // One more tick collects what the firmware sent after its last plan (the hold setpoint and
+    // the "exploration complete" STATUSTEXT).
+    now_ms += dt_ms;
+    autopilot.tick(&mut board, now_ms, &vehicle)?;
     drop(board);
     decode_log(&elf, &pil.out);
 
@@ -624,7 +628,16 @@ pub fn run(
         errors,
         link,
         mavlink: Some(crate::sim::MavlinkReport {
-            bridge: Default::default(),
+            // The firmware's bridge keeps its counters on the board; these are its traffic as
+            // the flight stack saw it arrive (the link is loss-free).
+            bridge: harmonic_core::mavlink::BridgeCounters {
+                setpoints_sent: autopilot.emulator.counters().setpoints_received,
+                heartbeats_sent: autopilot.emulator.counters().heartbeats_received,
+                status_texts_sent: autopilot.emulator.counters().status_texts_received,
+                local_positions_received: autopilot.emulator.counters().local_positions_sent,
+                attitudes_received: autopilot.emulator.counters().attitudes_sent,
+                ..Default::default()
+            },
             bridge_decoder: *autopilot.decoder.counters(),
             emulator: *autopilot.emulator.counters(),
             emulator_decoder: *autopilot.emulator.decoder_counters(),
