@@ -108,6 +108,8 @@ pub fn geometry() -> MapGeometry {
 pub fn explorer_config() -> ExplorerConfig {
     let mut config = ExplorerConfig::default();
     config.solve.max_iterations = 400;
+    // The `cold-start` feature measures cold solves (fw-budget): every solve from ψ = 0.
+    config.solve.warm_start = !cfg!(feature = "cold-start");
     config
 }
 
