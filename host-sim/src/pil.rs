@@ -25,6 +25,10 @@
 //! the firmware reports `Complete`, after three holds in a row, at the scan limit, or with an
 //! error if the firmware stops answering (its defmt log, decoded with `defmt-print` when that
 //! is installed, is in the output directory).
+//!
+//! For debugging: `HARMONIC_QEMU_ICOUNT=0` runs QEMU without `-icount` (the tick counts are then
+//! host time), and `HARMONIC_QEMU_EXTRA` appends options, say
+//! `-monitor unix:/tmp/m.sock,server=on,wait=off` to read the CPU's registers while it runs.
 
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
