@@ -10,6 +10,7 @@ use nalgebra::Vector3;
 
 /// Why a set of camera intrinsics was rejected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum IntrinsicsError {
     /// Width or height is zero.
     EmptyImage,
@@ -118,6 +119,7 @@ impl Intrinsics {
 
 /// Why a depth frame was rejected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum DepthFrameError {
     /// The number of depth values does not equal width × height of the intrinsics.
     SizeMismatch {

@@ -29,6 +29,7 @@ use crate::map::{Occupancy, VoxelIndex, VoxelMap};
 /// Role of a voxel in the Laplace problem. After [`build`] only `Outside`, `Interior`,
 /// `Frontier` and `Source` remain; the other variants are transient states of the build.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[repr(u8)]
 pub enum Label {
     /// Not part of the problem (unknown, occupied, inflated or another component).
@@ -61,8 +62,9 @@ impl Label {
 
 /// Largest supported inflation radius, voxels.
 pub const MAX_INFLATION_VOXELS: usize = 6;
-/// Capacity of the inflation stencil (a ball of radius [`MAX_INFLATION_VOXELS`] + 1).
-const STENCIL_CAPACITY: usize = 2200;
+/// Capacity of the inflation stencil: the offsets within [`MAX_INFLATION_VOXELS`] (1284 of
+/// them; the explorer carries the stencil, and on the MCU every byte of it is stack at start-up).
+const STENCIL_CAPACITY: usize = 1284;
 
 /// The set of voxel offsets within the vehicle radius, precomputed once.
 #[derive(Debug, Clone)]
@@ -73,6 +75,7 @@ pub struct InflationStencil {
 
 /// Domain-building errors.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum DomainError {
     /// The vehicle radius is negative, not finite, or larger than the supported maximum.
     BadRadius,
@@ -146,6 +149,7 @@ fn cube_distance_sq(d: [i32; 3]) -> f32 {
 
 /// What a domain build found.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct DomainStats {
     /// Observed free voxels.
     pub free: u32,
@@ -458,7 +462,7 @@ pub(crate) mod tests {
     pub(crate) fn map_from_layers<'a>(
         layers: &[&[&str]],
         lo: &'a mut [i8],
-        st: &'a mut [u8],
+        st: &'a mut [u32],
     ) -> VoxelMap<'a> {
         let (nz, ny, nx) = (layers.len(), layers[0].len(), layers[0][0].len());
         let g = MapGeometry::new(Dims::new(nx, ny, nz).unwrap(), Point3::origin(), 1.0).unwrap();
@@ -480,7 +484,7 @@ pub(crate) mod tests {
 
     #[test]
     fn frontier_is_free_next_to_unknown() {
-        let (mut lo, mut st) = ([0i8; 16], [0u8; 16]);
+        let (mut lo, mut st) = ([0i8; 16], [0u32; 1]);
         let layers: &[&[&str]] = &[&["....", ".#..", "...?", "...."]];
         let map = map_from_layers(layers, &mut lo, &mut st);
         let mut frontier = heapless::Vec::<(u16, u16), 16>::new();
@@ -497,7 +501,7 @@ pub(crate) mod tests {
 
     #[test]
     fn frontier_ignores_occupied_and_sealed_neighbours() {
-        let (mut lo, mut st) = ([0i8; 6], [0u8; 6]);
+        let (mut lo, mut st) = ([0i8; 6], [0u32; 1]);
         let layers: &[&[&str]] = &[&["..#", ".?."]];
         let mut map = map_from_layers(layers, &mut lo, &mut st);
         assert!(!map.is_frontier(VoxelIndex::new(1, 0, 0)) || map.is_unexplored(4));
@@ -515,7 +519,7 @@ pub(crate) mod tests {
 
     #[test]
     fn component_without_frontier_is_excluded_and_inflation_removes_wall_neighbours() {
-        let (mut lo, mut st) = ([0i8; 40], [0u8; 40]);
+        let (mut lo, mut st) = ([0i8; 40], [0u32; 2]);
         // One unknown voxel at (4,1); rows 2 and 3 lead around it, so the far side is reached
         // without passing through a frontier voxel.
         let layers: &[&[&str]] = &[&["..........", "....?.#...", "......#...", ".........."]];
@@ -545,7 +549,7 @@ pub(crate) mod tests {
         )));
 
         // A room behind a wall whose only gap is unknown is another component.
-        let (mut lo2, mut st2) = ([0i8; 21], [0u8; 21]);
+        let (mut lo2, mut st2) = ([0i8; 21], [0u32; 1]);
         let pocket: &[&[&str]] = &[&[".......", "##?####", "......."]];
         let map2 = map_from_layers(pocket, &mut lo2, &mut st2);
         let mut labels2 = [Label::Outside; 21];
@@ -565,7 +569,7 @@ pub(crate) mod tests {
         assert_eq!(stats2.excluded, 11);
 
         // Radius 1 voxel needs a grid at least 3 layers thick (the z edges are walls too).
-        let (mut lo3, mut st3) = ([0i8; 120], [0u8; 120]);
+        let (mut lo3, mut st3) = ([0i8; 120], [0u32; 4]);
         let layer: &[&str] = layers[0];
         let map3 = map_from_layers(&[layer, layer, layer], &mut lo3, &mut st3);
         let g3 = *map3.geometry();
@@ -592,7 +596,7 @@ pub(crate) mod tests {
 
     #[test]
     fn vehicle_outside_free_space_is_an_error() {
-        let (mut lo, mut st) = ([0i8; 16], [0u8; 16]);
+        let (mut lo, mut st) = ([0i8; 16], [0u32; 1]);
         let layers: &[&[&str]] = &[&["....", ".#..", "....", "?..."]];
         let map = map_from_layers(layers, &mut lo, &mut st);
         let mut labels = [Label::Outside; 16];
@@ -613,7 +617,7 @@ pub(crate) mod tests {
         // is the first safe one (the 5 × 5 cross-section keeps y = z = 2 clear of the edges).
         // The vehicle at (1,2,2) must walk through fringe voxel (2,2,2) to reach (3,2,2).
         let layer: &[&str] = &["?.......", "?.......", "?.......", "?.......", "?......."];
-        let (mut lo, mut st) = ([0i8; 200], [0u8; 200]);
+        let (mut lo, mut st) = ([0i8; 200], [0u32; 7]);
         let map = map_from_layers(&[layer, layer, layer, layer, layer], &mut lo, &mut st);
         let stencil = InflationStencil::new(2.0, 1.0).unwrap();
         let mut labels = [Label::Outside; 200];
@@ -640,5 +644,11 @@ pub(crate) mod tests {
         assert!(InflationStencil::new(-1.0, 0.1).is_err());
         assert!(InflationStencil::new(f32::NAN, 0.1).is_err());
         assert!(InflationStencil::new(10.0, 0.1).is_err());
+        let largest = InflationStencil::new(MAX_INFLATION_VOXELS as f32, 1.0).unwrap();
+        assert_eq!(
+            largest.len(),
+            STENCIL_CAPACITY,
+            "the capacity fits the largest radius exactly"
+        );
     }
 }

@@ -92,15 +92,20 @@ impl Default for ExplorerConfig {
     }
 }
 
-/// Buffers an explorer works in, each with at least one entry per voxel (`queue`: any length
-/// ≥ 1; a few thousand entries keep the flood fill to one pass). The multigrid buffers are sized
-/// by [`crate::solve::multigrid::scratch_size`]; they may be empty when the solver is Gauss-Seidel, and
-/// `krylov` may be empty to run plain V-cycles in less memory.
+/// Buffers an explorer works in, each with at least one entry per voxel except `touched`
+/// ([`map::touched_words`](crate::map::touched_words): one bit per voxel) and `queue` (any
+/// length ≥ 1; a few thousand entries keep the flood fill to one pass). The multigrid buffers
+/// are sized by [`crate::solve::multigrid::scratch_size`]; they may be empty when the solver is
+/// Gauss-Seidel, and `krylov` may be empty to run plain V-cycles in less memory.
+///
+/// [`ExplorerStorage::bytes`] adds it up: 1.125 bytes of map, 1 byte of labels and 4 bytes of ψ
+/// per voxel, plus the multigrid levels (about 1.3 bytes per voxel) and the queue — 64 × 64 × 32
+/// voxels with V-cycles and a 2048-entry queue need 957 KiB.
 pub struct ExplorerStorage<'a> {
     /// Map log-odds.
     pub log_odds: &'a mut [i8],
-    /// Map observation stamps.
-    pub stamps: &'a mut [u8],
+    /// Map "updated this frame" bits.
+    pub touched: &'a mut [u32],
     /// Domain labels.
     pub labels: &'a mut [Label],
     /// Potential φ.
@@ -117,8 +122,24 @@ pub struct ExplorerStorage<'a> {
     pub krylov: &'a mut [f32],
 }
 
+impl ExplorerStorage<'_> {
+    /// Bytes of all the buffers together.
+    pub fn bytes(&self) -> usize {
+        use core::mem::size_of_val;
+        size_of_val(self.log_odds)
+            + size_of_val(self.touched)
+            + size_of_val(self.labels)
+            + size_of_val(self.phi)
+            + size_of_val(self.queue)
+            + size_of_val(self.coarse_values)
+            + size_of_val(self.coarse_labels)
+            + size_of_val(self.krylov)
+    }
+}
+
 /// Why an explorer could not be built.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ConfigError {
     /// Map geometry or storage problem.
     Map(MapError),
@@ -132,6 +153,7 @@ pub enum ConfigError {
 
 /// Why a plan was not made or a frame not integrated. Each has a counter in [`ErrorCounters`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Fault {
     /// Vehicle position not finite.
     BadPose,
@@ -149,6 +171,7 @@ pub enum Fault {
 
 /// Counts of every fault and notable event since start.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct ErrorCounters {
     /// Frames rejected for a bad camera pose or range settings.
@@ -171,6 +194,7 @@ pub struct ErrorCounters {
 
 /// How exploration stands.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Termination {
     /// Still frontiers to visit.
     #[default]
@@ -181,6 +205,7 @@ pub enum Termination {
 
 /// A place to fly to and the direction to look in when there.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Goal {
     /// Goal position, map frame.
     pub position: Point3<f32>,
@@ -194,6 +219,7 @@ pub struct Goal {
 
 /// Result of [`Explorer::plan`].
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum PlanOutcome {
     /// Fly to the goal through [`Explorer::waypoints`].
     Goal(Goal),
@@ -222,6 +248,7 @@ impl Clock for NoClock {
 
 /// Ticks spent in each planning phase of the last plan.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct PhaseTicks {
     /// Domain and boundary conditions (including re-builds after sealing).
     pub domain: u64,
@@ -233,6 +260,7 @@ pub struct PhaseTicks {
 
 /// Everything the explorer reports.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Status {
     /// Voxel counts after the last plan.
     pub map: MapCounts,
@@ -290,7 +318,7 @@ impl<'a> Explorer<'a> {
         let n = geometry.dims().len();
         let ExplorerStorage {
             log_odds,
-            stamps,
+            touched,
             labels,
             phi,
             queue,
@@ -317,7 +345,7 @@ impl<'a> Explorer<'a> {
             ),
             SolverKind::GaussSeidel => None,
         };
-        let map = VoxelMap::new(geometry, config.log_odds, log_odds, stamps).map_err(ConfigError::Map)?;
+        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
         let labels = &mut labels[..n];

@@ -40,6 +40,7 @@ impl Default for IntegrationParams {
 
 /// What one frame's integration did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct IntegrationStats {
     /// Pixels looked at (after the stride).
     pub pixels: u32,
@@ -61,6 +62,7 @@ pub struct IntegrationStats {
 
 /// Why a frame was not integrated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum IntegrateError {
     /// The camera pose has a non-finite translation or rotation.
     BadPose,
@@ -381,7 +383,7 @@ mod tests {
 
     struct Fixture {
         lo: [i8; 4096],
-        st: [u8; 4096],
+        st: [u32; 128],
     }
 
     fn looking_along_x() -> Isometry3<f32> {
@@ -395,7 +397,7 @@ mod tests {
     fn single_pixel_marks_free_ray_and_occupied_endpoint() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
@@ -423,7 +425,7 @@ mod tests {
     fn no_return_clears_to_max_range_and_too_close_is_invalid() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
@@ -469,7 +471,7 @@ mod tests {
     fn occupied_wins_within_one_frame() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
@@ -498,7 +500,7 @@ mod tests {
     fn bad_pose_is_rejected() {
         let mut f = Fixture {
             lo: [0; 4096],
-            st: [0; 4096],
+            st: [0; 128],
         };
         let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();

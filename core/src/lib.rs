@@ -29,6 +29,9 @@
 //! - [`link`] — the depth link's wire format: versioned messages (intrinsics, depth chunks,
 //!   pose, heartbeat) in COBS frames with a CRC-32, a streaming decoder that resynchronises
 //!   after damage, and the assembler that turns complete chunk sets into depth frames.
+//! - [`downlink`] — the core's reports back over the depth link's return channel: a
+//!   [`PlanReport`](downlink::PlanReport) after every frame (the camera side's "frame N done")
+//!   and the map as two-bit voxel states, in the link's framing.
 //! - [`mavlink`] — the bridge to the flight stack: HEARTBEAT and position + yaw setpoints
 //!   (SET_POSITION_TARGET_LOCAL_NED) streamed at a steady rate, LOCAL_POSITION_NED / ATTITUDE /
 //!   ODOMETRY in as the vehicle pose with a staleness fault, the one map ↔ NED conversion, and
@@ -45,6 +48,7 @@
 
 pub mod camera;
 pub mod domain;
+pub mod downlink;
 pub mod explore;
 pub mod integrate;
 pub mod link;

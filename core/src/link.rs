@@ -177,6 +177,7 @@ impl MessageType {
 
 /// Why a message body was rejected although its frame was intact.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Malformed {
     /// The frame is shorter than a header and a CRC.
     Truncated,
@@ -193,6 +194,7 @@ pub enum Malformed {
 /// Everything that can go wrong on the link. Each variant but [`LinkError::BufferTooSmall`]
 /// (a sender-side error) has a counter in [`LinkCounters`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum LinkError {
     /// Sender: the output buffer cannot hold the encoded frame.
     BufferTooSmall,
@@ -228,6 +230,7 @@ pub enum LinkError {
 /// Counts of link traffic and of every fault since start. The decoder and the assembler each
 /// count what they see; [`LinkCounters::merged`] adds them up.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct LinkCounters {
     /// Bytes received.
@@ -340,6 +343,7 @@ impl LinkCounters {
 
 /// Why a pose was rejected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum PoseError {
     /// A translation or quaternion component is not finite.
     NotFinite,
@@ -753,7 +757,7 @@ pub fn crc32(bytes: &[u8]) -> u32 {
 }
 
 /// Streaming COBS encoder into a slice, computing the CRC of what it is given as payload.
-struct CobsWriter<'o> {
+pub(crate) struct CobsWriter<'o> {
     out: &'o mut [u8],
     /// Where the code byte of the open group goes.
     code_at: usize,
@@ -766,7 +770,7 @@ struct CobsWriter<'o> {
 
 impl<'o> CobsWriter<'o> {
     /// An encoder whose first group starts at `out[start]`.
-    fn new(out: &'o mut [u8], start: usize) -> Self {
+    pub(crate) fn new(out: &'o mut [u8], start: usize) -> Self {
         Self {
             out,
             code_at: start,
@@ -804,14 +808,14 @@ impl<'o> CobsWriter<'o> {
     }
 
     /// Payload bytes: into the CRC and the encoding.
-    fn payload(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+    pub(crate) fn payload(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
         self.crc = crc32_update(self.crc, bytes);
         bytes.iter().try_for_each(|&b| self.put(b))
     }
 
     /// Appends the CRC, closes the last group and writes the trailing delimiter. Returns the
     /// length of `out` used.
-    fn finish(mut self) -> Result<usize, LinkError> {
+    pub(crate) fn finish(mut self) -> Result<usize, LinkError> {
         for b in (!self.crc).to_le_bytes() {
             self.put(b)?;
         }
@@ -823,7 +827,7 @@ impl<'o> CobsWriter<'o> {
 }
 
 /// Decodes COBS in place (the output never overtakes the input); returns the decoded length.
-fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
+pub(crate) fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
     let len = buf.len();
     let (mut read, mut write) = (0, 0);
     while read < len {

@@ -1,18 +1,20 @@
 //! The voxel occupancy map: geometry (origin, resolution, dimensions) and per-voxel state.
 //!
-//! Storage is borrowed from the caller (two byte slices of `nx·ny·nz` entries), so the same type
-//! lives in a firmware `static` or in a host `Vec`. Per voxel the map keeps
+//! Storage is borrowed from the caller, so the same type lives in a firmware `static` or in a
+//! host `Vec`: one byte of log-odds per voxel and one bit per voxel of "updated this frame"
+//! ([`touched_words`] `u32` words), 1.125 bytes per voxel in all. Per voxel the map keeps
 //!
 //! - a log-odds value in `i8` fixed point ([`LOG_ODDS_SCALE`] steps per unit), OctoMap defaults:
 //!   hit +0.85, miss −0.4, clamped to [−2.0, +3.5]; occupied above 0, free below 0;
-//! - an observation stamp: 0 means *never observed* (unknown), otherwise the stamp of the last
-//!   frame that updated the voxel. Unknown is therefore a separate state, not "log-odds 0": an
-//!   observed voxel with log-odds exactly 0 is [`Occupancy::Uncertain`]. The stamp also makes
-//!   "each voxel at most once per frame" an O(1) check with no extra memory.
+//! - *never observed* (unknown) as a value of its own, [`UNKNOWN`] (−128), which no update can
+//!   produce: the clamp keeps observed values within ±127, so unknown is a separate state, not
+//!   "log-odds 0". An observed voxel with log-odds exactly 0 is [`Occupancy::Uncertain`];
+//! - a *touched* bit, set by the first update in a frame and cleared by
+//!   [`VoxelMap::begin_frame`], which makes "each voxel at most once per frame" an O(1) check.
 //!
-//! An unknown voxel may be *sealed*: the planner has decided it cannot be observed from any
-//! reachable pose (see [`crate::explore`]), so it no longer makes its free neighbours frontiers.
-//! Sealing is forgotten as soon as the voxel is observed.
+//! An unknown voxel may be *sealed* (value [`SEALED`], −127): the planner has decided it cannot
+//! be observed from any reachable pose (see [`crate::explore`]), so it no longer makes its free
+//! neighbours frontiers. Sealing is forgotten as soon as the voxel is observed.
 //!
 //! Voxels are indexed `x + nx·(y + ny·z)`. The map frame is right-handed, z up, metres.
 
@@ -26,6 +28,7 @@ pub const MAX_AXIS: usize = 2048;
 
 /// Integer voxel coordinates inside a grid.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct VoxelIndex {
     /// Column along map x.
     pub x: u16,
@@ -140,6 +143,7 @@ impl Dims {
 
 /// Map errors: bad geometry or storage that does not fit it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum MapError {
     /// An axis has zero voxels or more than [`MAX_AXIS`].
     BadDimensions,
@@ -214,6 +218,7 @@ impl MapGeometry {
 
 /// The occupancy state of one voxel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Occupancy {
     /// Never observed.
     Unknown,
@@ -266,7 +271,7 @@ impl FixedParams {
             if s.is_nan() {
                 0
             } else {
-                s.clamp(-127.0, 127.0) as i8
+                s.clamp(f32::from(OBSERVED_MIN), 127.0) as i8
             }
         };
         let min = q(p.min).min(-1);
@@ -280,13 +285,21 @@ impl FixedParams {
     }
 }
 
-/// Stamp value meaning "never observed".
-const UNOBSERVED: u8 = 0;
-/// Log-odds value an unknown voxel carries when it is sealed.
-const SEALED: i8 = i8::MIN;
+/// Stored value of a voxel that was never observed.
+pub const UNKNOWN: i8 = i8::MIN;
+/// Stored value of an unknown voxel the planner sealed.
+pub const SEALED: i8 = i8::MIN + 1;
+/// Most negative stored value of an observed voxel (the clamp never goes below it).
+const OBSERVED_MIN: i8 = i8::MIN + 2;
+
+/// `u32` words of the per-frame "touched" bitset a grid of `dims` needs: one bit per voxel.
+pub const fn touched_words(dims: &Dims) -> usize {
+    (dims.nx * dims.ny * dims.nz).div_ceil(32)
+}
 
 /// Counts of voxels by state.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct MapCounts {
     /// Observed free voxels.
     pub free: u32,
@@ -306,34 +319,35 @@ pub struct VoxelMap<'a> {
     geometry: MapGeometry,
     params: FixedParams,
     log_odds: &'a mut [i8],
-    stamps: &'a mut [u8],
-    frame_stamp: u8,
+    touched: &'a mut [u32],
 }
 
 impl<'a> VoxelMap<'a> {
-    /// Wraps storage of at least `dims.len()` entries each; everything starts unknown.
+    /// Wraps storage of at least `dims.len()` log-odds bytes and [`touched_words`] bitset
+    /// words; everything starts unknown.
     pub fn new(
         geometry: MapGeometry,
         params: LogOddsParams,
         log_odds: &'a mut [i8],
-        stamps: &'a mut [u8],
+        touched: &'a mut [u32],
     ) -> Result<Self, MapError> {
-        let needed = geometry.dims().len();
-        for got in [log_odds.len(), stamps.len()] {
+        let dims = geometry.dims();
+        let needed = dims.len();
+        let words = touched_words(&dims);
+        for (got, needed) in [(log_odds.len(), needed), (touched.len(), words)] {
             if got < needed {
                 return Err(MapError::StorageTooSmall { needed, got });
             }
         }
         let log_odds = &mut log_odds[..needed];
-        let stamps = &mut stamps[..needed];
-        log_odds.fill(0);
-        stamps.fill(UNOBSERVED);
+        let touched = &mut touched[..words];
+        log_odds.fill(UNKNOWN);
+        touched.fill(0);
         Ok(Self {
             geometry,
             params: FixedParams::from(&params),
             log_odds,
-            stamps,
-            frame_stamp: 1,
+            touched,
         })
     }
 
@@ -348,16 +362,7 @@ impl<'a> VoxelMap<'a> {
 
     /// Starts a new frame: afterwards every voxel accepts one more update.
     pub fn begin_frame(&mut self) {
-        if self.frame_stamp == u8::MAX {
-            // Renumber so that no stale stamp can equal a future one.
-            for s in self.stamps.iter_mut() {
-                if *s != UNOBSERVED {
-                    *s = 1;
-                }
-            }
-            self.frame_stamp = 1;
-        }
-        self.frame_stamp += 1;
+        self.touched.fill(0);
     }
 
     /// Applies a hit to voxel `i` unless it was already updated this frame. Returns whether it
@@ -371,33 +376,34 @@ impl<'a> VoxelMap<'a> {
     }
 
     fn apply(&mut self, i: usize, delta: i8) -> bool {
-        let (Some(stamp), Some(lo)) = (self.stamps.get_mut(i), self.log_odds.get_mut(i)) else {
+        let bit = 1u32 << (i % 32);
+        let (Some(word), Some(lo)) = (self.touched.get_mut(i / 32), self.log_odds.get_mut(i)) else {
             return false;
         };
-        if *stamp == self.frame_stamp {
+        if *word & bit != 0 {
             return false;
         }
-        let before = if *stamp == UNOBSERVED { 0 } else { *lo };
+        let before = if *lo <= SEALED { 0 } else { *lo };
         *lo = before
             .saturating_add(delta)
             .clamp(self.params.min, self.params.max);
-        *stamp = self.frame_stamp;
+        *word |= bit;
         true
     }
 
     /// Marks an unknown voxel free (space the vehicle's own body occupies). Observed voxels are
     /// left alone. Returns whether the voxel changed.
     pub fn mark_traversed(&mut self, i: usize) -> bool {
-        match self.stamps.get(i) {
-            Some(&UNOBSERVED) => self.apply(i, self.params.miss),
+        match self.log_odds.get(i) {
+            Some(&lo) if lo <= SEALED => self.apply(i, self.params.miss),
             _ => false,
         }
     }
 
     /// Seals an unknown voxel so it no longer makes frontiers. Returns whether it changed.
     pub fn seal(&mut self, i: usize) -> bool {
-        match (self.stamps.get(i), self.log_odds.get_mut(i)) {
-            (Some(&UNOBSERVED), Some(lo)) if *lo != SEALED => {
+        match self.log_odds.get_mut(i) {
+            Some(lo) if *lo == UNKNOWN => {
                 *lo = SEALED;
                 true
             }
@@ -408,8 +414,8 @@ impl<'a> VoxelMap<'a> {
     /// State of voxel `i` (out-of-range indices read as unknown).
     #[inline]
     pub fn occupancy(&self, i: usize) -> Occupancy {
-        match (self.stamps.get(i), self.log_odds.get(i)) {
-            (Some(&s), Some(&lo)) if s != UNOBSERVED => match lo {
+        match self.log_odds.get(i) {
+            Some(&lo) if lo > SEALED => match lo {
                 l if l < 0 => Occupancy::Free,
                 l if l > 0 => Occupancy::Occupied,
                 _ => Occupancy::Uncertain,
@@ -425,17 +431,17 @@ impl<'a> VoxelMap<'a> {
     /// True if voxel `i` was never observed.
     #[inline]
     pub fn is_unknown(&self, i: usize) -> bool {
-        self.stamps.get(i).is_none_or(|&s| s == UNOBSERVED)
+        self.log_odds.get(i).is_none_or(|&lo| lo <= SEALED)
     }
     /// True if voxel `i` is unknown and sealed by the planner.
     #[inline]
     pub fn is_sealed(&self, i: usize) -> bool {
-        self.is_unknown(i) && self.log_odds.get(i) == Some(&SEALED)
+        self.log_odds.get(i) == Some(&SEALED)
     }
     /// True if voxel `i` is unknown and not sealed: space that exploration should still look at.
     #[inline]
     pub fn is_unexplored(&self, i: usize) -> bool {
-        self.is_unknown(i) && self.log_odds.get(i) != Some(&SEALED)
+        self.log_odds.get(i).is_none_or(|&lo| lo == UNKNOWN)
     }
     /// Log-odds of voxel `i` in log-odds units (0 for unknown voxels).
     pub fn log_odds(&self, i: usize) -> f32 {
@@ -460,7 +466,7 @@ impl<'a> VoxelMap<'a> {
     /// Counts voxels by state (one pass over the grid).
     pub fn counts(&self) -> MapCounts {
         let mut c = MapCounts::default();
-        for i in 0..self.stamps.len() {
+        for i in 0..self.log_odds.len() {
             match self.occupancy(i) {
                 Occupancy::Free => c.free += 1,
                 Occupancy::Occupied => c.occupied += 1,
@@ -503,7 +509,7 @@ mod tests {
     #[test]
     fn log_odds_follow_octomap_defaults_and_clamp() {
         let g = geometry(4);
-        let (mut lo, mut st) = ([0i8; 64], [0u8; 64]);
+        let (mut lo, mut st) = ([0i8; 64], [0u32; 2]);
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
         assert_eq!(map.occupancy(0), Occupancy::Unknown);
         assert!(map.apply_hit(0));
@@ -523,9 +529,9 @@ mod tests {
     }
 
     #[test]
-    fn frame_stamps_survive_wraparound() {
+    fn every_frame_accepts_one_update_per_voxel() {
         let g = geometry(2);
-        let (mut lo, mut st) = ([0i8; 8], [0u8; 8]);
+        let (mut lo, mut st) = ([0i8; 8], [0u32; 1]);
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
         map.apply_miss(1);
         for _ in 0..1000 {
@@ -538,7 +544,7 @@ mod tests {
     #[test]
     fn contradictory_evidence_is_not_unknown() {
         let g = geometry(2);
-        let (mut lo, mut st) = ([0i8; 8], [0u8; 8]);
+        let (mut lo, mut st) = ([0i8; 8], [0u32; 1]);
         let params = LogOddsParams {
             hit: 0.5,
             miss: -0.5,
@@ -556,22 +562,49 @@ mod tests {
     #[test]
     fn storage_too_small_is_an_error() {
         let g = geometry(4);
-        let (mut lo, mut st) = ([0i8; 63], [0u8; 64]);
+        let (mut lo, mut st) = ([0i8; 63], [0u32; 2]);
         assert_eq!(
             VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap_err(),
             MapError::StorageTooSmall { needed: 64, got: 63 }
         );
+        let (mut lo, mut st) = ([0i8; 64], [0u32; 1]);
+        assert_eq!(
+            VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap_err(),
+            MapError::StorageTooSmall { needed: 2, got: 1 }
+        );
+        assert_eq!(touched_words(&Dims::new(64, 64, 32).unwrap()), 4096);
     }
 
     #[test]
     fn sealing_is_forgotten_on_observation() {
         let g = geometry(3);
-        let (mut lo, mut st) = ([0i8; 27], [0u8; 27]);
+        let (mut lo, mut st) = ([0i8; 27], [0u32; 1]);
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
         assert!(map.seal(5));
         assert!(map.is_sealed(5) && !map.is_unexplored(5));
         map.apply_miss(5);
         assert_eq!(map.occupancy(5), Occupancy::Free);
         assert!(!map.is_sealed(5));
+    }
+
+    #[test]
+    fn extreme_parameters_never_produce_the_unknown_sentinels() {
+        let g = geometry(2);
+        let (mut lo, mut st) = ([0i8; 8], [0u32; 1]);
+        let params = LogOddsParams {
+            hit: 100.0,
+            miss: -100.0,
+            min: -100.0,
+            max: 100.0,
+        };
+        let mut map = VoxelMap::new(g, params, &mut lo, &mut st).unwrap();
+        for _ in 0..4 {
+            map.begin_frame();
+            map.apply_miss(0);
+            map.apply_hit(1);
+        }
+        assert_eq!(map.occupancy(0), Occupancy::Free);
+        assert_eq!(map.occupancy(1), Occupancy::Occupied);
+        assert!(!map.is_unknown(0) && !map.is_sealed(0));
     }
 }

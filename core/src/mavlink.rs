@@ -185,6 +185,7 @@ impl Default for BridgeConfig {
 
 /// Why a [`BridgeConfig`] was refused.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum BridgeConfigError {
     /// The heartbeat period is zero.
     HeartbeatPeriod,
@@ -242,6 +243,7 @@ pub struct VehiclePose {
 
 /// Why there is no pose to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum PoseFault {
     /// Nothing usable has arrived yet (for LOCAL_POSITION_NED + ATTITUDE: not both).
     NoPose,
@@ -287,6 +289,7 @@ pub enum InputError {
 /// Why [`Bridge::set_goal`] or [`Bridge::set_target`] kept the current setpoint. Counted in
 /// [`BridgeCounters::goals_refused`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum GoalError {
     /// Position or yaw not finite.
     NotFinite,
@@ -300,6 +303,7 @@ pub struct QueueFull;
 
 /// Counts of every message and fault of a [`Bridge`] since start.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct BridgeCounters {
     /// HEARTBEATs sent.
@@ -1052,6 +1056,7 @@ pub fn write_v2<W: embedded_io::Write>(
 
 /// Counts of what a [`MavlinkDecoder`] saw.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize))]
 pub struct DecoderCounters {
     /// Bytes pushed in.

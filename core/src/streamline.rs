@@ -53,6 +53,7 @@ impl Default for StreamlineParams {
 
 /// Where and how a streamline ended.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct StreamlineEnd {
     /// The frontier voxel it entered.
     pub frontier: VoxelIndex,
@@ -70,6 +71,7 @@ pub struct StreamlineEnd {
 
 /// Why no streamline could be traced.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum StreamlineError {
     /// The start point is not in a domain voxel.
     StartOutsideDomain,

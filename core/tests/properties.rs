@@ -17,7 +17,7 @@ use std::fmt;
 
 use harmonic_core::domain::{self, DomainError, DomainStats, InflationStencil, Label};
 use harmonic_core::integrate::traverse;
-use harmonic_core::map::{Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
+use harmonic_core::map::{self, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
 use harmonic_core::solve::{gauss_seidel, SolveParams, SolveStats, PSI_FRONTIER, PSI_SOURCE};
 use harmonic_core::streamline::{trace, Field, StreamlineError, StreamlineParams, Waypoints};
@@ -219,7 +219,7 @@ const RESOLUTION: f32 = 0.25;
 fn build(world: &World) -> Result<Built, DomainError> {
     let dims = Dims::new(world.nx, world.ny, world.nz).expect("test dims are valid");
     let geometry = MapGeometry::new(dims, Point3::origin(), RESOLUTION).expect("valid geometry");
-    let (mut lo, mut st) = (vec![0i8; dims.len()], vec![0u8; dims.len()]);
+    let (mut lo, mut st) = (vec![0i8; dims.len()], vec![0u32; map::touched_words(&dims)]);
     let mut map = VoxelMap::new(geometry, LogOddsParams::default(), &mut lo, &mut st).expect("storage fits");
     for (i, c) in world.cells.iter().enumerate() {
         match c {

@@ -90,7 +90,7 @@ impl MsStat {
 }
 
 /// What went over the depth link in a run; part of `report.json`.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Default, Serialize)]
 pub struct LinkReport {
     /// The wire (`--link`).
     pub transport: String,

@@ -4,7 +4,8 @@
 //! ([`scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`camera`]),
 //! a multirotor that flies the core's plans ([`sim`]), directly or over MAVLink
 //! ([`autopilot`]) through an emulated flight stack ([`flight`]) or a real autopilot over UDP,
-//! and ground-truth coverage metrics ([`metrics`]). Depth reaches the core over the depth link
+//! and ground-truth coverage metrics ([`metrics`]); or with the core running as firmware on an
+//! emulated Cortex-M4F ([`pil`]). Depth reaches the core over the depth link
 //! ([`depth_link`]): the core's wire format at a baud rate, over a transport ([`transport`]:
 //! in-process pipe, TCP, serial), through an optional fault injector ([`fault`]). MAVLink
 //! traffic can be recorded as a `.tlog` ([`tlog`]). The simulator renders and flies; every
@@ -19,6 +20,7 @@ pub mod fault;
 pub mod flight;
 pub mod metrics;
 pub mod npy;
+pub mod pil;
 pub mod problem;
 pub mod scenario;
 pub mod sim;

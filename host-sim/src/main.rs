@@ -47,6 +47,9 @@ enum Command {
     Tlog(TlogArgs),
     /// Be the far end of a TCP depth link: send every byte back, as a loopback plug would.
     LinkEcho(LinkEchoArgs),
+    /// The firmware's budget: RAM and flash of the image, and instructions per phase measured
+    /// under QEMU with -icount shift=0 on a processor-in-the-loop run (BENCHMARKS.md).
+    FwBudget(FwBudgetArgs),
 }
 
 #[derive(clap::Args)]
@@ -101,6 +104,29 @@ fn summarize_tlog(args: &TlogArgs) -> Result<(), String> {
         print!("{}", tlog::format_summary(&summary));
     }
     Ok(())
+}
+
+#[derive(clap::Args)]
+struct FwBudgetArgs {
+    /// The firmware ELF (default: build it with cargo).
+    #[arg(long)]
+    firmware: Option<PathBuf>,
+    /// Scenario explored to measure the phases.
+    #[arg(long, default_value = "pil-small")]
+    scenario: String,
+    /// Output directory (report.json and the firmware's log).
+    #[arg(long, default_value = "out/fw-budget")]
+    out: PathBuf,
+    /// The QEMU binary.
+    #[arg(long, default_value = "qemu-system-arm")]
+    qemu: String,
+    /// Only the image sizes; no QEMU run.
+    #[arg(long)]
+    sizes_only: bool,
+    /// A firmware built with `--features cold-start` (every solve from ψ = 0): explores the
+    /// same scenario again and reports cold solves on the same planning problems.
+    #[arg(long)]
+    cold_firmware: Option<PathBuf>,
 }
 
 #[derive(clap::Args)]
@@ -270,6 +296,16 @@ struct ExploreArgs {
     /// Record every MAVLink frame both ways in this .tlog file (QGroundControl/MAVProxy format).
     #[arg(long, requires = "mavlink")]
     tlog: Option<PathBuf>,
+    /// Where the planning runs: `host` (the core in this process) or `qemu` (the firmware,
+    /// harmonic-fw, on an emulated Cortex-M4F: processor in the loop; see `pil` in the docs).
+    #[arg(long, default_value = "host", value_parser = ["host", "qemu"])]
+    core: String,
+    /// With `--core qemu`: the firmware ELF to run (default: build it with cargo).
+    #[arg(long)]
+    firmware: Option<PathBuf>,
+    /// With `--core qemu`: the QEMU binary.
+    #[arg(long, default_value = "qemu-system-arm")]
+    qemu: String,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -360,6 +396,7 @@ fn main() -> ExitCode {
         Command::Solve(args) => solve_problem(&args),
         Command::Tlog(args) => summarize_tlog(&args),
         Command::LinkEcho(args) => link_echo(&args),
+        Command::FwBudget(args) => fw_budget(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -427,7 +464,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
             .unwrap_or_else(|_| ProgressStyle::default_spinner()),
     );
     let mut scans = 0u32;
-    let report = sim::run(&scenario, &cfg, |s| {
+    let on_step = |s: &sim::StepRecord| {
         scans += s.frames_integrated;
         // Steps whose frame was lost on the link are counted apart from scans.
         let lost = if s.step > scans {
@@ -447,12 +484,22 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
                 _ => format!("solve {:>7.1} ms", s.solve_ms),
             }
         );
-        if !args.quiet && !tty && s.step % 25 == 0 {
+        if !args.quiet && !tty && s.step.is_multiple_of(25) {
             eprintln!("{line}");
         }
         bar.set_message(line);
         bar.tick();
-    })
+    };
+    let report = if args.core == "qemu" {
+        let pil = harmonic_sim::pil::PilConfig {
+            firmware: args.firmware.clone(),
+            qemu: args.qemu.clone(),
+            out: args.out.clone(),
+        };
+        harmonic_sim::pil::run(&scenario, &cfg, &pil, on_step)
+    } else {
+        sim::run(&scenario, &cfg, on_step)
+    }
     .map_err(|e| e.to_string())?;
     bar.finish_and_clear();
 
@@ -460,6 +507,180 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     let json = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
     std::fs::write(&path, json).map_err(|e| format!("{}: {e}", path.display()))?;
     print_summary(&report);
+    println!("report: {}", path.display());
+    Ok(())
+}
+
+/// RAM budget of the reference board (memory.x).
+const RAM_BUDGET: u64 = 1024 * 1024;
+/// Instruction budget of one planning cycle (10 Hz at 480 MHz).
+const PLAN_BUDGET: u64 = 48_000_000;
+
+fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
+    use harmonic_sim::pil;
+    let elf = match &args.firmware {
+        Some(p) => p.clone(),
+        None => pil::build_firmware(None).map_err(|e| e.to_string())?,
+    };
+    let size = pil::image_size(&elf)?;
+    let kib = |b: u64| b as f64 / 1024.0;
+    println!("firmware {}", elf.display());
+    println!("| memory | bytes | KiB |");
+    println!("|---|---|---|");
+    println!(
+        "| flash (.vector_table + .text + .rodata + .data) | {} | {:.1} |",
+        size.flash,
+        kib(size.flash)
+    );
+    println!("| .data | {} | {:.1} |", size.data, kib(size.data));
+    println!("| .bss + .uninit | {} | {:.1} |", size.bss, kib(size.bss));
+    println!(
+        "| stack reserve | {} | {:.1} |",
+        size.stack_reserve,
+        kib(size.stack_reserve)
+    );
+    println!(
+        "| **RAM (.data + .bss + stack reserve)** | **{}** | **{:.1}** of {:.0} ({:.1} % used) |",
+        size.ram,
+        kib(size.ram),
+        kib(RAM_BUDGET),
+        size.ram as f64 * 100.0 / RAM_BUDGET as f64
+    );
+    if size.ram > RAM_BUDGET {
+        return Err(format!(
+            "the image needs {} bytes of RAM, more than the {RAM_BUDGET} budget",
+            size.ram
+        ));
+    }
+    if args.sizes_only {
+        return Ok(());
+    }
+    let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    let cfg = SimConfig::default();
+    let pil_cfg = pil::PilConfig {
+        firmware: Some(elf),
+        qemu: args.qemu.clone(),
+        out: args.out.clone(),
+    };
+    eprintln!(
+        "exploring {} with the firmware under QEMU (-icount shift=0) ...",
+        args.scenario
+    );
+    let report = pil::run(&scenario, &cfg, &pil_cfg, |s| {
+        if s.step.is_multiple_of(10) {
+            eprintln!("  scan {}: {}", s.step, s.outcome);
+        }
+    })
+    .map_err(|e| e.to_string())?;
+    let path = args.out.join("report.json");
+    std::fs::write(
+        &path,
+        serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?,
+    )
+    .map_err(|e| format!("{}: {e}", path.display()))?;
+    let Some(p) = &report.pil else {
+        return Err("no processor-in-the-loop data in the report".into());
+    };
+    // Full replans (outcome "goal") solved; the first is the cold solve.
+    let full: Vec<(usize, [u64; 4])> = report
+        .steps
+        .iter()
+        .zip(&p.steps)
+        .filter(|(s, _)| s.outcome == "goal")
+        .map(|(s, i)| (s.unknowns as usize, *i))
+        .collect();
+    let mean = |v: &[u64]| {
+        if v.is_empty() {
+            0.0
+        } else {
+            v.iter().sum::<u64>() as f64 / v.len() as f64
+        }
+    };
+    let max = |v: &[u64]| v.iter().copied().max().unwrap_or(0);
+    let m = |x: f64| x / 1e6;
+    let integrate: Vec<u64> = p.steps.iter().map(|s| s[0]).collect();
+    let warm: Vec<u64> = full.iter().skip(1).map(|(_, i)| i[2]).collect();
+    let domain: Vec<u64> = full.iter().map(|(_, i)| i[1]).collect();
+    let streamline: Vec<u64> = full.iter().map(|(_, i)| i[3]).collect();
+    let cycle: Vec<u64> = full.iter().map(|(_, i)| i[1] + i[2] + i[3]).collect();
+    let (cold_unknowns, cold) = full.first().map(|(u, i)| (*u, i[2])).unwrap_or((0, 0));
+    let largest = full.iter().map(|(u, _)| *u).max().unwrap_or(0);
+    let cold_solves: Option<Vec<u64>> = match &args.cold_firmware {
+        Some(elf) => {
+            eprintln!("again with the cold-start image ...");
+            let cold_cfg = pil::PilConfig {
+                firmware: Some(elf.clone()),
+                qemu: args.qemu.clone(),
+                out: args.out.join("cold"),
+            };
+            let cold = pil::run(&scenario, &cfg, &cold_cfg, |_| {}).map_err(|e| e.to_string())?;
+            let steps = cold.pil.map(|p| p.steps).unwrap_or_default();
+            Some(
+                cold.steps
+                    .iter()
+                    .zip(&steps)
+                    .filter(|(s, _)| s.outcome == "goal")
+                    .map(|(_, i)| i[2])
+                    .collect(),
+            )
+        }
+        None => None,
+    };
+    println!();
+    println!(
+        "{}: {} scans, {} full replans, termination {}, coverage {:.2} %; grid 64x64x32, domain up to {} unknowns",
+        report.scenario,
+        report.scans,
+        full.len(),
+        report.termination,
+        report.coverage_free * 100.0,
+        largest
+    );
+    println!("| phase (instructions, millions) | mean | max |");
+    println!("|---|---|---|");
+    println!(
+        "| integrate one 100x100 frame | {:.1} | {:.1} |",
+        m(mean(&integrate)),
+        m(max(&integrate) as f64)
+    );
+    println!(
+        "| domain (boundary conditions) | {:.1} | {:.1} |",
+        m(mean(&domain)),
+        m(max(&domain) as f64)
+    );
+    match &cold_solves {
+        Some(c) => println!(
+            "| cold solve (every replan from psi = 0, cold-start image) | {:.1} | {:.1} |",
+            m(mean(c)),
+            m(max(c) as f64)
+        ),
+        None => println!(
+            "| cold solve (first plan, {cold_unknowns} unknowns; --cold-firmware for all) | {:.1} | |",
+            m(cold as f64)
+        ),
+    }
+    println!(
+        "| warm re-solve | {:.1} | {:.1} |",
+        m(mean(&warm)),
+        m(max(&warm) as f64)
+    );
+    println!(
+        "| streamline + goal | {:.2} | {:.2} |",
+        m(mean(&streamline)),
+        m(max(&streamline) as f64)
+    );
+    println!(
+        "| **full planning cycle** (domain + solve + streamline) | **{:.1}** | **{:.1}** |",
+        m(mean(&cycle)),
+        m(max(&cycle) as f64)
+    );
+    println!(
+        "target for a full planning cycle: {:.0} M instructions; reached: mean {:.1} M ({:.1}x), max {:.1} M",
+        m(PLAN_BUDGET as f64),
+        m(mean(&cycle)),
+        mean(&cycle) / PLAN_BUDGET as f64,
+        m(max(&cycle) as f64)
+    );
     println!("report: {}", path.display());
     Ok(())
 }

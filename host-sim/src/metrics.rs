@@ -110,9 +110,15 @@ impl GroundTruth {
 
     /// Coverage of `map` (which must be on the same grid).
     pub fn coverage(&self, map: &VoxelMap<'_>) -> Coverage {
+        self.coverage_of(|i| map.occupancy(i))
+    }
+
+    /// Coverage of a map given as the occupancy of each voxel index (on the same grid): a map
+    /// that lives elsewhere, say in the firmware of a processor-in-the-loop run.
+    pub fn coverage_of(&self, occupancy: impl Fn(usize) -> Occupancy) -> Coverage {
         let (mut free_seen, mut surf_seen, mut false_occ) = (0usize, 0usize, 0usize);
         for i in 0..self.reachable.len() {
-            let occ = map.occupancy(i);
+            let occ = occupancy(i);
             if self.reachable[i] {
                 match occ {
                     Occupancy::Free => free_seen += 1,
@@ -157,7 +163,7 @@ mod tests {
         assert_eq!(t.reachable_free(), 512);
         // Surface: the inner faces of six walls, 8×8 each, no edges (they face no free voxel).
         assert_eq!(t.surface_voxels(), 6 * 64);
-        let (mut lo, mut st) = (vec![0i8; 1000], vec![0u8; 1000]);
+        let (mut lo, mut st) = (vec![0i8; 1000], vec![0u32; 32]);
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
         let c0 = t.coverage(&map);
         assert_eq!((c0.free, c0.surface), (0.0, 0.0));

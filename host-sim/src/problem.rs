@@ -9,7 +9,7 @@
 use std::time::Instant;
 
 use harmonic_core::domain::{self, InflationStencil, Label};
-use harmonic_core::map::{Dims, LogOddsParams, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
 use harmonic_core::solve::{gauss_seidel, SolveParams};
 use nalgebra::Point3;
@@ -137,7 +137,7 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     let geometry = MapGeometry::new(dims, Point3::origin(), req.resolution)
         .map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
     let n = dims.len();
-    let (mut lo, mut st) = (vec![0i8; n], vec![0u8; n]);
+    let (mut lo, mut st) = (vec![0i8; n], vec![0u32; touched_words(&dims)]);
     let mut map = VoxelMap::new(geometry, LogOddsParams::default(), &mut lo, &mut st)
         .map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
     for x in 0..nx {

@@ -54,11 +54,12 @@ pub const START_CLEARANCE: f32 = 0.3;
 /// How far (in voxels) a bounds extent may be from a whole number of voxels.
 const WHOLE_VOXEL_TOLERANCE: f32 = 1e-3;
 
-const BUILTIN_NAMES: [&str; 3] = ["apartment", "office", "two-level"];
-const BUILTIN_SOURCES: [&str; 3] = [
+const BUILTIN_NAMES: [&str; 4] = ["apartment", "office", "two-level", "pil-small"];
+const BUILTIN_SOURCES: [&str; 4] = [
     include_str!("../scenarios/apartment.toml"),
     include_str!("../scenarios/office.toml"),
     include_str!("../scenarios/two-level.toml"),
+    include_str!("../scenarios/pil-small.toml"),
 ];
 
 /// Names of the scenarios built into the simulator.

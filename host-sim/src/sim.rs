@@ -37,7 +37,7 @@ use harmonic_core::explore::{
     forward_camera_pose, Clock, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
     SolverKind,
 };
-use harmonic_core::map::{Dims, MapGeometry};
+use harmonic_core::map::{self, Dims, MapGeometry};
 use harmonic_core::solve::multigrid;
 use nalgebra::Point3;
 use rand::SeedableRng;
@@ -166,7 +166,7 @@ pub struct TimeStat {
 }
 
 impl TimeStat {
-    fn of(values: impl Iterator<Item = f64>) -> Self {
+    pub(crate) fn of(values: impl Iterator<Item = f64>) -> Self {
         let (mut n, mut sum, mut max) = (0usize, 0.0f64, 0.0f64);
         for v in values {
             n += 1;
@@ -248,6 +248,8 @@ pub struct Report {
     /// MAVLink: messages each way by type, setpoint rate and gaps, the bridge's and emulator's
     /// counters; `None` unless the run flew over MAVLink ([`SimConfig::mavlink`]).
     pub mavlink: Option<MavlinkReport>,
+    /// Processor-in-the-loop details; `None` unless the firmware flew ([`crate::pil`]).
+    pub pil: Option<crate::pil::PilReport>,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
 }
@@ -284,7 +286,7 @@ impl std::error::Error for SimError {}
 /// Host-owned buffers for one explorer.
 pub struct HostStorage {
     log_odds: Vec<i8>,
-    stamps: Vec<u8>,
+    touched: Vec<u32>,
     labels: Vec<Label>,
     phi: Vec<f32>,
     queue: Vec<u32>,
@@ -305,7 +307,7 @@ impl HostStorage {
             coarse_faces: vec![[0; 4]; mg.faces],
             krylov: vec![0.0; mg.krylov],
             log_odds: vec![0; n],
-            stamps: vec![0; n],
+            touched: vec![0; map::touched_words(dims)],
             labels: vec![Label::Outside; n],
             phi: vec![0.0; n],
             queue: vec![0; 16 * 1024],
@@ -315,7 +317,7 @@ impl HostStorage {
     pub fn lend(&mut self) -> ExplorerStorage<'_> {
         ExplorerStorage {
             log_odds: &mut self.log_odds,
-            stamps: &mut self.stamps,
+            touched: &mut self.touched,
             labels: &mut self.labels,
             phi: &mut self.phi,
             queue: &mut self.queue,
@@ -357,7 +359,7 @@ pub struct Vehicle {
     pub yaw: f32,
 }
 
-fn wrap_angle(a: f32) -> f32 {
+pub(crate) fn wrap_angle(a: f32) -> f32 {
     let mut a = a % std::f32::consts::TAU;
     if a > std::f32::consts::PI {
         a -= std::f32::consts::TAU;
@@ -372,7 +374,7 @@ fn to_ms(time_s: f64) -> u64 {
 }
 
 impl Vehicle {
-    fn slew_yaw(&mut self, target: f32, max_step: f32) -> bool {
+    pub(crate) fn slew_yaw(&mut self, target: f32, max_step: f32) -> bool {
         let e = wrap_angle(target - self.yaw);
         if e.abs() <= max_step {
             self.yaw = wrap_angle(target);
@@ -384,7 +386,7 @@ impl Vehicle {
     }
 
     /// Moves straight towards `target` by at most `max_step` metres; returns the distance moved.
-    fn step_towards(&mut self, target: &Point3<f32>, max_step: f32) -> f32 {
+    pub(crate) fn step_towards(&mut self, target: &Point3<f32>, max_step: f32) -> f32 {
         let seg = target - self.position;
         let dist = seg.norm();
         if dist <= 1e-6 {
@@ -962,6 +964,7 @@ pub fn run(
         errors: status.errors,
         link: rig.link.report(),
         mavlink: rig.mav.as_ref().map(MavlinkLink::report),
+        pil: None,
         steps,
     })
 }

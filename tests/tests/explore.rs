@@ -98,8 +98,14 @@ fn two_level_is_explored_completely_without_collisions() {
 }
 
 #[test]
+fn pil_small_is_explored_completely_on_the_host() {
+    // The same world the firmware explores under QEMU (tests/pil.rs).
+    assert_complete(&explore("pil-small"));
+}
+
+#[test]
 fn every_builtin_is_covered_by_these_tests() {
-    assert_eq!(builtin_names(), ["apartment", "office", "two-level"]);
+    assert_eq!(builtin_names(), ["apartment", "office", "two-level", "pil-small"]);
 }
 
 #[test]

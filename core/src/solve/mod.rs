@@ -53,6 +53,7 @@ impl Default for SolveParams {
 
 /// What a solve did.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct SolveStats {
     /// Sweeps or cycles performed.
     pub iterations: u32,
@@ -72,6 +73,7 @@ pub struct SolveStats {
 
 /// Why a solve could not run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum SolveError {
     /// `labels` or `phi` is shorter than the grid.
     StorageTooSmall,

@@ -1,0 +1,908 @@
+//! Processor in the loop: the firmware makes every decision, on an emulated Cortex-M4F.
+//!
+//! [`run`] starts `qemu-system-arm -machine mps2-an386` on the firmware ELF (harmonic-fw) with
+//! its UART0 and UART1 connected to two local TCP sockets, and plays everything outside the
+//! board:
+//!
+//! - **the camera** on UART0: each scan is rendered at the vehicle's true pose and sent as the
+//!   depth link's bytes ([`LinkEncoder`]: a camera Pose, the intrinsics, chunks of 10 rows). The
+//!   firmware integrates it, plans, and answers on the same UART with the map (two bits per
+//!   voxel) and a [`PlanReport`] for that frame: the lockstep's "frame N done";
+//! - **the flight stack** on UART1: the [`FlightEmulator`] streams LOCAL_POSITION_NED and
+//!   ATTITUDE at 20 Hz and flies the vehicle towards the setpoints the firmware streams. Every
+//!   50 ms of simulated time is one *tick*: the emulator's bytes and a TIMESYNC request go out,
+//!   and the tick ends when the firmware's TIMESYNC answer comes back — by then it has acted on
+//!   the pose and sent its setpoint (see `harmonic_fw::app`).
+//!
+//! Simulated time stands still while the firmware computes, so a run is deterministic whatever
+//! the host's speed. QEMU runs with `-icount shift=0`: the board's clock advances 1 ns per
+//! instruction, so the tick counts in each report are instruction counts (1 tick = 40
+//! instructions at the board's 25 MHz) and the report's per-phase "milliseconds" are millions
+//! of instructions.
+//!
+//! A scan ends its leg when the vehicle has flown the replan distance, or has reached the
+//! firmware's setpoint and turned to its yaw, or after [`MAX_TICKS_PER_LEG`]. The run ends when
+//! the firmware reports `Complete`, after three holds in a row, at the scan limit, or with an
+//! error if the firmware stops answering (its defmt log, decoded with `defmt-print` when that
+//! is installed, is in the output directory).
+//!
+//! For debugging: `HARMONIC_QEMU_ICOUNT=0` runs QEMU without `-icount` (the tick counts are then
+//! host time), and `HARMONIC_QEMU_EXTRA` appends options, say
+//! `-monitor unix:/tmp/m.sock,server=on,wait=off` to read the CPU's registers while it runs.
+
+use std::io::{Read, Write};
+use std::net::{TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use harmonic_core::camera::DepthFrame;
+use harmonic_core::downlink::{Downlink, DownlinkDecoder, PlanReport, ReportOutcome};
+use harmonic_core::explore::{forward_camera_pose, ErrorCounters};
+use harmonic_core::link::{self, LinkCounters, LinkEncoder};
+use harmonic_core::map::{Dims, MapGeometry, Occupancy};
+use harmonic_core::mavlink::common::TIMESYNC_DATA;
+use harmonic_core::mavlink::{encode_v2, MavHeader, MavMessage, MavlinkDecoder, MAX_FRAME_LEN};
+use harmonic_fw::app as fw;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::autopilot::{MavlinkReport, TrafficReport};
+use crate::depth_link::LinkReport;
+use crate::flight::FlightEmulator;
+use crate::metrics::GroundTruth;
+use crate::scenario::Scenario;
+use crate::sim::{Report, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
+
+/// Flight ticks after which a leg ends even if the vehicle has not arrived (100 s).
+pub const MAX_TICKS_PER_LEG: usize = 2000;
+/// Wall-clock seconds to wait for the firmware to answer one scan or tick.
+pub const ANSWER_TIMEOUT_S: u64 = 600;
+/// Instructions per board tick under `-icount shift=0` (1 ns each, 25 MHz timer).
+pub const INSTRUCTIONS_PER_TICK: u64 = 40;
+
+/// How to run the firmware.
+#[derive(Debug, Clone)]
+pub struct PilConfig {
+    /// The firmware ELF; `None` builds it with cargo (release, thumbv7em-none-eabihf).
+    pub firmware: Option<PathBuf>,
+    /// The QEMU binary.
+    pub qemu: String,
+    /// Where the firmware's log goes (`firmware.defmt`, `firmware.log`, `qemu.log`).
+    pub out: PathBuf,
+}
+
+/// Instructions of one phase, over a run.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct InstructionStat {
+    /// Mean per scan (phases that did not run count as 0).
+    pub mean: f64,
+    /// Largest.
+    pub max: u64,
+}
+
+/// Processor-in-the-loop details of a run, in `report.json` as `pil`.
+#[derive(Debug, Clone, Serialize)]
+pub struct PilReport {
+    /// The firmware ELF.
+    pub firmware: String,
+    /// The QEMU command line.
+    pub qemu: String,
+    /// Flight ticks exchanged (TIMESYNC round trips).
+    pub ticks: u64,
+    /// Downlink frames the simulator could not decode.
+    pub downlink_dropped: u32,
+    /// Instructions integrating one frame.
+    pub integrate: InstructionStat,
+    /// Instructions building the domain.
+    pub domain: InstructionStat,
+    /// Instructions solving.
+    pub solve: InstructionStat,
+    /// Instructions tracing the streamline and choosing the goal.
+    pub streamline: InstructionStat,
+    /// Instructions of a whole planning cycle (domain + solve + streamline) on full replans.
+    pub plan_cycle: InstructionStat,
+    /// Per scan: instructions of integrate, domain, solve, streamline.
+    pub steps: Vec<[u64; 4]>,
+}
+
+/// The firmware's grid.
+pub fn firmware_geometry() -> MapGeometry {
+    fw::geometry()
+}
+
+/// Builds the firmware with cargo into `target_dir` (the workspace's `target/` if `None`) and
+/// returns the ELF's path.
+pub fn build_firmware(target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let target_dir = target_dir.map_or_else(|| workspace.join("target"), Path::to_path_buf);
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let status = Command::new(cargo)
+        .current_dir(&workspace)
+        .args([
+            "build",
+            "-p",
+            "harmonic-fw",
+            "--release",
+            "--target",
+            "thumbv7em-none-eabihf",
+        ])
+        .arg("--target-dir")
+        .arg(&target_dir)
+        .status()
+        .map_err(|e| SimError::Config(format!("cargo build of the firmware: {e}")))?;
+    if !status.success() {
+        return Err(SimError::Config(format!(
+            "cargo build of the firmware failed ({status})"
+        )));
+    }
+    Ok(target_dir.join("thumbv7em-none-eabihf/release/harmonic-fw"))
+}
+
+/// QEMU with its two sockets and the log it writes.
+struct Board {
+    child: Child,
+    link: TcpStream,
+    mav: TcpStream,
+    command: String,
+}
+
+impl Drop for Board {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn io(what: &str) -> impl Fn(std::io::Error) -> SimError + '_ {
+    move |e| SimError::Config(format!("{what}: {e}"))
+}
+
+impl Board {
+    fn start(qemu: &str, elf: &Path, out: &Path) -> Result<Self, SimError> {
+        let listen = || TcpListener::bind("127.0.0.1:0").map_err(io("bind a local port"));
+        let (l0, l1) = (listen()?, listen()?);
+        let port = |l: &TcpListener| l.local_addr().map(|a| a.port()).map_err(io("local port"));
+        let (p0, p1) = (port(&l0)?, port(&l1)?);
+        let defmt = std::fs::File::create(out.join("firmware.defmt")).map_err(io("firmware.defmt"))?;
+        let qemu_log = std::fs::File::create(out.join("qemu.log")).map_err(io("qemu.log"))?;
+        let args: Vec<String> = [
+            "-machine",
+            "mps2-an386",
+            "-cpu",
+            "cortex-m4",
+            "-display",
+            "none",
+            "-monitor",
+            "none",
+            "-nodefaults",
+            "-nic",
+            "none",
+            "-semihosting-config",
+            "enable=on,target=native",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .chain(icount_args())
+        .chain([
+            "-serial".into(),
+            format!("tcp:127.0.0.1:{p0}"),
+            "-serial".into(),
+            format!("tcp:127.0.0.1:{p1}"),
+            "-kernel".into(),
+            elf.display().to_string(),
+        ])
+        // Extra QEMU options for debugging, e.g. `-monitor unix:/tmp/m.sock,server=on,wait=off`.
+        .chain(
+            std::env::var("HARMONIC_QEMU_EXTRA")
+                .unwrap_or_default()
+                .split_whitespace()
+                .map(str::to_string),
+        )
+        .collect();
+        let command = format!("{qemu} {}", args.join(" "));
+        let mut child = Command::new(qemu)
+            .args(&args)
+            .stdin(Stdio::null())
+            .stdout(defmt)
+            .stderr(qemu_log)
+            .spawn()
+            .map_err(|e| {
+                SimError::Config(format!(
+                    "cannot start {qemu}: {e} (is qemu-system-arm installed?)"
+                ))
+            })?;
+        let streams = accept(&l0, &mut child).and_then(|link| Ok((link, accept(&l1, &mut child)?)));
+        let (link, mav) = match streams {
+            Ok(s) => s,
+            Err(e) => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(e);
+            }
+        };
+        let board = Board {
+            child,
+            link,
+            mav,
+            command,
+        };
+        for s in [&board.link, &board.mav] {
+            s.set_nodelay(true).map_err(io("TCP_NODELAY"))?;
+            s.set_read_timeout(Some(Duration::from_millis(200)))
+                .map_err(io("read timeout"))?;
+        }
+        Ok(board)
+    }
+
+    /// Fails if QEMU has exited.
+    fn check_alive(&mut self) -> Result<(), SimError> {
+        match self.child.try_wait() {
+            Ok(Some(status)) => Err(SimError::Config(format!(
+                "the firmware stopped (QEMU exited: {status}); see its log"
+            ))),
+            _ => Ok(()),
+        }
+    }
+}
+
+fn accept(listener: &TcpListener, child: &mut Child) -> Result<TcpStream, SimError> {
+    listener.set_nonblocking(true).map_err(io("listener"))?;
+    let start = Instant::now();
+    loop {
+        match listener.accept() {
+            Ok((s, _)) => {
+                s.set_nonblocking(false).map_err(io("socket"))?;
+                return Ok(s);
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                if let Ok(Some(status)) = child.try_wait() {
+                    return Err(SimError::Config(format!(
+                        "QEMU exited before connecting: {status}"
+                    )));
+                }
+                if start.elapsed() > Duration::from_secs(30) {
+                    return Err(SimError::Config(
+                        "QEMU did not connect its UARTs within 30 s".into(),
+                    ));
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+            Err(e) => return Err(io("accept")(e)),
+        }
+    }
+}
+
+/// `-icount shift=0`: deterministic instruction counting (1 ns of board time per instruction),
+/// unless `HARMONIC_QEMU_ICOUNT=0`.
+fn icount_args() -> Vec<String> {
+    if std::env::var("HARMONIC_QEMU_ICOUNT").is_ok_and(|v| v == "0") {
+        Vec::new()
+    } else {
+        vec!["-icount".into(), "shift=0,align=off".into()]
+    }
+}
+
+/// Reads whatever `stream` has within its read timeout; `Ok(0)` on a timeout.
+fn read_some(stream: &mut TcpStream, buf: &mut [u8]) -> Result<usize, SimError> {
+    match stream.read(buf) {
+        Ok(0) => Err(SimError::Config("the firmware closed its UART".into())),
+        Ok(n) => Ok(n),
+        Err(e)
+            if matches!(
+                e.kind(),
+                std::io::ErrorKind::WouldBlock
+                    | std::io::ErrorKind::TimedOut
+                    | std::io::ErrorKind::Interrupted
+            ) =>
+        {
+            Ok(0)
+        }
+        Err(e) => Err(io("UART read")(e)),
+    }
+}
+
+/// The autopilot's side of UART1.
+struct Autopilot {
+    emulator: FlightEmulator,
+    /// Decodes the firmware's bytes for the TIMESYNC answers.
+    decoder: MavlinkDecoder,
+    sequence: u8,
+    ticks: u64,
+}
+
+impl Autopilot {
+    /// One flight tick at `now_ms`: pose out, TIMESYNC out, the firmware's answer in.
+    fn tick(&mut self, board: &mut Board, now_ms: u64, vehicle: &Vehicle) -> Result<(), SimError> {
+        let mut out = Vec::new();
+        self.emulator
+            .poll(now_ms, &vehicle.position, vehicle.yaw, &mut out);
+        let ts1 = i64::try_from(now_ms)
+            .unwrap_or(i64::MAX)
+            .saturating_mul(1_000_000);
+        let header = MavHeader {
+            system_id: u32::from(harmonic_core::mavlink::DEFAULT_SYSTEM_ID),
+            component_id: harmonic_core::mavlink::AUTOPILOT_COMPONENT_ID,
+            sequence: self.sequence,
+        };
+        self.sequence = self.sequence.wrapping_add(1);
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        let n = encode_v2(
+            &header,
+            &MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 0, ts1 }),
+            &mut frame,
+        )
+        .map_err(|e| SimError::Config(format!("TIMESYNC: {e:?}")))?;
+        out.extend_from_slice(&frame[..n]);
+        board.mav.write_all(&out).map_err(io("UART1 write"))?;
+        self.ticks += 1;
+        let start = Instant::now();
+        let mut buf = [0u8; 4096];
+        loop {
+            let n = read_some(&mut board.mav, &mut buf)?;
+            if n == 0 {
+                board.check_alive()?;
+                if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
+                    return Err(SimError::Config(format!("no TIMESYNC answer for {now_ms} ms")));
+                }
+                continue;
+            }
+            let bytes = &buf[..n];
+            self.emulator.receive(now_ms, bytes);
+            let mut answered = false;
+            self.decoder.push(bytes, |_, m| {
+                if let MavMessage::TIMESYNC(d) = m {
+                    answered |= d.tc1 != 0 && d.ts1 == ts1;
+                }
+            });
+            if answered {
+                return Ok(());
+            }
+        }
+    }
+}
+
+/// The camera's side of UART0.
+struct Camera {
+    encoder: LinkEncoder,
+    scratch: Vec<u8>,
+    rows_per_chunk: u16,
+    decoder: Box<DownlinkDecoder<2048>>,
+}
+
+impl Camera {
+    /// Sends one scan and waits for its report, updating `map` from the slices on the way.
+    fn scan(
+        &mut self,
+        board: &mut Board,
+        frame_id: u32,
+        frame: &DepthFrame<'_>,
+        camera_pose: &nalgebra::Isometry3<f32>,
+        map: &mut [Occupancy],
+    ) -> Result<PlanReport, SimError> {
+        let wire = |e: link::LinkError| SimError::Config(format!("depth link encoder: {e:?}"));
+        let mut bytes = Vec::new();
+        let pose = link::Pose::from_isometry(frame_id, camera_pose)
+            .map_err(|e| SimError::Config(format!("camera pose: {e:?}")))?;
+        let n = self
+            .encoder
+            .encode(&link::Message::Pose(pose), &mut self.scratch)
+            .map_err(wire)?;
+        bytes.extend_from_slice(&self.scratch[..n]);
+        self.encoder
+            .encode_depth_frame(frame_id, frame, self.rows_per_chunk, &mut self.scratch, |b| {
+                bytes.extend_from_slice(b)
+            })
+            .map_err(wire)?;
+        board.link.write_all(&bytes).map_err(io("UART0 write"))?;
+        let start = Instant::now();
+        let mut buf = [0u8; 8192];
+        loop {
+            let n = read_some(&mut board.link, &mut buf)?;
+            if n == 0 {
+                board.check_alive()?;
+                if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
+                    return Err(SimError::Config(format!("no report for frame {frame_id}")));
+                }
+                continue;
+            }
+            for &b in &buf[..n] {
+                match self.decoder.push(b) {
+                    Some(Ok(Downlink::Report(r))) if r.frame_id == frame_id => return Ok(r),
+                    Some(Ok(m @ Downlink::MapSlice { first, count, .. })) => {
+                        for k in 0..usize::from(count) {
+                            if let (Some(slot), Some(state)) =
+                                (map.get_mut(first as usize + k), m.slice_state(k))
+                            {
+                                *slot = state;
+                            }
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+}
+
+fn stat(values: impl Iterator<Item = u64>) -> InstructionStat {
+    let (mut n, mut sum, mut max) = (0u64, 0u64, 0u64);
+    for v in values {
+        n += 1;
+        sum += v;
+        max = max.max(v);
+    }
+    InstructionStat {
+        mean: if n == 0 { 0.0 } else { sum as f64 / n as f64 },
+        max,
+    }
+}
+
+/// Explores `scenario` with the firmware deciding, through QEMU. The scenario must lie inside
+/// the firmware's grid ([`firmware_geometry`]) at its resolution. `progress` is called after
+/// every scan.
+pub fn run(
+    scenario: &Scenario,
+    cfg: &SimConfig,
+    pil: &PilConfig,
+    mut progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    let wall = Instant::now();
+    let geometry = firmware_geometry();
+    check_fits(scenario, &geometry)?;
+    std::fs::create_dir_all(&pil.out).map_err(io("output directory"))?;
+    let elf = match &pil.firmware {
+        Some(p) => p.clone(),
+        None => build_firmware(None)?,
+    };
+    if !elf.is_file() {
+        return Err(SimError::Config(format!(
+            "firmware ELF {} not found",
+            elf.display()
+        )));
+    }
+    let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
+    let mut board = Board::start(&pil.qemu, &elf, &pil.out)?;
+    let qemu_command = board.command.clone();
+    let intrinsics = cfg.camera.intrinsics;
+    let rows = (1..=10u16)
+        .rev()
+        .find(|&r| link::max_depth_chunk_len(intrinsics.width(), r) <= fw::LINK_DECODER_BYTES)
+        .unwrap_or(1);
+    if intrinsics.pixel_count() > fw::MAX_DEPTH_PIXELS {
+        return Err(SimError::Config(format!(
+            "the camera's {} pixels exceed the firmware's {}",
+            intrinsics.pixel_count(),
+            fw::MAX_DEPTH_PIXELS
+        )));
+    }
+    let mut camera = Camera {
+        encoder: LinkEncoder::new(),
+        scratch: vec![0; link::max_depth_chunk_len(intrinsics.width(), rows).max(link::max_encoded_len(64))],
+        rows_per_chunk: rows,
+        decoder: Box::default(),
+    };
+    let mut autopilot = Autopilot {
+        emulator: FlightEmulator::new(),
+        decoder: MavlinkDecoder::new(),
+        sequence: 0,
+        ticks: 0,
+    };
+    let mut map = vec![Occupancy::Unknown; geometry.dims().len()];
+    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
+    let mut vehicle = Vehicle {
+        position: scenario.start_position,
+        yaw: scenario.start_yaw,
+    };
+    let dt_ms = (f64::from(cfg.dt) * 1e3).round() as u64;
+    let mut now_ms = 0u64;
+    autopilot.tick(&mut board, now_ms, &vehicle)?;
+    let budget = if cfg.follow_full_path {
+        f32::INFINITY
+    } else {
+        cfg.replan_distance
+    };
+    let mut depth = Vec::new();
+    let (mut path, mut collisions) = (0.0f64, Vec::new());
+    let mut steps = Vec::new();
+    let mut instructions = Vec::new();
+    let mut plan_cycles = Vec::new();
+    let mut last: Option<PlanReport> = None;
+    let mut consecutive_holds = 0;
+    let mut termination = String::from("scan_limit");
+
+    for step in 1..=cfg.max_scans {
+        let pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
+        cfg.camera.render(&scenario.world, &pose, &mut rng, &mut depth);
+        let frame = DepthFrame::new(intrinsics, &depth)
+            .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
+        let report = camera.scan(&mut board, step, &frame, &pose, &mut map)?;
+        let coverage = truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown));
+        let ms = |ticks: u64| ticks as f64 * 1e3 / f64::from(report.tick_hz.max(1));
+        let to_instr = |ticks: u64| ticks * INSTRUCTIONS_PER_TICK;
+        let phases = [
+            to_instr(report.integrate_ticks),
+            to_instr(report.domain_ticks),
+            to_instr(report.solve_ticks),
+            to_instr(report.streamline_ticks),
+        ];
+        instructions.push(phases);
+        let label = match report.outcome {
+            ReportOutcome::Goal => "goal".to_string(),
+            ReportOutcome::Kept => "kept".to_string(),
+            ReportOutcome::Escape => "escape".to_string(),
+            ReportOutcome::Complete => "complete".to_string(),
+            ReportOutcome::Hold(f) => format!("hold:{f:?}"),
+        };
+        if matches!(report.outcome, ReportOutcome::Goal) {
+            plan_cycles.push(phases[1] + phases[2] + phases[3]);
+        }
+        let solved = !matches!(report.outcome, ReportOutcome::Kept);
+        let record = StepRecord {
+            step,
+            position: report.position,
+            yaw: report.yaw,
+            outcome: label,
+            frontier: report.frontier,
+            unknowns: report.interior,
+            coverage_free: coverage.free,
+            integrate_ms: ms(report.integrate_ticks),
+            domain_ms: ms(report.domain_ticks),
+            solve_ms: ms(report.solve_ticks),
+            streamline_ms: ms(report.streamline_ticks),
+            solver_iterations: if solved { report.solver_iterations } else { 0 },
+            solver_residual: report.solver_residual,
+            solver_updates: if solved { report.solver_updates } else { 0 },
+            frames_integrated: 1,
+            streamline_m: report.streamline_length,
+            path_length_m: path,
+        };
+        progress(&record);
+        steps.push(record);
+        let outcome = report.outcome;
+        last = Some(report);
+        match outcome {
+            ReportOutcome::Complete => {
+                termination = "complete".into();
+                break;
+            }
+            ReportOutcome::Hold(fault) => {
+                consecutive_holds += 1;
+                if consecutive_holds >= 3 {
+                    termination = format!("stuck:{fault:?}");
+                    break;
+                }
+                // The firmware holds; one tick lets its hold setpoint reach the autopilot.
+                now_ms += dt_ms;
+                autopilot.tick(&mut board, now_ms, &vehicle)?;
+            }
+            _ => {
+                consecutive_holds = 0;
+                let leg = fly(
+                    &mut board,
+                    &mut autopilot,
+                    &mut vehicle,
+                    &mut now_ms,
+                    budget,
+                    cfg,
+                    scenario,
+                )?;
+                path += leg.distance;
+                collisions.extend(leg.collisions);
+            }
+        }
+    }
+    // One more tick collects what the firmware sent after its last plan (the hold setpoint and
+    // the "exploration complete" STATUSTEXT).
+    now_ms += dt_ms;
+    autopilot.tick(&mut board, now_ms, &vehicle)?;
+    drop(board);
+    decode_log(&elf, &pil.out);
+
+    let last = last.ok_or_else(|| SimError::Config("the firmware planned nothing".into()))?;
+    let coverage = truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown));
+    let timing = Timing {
+        integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
+        domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
+        solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
+        streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
+    };
+    let dims = geometry.dims();
+    let errors: ErrorCounters = last.errors;
+    let receiver: LinkCounters = last.link;
+    let sent = steps.len() as u32;
+    let link = LinkReport {
+        transport: "qemu uart0 (tcp)".into(),
+        baud: cfg.link.baud,
+        depth_frames_sent: sent,
+        depth_frames_integrated: last.frames,
+        depth_frames_lost: sent.saturating_sub(last.frames),
+        receiver,
+        ..LinkReport::default()
+    };
+    Ok(Report {
+        scenario: scenario.world.name.clone(),
+        planner: "harmonic".into(),
+        solver: "mg".into(),
+        termination,
+        coverage_free: coverage.free,
+        coverage_surface: coverage.surface,
+        free_marked_occupied: coverage.free_marked_occupied,
+        path_length_m: path,
+        scans: last.frames,
+        collisions: collisions.len() as u32,
+        collision_points: collisions,
+        integration_ops: last.integration_ops,
+        planning_ops: last.planning_ops,
+        flight_time_s: now_ms as f64 * 1e-3,
+        wall_time_s: wall.elapsed().as_secs_f64(),
+        grid: [dims.nx(), dims.ny(), dims.nz()],
+        resolution: geometry.resolution(),
+        reachable_free_voxels: truth.reachable_free(),
+        sealed_voxels: last.sealed,
+        timing,
+        errors,
+        link,
+        steps_taken: steps.len() as u32,
+        mavlink: Some(MavlinkReport {
+            endpoint: "emulator (qemu uart1)".into(),
+            traffic: TrafficReport::default(),
+            tlog: None,
+            // The firmware's bridge keeps its counters on the board; these are its traffic as
+            // the flight stack saw it arrive (the link is loss-free).
+            bridge: harmonic_core::mavlink::BridgeCounters {
+                setpoints_sent: autopilot.emulator.counters().setpoints_received,
+                heartbeats_sent: autopilot.emulator.counters().heartbeats_received,
+                status_texts_sent: autopilot.emulator.counters().status_texts_received,
+                local_positions_received: autopilot.emulator.counters().local_positions_sent,
+                attitudes_received: autopilot.emulator.counters().attitudes_sent,
+                ..Default::default()
+            },
+            bridge_decoder: *autopilot.decoder.counters(),
+            emulator: Some(*autopilot.emulator.counters()),
+            emulator_decoder: Some(*autopilot.emulator.decoder_counters()),
+            status_texts: autopilot.emulator.status_texts().to_vec(),
+        }),
+        pil: Some(PilReport {
+            firmware: elf.display().to_string(),
+            qemu: qemu_command,
+            ticks: autopilot.ticks,
+            downlink_dropped: camera.decoder.dropped(),
+            integrate: stat(instructions.iter().map(|p| p[0])),
+            domain: stat(instructions.iter().map(|p| p[1])),
+            solve: stat(instructions.iter().map(|p| p[2])),
+            streamline: stat(instructions.iter().map(|p| p[3])),
+            plan_cycle: stat(plan_cycles.iter().copied()),
+            steps: instructions,
+        }),
+        steps,
+    })
+}
+
+/// Flies one leg: ticks until the vehicle has flown `budget` metres, or stands at the
+/// firmware's setpoint facing its yaw, or [`MAX_TICKS_PER_LEG`] passed.
+fn fly(
+    board: &mut Board,
+    autopilot: &mut Autopilot,
+    vehicle: &mut Vehicle,
+    now_ms: &mut u64,
+    budget: f32,
+    cfg: &SimConfig,
+    scenario: &Scenario,
+) -> Result<Leg, SimError> {
+    let mut leg = Leg::default();
+    let step_len = cfg.max_speed * cfg.dt;
+    let yaw_step = cfg.max_yaw_rate * cfg.dt;
+    let dt_ms = (f64::from(cfg.dt) * 1e3).round() as u64;
+    let mut watch = CollisionWatch::start(&scenario.world, &vehicle.position, cfg.body_radius);
+    let mut travelled = 0.0f32;
+    let mut previous = None;
+    for _ in 0..MAX_TICKS_PER_LEG {
+        autopilot.tick(board, *now_ms, vehicle)?;
+        let Some(sp) = autopilot.emulator.setpoint() else {
+            break;
+        };
+        let here = (sp.position - vehicle.position).norm() < 1e-4
+            && crate::sim::wrap_angle(sp.yaw - vehicle.yaw).abs() < 1e-3;
+        let same = previous == Some((sp.position, sp.yaw));
+        if travelled >= budget || (here && same) {
+            break;
+        }
+        previous = Some((sp.position, sp.yaw));
+        let s = vehicle.step_towards(&sp.position, step_len.min(budget - travelled));
+        travelled += s;
+        leg.distance += f64::from(s);
+        vehicle.slew_yaw(sp.yaw, yaw_step);
+        *now_ms += dt_ms;
+        leg.time += f64::from(cfg.dt);
+        watch.check(&scenario.world, &vehicle.position, cfg.body_radius, &mut leg);
+    }
+    Ok(leg)
+}
+
+/// What one flight leg did.
+#[derive(Debug, Clone, Default)]
+struct Leg {
+    distance: f64,
+    time: f64,
+    collisions: Vec<[f32; 3]>,
+}
+
+/// Counts collision events: the body sphere *entering* an obstacle, not every step inside it.
+struct CollisionWatch {
+    colliding: bool,
+}
+
+impl CollisionWatch {
+    fn start(world: &crate::world::World, p: &nalgebra::Point3<f32>, radius: f32) -> Self {
+        Self {
+            colliding: world.sphere_collides(p, radius),
+        }
+    }
+    fn check(&mut self, world: &crate::world::World, p: &nalgebra::Point3<f32>, radius: f32, leg: &mut Leg) {
+        let now = world.sphere_collides(p, radius);
+        if now && !self.colliding {
+            leg.collisions.push(p.coords.into());
+        }
+        self.colliding = now;
+    }
+}
+
+/// The scenario's world must lie inside the firmware's grid, at its resolution.
+fn check_fits(scenario: &Scenario, geometry: &MapGeometry) -> Result<(), SimError> {
+    let dims: Dims = geometry.dims();
+    let max = geometry.origin()
+        + nalgebra::Vector3::new(dims.nx() as f32, dims.ny() as f32, dims.nz() as f32)
+            * geometry.resolution();
+    let b = &scenario.world.bounds;
+    let inside = (0..3).all(|k| b.min[k] >= geometry.origin()[k] - 1e-4 && b.max[k] <= max[k] + 1e-4);
+    if (scenario.resolution - geometry.resolution()).abs() > 1e-6 || !inside {
+        return Err(SimError::Grid(format!(
+            "`{}` does not fit the firmware's grid: {}×{}×{} voxels of {} m from {:?} (scenario: {} m, {:?} to {:?})",
+            scenario.world.name,
+            dims.nx(),
+            dims.ny(),
+            dims.nz(),
+            geometry.resolution(),
+            <[f32; 3]>::from(geometry.origin().coords),
+            scenario.resolution,
+            <[f32; 3]>::from(b.min.coords),
+            <[f32; 3]>::from(b.max.coords),
+        )));
+    }
+    Ok(())
+}
+
+/// Decodes `firmware.defmt` into `firmware.log` with defmt-print, if it is installed.
+fn decode_log(elf: &Path, out: &Path) {
+    let Ok(input) = std::fs::File::open(out.join("firmware.defmt")) else {
+        return;
+    };
+    let Ok(output) = std::fs::File::create(out.join("firmware.log")) else {
+        return;
+    };
+    let decoded = Command::new("defmt-print")
+        .arg("-e")
+        .arg(elf)
+        .stdin(input)
+        .stdout(output)
+        .stderr(Stdio::null())
+        .status();
+    if decoded.is_err() {
+        let _ = std::fs::write(
+            out.join("firmware.log"),
+            "defmt-print is not installed (cargo install defmt-print): decode firmware.defmt with\n  defmt-print -e FIRMWARE.elf < firmware.defmt\n",
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pil_small_fits_the_firmware_grid_and_apartment_does_not() {
+        let g = firmware_geometry();
+        assert!(check_fits(&Scenario::builtin("pil-small").unwrap(), &g).is_ok());
+        let e = check_fits(&Scenario::builtin("apartment").unwrap(), &g).unwrap_err();
+        assert!(e.to_string().contains("does not fit the firmware's grid"), "{e}");
+    }
+}
+
+/// What a firmware image occupies, from its ELF section headers.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct ImageSize {
+    /// Code and constants in flash: `.vector_table`, `.text`, `.rodata` and the load image of
+    /// `.data`.
+    pub flash: u64,
+    /// `.data` (initialised statics).
+    pub data: u64,
+    /// `.bss` and `.uninit` (zeroed and uninitialised statics).
+    pub bss: u64,
+    /// The stack reserve the linker checks (`_stack_reserve` in memory.x), 0 if absent.
+    pub stack_reserve: u64,
+    /// RAM the image needs: `.data` + `.bss` + the stack reserve.
+    pub ram: u64,
+}
+
+/// Reads the section sizes and the `_stack_reserve` symbol of a 32-bit little-endian ELF.
+pub fn image_size(elf: &Path) -> Result<ImageSize, String> {
+    let bytes = std::fs::read(elf).map_err(|e| format!("{}: {e}", elf.display()))?;
+    let bad = || format!("{}: not a 32-bit little-endian ELF", elf.display());
+    let u16_at = |o: usize| {
+        bytes
+            .get(o..o + 2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]) as usize)
+    };
+    let u32_at = |o: usize| {
+        bytes
+            .get(o..o + 4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+    };
+    if bytes.get(..6) != Some(&[0x7F, b'E', b'L', b'F', 1, 1][..]) {
+        return Err(bad());
+    }
+    let shoff = u32_at(0x20).ok_or_else(bad)?;
+    let shentsize = u16_at(0x2E).ok_or_else(bad)?;
+    let shnum = u16_at(0x30).ok_or_else(bad)?;
+    let shstrndx = u16_at(0x32).ok_or_else(bad)?;
+    struct Section {
+        kind: usize,
+        flags: usize,
+        addr: usize,
+        offset: usize,
+        size: usize,
+        link: usize,
+    }
+    let section = |k: usize| -> Option<Section> {
+        let o = shoff + k * shentsize;
+        Some(Section {
+            kind: u32_at(o + 4)?,
+            flags: u32_at(o + 8)?,
+            addr: u32_at(o + 12)?,
+            offset: u32_at(o + 16)?,
+            size: u32_at(o + 20)?,
+            link: u32_at(o + 24)?,
+        })
+    };
+    // Section names are not needed: placement (flash or RAM) and type (bits or not) say it all.
+    let _ = section(shstrndx).ok_or_else(bad)?;
+    let name_of = |table: &Section, at: usize| -> String {
+        let start = table.offset + at;
+        let end = bytes[start.min(bytes.len())..]
+            .iter()
+            .position(|&b| b == 0)
+            .map_or(bytes.len(), |p| start + p);
+        String::from_utf8_lossy(bytes.get(start..end).unwrap_or(&[])).into_owned()
+    };
+    const ALLOC: usize = 2;
+    const NOBITS: usize = 8;
+    const SYMTAB: usize = 2;
+    let mut size = ImageSize::default();
+    for k in 0..shnum {
+        let s = section(k).ok_or_else(bad)?;
+        if s.kind == SYMTAB {
+            let names = section(s.link).ok_or_else(bad)?;
+            for sym in (s.offset..s.offset + s.size).step_by(16) {
+                if u32_at(sym).is_some_and(|n| name_of(&names, n) == "_stack_reserve") {
+                    size.stack_reserve = u32_at(sym + 4).unwrap_or(0) as u64;
+                }
+            }
+        }
+        if s.flags & ALLOC == 0 || s.size == 0 {
+            continue;
+        }
+        let in_ram = s.addr >= 0x2000_0000;
+        match (in_ram, s.kind == NOBITS) {
+            (false, _) => size.flash += s.size as u64,
+            (true, true) => size.bss += s.size as u64,
+            (true, false) => {
+                size.data += s.size as u64;
+                size.flash += s.size as u64;
+            }
+        }
+    }
+    size.ram = size.data + size.bss + size.stack_reserve;
+    Ok(size)
+}

@@ -1,0 +1,116 @@
+//! Processor in the loop: the firmware (harmonic-fw), built for the Cortex-M4F and run on QEMU's
+//! mps2-an386, explores pil-small to completion with every decision its own; and the image
+//! fits the board's 1 MiB RAM budget.
+//!
+//! QEMU (`qemu-system-arm`) must be installed: `.ci/run` installs it. Without it this test
+//! fails, loudly, rather than skip.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use harmonic_sim::pil::{self, PilConfig};
+use harmonic_sim::scenario::Scenario;
+use harmonic_sim::sim::SimConfig;
+
+const TARGET: &str = "thumbv7em-none-eabihf";
+const RAM_BUDGET: u64 = 1024 * 1024;
+
+/// Builds the firmware in its own target directory (the outer `cargo test` holds the lock of
+/// the workspace's), shared with the no_std build check.
+fn firmware() -> PathBuf {
+    let installed = Command::new("rustup")
+        .args(["target", "list", "--installed"])
+        .output();
+    if !installed.is_ok_and(|o| String::from_utf8_lossy(&o.stdout).contains(TARGET)) {
+        let ok = Command::new("rustup")
+            .args(["target", "add", TARGET])
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(
+            ok,
+            "the {TARGET} target is missing and `rustup target add {TARGET}` failed"
+        );
+    }
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/no-std-check");
+    pil::build_firmware(Some(&dir)).expect("firmware builds (and fits memory.x)")
+}
+
+fn qemu() -> String {
+    let qemu = "qemu-system-arm".to_string();
+    let found = Command::new(&qemu)
+        .arg("--version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    assert!(
+        found,
+        "qemu-system-arm is not installed: the processor-in-the-loop test needs it \
+         (apt-get install qemu-system-arm; .ci/run does this)"
+    );
+    qemu
+}
+
+#[test]
+fn firmware_explores_pil_small_under_qemu() {
+    let qemu = qemu();
+    let elf = firmware();
+
+    let size = pil::image_size(&elf).expect("readable ELF");
+    assert!(
+        size.ram <= RAM_BUDGET,
+        "the image needs {} bytes of RAM (.data + .bss + stack reserve), over the {RAM_BUDGET} budget: {size:?}",
+        size.ram
+    );
+    assert!(size.stack_reserve >= 16 * 1024, "{size:?}");
+
+    let scenario = Scenario::builtin("pil-small").expect("built-in");
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/pil-test");
+    let cfg = PilConfig {
+        firmware: Some(elf),
+        qemu,
+        out: out.clone(),
+    };
+    let r = pil::run(&scenario, &SimConfig::default(), &cfg, |s| {
+        if s.step.is_multiple_of(10) {
+            eprintln!(
+                "pil-small under QEMU: scan {} {} coverage {:.3}",
+                s.step, s.outcome, s.coverage_free
+            );
+        }
+    })
+    .unwrap_or_else(|e| {
+        let log = std::fs::read_to_string(out.join("qemu.log")).unwrap_or_default();
+        panic!("processor-in-the-loop run failed: {e}\nQEMU: {log}")
+    });
+    assert_eq!(r.termination, "complete", "{:?}", r.errors);
+    assert!(r.coverage_free >= 0.98, "free coverage {:.4}", r.coverage_free);
+    assert_eq!(r.collisions, 0, "collisions at {:?}", r.collision_points);
+    assert!(
+        r.scans > 10 && r.path_length_m > 1.0,
+        "implausibly short: {} scans",
+        r.scans
+    );
+    assert_eq!(r.steps.len() as u32, r.scans, "one report per scan");
+    // Every frame crossed the UART whole and was integrated by the firmware.
+    assert_eq!(r.link.receiver.depth_frames_complete, r.scans, "{:?}", r.link);
+    assert_eq!(r.link.depth_frames_integrated, r.scans, "{:?}", r.link);
+    assert_eq!(
+        r.link.receiver.crc_errors + r.link.receiver.malformed + r.link.receiver.missing_chunks,
+        0,
+        "{:?}",
+        r.link
+    );
+    let pil = r.pil.as_ref().expect("PIL details");
+    assert_eq!(pil.downlink_dropped, 0, "damaged downlink frames");
+    assert!(pil.plan_cycle.max > 0 && pil.integrate.mean > 0.0, "{pil:?}");
+    // The firmware flew the vehicle: the flight stack took its setpoints.
+    let mav = r.mavlink.as_ref().expect("MAVLink counters");
+    let emulator = mav.emulator.expect("the PIL run flies against the emulator");
+    assert!(emulator.setpoints_received > 10, "{emulator:?}");
+    assert_eq!(emulator.setpoints_rejected, 0, "{emulator:?}");
+    assert_eq!(
+        mav.status_texts.last().map(String::as_str),
+        Some("exploration complete"),
+        "{:?}",
+        mav.status_texts
+    );
+}
