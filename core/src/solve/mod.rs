@@ -142,7 +142,7 @@ pub fn relative_residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> f32 {
 
 /// Residual and rounding floor of the current ψ.
 pub fn residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> Residual {
-    residual_with(dims, labels, psi, dirichlet_norm2(dims, labels))
+    residual_with(dims, &Active::all(dims), labels, psi, dirichlet_norm2(dims, labels))
 }
 
 /// `‖b‖²`: the squared norm of the Dirichlet contributions to the interior rows (each frontier
@@ -192,9 +192,9 @@ pub(crate) fn dirichlet_norm2(dims: &Dims, labels: &[Label]) -> f64 {
 
 /// [`residual`] with `‖b‖²` given. The rounding floor uses `Σⱼ ψⱼ² ≈ deg_i·ψᵢ²`, which keeps it
 /// in the same branch-free pass as the residual.
-pub(crate) fn residual_with(dims: &Dims, labels: &[Label], psi: &[f32], b2: f64) -> Residual {
+pub(crate) fn residual_with(dims: &Dims, active: &Active, labels: &[Label], psi: &[f32], b2: f64) -> Residual {
     let (mut r2, mut e2) = (0.0f64, 0.0f64);
-    for_each_row(dims, labels, psi, |st, row| {
+    for_each_row(dims, active, labels, psi, |st, row| {
         let (mut row_r, mut row_e) = (0.0f32, 0.0f32);
         row_residuals(st, row, None, |x, r, n| {
             let c = row.at(x);
@@ -441,50 +441,117 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
     edge(nx - 1, &mut f);
 }
 
+/// The rows (`y`, `z` ranges) that hold interior cells: the only rows a sweep, residual or
+/// transfer has work in. A young map's domain fills a small part of the grid, so limiting the
+/// loops to this box saves most of their cost early in an exploration.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub(crate) struct Active {
+    y0: usize,
+    y1: usize,
+    z0: usize,
+    z1: usize,
+}
+
+impl Active {
+    /// Every row of the grid.
+    pub(crate) fn all(dims: &Dims) -> Self {
+        Self {
+            y0: 0,
+            y1: dims.ny(),
+            z0: 0,
+            z1: dims.nz(),
+        }
+    }
+
+    /// The rows of `dims` with at least one interior cell in `labels` (empty if none).
+    pub(crate) fn of(dims: &Dims, labels: &[Label]) -> Self {
+        let (nx, ny) = (dims.nx(), dims.ny());
+        let mut a = Self {
+            y0: usize::MAX,
+            y1: 0,
+            z0: usize::MAX,
+            z1: 0,
+        };
+        for z in 0..dims.nz() {
+            for y in 0..ny {
+                let start = nx * (y + ny * z);
+                let row = labels.get(start..start + nx).unwrap_or(&[]);
+                if row.contains(&Label::Interior) {
+                    a.y0 = a.y0.min(y);
+                    a.y1 = a.y1.max(y + 1);
+                    a.z0 = a.z0.min(z);
+                    a.z1 = a.z1.max(z + 1);
+                }
+            }
+        }
+        if a.y1 == 0 {
+            Self::default()
+        } else {
+            a
+        }
+    }
+
+    /// The active `y` range.
+    pub(crate) fn ys(&self) -> core::ops::Range<usize> {
+        self.y0..self.y1
+    }
+
+    /// The active `z` range.
+    pub(crate) fn zs(&self) -> core::ops::Range<usize> {
+        self.z0..self.z1
+    }
+
+    /// Calls `f(y, z)` for each active row, z-major.
+    #[inline(always)]
+    pub(crate) fn rows(&self, mut f: impl FnMut(usize, usize)) {
+        for z in self.z0..self.z1 {
+            for y in self.y0..self.y1 {
+                f(y, z);
+            }
+        }
+    }
+}
+
 /// Calls `f(stencil, row)` for every x-row of `values` (read-only).
 pub(crate) fn for_each_row(
     dims: &Dims,
+    active: &Active,
     labels: &[Label],
     values: &[f32],
     mut f: impl FnMut(&Stencil<'_>, &[f32]),
 ) {
     let (nx, ny) = (dims.nx(), dims.ny());
-    for z in 0..dims.nz() {
-        for y in 0..ny {
-            let start = nx * (y + ny * z);
-            let (Some(before), Some(row), Some(after)) = (
-                values.get(..start),
-                values.get(start..start + nx),
-                values.get(start + nx..),
-            ) else {
-                return;
-            };
+    active.rows(|y, z| {
+        let start = nx * (y + ny * z);
+        if let (Some(before), Some(row), Some(after)) = (
+            values.get(..start),
+            values.get(start..start + nx),
+            values.get(start + nx..),
+        ) {
             f(&Stencil::new(dims, y, z, labels, before, after), row);
         }
-    }
+    });
 }
 
 /// Calls `f(stencil, row)` for every x-row of `values`, with the row itself writable in place
 /// (as `Cell`s, so a cell's update can read its row neighbours).
 pub(crate) fn for_each_row_mut(
     dims: &Dims,
+    active: &Active,
     labels: &[Label],
     values: &mut [f32],
     mut f: impl FnMut(&Stencil<'_>, &[Cell<f32>]),
 ) {
     let (nx, ny) = (dims.nx(), dims.ny());
-    for z in 0..dims.nz() {
-        for y in 0..ny {
-            let start = nx * (y + ny * z);
-            let (before, rest) = values.split_at_mut(start.min(values.len()));
-            if rest.len() < nx {
-                return;
-            }
+    active.rows(|y, z| {
+        let start = nx * (y + ny * z);
+        let (before, rest) = values.split_at_mut(start.min(values.len()));
+        if rest.len() >= nx {
             let (row, after) = rest.split_at_mut(nx);
             let row = Cell::from_mut(row).as_slice_of_cells();
             f(&Stencil::new(dims, y, z, labels, before, after), row);
         }
-    }
+    });
 }
 
 /// Validates a solve's inputs, trims the buffers to the grid and sets the Dirichlet values
@@ -521,13 +588,14 @@ pub fn gauss_seidel(
         // No interior cell touches a frontier: ψ = 0 (the source's value) is exact.
         prepare(labels, phi, false);
     }
-    let mut res = residual_with(dims, labels, phi, b2);
+    let active = Active::of(dims, labels);
+    let mut res = residual_with(dims, &active, labels, phi, b2);
     let mut stats = SolveStats {
         initial_residual: res.relative,
         ..Default::default()
     };
     while !res.meets(params.tolerance) && stats.iterations < params.max_iterations {
-        for_each_row_mut(dims, labels, phi, |st, row| {
+        for_each_row_mut(dims, &active, labels, phi, |st, row| {
             for (x, (l, cell)) in st.labels.iter().zip(row).enumerate() {
                 if *l != Label::Interior {
                     continue;
@@ -542,7 +610,7 @@ pub fn gauss_seidel(
         });
         stats.iterations += 1;
         if stats.iterations.is_multiple_of(CHECK_EVERY) || stats.iterations == params.max_iterations {
-            res = residual_with(dims, labels, phi, b2);
+            res = residual_with(dims, &active, labels, phi, b2);
         }
     }
     clamp_to_bounds(labels, phi);

@@ -58,7 +58,7 @@ use core::cell::Cell;
 use heapless::Vec as HVec;
 
 use super::{
-    for_each_row, for_each_row_mut, inv_count, residual_with, Residual, RowValues, SolveError, SolveParams,
+    for_each_row, for_each_row_mut, inv_count, residual_with, Active, Residual, RowValues, SolveError, SolveParams,
     SolveStats,
 };
 use crate::domain::Label;
@@ -98,6 +98,8 @@ struct Level {
     offset: usize,
     /// Start of this level's labels in the label scratch.
     label_offset: usize,
+    /// Rows with interior cells, set with the labels.
+    active: Active,
 }
 
 /// Scratch sizes a hierarchy over `fine` needs.
@@ -168,12 +170,16 @@ pub struct Multigrid<'a> {
     /// Source voxels of the current problem (first [`MAX_PINS`]), for full multigrid.
     pins: HVec<[usize; 3], MAX_PINS>,
     full_multigrid: bool,
+    /// Rows of the fine grid with interior cells, for the current problem.
+    fine_active: Active,
 }
 
 /// One level's view: its labels, unknowns and right-hand side (`None` = 0, with Dirichlet
 /// values held in `x` itself — the fine level's φ).
 struct View<'v> {
     dims: Dims,
+    /// Rows with interior cells: the loops skip the others.
+    active: Active,
     labels: &'v [Label],
     /// Coarse levels: face conductances (see [`FACE_ONE`]); `None` on the fine level, whose
     /// faces are all 1 between in-domain cells.
@@ -203,6 +209,7 @@ impl<'a> Multigrid<'a> {
                 dims,
                 offset,
                 label_offset,
+                active: Active::all(&dims),
             });
             offset += 2 * dims.len();
             label_offset += dims.len();
@@ -217,6 +224,7 @@ impl<'a> Multigrid<'a> {
             history: HVec::new(),
             pins: HVec::new(),
             full_multigrid: true,
+            fine_active: Active::all(&fine),
         })
     }
 
@@ -252,17 +260,19 @@ impl<'a> Multigrid<'a> {
         self.history.clear();
         let mut stats = SolveStats::default();
         stats.cell_updates += self.build_labels(labels);
+        self.fine_active = Active::of(&self.fine, labels);
+        let active = self.fine_active;
         let b2 = super::dirichlet_norm2(&self.fine, labels);
         if b2 == 0.0 {
             // No interior cell touches a frontier: every interior component holds only the
             // source's value, and ψ = 0 there is the exact solution.
             super::prepare(labels, phi, false);
         }
-        let mut res = residual_with(&self.fine, labels, phi, b2);
+        let mut res = residual_with(&self.fine, &active, labels, phi, b2);
         stats.initial_residual = res.relative;
         if !params.warm_start && self.full_multigrid && b2 > 0.0 {
             stats.cell_updates += self.full_multigrid(labels, phi);
-            res = residual_with(&self.fine, labels, phi, b2);
+            res = residual_with(&self.fine, &active, labels, phi, b2);
             stats.cell_updates += n as u64;
         }
         let use_pcg = match method {
@@ -283,6 +293,7 @@ impl<'a> Multigrid<'a> {
             while !res.meets(0.5 * params.tolerance) && stats.iterations < params.max_iterations {
                 let fine = View {
                     dims: self.fine,
+                    active,
                     labels,
                     faces: None,
                     x: &mut *phi,
@@ -297,7 +308,7 @@ impl<'a> Multigrid<'a> {
                     &self.pins,
                 );
                 stats.iterations += 1;
-                res = residual_with(&self.fine, labels, phi, b2);
+                res = residual_with(&self.fine, &active, labels, phi, b2);
                 stats.cell_updates += n as u64;
                 let _ = self.history.push(res.relative);
                 let limit = DIVERGED * stats.initial_residual.max(params.tolerance);
@@ -374,6 +385,7 @@ impl<'a> Multigrid<'a> {
                 let cx = rest.get(coarser.offset..coarser.offset + cn).unwrap_or(&[]);
                 let mut view = View {
                     dims: level.dims,
+                    active: level.active,
                     labels: clabels,
                     faces: cfaces,
                     x: &mut *x,
@@ -384,6 +396,7 @@ impl<'a> Multigrid<'a> {
             pin_sources(&self.pins, k + 1, &level.dims, x);
             let mut view = View {
                 dims: level.dims,
+                active: level.active,
                 labels: clabels,
                 faces: cfaces,
                 x: &mut *x,
@@ -409,6 +422,7 @@ impl<'a> Multigrid<'a> {
             let cx = self.values.get(level.offset..level.offset + n).unwrap_or(&[]);
             let mut view = View {
                 dims: self.fine,
+                active: self.fine_active,
                 labels,
                 faces: None,
                 x: phi,
@@ -438,7 +452,7 @@ impl<'a> Multigrid<'a> {
         }
         let mut prev_dims = self.fine;
         let mut prev_offset: Option<usize> = None;
-        for level in self.levels.iter() {
+        for level in self.levels.iter_mut() {
             let (done, rest) = self.labels.split_at_mut(level.label_offset);
             // Empty when no face storage was lent: every level then takes `coarsen_labels`.
             let (faces_done, faces_rest) = self.faces.split_at_mut(level.label_offset.min(self.faces.len()));
@@ -456,6 +470,7 @@ impl<'a> Multigrid<'a> {
                 Some(faces) => coarsen(&prev_dims, prev, prev_faces, &level.dims, coarse, faces),
                 None => coarsen_labels(&prev_dims, prev, &level.dims, coarse),
             }
+            level.active = Active::of(&level.dims, coarse);
             work += prev.len() as u64;
             prev_dims = level.dims;
             prev_offset = Some(level.label_offset);
@@ -483,14 +498,17 @@ impl<'a> Multigrid<'a> {
             krylov,
             history,
             pins,
+            fine_active,
             ..
         } = self;
+        let fine_active = *fine_active;
         let dims = *fine;
         let n = dims.len();
         let mut precondition = |r: &[f32], z: &mut [f32]| -> u64 {
             z.fill(0.0);
             let fine = View {
                 dims,
+                active: fine_active,
                 labels,
                 faces: None,
                 x: z,
@@ -501,7 +519,7 @@ impl<'a> Multigrid<'a> {
         let (r, rest) = krylov.split_at_mut(n);
         let (p, rest) = rest.split_at_mut(n);
         let z = &mut rest[..n];
-        residual_into(&dims, labels, phi, None, r);
+        residual_into(&dims, &fine_active, labels, phi, None, r);
         let b_norm = libm::sqrt(b2);
         if b_norm == 0.0 {
             return res;
@@ -511,8 +529,8 @@ impl<'a> Multigrid<'a> {
         // f32 drift between CG's recursive residual and the true one cannot stall the solve.
         for pass in 0..MAX_RESTARTS {
             if pass > 0 {
-                residual_into(&dims, labels, phi, None, r);
-                res = residual_with(&dims, labels, phi, b2);
+                residual_into(&dims, &fine_active, labels, phi, None, r);
+                res = residual_with(&dims, &fine_active, labels, phi, b2);
                 stats.cell_updates += 2 * n as u64;
             }
             if res.meets(params.tolerance) || stats.iterations >= params.max_iterations {
@@ -525,7 +543,7 @@ impl<'a> Multigrid<'a> {
             let start = res.relative;
             while stats.iterations < params.max_iterations {
                 // z ← A p
-                apply(&dims, labels, p, z);
+                apply(&dims, &fine_active, labels, p, z);
                 stats.cell_updates += n as u64;
                 let pq = dot(p, z);
                 if !(pq > 0.0 && rho.is_finite()) {
@@ -561,7 +579,7 @@ impl<'a> Multigrid<'a> {
         }
         // Report the true residual, not the recurrence's.
         stats.cell_updates += n as u64;
-        residual_with(&dims, labels, phi, b2)
+        residual_with(&dims, &fine_active, labels, phi, b2)
     }
 }
 
@@ -747,8 +765,8 @@ fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 4]], colour: usize) -> u64 {
     let nxy = nx * ny;
     let cells = Cell::from_mut(&mut *v.x).as_slice_of_cells();
     let mut updates = 0u64;
-    for z in 0..v.dims.nz() {
-        for y in 0..ny {
+    for z in v.active.zs() {
+        for y in v.active.ys() {
             let start = nx * (y + ny * z);
             let mut x = (colour + y + z) % 2;
             while x < nx {
@@ -792,22 +810,23 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
 }
 
 /// `out ← A p` on interior cells (0 elsewhere); `p` must be 0 off the interior.
-fn apply(dims: &Dims, labels: &[Label], p: &[f32], out: &mut [f32]) {
-    residual_into(dims, labels, p, None, out);
+fn apply(dims: &Dims, active: &Active, labels: &[Label], p: &[f32], out: &mut [f32]) {
+    residual_into(dims, active, labels, p, None, out);
     for o in out.iter_mut() {
         *o = -*o;
     }
 }
 
 /// `out ← b − L x` on interior cells (0 elsewhere).
-fn residual_into(dims: &Dims, labels: &[Label], x: &[f32], b: Option<&[f32]>, out: &mut [f32]) {
-    for_each_row(dims, labels, x, |st, row| {
+fn residual_into(dims: &Dims, active: &Active, labels: &[Label], x: &[f32], b: Option<&[f32]>, out: &mut [f32]) {
+    // Rows outside the active box hold no interior cell: their residual is 0.
+    out.fill(0.0);
+    for_each_row(dims, active, labels, x, |st, row| {
         let n = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + n));
         let Some(out_row) = out.get_mut(st.start..st.start + n) else {
             return;
         };
-        out_row.fill(0.0);
         super::row_residuals(st, row, b_row, |x, r, _| {
             if let Some(o) = out_row.get_mut(x) {
                 *o = r;
@@ -824,7 +843,7 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
     }
     let mut updates = 0u64;
     let b = v.b;
-    for_each_row_mut(&v.dims, v.labels, v.x, |st, row| {
+    for_each_row_mut(&v.dims, &v.active, v.labels, v.x, |st, row| {
         let nx = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + nx));
         let first = (colour + st.y + st.z) % 2;
@@ -1019,8 +1038,8 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
     let x_all: &[f32] = fine.x;
     let (mut cm_buf, mut acc_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
     let collapsed = cnx <= ROW_BUF;
-    for z in 0..fine.dims.nz() {
-        for y in 0..fny {
+    for z in fine.active.zs() {
+        for y in fine.active.ys() {
             let start = fnx * (y + fny * z);
             // Mask only: coarse values are not read here.
             let parents = Parents::of(y, z, coarse, clabels, &zeros);
@@ -1117,8 +1136,8 @@ fn interpolate_into(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
     let cnx = coarse.nx();
     let (mut cv_buf, mut cm_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
-    for z in 0..fine.dims.nz() {
-        for y in 0..fny {
+    for z in fine.active.zs() {
+        for y in fine.active.ys() {
             let start = fnx * (y + fny * z);
             let (Some(l_row), Some(row)) = (
                 fine.labels.get(start..start + fnx),
@@ -1238,6 +1257,7 @@ fn fine_cycle(
     let mut work = local_smooth(&mut fine, pins);
     let View {
         dims,
+        active,
         labels: fl,
         faces: ff,
         x,
@@ -1246,6 +1266,7 @@ fn fine_cycle(
     work += vcycle(
         View {
             dims,
+            active,
             labels: fl,
             faces: ff,
             x: &mut *x,
@@ -1258,6 +1279,7 @@ fn fine_cycle(
     );
     let mut fine = View {
         dims,
+        active,
         labels: fl,
         faces: ff,
         x,
@@ -1311,6 +1333,7 @@ fn vcycle(
             .collect();
         let coarse = View {
             dims: level.dims,
+            active: level.active,
             labels: clabels,
             faces: faces.get(level.label_offset..level.label_offset + n),
             x: cx,
