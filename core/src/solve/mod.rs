@@ -142,7 +142,13 @@ pub fn relative_residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> f32 {
 
 /// Residual and rounding floor of the current ψ.
 pub fn residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> Residual {
-    residual_with(dims, &Active::all(dims), labels, psi, dirichlet_norm2(dims, labels))
+    residual_with(
+        dims,
+        &Active::all(dims),
+        labels,
+        psi,
+        dirichlet_norm2(dims, labels),
+    )
 }
 
 /// `‖b‖²`: the squared norm of the Dirichlet contributions to the interior rows (each frontier
@@ -192,7 +198,13 @@ pub(crate) fn dirichlet_norm2(dims: &Dims, labels: &[Label]) -> f64 {
 
 /// [`residual`] with `‖b‖²` given. The rounding floor uses `Σⱼ ψⱼ² ≈ deg_i·ψᵢ²`, which keeps it
 /// in the same branch-free pass as the residual.
-pub(crate) fn residual_with(dims: &Dims, active: &Active, labels: &[Label], psi: &[f32], b2: f64) -> Residual {
+pub(crate) fn residual_with(
+    dims: &Dims,
+    active: &Active,
+    labels: &[Label],
+    psi: &[f32],
+    b2: f64,
+) -> Residual {
     let (mut r2, mut e2) = (0.0f64, 0.0f64);
     for_each_row(dims, active, labels, psi, |st, row| {
         let (mut row_r, mut row_e) = (0.0f32, 0.0f32);

@@ -58,8 +58,8 @@ use core::cell::Cell;
 use heapless::Vec as HVec;
 
 use super::{
-    for_each_row, for_each_row_mut, inv_count, residual_with, Active, Residual, RowValues, SolveError, SolveParams,
-    SolveStats,
+    for_each_row, for_each_row_mut, inv_count, residual_with, Active, Residual, RowValues, SolveError,
+    SolveParams, SolveStats,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -818,7 +818,14 @@ fn apply(dims: &Dims, active: &Active, labels: &[Label], p: &[f32], out: &mut [f
 }
 
 /// `out ← b − L x` on interior cells (0 elsewhere).
-fn residual_into(dims: &Dims, active: &Active, labels: &[Label], x: &[f32], b: Option<&[f32]>, out: &mut [f32]) {
+fn residual_into(
+    dims: &Dims,
+    active: &Active,
+    labels: &[Label],
+    x: &[f32],
+    b: Option<&[f32]>,
+    out: &mut [f32],
+) {
     // Rows outside the active box hold no interior cell: their residual is 0.
     out.fill(0.0);
     for_each_row(dims, active, labels, x, |st, row| {
