@@ -19,6 +19,7 @@ pub mod fault;
 pub mod flight;
 pub mod metrics;
 pub mod npy;
+pub mod planners;
 pub mod problem;
 pub mod scenario;
 pub mod sim;

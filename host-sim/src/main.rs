@@ -15,6 +15,7 @@ use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::depth_link::{LinkConfig, DEFAULT_BAUD};
 use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
 use harmonic_sim::npy;
+use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::problem::{self, SolverChoice};
 use harmonic_sim::scenario::{builtin_names, Scenario};
 use harmonic_sim::sim::{self, Report, SimConfig};
@@ -223,7 +224,13 @@ struct ExploreArgs {
     /// Stop after this many scans.
     #[arg(long, default_value_t = 3000)]
     max_scans: u32,
-    /// Laplace solver: `mg` (multigrid, default) or `gs` (the seed paper's Gauss-Seidel).
+    /// Planner: `harmonic` (the core, multigrid; default), `harmonic-gs` (the core with the
+    /// seed paper's Gauss-Seidel), or a baseline: `closest-frontier`, `random-frontier`,
+    /// `info-gain`, `weighted-info-gain`.
+    #[arg(long, default_value = "harmonic", value_parser = PlannerKind::from_str)]
+    planner: PlannerKind,
+    /// Laplace solver of the harmonic planner: `mg` (multigrid, default) or `gs` (the seed
+    /// paper's Gauss-Seidel; the same as `--planner harmonic-gs`).
     #[arg(long, default_value = "mg", value_parser = ["mg", "gs"])]
     solver: String,
     /// Solver relative-residual tolerance.
@@ -379,6 +386,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     let mut cfg = SimConfig::default();
     cfg.camera = cfg.camera.with_noise(args.noise);
     cfg.seed = args.seed;
+    cfg.planner = args.planner;
     cfg.explorer.vehicle_radius = args.vehicle_radius;
     cfg.explorer.solve.tolerance = args.tol;
     cfg.explorer.solver = if args.solver == "gs" {
@@ -532,8 +540,9 @@ fn solver_label(s: BenchSolver) -> &'static str {
 }
 
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 13] = [
+    let rows: [(&str, String); 14] = [
         ("scenario", r.scenario.clone()),
+        ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
         ("coverage (free)", format!("{:.2} %", r.coverage_free * 100.0)),
         (

@@ -34,7 +34,7 @@ use std::time::{Duration, Instant};
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{
-    forward_camera_pose, Clock, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
+    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
     SolverKind,
 };
 use harmonic_core::map::{Dims, MapGeometry};
@@ -48,6 +48,8 @@ use crate::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::camera::DepthCamera;
 use crate::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::metrics::{Coverage, GroundTruth};
+use crate::planners::baseline::Baseline;
+use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
 use crate::scenario::Scenario;
 use crate::world::World;
 
@@ -65,6 +67,9 @@ pub const REMOTE_STALL_S: f64 = 20.0;
 /// Simulation settings.
 #[derive(Debug, Clone)]
 pub struct SimConfig {
+    /// Which planner flies: the core's harmonic explorer (default) or a baseline.
+    /// [`PlannerKind::HarmonicGs`] overrides `explorer.solver` with Gauss-Seidel.
+    pub planner: PlannerKind,
     /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
     /// Depth camera.
@@ -98,6 +103,7 @@ pub struct SimConfig {
 impl Default for SimConfig {
     fn default() -> Self {
         Self {
+            planner: PlannerKind::Harmonic,
             explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
             body_radius: 0.15,
@@ -333,15 +339,6 @@ pub fn scenario_geometry(scenario: &Scenario) -> Result<MapGeometry, SimError> {
     let dims = Dims::new(nx, ny, nz).map_err(|e| SimError::Grid(format!("{nx}×{ny}×{nz}: {e:?}")))?;
     MapGeometry::new(dims, scenario.world.bounds.min, scenario.resolution)
         .map_err(|e| SimError::Grid(format!("{e:?}")))
-}
-
-/// Nanosecond host clock for the core's phase timing.
-struct HostClock(Instant);
-
-impl Clock for HostClock {
-    fn ticks(&mut self) -> u64 {
-        self.0.elapsed().as_nanos() as u64
-    }
 }
 
 fn ms(ns: u64) -> f64 {
@@ -700,13 +697,13 @@ impl Rig<'_> {
 fn dump_problem(
     dir: &std::path::Path,
     step: u32,
-    explorer: &Explorer<'_>,
+    planner: &dyn Planner,
     position: &Point3<f32>,
     cfg: &SimConfig,
 ) -> Result<(), SimError> {
     let err = |e: std::io::Error| SimError::Dump(format!("{}: {e}", dir.display()));
     std::fs::create_dir_all(dir).map_err(err)?;
-    let map = explorer.map();
+    let map = planner.map();
     let grid = crate::problem::labels_from_map(map);
     let labels_path = dir.join(format!("step_{step:04}.npy"));
     std::fs::write(&labels_path, crate::npy::write_u8(&grid)).map_err(err)?;
@@ -729,6 +726,29 @@ fn dump_problem(
     Ok(())
 }
 
+/// The planner `cfg` asks for, over `storage`.
+fn make_planner<'s>(
+    cfg: &SimConfig,
+    geometry: MapGeometry,
+    storage: &'s mut HostStorage,
+) -> Result<Box<dyn Planner + 's>, SimError> {
+    let config_err = |e| SimError::Config(format!("{e:?}"));
+    Ok(match cfg.planner {
+        PlannerKind::Harmonic | PlannerKind::HarmonicGs => {
+            let mut explorer = cfg.explorer;
+            if cfg.planner == PlannerKind::HarmonicGs {
+                explorer.solver = SolverKind::GaussSeidel;
+            }
+            Box::new(HarmonicPlanner::new(
+                Explorer::new(geometry, explorer, storage.lend()).map_err(config_err)?,
+            ))
+        }
+        kind => Box::new(
+            Baseline::new(kind, geometry, cfg.explorer, storage.lend(), cfg.seed).map_err(config_err)?,
+        ),
+    })
+}
+
 /// Runs one exploration of `scenario` to termination. `progress` is called after every step.
 pub fn run(
     scenario: &Scenario,
@@ -739,8 +759,7 @@ pub fn run(
     let geometry = scenario_geometry(scenario)?;
     let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
     let mut storage = HostStorage::new(&geometry.dims());
-    let mut explorer = Explorer::new(geometry, cfg.explorer, storage.lend())
-        .map_err(|e| SimError::Config(format!("{e:?}")))?;
+    let mut planner = make_planner(cfg, geometry, &mut storage)?;
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let mut vehicle = Vehicle {
         position: scenario.start_position,
@@ -766,7 +785,7 @@ pub fn run(
         dt: f64::from(cfg.dt),
         wall: remote.then(Instant::now),
     };
-    let mut clock = HostClock(Instant::now());
+    let mut clock = HostClock::new();
     let mut steps = Vec::new();
     let mut track = Track::start(world, &vehicle.position, cfg.body_radius);
     let mut consecutive_holds = 0u32;
@@ -811,7 +830,7 @@ pub fn run(
         let mut integrated = 0u32;
         for arrived in rig.link.take_arrived() {
             if let Some(frame) = arrived.frame() {
-                if explorer.integrate(&frame, &arrived.camera_pose).is_ok() {
+                if planner.integrate(&frame, &arrived.camera_pose) {
                     integrated += 1;
                     rig.link.note_integrated();
                 }
@@ -821,20 +840,20 @@ pub fn run(
 
         // Plan from where the vehicle is now (it may have drifted while the frame was sent).
         let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
-        let status_before = *explorer.status();
+        let status_before = *planner.status();
         let outcome = if integrated > 0 {
             steps_without_frame = 0;
-            Some(explorer.plan_timed(&position, yaw, &mut clock))
+            Some(planner.plan(&position, yaw, &mut clock))
         } else {
             steps_without_frame += 1;
             None
         };
-        let status = *explorer.status();
+        let status = *planner.status();
         let kept = status.plans_kept > status_before.plans_kept;
         if let (Some(dir), Some(_), false) = (&cfg.dump_problem, &outcome, kept) {
-            dump_problem(dir, step, &explorer, &position, cfg)?;
+            dump_problem(dir, step, planner.as_ref(), &position, cfg)?;
         }
-        let coverage = truth.coverage(explorer.map());
+        let coverage = truth.coverage(planner.map());
         let label = match outcome {
             None => "no_frame".to_string(),
             Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
@@ -907,7 +926,7 @@ pub fn run(
             }
             PlanOutcome::Goal(goal) => {
                 consecutive_holds = 0;
-                let waypoints: Vec<Point3<f32>> = explorer.waypoints().to_vec();
+                let waypoints: Vec<Point3<f32>> = planner.waypoints().to_vec();
                 if rig.mav.is_some() {
                     rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
                 } else {
@@ -925,8 +944,8 @@ pub fn run(
         m.finish().map_err(SimError::Mavlink)?;
     }
 
-    let status = *explorer.status();
-    let coverage: Coverage = truth.coverage(explorer.map());
+    let status = *planner.status();
+    let coverage: Coverage = truth.coverage(planner.map());
     let timing = Timing {
         integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
         domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
@@ -936,10 +955,14 @@ pub fn run(
     let dims = geometry.dims();
     Ok(Report {
         scenario: scenario.world.name.clone(),
-        planner: "harmonic".into(),
-        solver: match cfg.explorer.solver {
-            SolverKind::Multigrid => "mg".into(),
-            SolverKind::GaussSeidel => "gs".into(),
+        planner: planner.kind().name().into(),
+        solver: match planner.kind() {
+            k if !k.is_harmonic() => "none".into(),
+            PlannerKind::HarmonicGs => "gs".into(),
+            _ => match cfg.explorer.solver {
+                SolverKind::Multigrid => "mg".into(),
+                SolverKind::GaussSeidel => "gs".into(),
+            },
         },
         termination,
         coverage_free: coverage.free,
