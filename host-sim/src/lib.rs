@@ -12,6 +12,7 @@
 #![warn(missing_docs)]
 
 pub mod autopilot;
+pub mod batch;
 pub mod bench;
 pub mod camera;
 pub mod depth_link;
@@ -22,6 +23,7 @@ pub mod npy;
 pub mod planners;
 pub mod problem;
 pub mod scenario;
+pub mod sensing;
 pub mod sim;
 pub mod tlog;
 pub mod transport;

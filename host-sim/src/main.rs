@@ -18,6 +18,7 @@ use harmonic_sim::npy;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::problem::{self, SolverChoice};
 use harmonic_sim::scenario::{builtin_names, Scenario};
+use harmonic_sim::sensing::DriftConfig;
 use harmonic_sim::sim::{self, Report, SimConfig};
 use harmonic_sim::tlog;
 use harmonic_sim::transport::TransportSpec;
@@ -189,6 +190,69 @@ fn parse_dims(s: &str) -> Result<Dims, String> {
     }
 }
 
+/// Imperfect sensing, for `explore` and `bench`.
+#[derive(clap::Args, Clone)]
+struct SensingArgs {
+    /// Sensor noise model: `stereo` (σ = 1 px disparity noise per pixel, then the stereo
+    /// pipeline's 5 × 5 median), `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd median
+    /// window, 1 = unfiltered). The core then integrates depth only up to the range where the
+    /// depth error stays small (see `--trusted-range`).
+    #[arg(long, value_parser = parse_noise)]
+    noise: Option<StereoNoise>,
+    /// Range (m) up to which stereo depth is integrated; farther returns only clear free space
+    /// up to it. Default with `--noise`: where a 1σ (filtered) disparity error moves the depth
+    /// by 0.1 m (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered.
+    /// Without noise: the camera's 10 m.
+    #[arg(long, value_parser = parse_positive)]
+    trusted_range: Option<f32>,
+    /// Fraction of pixels (0-1) that return half their true depth (gross matching errors).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    outliers: f64,
+    /// Boxes the scenario marks `textureless = true` return no depth.
+    #[arg(long)]
+    textureless: bool,
+    /// Pose drift: random walk per keyframe, `SIGMA_POS_M,SIGMA_YAW_RAD` (e.g. 0.1,0.015).
+    #[arg(long, value_parser = parse_drift)]
+    drift: Option<DriftConfig>,
+}
+
+/// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera.
+const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
+
+impl SensingArgs {
+    fn apply(&self, cfg: &mut SimConfig) {
+        cfg.camera = cfg.camera.with_noise(self.noise);
+        cfg.camera.outliers = self.outliers as f32;
+        cfg.camera.textureless = self.textureless;
+        cfg.drift = self.drift;
+        let fx = cfg.camera.intrinsics.fx();
+        let range = match (self.trusted_range, self.noise) {
+            (Some(r), _) => r,
+            (None, Some(n)) => n.trusted_range(fx, TRUSTED_DEPTH_ERROR_M),
+            (None, None) => cfg.camera.max_range,
+        };
+        cfg.explorer.integration.max_range = range
+            .min(cfg.camera.max_range)
+            .max(cfg.explorer.integration.min_range + 0.1);
+    }
+}
+
+fn parse_drift(s: &str) -> Result<DriftConfig, String> {
+    let bad = || format!("expected SIGMA_POS_M,SIGMA_YAW_RAD (two numbers >= 0), got `{s}`");
+    let (p, y) = s.split_once(',').ok_or_else(bad)?;
+    let (p, y): (f32, f32) = (
+        p.trim().parse().map_err(|_| bad())?,
+        y.trim().parse().map_err(|_| bad())?,
+    );
+    if !(p.is_finite() && y.is_finite() && p >= 0.0 && y >= 0.0) {
+        return Err(bad());
+    }
+    Ok(DriftConfig {
+        sigma_position_m: p,
+        sigma_yaw_rad: y,
+    })
+}
+
 #[derive(clap::Args)]
 struct ExploreArgs {
     /// A built-in scenario name (see `harmonic-sim scenarios`) or a path to a scenario .toml file.
@@ -197,9 +261,8 @@ struct ExploreArgs {
     /// Output directory for report.json (created if missing).
     #[arg(long, default_value = "out")]
     out: PathBuf,
-    /// Sensor noise model: `stereo` (σ = 1 px disparity noise) or `stereo:SIGMA_PX`.
-    #[arg(long, value_parser = parse_noise)]
-    noise: Option<StereoNoise>,
+    #[command(flatten)]
+    sensing: SensingArgs,
     /// Random seed for sensor noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -224,6 +287,10 @@ struct ExploreArgs {
     /// Stop after this many scans.
     #[arg(long, default_value_t = 3000)]
     max_scans: u32,
+    /// Scans at evenly spaced headings, turning on the spot, before the first plan (0: plan
+    /// after the first scan).
+    #[arg(long, default_value_t = 4)]
+    look_around: u32,
     /// Planner: `harmonic` (the core, multigrid; default), `harmonic-gs` (the core with the
     /// seed paper's Gauss-Seidel), or a baseline: `closest-frontier`, `random-frontier`,
     /// `info-gain`, `weighted-info-gain`.
@@ -331,17 +398,15 @@ fn parse_radius(s: &str) -> Result<f32, String> {
 }
 
 fn parse_noise(s: &str) -> Result<StereoNoise, String> {
-    let (kind, sigma) = match s.split_once(':') {
-        Some((k, v)) => (k, Some(v)),
-        None => (s, None),
-    };
+    let mut parts = s.split(':');
+    let kind = parts.next().unwrap_or("");
     if kind != "stereo" {
         return Err(format!(
-            "unknown noise model `{kind}` (expected `stereo` or `stereo:SIGMA_PX`)"
+            "unknown noise model `{kind}` (expected `stereo`, `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX`)"
         ));
     }
     let mut noise = StereoNoise::default();
-    if let Some(v) = sigma {
+    if let Some(v) = parts.next() {
         noise.sigma_px = match v.parse::<f32>() {
             Ok(x) if x.is_finite() && x >= 0.0 => x,
             _ => {
@@ -350,6 +415,19 @@ fn parse_noise(s: &str) -> Result<StereoNoise, String> {
                 ))
             }
         };
+    }
+    if let Some(w) = parts.next() {
+        noise.filter_px = match w.parse::<u8>() {
+            Ok(x) if x % 2 == 1 && x <= 15 => x,
+            _ => {
+                return Err(format!(
+                    "bad median window `{w}` (expected an odd number of pixels from 1 to 15; 1 = no filter)"
+                ))
+            }
+        };
+    }
+    if parts.next().is_some() {
+        return Err(format!("`{s}`: too many fields (stereo[:SIGMA_PX[:FILTER_PX]])"));
     }
     Ok(noise)
 }
@@ -384,7 +462,7 @@ fn main() -> ExitCode {
 fn explore(args: ExploreArgs) -> Result<(), String> {
     let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
     let mut cfg = SimConfig::default();
-    cfg.camera = cfg.camera.with_noise(args.noise);
+    args.sensing.apply(&mut cfg);
     cfg.seed = args.seed;
     cfg.planner = args.planner;
     cfg.explorer.vehicle_radius = args.vehicle_radius;
@@ -400,6 +478,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     cfg.max_speed = args.max_speed;
     cfg.max_yaw_rate = args.max_yaw_rate.to_radians();
     cfg.max_scans = args.max_scans;
+    cfg.look_around = args.look_around;
     cfg.dump_problem = args.dump_problem.clone();
     let (burst_rate, burst_len) = args.link_burst.unwrap_or((0.0, DEFAULT_BURST_LEN));
     cfg.link = LinkConfig {
@@ -540,11 +619,15 @@ fn solver_label(s: BenchSolver) -> &'static str {
 }
 
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 14] = [
+    let rows: [(&str, String); 15] = [
         ("scenario", r.scenario.clone()),
         ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
         ("coverage (free)", format!("{:.2} %", r.coverage_free * 100.0)),
+        (
+            "coverage (observed)",
+            format!("{:.2} %", r.coverage_observed * 100.0),
+        ),
         (
             "coverage (surface)",
             format!("{:.2} %", r.coverage_surface * 100.0),
@@ -572,6 +655,22 @@ fn print_summary(r: &Report) {
         ("wall time", format!("{:.1} s", r.wall_time_s)),
     ];
     let mut rows = rows.to_vec();
+    if let Some(a) = &r.map_accuracy {
+        rows.push((
+            "map accuracy",
+            format!(
+                "{:.2} % of all voxels, {:.2} % of observed ones match the noise-free map ({} false occupied, {} false free); {} reachable free voxels held occupied",
+                100.0 * a.all_voxels,
+                100.0 * a.observed_voxels,
+                a.false_occupied,
+                a.false_free,
+                r.free_marked_occupied
+            ),
+        ));
+    }
+    if let Some([e, y]) = r.final_drift {
+        rows.push(("final drift", format!("{e:.2} m, {:.1}°", y.to_degrees())));
+    }
     let l = &r.link;
     rows.push((
         "depth link",

@@ -51,6 +51,7 @@ use crate::metrics::{Coverage, GroundTruth};
 use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
 use crate::scenario::Scenario;
+use crate::sensing::{Drift, DriftConfig, MapAccuracy};
 use crate::world::World;
 
 /// Steps in a row without a depth frame after which the run gives up (`stuck:link`).
@@ -88,8 +89,16 @@ pub struct SimConfig {
     pub follow_full_path: bool,
     /// Stop after this many steps (captures).
     pub max_scans: u32,
+    /// Scans at evenly spaced headings, turning on the spot, before the first plan (0 or 1:
+    /// plan after the first scan). Every planner starts the same way. Without it a start
+    /// whose first view leaves the vehicle's surroundings unobserved can end the run at once:
+    /// the vehicle's voxel is then the whole safe component, with no frontier, and the core
+    /// reports `complete`.
+    pub look_around: u32,
     /// Seed for sensor noise and link faults.
     pub seed: u64,
+    /// Random-walk drift of the believed pose per keyframe (not with MAVLink).
+    pub drift: Option<DriftConfig>,
     /// Write each full replan's problem (`step_NNNN.npy` labels and `step_NNNN.json` with the
     /// source voxel and the command that re-solves it) into this directory.
     pub dump_problem: Option<std::path::PathBuf>,
@@ -113,7 +122,9 @@ impl Default for SimConfig {
             replan_distance: 1.0,
             follow_full_path: false,
             max_scans: 3000,
+            look_around: 4,
             seed: 1,
+            drift: None,
             dump_problem: None,
             link: LinkConfig::default(),
             mavlink: None,
@@ -217,6 +228,8 @@ pub struct Report {
     pub coverage_surface: f64,
     /// Reachable free voxels the map holds as occupied.
     pub free_marked_occupied: usize,
+    /// Reachable free voxels the map observed at all (free or not), fraction.
+    pub coverage_observed: f64,
     /// Path flown, metres.
     pub path_length_m: f64,
     /// Depth frames integrated.
@@ -254,6 +267,11 @@ pub struct Report {
     /// MAVLink: messages each way by type, setpoint rate and gaps, the bridge's and emulator's
     /// counters; `None` unless the run flew over MAVLink ([`SimConfig::mavlink`]).
     pub mavlink: Option<MavlinkReport>,
+    /// With imperfect sensing (noise, outliers, textureless surfaces, drift): how closely the
+    /// map matches the noise-free map of the same run ([`crate::sensing`]).
+    pub map_accuracy: Option<MapAccuracy>,
+    /// With drift: the believed pose's position and yaw error at the end, metres and radians.
+    pub final_drift: Option<[f32; 2]>,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
 }
@@ -760,6 +778,45 @@ pub fn run(
     let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
     let mut storage = HostStorage::new(&geometry.dims());
     let mut planner = make_planner(cfg, geometry, &mut storage)?;
+    if cfg.drift.is_some() && cfg.mavlink.is_some() {
+        return Err(SimError::Config("drift is simulated without MAVLink only".into()));
+    }
+    let mut drift = cfg.drift.map(|d| Drift::new(d, cfg.seed));
+    // The noise-free map of the same run, for the accuracy of maps made with imperfect sensing.
+    let measure_accuracy = !cfg.camera.is_exact() || drift.is_some();
+    let reference_len = if measure_accuracy {
+        geometry.dims().len()
+    } else {
+        1
+    };
+    let (mut ref_log_odds, mut ref_stamps) = (vec![0i8; reference_len], vec![0u8; reference_len]);
+    let exact_camera = DepthCamera {
+        noise: None,
+        outliers: 0.0,
+        textureless: false,
+        ..cfg.camera
+    };
+    let reference_integration = harmonic_core::integrate::IntegrationParams {
+        max_range: cfg.camera.max_range,
+        ..cfg.explorer.integration
+    };
+    let stencil =
+        harmonic_core::domain::InflationStencil::new(cfg.explorer.vehicle_radius, geometry.resolution())
+            .map_err(|e| SimError::Config(format!("{e:?}")))?;
+    let mut reference = if measure_accuracy {
+        Some(
+            harmonic_core::map::VoxelMap::new(
+                geometry,
+                cfg.explorer.log_odds,
+                &mut ref_log_odds,
+                &mut ref_stamps,
+            )
+            .map_err(|e| SimError::Config(format!("{e:?}")))?,
+        )
+    } else {
+        None
+    };
+    let mut exact_depth = Vec::new();
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let mut vehicle = Vehicle {
         position: scenario.start_position,
@@ -811,11 +868,16 @@ pub fn run(
     }
 
     let mut taken = 0u32;
+    let mut looked = 0u32;
     for step in 1..=cfg.max_scans {
         taken = step;
         // The camera sees the world from where the vehicle truly is; the frame is stamped with
         // the pose the core believes.
         let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        let (position, yaw) = match &drift {
+            Some(d) => d.believed(&position, yaw),
+            None => (position, yaw),
+        };
         let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
         cfg.camera.render(world, &true_pose, &mut rng, &mut depth);
         let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
@@ -837,12 +899,44 @@ pub fn run(
             }
         }
         let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
+        if integrated > 0 {
+            if let Some(reference) = reference.as_mut() {
+                // The same view, noise-free, at the true pose.
+                exact_camera.render(world, &true_pose, &mut rng, &mut exact_depth);
+                if let Ok(frame) = DepthFrame::new(exact_camera.intrinsics, &exact_depth) {
+                    let _ = harmonic_core::integrate::integrate(
+                        reference,
+                        &frame,
+                        &true_pose,
+                        &reference_integration,
+                    );
+                }
+            }
+        }
 
         // Plan from where the vehicle is now (it may have drifted while the frame was sent).
         let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        let (position, yaw) = match &drift {
+            Some(d) => d.believed(&position, yaw),
+            None => (position, yaw),
+        };
+        if integrated > 0 {
+            if let Some(d) = drift.as_mut() {
+                d.keyframe(&position);
+            }
+        }
         let status_before = *planner.status();
-        let outcome = if integrated > 0 {
+        // Look around first: turn on the spot between the first scans, planning nothing.
+        let looking = integrated > 0 && looked + 1 < cfg.look_around;
+        let outcome = if looking {
+            looked += 1;
             steps_without_frame = 0;
+            None
+        } else if integrated > 0 {
+            steps_without_frame = 0;
+            if let Some(reference) = reference.as_mut() {
+                crate::sensing::mark_body(reference, &stencil, &vehicle.position);
+            }
             Some(planner.plan(&position, yaw, &mut clock))
         } else {
             steps_without_frame += 1;
@@ -855,6 +949,7 @@ pub fn run(
         }
         let coverage = truth.coverage(planner.map());
         let label = match outcome {
+            None if looking => "look_around".to_string(),
             None => "no_frame".to_string(),
             Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
             Some(PlanOutcome::Goal(_)) if kept => "kept".to_string(),
@@ -898,6 +993,20 @@ pub fn run(
         steps.push(record);
 
         let Some(outcome) = outcome else {
+            if looking {
+                let turn = Goal {
+                    position,
+                    yaw: wrap_angle(yaw + std::f32::consts::TAU / cfg.look_around as f32),
+                    frontier: harmonic_core::map::VoxelIndex::new(0, 0, 0),
+                    escape: false,
+                };
+                if rig.mav.is_some() {
+                    rig.fly_mavlink(&mut vehicle, &[position], &turn, budget, &scene, &mut track)?;
+                } else {
+                    rig.fly_direct(&mut vehicle, &[], &turn, budget, &scene, &mut track)?;
+                }
+                continue;
+            }
             if steps_without_frame >= LINK_DEAD_STEPS {
                 termination = "stuck:link".into();
                 break;
@@ -926,7 +1035,17 @@ pub fn run(
             }
             PlanOutcome::Goal(goal) => {
                 consecutive_holds = 0;
-                let waypoints: Vec<Point3<f32>> = planner.waypoints().to_vec();
+                let mut waypoints: Vec<Point3<f32>> = planner.waypoints().to_vec();
+                let mut goal = goal;
+                if let Some(d) = &drift {
+                    // The vehicle flies the plan in its believed frame: in the true world it
+                    // moves by the believed displacement.
+                    for w in waypoints.iter_mut() {
+                        *w = d.to_true(w);
+                    }
+                    goal.position = d.to_true(&goal.position);
+                    goal.yaw = d.to_true_yaw(goal.yaw);
+                }
                 if rig.mav.is_some() {
                     rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
                 } else {
@@ -968,6 +1087,7 @@ pub fn run(
         coverage_free: coverage.free,
         coverage_surface: coverage.surface,
         free_marked_occupied: coverage.free_marked_occupied,
+        coverage_observed: coverage.observed,
         path_length_m: track.distance,
         scans: status.frames,
         steps_taken: taken,
@@ -985,6 +1105,13 @@ pub fn run(
         errors: status.errors,
         link: rig.link.report(),
         mavlink: rig.mav.as_ref().map(MavlinkLink::report),
+        map_accuracy: reference
+            .as_ref()
+            .map(|r| crate::sensing::accuracy(planner.map(), r)),
+        final_drift: drift.as_ref().map(|d| {
+            let (e, y) = d.error_at(&vehicle.position);
+            [e, y]
+        }),
         steps,
     })
 }

@@ -129,27 +129,48 @@ pub struct World {
     pub bounds: Aabb,
     /// Solid obstacles: walls, slabs, furniture. They may touch or overlap.
     pub boxes: Vec<Aabb>,
+    /// Per box: a surface without texture, on which stereo matching finds no depth. Empty
+    /// means none is.
+    pub textureless: Vec<bool>,
+}
+
+/// Where a ray first meets a surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the (unit) ray, metres.
+    pub t: f32,
+    /// The surface has no texture (stereo finds no depth on it).
+    pub textureless: bool,
 }
 
 impl World {
-    /// A world with the given name, bounds and obstacles.
+    /// A world with the given name, bounds and obstacles (all textured).
     pub fn new(name: impl Into<String>, bounds: Aabb, boxes: Vec<Aabb>) -> Self {
         Self {
             name: name.into(),
             bounds,
             boxes,
+            textureless: Vec::new(),
         }
     }
 
     /// Distance along the unit direction `dir` from `origin` to the first box surface it hits,
     /// or `None` if nothing is hit within `max_dist`. A ray starting inside a box hits at 0.
     pub fn raycast(&self, origin: &Point3<f32>, dir: &Vector3<f32>, max_dist: f32) -> Option<f32> {
+        self.raycast_hit(origin, dir, max_dist).map(|h| h.t)
+    }
+
+    /// [`World::raycast`], also telling whether the surface hit is textureless.
+    pub fn raycast_hit(&self, origin: &Point3<f32>, dir: &Vector3<f32>, max_dist: f32) -> Option<Hit> {
         let inv_dir = dir.map(|c| 1.0 / c);
-        let mut best: Option<f32> = None;
+        let mut best: Option<Hit> = None;
         let mut t_max = max_dist;
-        for b in &self.boxes {
+        for (i, b) in self.boxes.iter().enumerate() {
             if let Some(t) = b.ray_entry(origin, dir, &inv_dir, t_max) {
-                best = Some(t);
+                best = Some(Hit {
+                    t,
+                    textureless: self.textureless.get(i).copied().unwrap_or(false),
+                });
                 t_max = t;
                 if t == 0.0 {
                     break;

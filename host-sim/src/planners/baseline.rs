@@ -526,18 +526,7 @@ impl<'a> Baseline<'a> {
 
     /// The vehicle's body is free space: marks the unknown voxels it fills (as the core does).
     fn mark_body(&mut self, position: &Point3<f32>) {
-        let geometry = *self.map.geometry();
-        let dims = geometry.dims();
-        let Some(c) = geometry.voxel_at(position) else {
-            return;
-        };
-        self.map.mark_traversed(dims.linear(c));
-        let offsets: Vec<[i32; 3]> = self.stencil.offsets().collect();
-        for d in offsets {
-            if let Some(v) = dims.offset(c, d) {
-                self.map.mark_traversed(dims.linear(v));
-            }
-        }
+        crate::sensing::mark_body(&mut self.map, &self.stencil, position);
     }
 
     /// A voxel the vehicle's centre may pass: free, and only free space within its radius.
