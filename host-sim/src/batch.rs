@@ -46,6 +46,8 @@ pub struct RunRow {
     pub coverage_free: f64,
     /// Surface coverage at termination, 0–1.
     pub coverage_surface: f64,
+    /// Reachable free voxels observed at all (free or not) at termination, 0–1.
+    pub coverage_observed: f64,
     /// Collisions of the body with the true world.
     pub collisions: u32,
     /// Voxel updates by integration.
@@ -65,7 +67,7 @@ pub struct RunRow {
 }
 
 /// The CSV header of `runs.csv`.
-pub const CSV_HEADER: &str = "scenario,planner,seed,termination,path_length_m,scans,coverage_free,coverage_surface,collisions,integration_ops,planning_ops,planning_ms_per_step,map_accuracy,wall_time_s,start_x,start_y,start_z,start_yaw_deg";
+pub const CSV_HEADER: &str = "scenario,planner,seed,termination,path_length_m,scans,coverage_free,coverage_surface,coverage_observed,collisions,integration_ops,planning_ops,planning_ms_per_step,map_accuracy,wall_time_s,start_x,start_y,start_z,start_yaw_deg";
 
 fn clean(s: &str) -> String {
     s.replace([',', '\n', '"'], ";")
@@ -88,6 +90,7 @@ impl RunRow {
             scans: report.scans,
             coverage_free: report.coverage_free,
             coverage_surface: report.coverage_surface,
+            coverage_observed: report.coverage_observed,
             collisions: report.collisions,
             integration_ops: report.integration_ops,
             planning_ops: report.planning_ops,
@@ -102,7 +105,7 @@ impl RunRow {
     /// The row as a CSV line (no newline).
     pub fn to_csv(&self) -> String {
         format!(
-            "{},{},{},{},{:.3},{},{:.6},{:.6},{},{},{},{:.4},{},{:.3},{:.2},{:.2},{:.2},{:.1}",
+            "{},{},{},{},{:.3},{},{:.6},{:.6},{:.6},{},{},{},{:.4},{},{:.3},{:.2},{:.2},{:.2},{:.1}",
             clean(&self.scenario),
             clean(&self.planner),
             self.seed,
@@ -111,6 +114,7 @@ impl RunRow {
             self.scans,
             self.coverage_free,
             self.coverage_surface,
+            self.coverage_observed,
             self.collisions,
             self.integration_ops,
             self.planning_ops,
@@ -156,6 +160,7 @@ impl RunRow {
             scans: num("scans", get("scans")?)?,
             coverage_free: num("coverage_free", get("coverage_free")?)?,
             coverage_surface: num("coverage_surface", get("coverage_surface")?)?,
+            coverage_observed: num("coverage_observed", get("coverage_observed")?)?,
             collisions: num("collisions", get("collisions")?)?,
             integration_ops: num("integration_ops", get("integration_ops")?)?,
             planning_ops: num("planning_ops", get("planning_ops")?)?,
@@ -761,6 +766,7 @@ mod tests {
             scans: 10,
             coverage_free: 0.99,
             coverage_surface: 0.98,
+            coverage_observed: 0.995,
             collisions: 0,
             integration_ops: 1000,
             planning_ops: 2_000_000,

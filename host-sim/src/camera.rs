@@ -404,7 +404,10 @@ mod tests {
         // σ = 1 px, 12 cm baseline, 65 px focal length, 5 × 5 median: 0.1 m of error at 1.8 m;
         // without the filter at 0.9 m.
         assert!((1.7..1.85).contains(&r), "{r}");
-        let raw = StereoNoise { filter_px: 1, ..noise };
+        let raw = StereoNoise {
+            filter_px: 1,
+            ..noise
+        };
         assert!((0.85..0.95).contains(&raw.trusted_range(fx, 0.1)));
         let exact = StereoNoise {
             sigma_px: 0.0,
@@ -422,8 +425,17 @@ mod tests {
                 ..StereoNoise::default()
             }));
             let mut depth = Vec::new();
-            cam.render(&wall_ahead(), &pose, &mut ChaCha8Rng::seed_from_u64(5), &mut depth);
-            let z: Vec<f64> = depth.iter().filter(|&&d| d > 0).map(|&d| f64::from(d) / 1000.0).collect();
+            cam.render(
+                &wall_ahead(),
+                &pose,
+                &mut ChaCha8Rng::seed_from_u64(5),
+                &mut depth,
+            );
+            let z: Vec<f64> = depth
+                .iter()
+                .filter(|&&d| d > 0)
+                .map(|&d| f64::from(d) / 1000.0)
+                .collect();
             let mean = z.iter().sum::<f64>() / z.len() as f64;
             (z.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / z.len() as f64).sqrt()
         };

@@ -10,16 +10,19 @@ use harmonic_core::explore::SolverKind;
 use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
+use harmonic_sim::batch;
 use harmonic_sim::bench::{self, BenchSolver};
 use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::depth_link::{LinkConfig, DEFAULT_BAUD};
 use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
+use harmonic_sim::figures::{self, SliceSnapshot};
 use harmonic_sim::npy;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::problem::{self, SolverChoice};
+use harmonic_sim::record::{self, MapSettings, Recorder};
 use harmonic_sim::scenario::{builtin_names, Scenario};
 use harmonic_sim::sensing::DriftConfig;
-use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::sim::{self, Report, SimConfig, StepView};
 use harmonic_sim::tlog;
 use harmonic_sim::transport::TransportSpec;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -49,6 +52,145 @@ enum Command {
     Tlog(TlogArgs),
     /// Be the far end of a TCP depth link: send every byte back, as a loopback plug would.
     LinkEcho(LinkEchoArgs),
+    /// Run every planner on every scenario from the same random starts (parallel); write one
+    /// CSV row per run and the thesis-style tables. `bench merge` joins shards.
+    Bench(BenchArgs),
+    /// Integrate a recorded depth sequence (ours, or TUM RGB-D style) through the core and write
+    /// the map (map.npy labels, map.ply occupied voxel centres).
+    Replay(ReplayArgs),
+}
+
+#[derive(clap::Args)]
+struct ReplayArgs {
+    /// The sequence directory (depth.txt, groundtruth.txt, depth/*.png).
+    dir: PathBuf,
+    /// Output directory for map.npy and map.ply.
+    #[arg(long, default_value = "replay")]
+    out: PathBuf,
+    /// Intrinsics `fx,fy,cx,cy,width,height` (default: DIR/intrinsics.txt).
+    #[arg(long)]
+    intrinsics: Option<String>,
+    /// Depth units per metre in the PNGs: 1000 (ours, millimetres) or 5000 (TUM RGB-D).
+    #[arg(long, default_value_t = 1000.0, value_parser = parse_positive)]
+    depth_scale: f32,
+    /// Largest time difference (s) between a depth frame and the pose associated with it.
+    #[arg(long, default_value_t = 0.02, value_parser = parse_positive)]
+    max_time_difference: f32,
+}
+
+fn replay_sequence(args: &ReplayArgs) -> Result<(), String> {
+    let intrinsics = match &args.intrinsics {
+        Some(s) => Some(
+            record::parse_intrinsics(&s.split(',').map(|p| p.trim().to_string()).collect::<Vec<_>>())
+                .map_err(|e| format!("--intrinsics `{s}`: {e}"))?,
+        ),
+        None => None,
+    };
+    let cfg = record::ReplayConfig {
+        dir: args.dir.clone(),
+        intrinsics,
+        map: None,
+        depth_scale: args.depth_scale,
+        max_time_difference: f64::from(args.max_time_difference),
+    };
+    std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
+    let (npy_path, ply_path) = (args.out.join("map.npy"), args.out.join("map.ply"));
+    let summary = record::replay(&cfg, |map| {
+        figures::write_labels(map, &npy_path)?;
+        figures::write_ply(map, &ply_path)
+    })?;
+    println!("{}", serde_json::to_string(&summary).map_err(|e| e.to_string())?);
+    eprintln!(
+        "map: {} (labels), {} (occupied voxel centres)",
+        npy_path.display(),
+        ply_path.display()
+    );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true)]
+struct BenchArgs {
+    #[command(subcommand)]
+    action: Option<BenchAction>,
+    /// `all` (the six thesis scenarios: s1, s2, kitchen, s4, apartment-thesis, garage) or
+    /// comma-separated built-in names or scenario files.
+    #[arg(long, default_value = "all")]
+    scenarios: String,
+    /// `all` or comma-separated planner names (see `explore --planner`).
+    #[arg(long, default_value = "all")]
+    planners: String,
+    /// Runs (random starts) per scenario and planner.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..))]
+    runs: u32,
+    /// Seed of the first run; run k uses seed FIRST_SEED + k.
+    #[arg(long, default_value_t = 1)]
+    first_seed: u64,
+    /// Output directory (runs.csv, curves.csv, results.md, coverage_*.png).
+    #[arg(long, default_value = "results")]
+    out: PathBuf,
+    /// Run only shard I of N (jobs k with k mod N = I - 1), to split a sweep across machines.
+    #[arg(long, value_parser = batch::parse_shard)]
+    shard: Option<(usize, usize)>,
+    /// Worker threads (default: one per core).
+    #[arg(long, default_value_t = 0)]
+    jobs: usize,
+    /// Stop a run after this many scans.
+    #[arg(long, default_value_t = 3000)]
+    max_scans: u32,
+    /// Fly every path to its end before the next scan (the paper's mode).
+    #[arg(long)]
+    follow_full_path: bool,
+    #[command(flatten)]
+    sensing: SensingArgs,
+    /// No per-run progress lines.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(Subcommand)]
+enum BenchAction {
+    /// Join the runs of several shard directories (or runs*.csv files) into one table.
+    Merge(MergeArgs),
+}
+
+#[derive(clap::Args)]
+struct MergeArgs {
+    /// Shard output directories or runs*.csv files.
+    #[arg(required = true)]
+    inputs: Vec<PathBuf>,
+    /// Where to write the joined runs.csv, curves.csv and results.md.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn bench_runs(args: &BenchArgs) -> Result<(), String> {
+    if let Some(BenchAction::Merge(m)) = &args.action {
+        let rows = batch::merge(&m.inputs, &m.out)?;
+        eprintln!("bench merge: {} runs into {}", rows.len(), m.out.display());
+        print!("{}", batch::markdown(&rows));
+        return Ok(());
+    }
+    let mut sim = SimConfig::default();
+    args.sensing.apply(&mut sim);
+    sim.max_scans = args.max_scans;
+    sim.follow_full_path = args.follow_full_path;
+    let planners = PlannerKind::parse_list(&args.planners).map_err(|e| format!("--planners: {e}"))?;
+    let cfg = batch::BenchConfig {
+        scenarios: batch::parse_scenarios(&args.scenarios)?,
+        planners,
+        runs: args.runs,
+        first_seed: args.first_seed,
+        shard: args.shard.unwrap_or((1, 1)),
+        jobs: args.jobs,
+        sim,
+    };
+    let rows = batch::run(&cfg, &args.out, args.quiet)?;
+    if cfg.shard.1 == 1 {
+        print!("{}", batch::markdown(&rows));
+    }
+    eprintln!("bench: {} runs; {}", rows.len(), args.out.display());
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -344,6 +486,19 @@ struct ExploreArgs {
     /// Record every MAVLink frame both ways in this .tlog file (QGroundControl/MAVProxy format).
     #[arg(long, requires = "mavlink")]
     tlog: Option<PathBuf>,
+    /// Write figures into the output directory: slice.png (occupancy, φ, descent directions and
+    /// the chosen path in the horizontal slice through the vehicle), top_view.png (the flown path
+    /// over the final map) and coverage.png.
+    #[arg(long)]
+    figures: bool,
+    /// The step whose plan slice.png shows (the first full plan at or after it; default: a
+    /// third of the way through the run).
+    #[arg(long, requires = "figures")]
+    figure_step: Option<u32>,
+    /// Record every integrated depth frame and its pose in DIR, TUM RGB-D style (16-bit PNG in
+    /// mm, depth.txt, groundtruth.txt) for `harmonic-sim replay`.
+    #[arg(long)]
+    record: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -445,6 +600,8 @@ fn main() -> ExitCode {
         Command::Solve(args) => solve_problem(&args),
         Command::Tlog(args) => summarize_tlog(&args),
         Command::LinkEcho(args) => link_echo(&args),
+        Command::Bench(args) => bench_runs(&args),
+        Command::Replay(args) => replay_sequence(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -514,40 +671,165 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
             .unwrap_or_else(|_| ProgressStyle::default_spinner()),
     );
     let mut scans = 0u32;
-    let report = sim::run(&scenario, &cfg, |s| {
-        scans += s.frames_integrated;
-        // Steps whose frame was lost on the link are counted apart from scans.
-        let lost = if s.step > scans {
-            format!(" ({} steps)", s.step)
-        } else {
-            String::new()
-        };
-        let line = format!(
-            "scans {:>4}{lost}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  {}",
-            scans,
-            s.coverage_free * 100.0,
-            s.frontier,
-            s.path_length_m,
-            match s.outcome.as_str() {
-                "kept" => "goal kept".to_string(),
-                "no_frame" => "no frame".to_string(),
-                _ => format!("solve {:>7.1} ms", s.solve_ms),
-            }
-        );
-        if !args.quiet && !tty && s.step % 25 == 0 {
-            eprintln!("{line}");
+    let geometry = sim::scenario_geometry(&scenario).map_err(|e| e.to_string())?;
+    let mut recorder = match &args.record {
+        Some(dir) => {
+            let lo = cfg.explorer.log_odds;
+            let settings = MapSettings {
+                origin: geometry.origin().coords.into(),
+                dims: [geometry.dims().nx(), geometry.dims().ny(), geometry.dims().nz()],
+                resolution: geometry.resolution(),
+                log_odds: [lo.hit, lo.miss, lo.min, lo.max],
+                min_range: cfg.explorer.integration.min_range,
+                max_range: cfg.explorer.integration.max_range,
+                vehicle_radius: cfg.explorer.vehicle_radius,
+            };
+            Some(Recorder::create(dir, &settings)?)
         }
-        bar.set_message(line);
-        bar.tick();
-    })
+        None => None,
+    };
+    let mut snapshots: Vec<SliceSnapshot> = Vec::new();
+    let mut observe_error: Option<String> = None;
+    let map_npy = args.out.join("map.npy");
+    let map_ply = args.out.join("map.ply");
+    let mut final_map_written = false;
+    let observe = |view: &StepView<'_>| {
+        if let Some(r) = recorder.as_mut() {
+            if let Err(e) = r.step(view) {
+                observe_error.get_or_insert(e);
+            }
+        }
+        if args.figures {
+            if let Some(s) = SliceSnapshot::capture(view) {
+                snapshots.push(s);
+            }
+        }
+        if view.finished {
+            let map = view.planner.map();
+            let written =
+                figures::write_labels(map, &map_npy).and_then(|()| figures::write_ply(map, &map_ply));
+            match written {
+                Ok(()) => final_map_written = true,
+                Err(e) => {
+                    observe_error.get_or_insert(e);
+                }
+            }
+        }
+    };
+    let report = sim::run_observed(
+        &scenario,
+        &cfg,
+        |s| {
+            scans += s.frames_integrated;
+            // Steps whose frame was lost on the link are counted apart from scans.
+            let lost = if s.step > scans {
+                format!(" ({} steps)", s.step)
+            } else {
+                String::new()
+            };
+            let line = format!(
+                "scans {:>4}{lost}  coverage {:>5.1}%  frontier {:>5}  path {:>6.1} m  {}",
+                scans,
+                s.coverage_free * 100.0,
+                s.frontier,
+                s.path_length_m,
+                match s.outcome.as_str() {
+                    "kept" => "goal kept".to_string(),
+                    "no_frame" => "no frame".to_string(),
+                    _ => format!("solve {:>7.1} ms", s.solve_ms),
+                }
+            );
+            if !args.quiet && !tty && s.step % 25 == 0 {
+                eprintln!("{line}");
+            }
+            bar.set_message(line);
+            bar.tick();
+        },
+        observe,
+    )
     .map_err(|e| e.to_string())?;
     bar.finish_and_clear();
+    if let Some(e) = observe_error {
+        return Err(e);
+    }
+    if let Some(r) = recorder {
+        let n = r.finish()?;
+        if let Some(dir) = &args.record {
+            println!("recorded {n} frames: {}", dir.display());
+        }
+    }
+    if final_map_written {
+        println!(
+            "map: {} (labels), {} (occupied voxel centres)",
+            map_npy.display(),
+            map_ply.display()
+        );
+    }
+    if args.figures {
+        write_run_figures(&report, &snapshots, args.figure_step, &args.out)?;
+    }
 
     let path = args.out.join("report.json");
     let json = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
     std::fs::write(&path, json).map_err(|e| format!("{}: {e}", path.display()))?;
     print_summary(&report);
     println!("report: {}", path.display());
+    Ok(())
+}
+
+/// The slice (at `--figure-step`, else the full plan a third of the way through the run), the
+/// top view and the run's coverage curve.
+fn write_run_figures(
+    report: &Report,
+    snapshots: &[SliceSnapshot],
+    step: Option<u32>,
+    out: &std::path::Path,
+) -> Result<(), String> {
+    let target = step.unwrap_or(report.steps_taken / 3);
+    let snap = snapshots
+        .iter()
+        .find(|s| s.step >= target)
+        .or_else(|| snapshots.last());
+    let mut written = Vec::new();
+    if let Some(snap) = snap {
+        let p = out.join("slice.png");
+        figures::slice_figure(snap, &report.scenario, &p)?;
+        written.push(p);
+    }
+    let p = out.join("top_view.png");
+    // The top view draws the map from map.npy, exactly as exported.
+    let grid = npy::read_u8_file(out.join("map.npy")).map_err(|e| format!("map.npy: {e}"))?;
+    figures::top_view_labels(
+        &grid,
+        report.grid_origin,
+        report.resolution,
+        &report.trajectory,
+        &format!(
+            "{}, {}: {:.1} m flown, {:.1} % free coverage",
+            report.scenario,
+            report.planner,
+            report.path_length_m,
+            100.0 * report.coverage_free
+        ),
+        &p,
+    )?;
+    written.push(p);
+    let curve = batch::Curve {
+        scenario: report.scenario.clone(),
+        planner: report.planner.clone(),
+        seed: 0,
+        points: report
+            .steps
+            .iter()
+            .map(|s| (s.path_length_m, s.coverage_free))
+            .collect(),
+    };
+    let p = out.join("coverage.png");
+    figures::coverage_curves(&[curve], &report.scenario, &p)?;
+    written.push(p);
+    for p in written {
+        println!("figure: {}", p.display());
+    }
     Ok(())
 }
 

@@ -253,6 +253,8 @@ pub struct Report {
     pub grid: [usize; 3],
     /// Voxel edge, metres.
     pub resolution: f32,
+    /// Minimum corner of voxel (0, 0, 0), map frame, metres.
+    pub grid_origin: [f32; 3],
     /// Reachable free voxels in the ground truth.
     pub reachable_free_voxels: usize,
     /// Unknown voxels sealed as unobservable at the end.
@@ -272,8 +274,44 @@ pub struct Report {
     pub map_accuracy: Option<MapAccuracy>,
     /// With drift: the believed pose's position and yaw error at the end, metres and radians.
     pub final_drift: Option<[f32; 2]>,
+    /// The true path flown, a point every 5 cm, map frame.
+    pub trajectory: Vec<[f32; 3]>,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
+}
+
+/// A depth frame the planner integrated, with the camera pose it was integrated at.
+#[derive(Debug, Clone)]
+pub struct IntegratedFrame {
+    /// Depth, millimetres, row-major.
+    pub depth_mm: Vec<u16>,
+    /// Pinhole model.
+    pub intrinsics: harmonic_core::camera::Intrinsics,
+    /// Camera → map pose the planner used.
+    pub camera_pose: nalgebra::Isometry3<f32>,
+    /// The true camera pose (differs with drift).
+    pub true_pose: nalgebra::Isometry3<f32>,
+    /// Simulated time of the capture, s.
+    pub time_s: f64,
+}
+
+/// What an observer of [`run_observed`] sees after every step, and once more at the end.
+pub struct StepView<'a> {
+    /// Step number (0 for the view after the run).
+    pub step: u32,
+    /// True vehicle position and yaw.
+    pub vehicle: (Point3<f32>, f32),
+    /// The planner (map, labels, potential, waypoints of the last plan).
+    pub planner: &'a dyn Planner,
+    /// The step's record (`None` after the run).
+    pub record: Option<&'a StepRecord>,
+    /// Frames integrated this step.
+    pub frames: &'a [IntegratedFrame],
+    /// The vehicle positions at which the planner planned this step (for replaying the core's
+    /// body marking).
+    pub planned_at: Option<Point3<f32>>,
+    /// True once the run is over.
+    pub finished: bool,
 }
 
 /// Errors that stop a run.
@@ -423,7 +461,12 @@ struct Track {
     distance: f64,
     collisions: Vec<[f32; 3]>,
     colliding: bool,
+    /// True positions, one every [`TRACK_SAMPLE_M`] of flight.
+    path: Vec<[f32; 3]>,
 }
+
+/// Spacing of the recorded true path, metres.
+const TRACK_SAMPLE_M: f32 = 0.05;
 
 impl Track {
     fn start(world: &World, p: &Point3<f32>, radius: f32) -> Self {
@@ -431,11 +474,19 @@ impl Track {
             distance: 0.0,
             collisions: Vec::new(),
             colliding: world.sphere_collides(p, radius),
+            path: vec![p.coords.into()],
         }
     }
 
     fn moved(&mut self, world: &World, p: &Point3<f32>, radius: f32, distance: f32) {
         self.distance += f64::from(distance);
+        if self
+            .path
+            .last()
+            .is_none_or(|l| (Point3::from(*l) - p).norm() >= TRACK_SAMPLE_M)
+        {
+            self.path.push(p.coords.into());
+        }
         let now = world.sphere_collides(p, radius);
         if now && !self.colliding {
             self.collisions.push(p.coords.into());
@@ -771,7 +822,18 @@ fn make_planner<'s>(
 pub fn run(
     scenario: &Scenario,
     cfg: &SimConfig,
+    progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    run_observed(scenario, cfg, progress, |_| {})
+}
+
+/// [`run`], showing `observe` the planner and the frames after every step and at the end
+/// (figures, recordings and map exports read the run this way).
+pub fn run_observed(
+    scenario: &Scenario,
+    cfg: &SimConfig,
     mut progress: impl FnMut(&StepRecord),
+    mut observe: impl FnMut(&StepView<'_>),
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
     let geometry = scenario_geometry(scenario)?;
@@ -890,11 +952,19 @@ pub fn run(
         // Core side: integrate whatever arrived whole.
         let t0 = Instant::now();
         let mut integrated = 0u32;
+        let mut frames = Vec::new();
         for arrived in rig.link.take_arrived() {
             if let Some(frame) = arrived.frame() {
                 if planner.integrate(&frame, &arrived.camera_pose) {
                     integrated += 1;
                     rig.link.note_integrated();
+                    frames.push(IntegratedFrame {
+                        depth_mm: frame.depth_mm().to_vec(),
+                        intrinsics: *frame.intrinsics(),
+                        camera_pose: arrived.camera_pose,
+                        true_pose,
+                        time_s: rig.t_s,
+                    });
                 }
             }
         }
@@ -990,6 +1060,15 @@ pub fn run(
             path_length_m: track.distance,
         };
         progress(&record);
+        observe(&StepView {
+            step,
+            vehicle: (vehicle.position, vehicle.yaw),
+            planner: planner.as_ref(),
+            record: Some(&record),
+            frames: &frames,
+            planned_at: planned.then_some(position),
+            finished: false,
+        });
         steps.push(record);
 
         let Some(outcome) = outcome else {
@@ -1063,6 +1142,15 @@ pub fn run(
         m.finish().map_err(SimError::Mavlink)?;
     }
 
+    observe(&StepView {
+        step: 0,
+        vehicle: (vehicle.position, vehicle.yaw),
+        planner: planner.as_ref(),
+        record: None,
+        frames: &[],
+        planned_at: None,
+        finished: true,
+    });
     let status = *planner.status();
     let coverage: Coverage = truth.coverage(planner.map());
     let timing = Timing {
@@ -1099,6 +1187,7 @@ pub fn run(
         wall_time_s: wall.elapsed().as_secs_f64(),
         grid: [dims.nx(), dims.ny(), dims.nz()],
         resolution: geometry.resolution(),
+        grid_origin: geometry.origin().coords.into(),
         reachable_free_voxels: truth.reachable_free(),
         sealed_voxels: status.map.sealed,
         timing,
@@ -1112,6 +1201,7 @@ pub fn run(
             let (e, y) = d.error_at(&vehicle.position);
             [e, y]
         }),
+        trajectory: track.path,
         steps,
     })
 }
