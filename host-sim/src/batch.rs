@@ -12,7 +12,8 @@
 //!
 //! Outputs in the output directory: `runs.csv` (or `runs-shard-I-of-N.csv`), one row per run
 //! ([`RunRow`]); `curves.csv`, coverage against distance flown for every run; `results.md`, one
-//! table per scenario ([`markdown`]).
+//! table per scenario ([`markdown`]); `coverage_<scenario>.png`, the coverage curves of every
+//! planner ([`crate::figures::coverage_curves`]).
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -404,8 +405,21 @@ pub fn run(cfg: &BenchConfig, out: &Path, quiet: bool) -> Result<Vec<RunRow>, St
         let md = markdown(&rows);
         let md_path = out.join("results.md");
         std::fs::write(&md_path, md).map_err(|e| format!("{}: {e}", md_path.display()))?;
+        write_curve_figures(&curves_path, out)?;
     }
     Ok(rows)
+}
+
+/// `coverage_<scenario>.png` for every scenario of a curves file.
+fn write_curve_figures(curves_path: &Path, out: &Path) -> Result<(), String> {
+    let curves = read_curves(curves_path)?;
+    let mut scenarios: Vec<&str> = curves.iter().map(|c| c.scenario.as_str()).collect();
+    scenarios.sort_unstable();
+    scenarios.dedup();
+    for s in scenarios {
+        crate::figures::coverage_curves(&curves, s, &out.join(format!("coverage_{s}.png")))?;
+    }
+    Ok(())
 }
 
 fn planner_rank(name: &str) -> usize {
@@ -523,6 +537,7 @@ pub fn merge(inputs: &[PathBuf], out: &Path) -> Result<Vec<RunRow>, String> {
     write_csv(&out.join("runs.csv"), &rows)?;
     std::fs::write(out.join("curves.csv"), curves_text).map_err(|e| format!("{}: {e}", out.display()))?;
     std::fs::write(out.join("results.md"), markdown(&rows)).map_err(|e| format!("{}: {e}", out.display()))?;
+    write_curve_figures(&out.join("curves.csv"), out)?;
     Ok(rows)
 }
 

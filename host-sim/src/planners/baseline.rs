@@ -68,7 +68,7 @@ impl Default for GainParams {
         Self {
             candidate_fraction: 0.05,
             lambda: 0.2,
-            frontier_samples: 128,
+            frontier_samples: 64,
         }
     }
 }
@@ -362,17 +362,28 @@ impl<'a> Baseline<'a> {
         };
         let scale = frontier.len() as f32 / sample.len() as f32;
         let view = self.view();
+        let mut scored: Vec<(f32, usize)> = candidates
+            .iter()
+            .filter_map(|&c| self.search.distance(c).map(|l| (l * res, c)))
+            .collect();
+        if weighted {
+            // Nearest first: no candidate at path length L can score more than
+            // (all frontier voxels)·exp(−λL), so the search stops once that bound is beaten.
+            scored.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+        }
         let mut best: Option<(f32, f32, usize, Visible)> = None;
-        for &c in &candidates {
-            let Some(length) = self.search.distance(c) else {
-                continue;
-            };
+        for &(l, c) in &scored {
+            if weighted {
+                let bound = frontier.len() as f32 * (-self.gain.lambda * l).exp();
+                if best.as_ref().is_some_and(|(s, _, _, _)| bound <= *s) {
+                    break;
+                }
+            }
             let seen = visible_frontier(&self.map, &geometry.center(dims.voxel(c)), &sample, &view, steps);
             if seen.count == 0 {
                 continue;
             }
             let g = seen.count as f32 * scale;
-            let l = length * res;
             let score = if weighted {
                 g * (-self.gain.lambda * l).exp()
             } else {
