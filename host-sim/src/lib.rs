@@ -19,6 +19,7 @@ pub mod depth_link;
 pub mod fault;
 pub mod figures;
 pub mod flight;
+pub mod mesh;
 pub mod metrics;
 pub mod npy;
 pub mod planners;

@@ -20,7 +20,19 @@
 //! max = [6.0, 8.0, 0.1]
 //! label = "floor slab"        # optional, for people reading the file
 //! textureless = false         # optional: stereo finds no depth on it (`explore --textureless`)
+//!
+//! [[mesh]]                    # a triangle mesh: Wavefront OBJ or STL (binary or ASCII)
+//! file = "models/chair.obj"   # relative to this file's directory
+//! scale = 0.01                # optional: a number or [sx, sy, sz] (e.g. centimetres → metres)
+//! rotate_z_deg = 90.0         # optional: about the map's z axis, after scaling
+//! translate = [2.0, 3.0, 0.1] # optional: after rotating
+//! fill = true                 # optional (default true): interiors of closed surfaces are solid
+//! textureless = false         # optional
 //! ```
+//!
+//! Meshes are ray cast exactly by the camera (a BVH over the triangles) and voxelised on the
+//! scenario grid for coverage: surface voxels and, with `fill`, the inside of closed surfaces
+//! (see [`crate::mesh`]).
 //!
 //! Unknown keys are errors. Every error is one line naming the file and the place: the TOML
 //! line and column for syntax and type errors (`office.toml:12:1: unknown field ...`), the item
@@ -326,6 +338,37 @@ struct ScenarioFile {
     start: StartFile,
     #[serde(rename = "box", default)]
     boxes: Vec<Spanned<BoxFile>>,
+    #[serde(rename = "mesh", default)]
+    meshes: Vec<Spanned<MeshFile>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MeshFile {
+    file: String,
+    #[serde(default)]
+    scale: Option<ScaleFile>,
+    #[serde(default)]
+    rotate_z_deg: f32,
+    #[serde(default)]
+    translate: [f32; 3],
+    #[serde(default = "default_true")]
+    fill: bool,
+    #[serde(default)]
+    textureless: bool,
+    #[allow(dead_code)]
+    label: Option<String>,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum ScaleFile {
+    Uniform(f32),
+    PerAxis([f32; 3]),
 }
 
 #[derive(Debug, Deserialize)]
@@ -450,6 +493,49 @@ impl ScenarioFile {
         if textureless.iter().any(|&t| t) {
             world.textureless = textureless;
         }
+        let base = Path::new(origin).parent().filter(|p| p.exists());
+        for (index, spanned) in self.meshes.iter().enumerate() {
+            let m = spanned.get_ref();
+            let line = Some(line_column(text, spanned.span().start).0);
+            let location = format!("mesh[{index}]");
+            let scale = match m.scale {
+                None => [1.0; 3],
+                Some(ScaleFile::Uniform(s)) => [s; 3],
+                Some(ScaleFile::PerAxis(s)) => s,
+            };
+            if !scale.iter().all(|s| s.is_finite() && *s > 0.0)
+                || !m.translate.iter().all(|t| t.is_finite())
+                || !m.rotate_z_deg.is_finite()
+            {
+                return Err(invalid(
+                    &location,
+                    line,
+                    "scale must be positive, translate and rotate_z_deg finite".into(),
+                ));
+            }
+            let path = match base {
+                Some(b) if Path::new(&m.file).is_relative() => b.join(&m.file),
+                _ => Path::new(&m.file).to_path_buf(),
+            };
+            let mut mesh = crate::mesh::TriangleMesh::load(&path)
+                .map_err(|e| invalid(&location, line, format!("{}: {e}", path.display())))?;
+            mesh.transform(scale, m.rotate_z_deg.to_radians(), m.translate);
+            let source = format!(
+                "{} scale {scale:?} rotate_z {} translate {:?}",
+                path.display(),
+                m.rotate_z_deg,
+                m.translate
+            );
+            world
+                .meshes
+                .push(std::sync::Arc::new(crate::mesh::MeshObject::new(
+                    source,
+                    mesh,
+                    m.textureless,
+                    m.fill,
+                    (bounds.min, res, dims),
+                )));
+        }
 
         let p = self.start.position;
         if let Some(i) = (0..3).find(|&i| !p[i].is_finite()) {
@@ -473,6 +559,13 @@ impl ScenarioFile {
                 "start",
                 None,
                 format!("{p_text} is not inside the bounds with {START_CLEARANCE:?} m to spare"),
+            ));
+        }
+        if let Some(index) = world.first_mesh_within(&start, START_CLEARANCE) {
+            return Err(invalid(
+                "start",
+                None,
+                format!("{p_text} is within {START_CLEARANCE:?} m of mesh[{index}]"),
             ));
         }
         if let Some(index) = world.first_box_within(&start, START_CLEARANCE) {

@@ -132,6 +132,8 @@ pub struct World {
     /// Per box: a surface without texture, on which stereo matching finds no depth. Empty
     /// means none is.
     pub textureless: Vec<bool>,
+    /// Triangle-mesh obstacles (OBJ, STL), ray cast exactly and voxelised on the scenario grid.
+    pub meshes: Vec<std::sync::Arc<crate::mesh::MeshObject>>,
 }
 
 /// Where a ray first meets a surface.
@@ -151,6 +153,7 @@ impl World {
             bounds,
             boxes,
             textureless: Vec::new(),
+            meshes: Vec::new(),
         }
     }
 
@@ -177,12 +180,30 @@ impl World {
                 }
             }
         }
+        for m in &self.meshes {
+            if let Some(t) = m.bvh.raycast(&m.mesh, origin, dir, t_max) {
+                best = Some(Hit {
+                    t,
+                    textureless: m.textureless,
+                });
+                t_max = t;
+            }
+        }
         best
     }
 
-    /// True if the sphere intersects any box or is not entirely inside `bounds`.
+    /// Index of the first mesh closer than `radius` to `center` or enclosing it, if any.
+    pub fn first_mesh_within(&self, center: &Point3<f32>, radius: f32) -> Option<usize> {
+        self.meshes
+            .iter()
+            .position(|m| m.solid_at(center) || m.bvh.within(&m.mesh, center, radius))
+    }
+
+    /// True if the sphere intersects any box or mesh or is not entirely inside `bounds`.
     pub fn sphere_collides(&self, center: &Point3<f32>, radius: f32) -> bool {
-        self.first_box_within(center, radius).is_some() || !self.sphere_inside_bounds(center, radius)
+        self.first_box_within(center, radius).is_some()
+            || !self.sphere_inside_bounds(center, radius)
+            || self.first_mesh_within(center, radius).is_some()
     }
 
     /// True if the sphere lies entirely inside `bounds` (touching counts as inside).
@@ -209,10 +230,16 @@ impl World {
 
     /// True if the open cell `(min, max)` intersects the interior of any box by more than
     /// [`World::CELL_EPSILON`]: a box that only touches a face of the cell does not occupy it.
+    /// A mesh occupies the cell if its voxelisation (on the scenario grid, which the cell is
+    /// expected to be part of) marks the voxel at the cell's centre solid.
     pub fn cell_occupied(&self, min: &Point3<f32>, max: &Point3<f32>) -> bool {
         self.boxes
             .iter()
             .any(|b| b.overlaps_interior(min, max, Self::CELL_EPSILON))
+            || (!self.meshes.is_empty() && {
+                let c = nalgebra::center(min, max);
+                self.meshes.iter().any(|m| m.solid_at(&c))
+            })
     }
 
     /// Tolerance of [`World::cell_occupied`], metres: absorbs the rounding of grid-aligned

@@ -205,3 +205,111 @@ fn stereo_noise_no_longer_ends_exploration_early() {
     let raw_a = raw.map_accuracy.unwrap();
     assert!(a.observed_voxels > raw_a.observed_voxels, "{a:?} vs {raw_a:?}");
 }
+
+#[test]
+fn mesh_world_matches_the_same_world_built_from_boxes() {
+    use harmonic_sim::camera::{camera_pose, DepthCamera};
+    use harmonic_sim::metrics::GroundTruth;
+    use rand::SeedableRng;
+    let boxes = Scenario::load(fixture("two-rooms")).unwrap();
+    let meshes = Scenario::load(fixture("mesh-rooms")).unwrap();
+    assert!(meshes.world.boxes.is_empty() && meshes.world.meshes.len() == 2);
+    // Voxelised on the scenario grid, the OBJ and STL give exactly the boxes' voxels.
+    let g = sim::scenario_geometry(&boxes).unwrap();
+    let (a, b) = (
+        GroundTruth::new(&boxes.world, &g, &boxes.start_position),
+        GroundTruth::new(&meshes.world, &g, &meshes.start_position),
+    );
+    for i in 0..g.dims().len() {
+        assert_eq!(
+            a.is_occupied(i),
+            b.is_occupied(i),
+            "voxel {:?}",
+            g.dims().voxel(i)
+        );
+    }
+    assert_eq!(a.reachable_free(), b.reachable_free());
+    // The camera ray casts the triangles exactly: the same depth images, to the millimetre.
+    let cam = DepthCamera::default_thesis();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+    for (p, yaw) in [
+        ([1.2, 1.5, 1.0], 0.0f32),
+        ([3.0, 0.8, 1.2], 2.0),
+        ([4.2, 2.4, 0.6], -2.5),
+    ] {
+        let pose = camera_pose(&nalgebra::Point3::from(p), yaw);
+        let (mut da, mut db) = (Vec::new(), Vec::new());
+        cam.render(&boxes.world, &pose, &mut rng, &mut da);
+        cam.render(&meshes.world, &pose, &mut rng, &mut db);
+        let worst = da.iter().zip(&db).map(|(x, y)| x.abs_diff(*y)).max().unwrap();
+        assert!(worst <= 1, "{worst} mm at {p:?}");
+    }
+    // And the whole exploration is the same.
+    let ra = sim::run(&boxes, &SimConfig::default(), |_| {}).unwrap();
+    let rb = sim::run(&meshes, &SimConfig::default(), |_| {}).unwrap();
+    assert_eq!(rb.termination, "complete");
+    assert!(
+        (ra.path_length_m - rb.path_length_m).abs() < 0.05,
+        "{} vs {}",
+        ra.path_length_m,
+        rb.path_length_m
+    );
+    assert_eq!(rb.collisions, 0);
+}
+
+/// Loads a 10⁶-triangle OBJ (a tessellated sphere in a room) and prints the time to parse it,
+/// build the hierarchy and voxelise it. `cargo test --release -p harmonic-tests --test
+/// evaluation -- --ignored --nocapture million`
+#[test]
+#[ignore]
+fn million_triangle_mesh_loads_in_seconds() {
+    let dir = temp_dir("million");
+    let (rings, segments) = (500usize, 1000usize);
+    let mut text = String::with_capacity(60_000_000);
+    let (c, r) = ([2.5f32, 2.5, 1.5], 1.0f32);
+    for i in 0..=rings {
+        let th = std::f32::consts::PI * i as f32 / rings as f32;
+        for j in 0..segments {
+            let ph = std::f32::consts::TAU * j as f32 / segments as f32;
+            text += &format!(
+                "v {} {} {}\n",
+                c[0] + r * th.sin() * ph.cos(),
+                c[1] + r * th.sin() * ph.sin(),
+                c[2] + r * th.cos()
+            );
+        }
+    }
+    for i in 0..rings {
+        for j in 0..segments {
+            let a = i * segments + j + 1;
+            let b = i * segments + (j + 1) % segments + 1;
+            text += &format!(
+                "f {a} {b} {}\nf {a} {} {}\n",
+                b + segments,
+                b + segments,
+                a + segments
+            );
+        }
+    }
+    std::fs::write(dir.join("sphere.obj"), &text).unwrap();
+    std::fs::write(
+        dir.join("world.toml"),
+        "name = \"million\"\nresolution = 0.1\n[bounds]\nmin = [0.0, 0.0, 0.0]\nmax = [5.0, 5.0, 3.0]\n[start]\nposition = [0.6, 0.6, 1.0]\nyaw_deg = 45.0\n[[mesh]]\nfile = \"sphere.obj\"\n",
+    )
+    .unwrap();
+    let t0 = std::time::Instant::now();
+    let s = Scenario::load(dir.join("world.toml")).unwrap();
+    let load = t0.elapsed();
+    let m = &s.world.meshes[0];
+    assert_eq!(m.mesh.triangles.len(), 2 * rings * segments);
+    let solid = m.solid.iter().filter(|&&v| v).count();
+    // A 1 m ball is about 4189 voxels of 0.1 m, plus the voxels its surface passes through.
+    assert!((4000..5600).contains(&solid), "{solid}");
+    println!(
+        "{} triangles ({} MB of OBJ): parsed, BVH built and voxelised in {:.2} s",
+        m.mesh.triangles.len(),
+        text.len() / 1_000_000,
+        load.as_secs_f64()
+    );
+    let _ = std::fs::remove_dir_all(dir);
+}
