@@ -124,7 +124,8 @@ pub struct DepthCamera {
     /// Stereo noise, or `None` for exact depth.
     pub noise: Option<StereoNoise>,
     /// Fraction of pixels (0–1) that return half their true depth: gross matching errors
-    /// (Gorodnichy's outlier scenario).
+    /// (Gorodnichy's outlier scenario). With stereo noise they enter the matcher's disparity
+    /// (twice the true one) before the pipeline's median filter.
     pub outliers: f32,
     /// Surfaces the world marks textureless return no depth (depth 0), as stereo finds no match
     /// on them.
@@ -177,7 +178,9 @@ impl DepthCamera {
         out.reserve(k.pixel_count());
         let rotation = camera_pose.rotation.to_rotation_matrix();
         let origin = Point3::from(camera_pose.translation.vector);
-        // Pass 1: true depth (NaN: no return), or the noisy disparity with stereo noise.
+        // Pass 1: true depth (NaN: no return), or with stereo the matcher's disparity: noisy,
+        // and for a fraction of pixels a gross mismatch at twice the disparity (half the depth).
+        // Outliers are drawn only when enabled, so exact runs stay reproducible.
         let mut values = Vec::with_capacity(k.pixel_count());
         for v in 0..height {
             for u in 0..width {
@@ -187,8 +190,11 @@ impl DepthCamera {
                 let value = match world.raycast_hit(&origin, &dir, RAYCAST_LIMIT_M) {
                     Some(hit) if !(self.textureless && hit.textureless) => {
                         let z = hit.t / norm;
+                        let outlier = self.outliers > 0.0 && rng.random::<f32>() < self.outliers;
                         match &self.noise {
+                            Some(noise) if outlier => noise.noisy_disparity(0.5 * z, k.fx(), rng),
                             Some(noise) => noise.noisy_disparity(z, k.fx(), rng),
+                            None if outlier => 0.5 * z,
                             None => z,
                         }
                     }
@@ -215,17 +221,11 @@ impl DepthCamera {
                     .collect()
             }
         };
-        // Pass 3: gross outliers (drawn only when enabled, so exact runs stay reproducible).
-        for z in depth {
-            let z = if z.is_nan() {
-                None
-            } else if self.outliers > 0.0 && rng.random::<f32>() < self.outliers {
-                Some(0.5 * z)
-            } else {
-                Some(z)
-            };
-            out.push(z.map_or(0, encode_depth_mm));
-        }
+        out.extend(
+            depth
+                .iter()
+                .map(|&z| if z.is_nan() { 0 } else { encode_depth_mm(z) }),
+        );
     }
 }
 
