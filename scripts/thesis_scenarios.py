@@ -79,7 +79,7 @@ class World:
             f"max = [{X:.1f}, {Y:.1f}, {Z:.1f}]",
             "",
             "[start]",
-            f"position = [{self.start[0]:.1f}, {self.start[1]:.1f}, {self.start[2]:.1f}]",
+            "position = [" + ", ".join(f"{c:g}" if round(c * 10) != c * 10 else f"{c:.1f}" for c in self.start) + "]",
             f"yaw_deg = {self.yaw:.1f}",
         ]
         section = None
@@ -136,7 +136,9 @@ the west and north walls, 3 m deep, on columns; the rest is open to the 4.9 m ro
    y=0 +-----------+-----------------------------+
       x=0        x=3                           x=10
 Upper level: bookshelves on the gallery, a balustrade 1 m high along its edge with a 1.2 m
-gap at the corner.""", (6.5, 3.0, 1.2), 120.0)
+gap at the corner. The start is a voxel centre: from (6.5, 3.0, 1.2), on voxel corners, the
+level camera leaves the voxels around the vehicle's body unobserved, and the core finds no safe
+neighbour to flood from (see docs/RESULTS.md).""", (6.55, 3.05, 1.25), 120.0)
     w.shell()
     w.sec("Gallery slab and columns")
     w.box("gallery slab, west", [0.2, 0.2, 2.4], [3.0, 9.8, 2.6])

@@ -408,6 +408,10 @@ struct ExploreArgs {
     /// Random seed for sensor noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Start from the random free pose this seed draws instead of the scenario's start (bench
+    /// run k is `--start-seed k --seed k`).
+    #[arg(long)]
+    start_seed: Option<u64>,
     /// Vehicle radius in metres: obstacles are inflated by this much for planning.
     #[arg(long, default_value_t = 0.2, value_parser = parse_radius)]
     vehicle_radius: f32,
@@ -617,7 +621,10 @@ fn main() -> ExitCode {
 }
 
 fn explore(args: ExploreArgs) -> Result<(), String> {
-    let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    let mut scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    if let Some(seed) = args.start_seed {
+        scenario = scenario.with_random_start(seed);
+    }
     let mut cfg = SimConfig::default();
     args.sensing.apply(&mut cfg);
     cfg.seed = args.seed;
