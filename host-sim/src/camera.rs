@@ -18,25 +18,33 @@ pub const RAYCAST_LIMIT_M: f32 = 60.0;
 /// Largest encodable depth, millimetres (`u16::MAX` is kept free as a sentinel).
 pub const MAX_DEPTH_MM: u16 = u16::MAX - 1;
 
-/// Stereo-matching noise: Gaussian disparity error, as a stereo depth camera has.
+/// Stereo-matching noise: Gaussian disparity error, as a stereo depth camera has, and the
+/// post-filter a stereo pipeline applies to it.
 ///
-/// Depth `z` corresponds to disparity `d = fx · baseline / z`; the sensor measures `d` with
-/// error `N(0, sigma_px)`, quantised to 1/16 px (sub-pixel resolution of common stereo
-/// matchers). Depth error therefore grows with `z²`, and far surfaces drop out.
+/// Depth `z` corresponds to disparity `d = fx · baseline / z`; the matcher measures `d` with
+/// independent error `N(0, sigma_px)` per pixel. The pipeline then takes the median of the
+/// valid disparities in a `filter_px` × `filter_px` window around each pixel (window
+/// aggregation and speckle filtering do this in real matchers — SAD windows of 7–21 px in the
+/// seed thesis; a 5 × 5 median cuts an independent error's σ about fourfold and keeps depth
+/// edges), and quantises to 1/16 px (sub-pixel resolution of common matchers). Depth error
+/// therefore grows with `z²`, and far surfaces drop out.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StereoNoise {
-    /// Standard deviation of the disparity error, pixels.
+    /// Standard deviation of the per-pixel disparity error, pixels.
     pub sigma_px: f32,
     /// Distance between the two stereo cameras, metres.
     pub baseline_m: f32,
+    /// Median window of the disparity post-filter, pixels (odd; 1 = none).
+    pub filter_px: u8,
 }
 
 impl Default for StereoNoise {
-    /// σ = 1 px, baseline 0.12 m.
+    /// σ = 1 px, baseline 0.12 m, 5 × 5 median.
     fn default() -> Self {
         Self {
             sigma_px: 1.0,
             baseline_m: 0.12,
+            filter_px: 5,
         }
     }
 }
@@ -47,13 +55,51 @@ impl StereoNoise {
     /// Disparity quantisation step, pixels.
     pub const DISPARITY_STEP_PX: f32 = 1.0 / 16.0;
 
+    /// Standard deviation of the disparity error after the median filter, pixels: σ·1.25/w
+    /// for a w × w window (the median of n normal samples has σ ≈ 1.25 σ / √n).
+    pub fn filtered_sigma_px(&self) -> f32 {
+        let w = f32::from(self.filter_px.max(1));
+        if w <= 1.0 {
+            self.sigma_px
+        } else {
+            self.sigma_px * 1.2533 / w
+        }
+    }
+
+    /// The depth up to which this sensor's returns can be trusted: where the depth error a
+    /// (filtered) disparity error causes, z²·σ / (fx·baseline), reaches `max_error_m`
+    /// (Matthies' advice, which the seed thesis follows: distrust small disparities).
+    /// Infinite for σ = 0.
+    pub fn trusted_range(&self, fx: f32, max_error_m: f32) -> f32 {
+        let sigma = self.filtered_sigma_px();
+        if sigma <= 0.0 {
+            return f32::INFINITY;
+        }
+        (max_error_m * fx * self.baseline_m / sigma).sqrt()
+    }
+
+    /// Standard deviation of the depth error at depth `z`, metres (first order, filtered).
+    pub fn depth_sigma(&self, z: f32, fx: f32) -> f32 {
+        z * z * self.filtered_sigma_px() / (fx * self.baseline_m)
+    }
+
+    /// The measured disparity (before filtering) of a surface at true depth `z`.
+    pub fn noisy_disparity(&self, z: f32, fx: f32, rng: &mut impl Rng) -> f32 {
+        fx * self.baseline_m / z + self.sigma_px * standard_normal(rng)
+    }
+
+    /// Depth of a filtered disparity: quantised to 1/16 px; `None` if too small for a return.
+    pub fn depth_of(&self, d: f32, fx: f32) -> Option<f32> {
+        let d = (d / Self::DISPARITY_STEP_PX).round() * Self::DISPARITY_STEP_PX;
+        (d > Self::MIN_DISPARITY_PX).then(|| fx * self.baseline_m / d)
+    }
+
     /// The noisy depth measured for a surface at true depth `z` (metres), or `None` if the
     /// noisy disparity is too small to give a return.
+    /// (One pixel, without the window filter.)
     pub fn perturb(&self, z: f32, fx: f32, rng: &mut impl Rng) -> Option<f32> {
-        let fb = fx * self.baseline_m;
-        let d = fb / z + self.sigma_px * standard_normal(rng);
-        let d = (d / Self::DISPARITY_STEP_PX).round() * Self::DISPARITY_STEP_PX;
-        (d > Self::MIN_DISPARITY_PX).then(|| fb / d)
+        let d = self.noisy_disparity(z, fx, rng);
+        self.depth_of(d, fx)
     }
 }
 
@@ -77,6 +123,13 @@ pub struct DepthCamera {
     pub max_range: f32,
     /// Stereo noise, or `None` for exact depth.
     pub noise: Option<StereoNoise>,
+    /// Fraction of pixels (0–1) that return half their true depth: gross matching errors
+    /// (Gorodnichy's outlier scenario). With stereo noise they enter the matcher's disparity
+    /// (twice the true one) before the pipeline's median filter.
+    pub outliers: f32,
+    /// Surfaces the world marks textureless return no depth (depth 0), as stereo finds no match
+    /// on them.
+    pub textureless: bool,
 }
 
 impl DepthCamera {
@@ -90,7 +143,14 @@ impl DepthCamera {
             min_range: 0.3,
             max_range: 10.0,
             noise: None,
+            outliers: 0.0,
+            textureless: false,
         }
+    }
+
+    /// True if the camera renders exact depth (no noise, outliers or textureless surfaces).
+    pub fn is_exact(&self) -> bool {
+        self.noise.is_none() && self.outliers <= 0.0 && !self.textureless
     }
 
     /// The same camera with the given noise model.
@@ -118,22 +178,88 @@ impl DepthCamera {
         out.reserve(k.pixel_count());
         let rotation = camera_pose.rotation.to_rotation_matrix();
         let origin = Point3::from(camera_pose.translation.vector);
+        // Pass 1: true depth (NaN: no return), or with stereo the matcher's disparity: noisy,
+        // and for a fraction of pixels a gross mismatch at twice the disparity (half the depth).
+        // Outliers are drawn only when enabled, so exact runs stay reproducible.
+        let mut values = Vec::with_capacity(k.pixel_count());
         for v in 0..height {
             for u in 0..width {
                 let ray_cam = k.ray(u, v);
                 let norm = ray_cam.norm();
                 let dir = rotation * (ray_cam / norm);
-                let depth = world.raycast(&origin, &dir, RAYCAST_LIMIT_M).and_then(|t| {
-                    let z = t / norm;
-                    match &self.noise {
-                        Some(noise) => noise.perturb(z, k.fx(), rng),
-                        None => Some(z),
+                let value = match world.raycast_hit(&origin, &dir, RAYCAST_LIMIT_M) {
+                    Some(hit) if !(self.textureless && hit.textureless) => {
+                        let z = hit.t / norm;
+                        let outlier = self.outliers > 0.0 && rng.random::<f32>() < self.outliers;
+                        match &self.noise {
+                            Some(noise) if outlier => noise.noisy_disparity(0.5 * z, k.fx(), rng),
+                            Some(noise) => noise.noisy_disparity(z, k.fx(), rng),
+                            None if outlier => 0.5 * z,
+                            None => z,
+                        }
                     }
-                });
-                out.push(depth.map_or(0, encode_depth_mm));
+                    _ => f32::NAN,
+                };
+                values.push(value);
             }
         }
+        // Pass 2: the stereo pipeline's median filter, then disparity → depth.
+        let depth: Vec<f32> = match &self.noise {
+            None => values,
+            Some(noise) => {
+                let filtered =
+                    median_filter(&values, usize::from(width), usize::from(noise.filter_px.max(1)));
+                filtered
+                    .iter()
+                    .map(|&d| {
+                        if d.is_nan() {
+                            f32::NAN
+                        } else {
+                            noise.depth_of(d, k.fx()).unwrap_or(f32::NAN)
+                        }
+                    })
+                    .collect()
+            }
+        };
+        out.extend(
+            depth
+                .iter()
+                .map(|&z| if z.is_nan() { 0 } else { encode_depth_mm(z) }),
+        );
     }
+}
+
+/// Median of the valid (non-NaN) values in a `window` × `window` neighbourhood of every valid
+/// pixel; invalid pixels stay NaN. `window` 1 (or less) returns the input.
+pub fn median_filter(values: &[f32], width: usize, window: usize) -> Vec<f32> {
+    if window <= 1 || width == 0 {
+        return values.to_vec();
+    }
+    let height = values.len() / width;
+    let r = window / 2;
+    let mut out = Vec::with_capacity(values.len());
+    let mut buf = Vec::with_capacity(window * window);
+    for v in 0..height {
+        for u in 0..width {
+            let centre = values[v * width + u];
+            if centre.is_nan() {
+                out.push(f32::NAN);
+                continue;
+            }
+            buf.clear();
+            for y in v.saturating_sub(r)..(v + r + 1).min(height) {
+                for x in u.saturating_sub(r)..(u + r + 1).min(width) {
+                    let d = values[y * width + x];
+                    if !d.is_nan() {
+                        buf.push(d);
+                    }
+                }
+            }
+            buf.sort_by(f32::total_cmp);
+            out.push(buf[buf.len() / 2]);
+        }
+    }
+    out
 }
 
 /// Millimetres for a depth in metres: rounded up, at least 1 (0 means no return) and at most
@@ -267,6 +393,81 @@ mod tests {
             .filter(|_| noise.perturb(100.0, fx, &mut rng).is_none())
             .count();
         assert!(dropped > n / 2, "{dropped}");
+    }
+
+    #[test]
+    fn trusted_range_bounds_the_depth_error() {
+        let noise = StereoNoise::default();
+        let fx = DepthCamera::default_thesis().intrinsics.fx();
+        let r = noise.trusted_range(fx, 0.1);
+        assert!((noise.depth_sigma(r, fx) - 0.1).abs() < 1e-4, "{r}");
+        // σ = 1 px, 12 cm baseline, 65 px focal length, 5 × 5 median: 0.1 m of error at 1.8 m;
+        // without the filter at 0.9 m.
+        assert!((1.7..1.85).contains(&r), "{r}");
+        let raw = StereoNoise {
+            filter_px: 1,
+            ..noise
+        };
+        assert!((0.85..0.95).contains(&raw.trusted_range(fx, 0.1)));
+        let exact = StereoNoise {
+            sigma_px: 0.0,
+            ..noise
+        };
+        assert!(exact.trusted_range(fx, 0.2).is_infinite());
+    }
+
+    #[test]
+    fn median_filter_cuts_the_depth_noise() {
+        let pose = camera_pose(&Point3::new(1.0, 0.0, 1.0), 0.0);
+        let spread = |filter_px: u8| {
+            let cam = DepthCamera::default_thesis().with_noise(Some(StereoNoise {
+                filter_px,
+                ..StereoNoise::default()
+            }));
+            let mut depth = Vec::new();
+            cam.render(
+                &wall_ahead(),
+                &pose,
+                &mut ChaCha8Rng::seed_from_u64(5),
+                &mut depth,
+            );
+            let z: Vec<f64> = depth
+                .iter()
+                .filter(|&&d| d > 0)
+                .map(|&d| f64::from(d) / 1000.0)
+                .collect();
+            let mean = z.iter().sum::<f64>() / z.len() as f64;
+            (z.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / z.len() as f64).sqrt()
+        };
+        let (raw, filtered) = (spread(1), spread(5));
+        // At 2 m: σ_z ≈ 0.5 m raw; the 5 × 5 median should cut it at least threefold.
+        assert!(raw > 0.3, "{raw}");
+        assert!(filtered < raw / 3.0, "{filtered} vs {raw}");
+    }
+
+    #[test]
+    fn outliers_return_half_the_depth_and_textureless_boxes_none() {
+        let mut cam = DepthCamera::default_thesis();
+        let pose = camera_pose(&Point3::new(1.0, 0.0, 1.0), 0.0);
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut depth = Vec::new();
+        cam.outliers = 0.25;
+        cam.render(&wall_ahead(), &pose, &mut rng, &mut depth);
+        let halves = depth.iter().filter(|&&d| d <= 1001).count();
+        let fulls = depth.iter().filter(|&&d| d >= 2000).count();
+        assert_eq!(halves + fulls, depth.len());
+        assert!((2000..3000).contains(&halves), "{halves}");
+        cam.outliers = 0.0;
+        let mut world = wall_ahead();
+        world.textureless = vec![true];
+        cam.render(&world, &pose, &mut rng, &mut depth);
+        assert!(
+            depth.iter().all(|&d| d >= 2000),
+            "textureless ignored unless enabled"
+        );
+        cam.textureless = true;
+        cam.render(&world, &pose, &mut rng, &mut depth);
+        assert!(depth.iter().all(|&d| d == 0));
     }
 
     #[test]

@@ -13,16 +13,22 @@
 #![warn(missing_docs)]
 
 pub mod autopilot;
+pub mod batch;
 pub mod bench;
 pub mod camera;
 pub mod depth_link;
 pub mod fault;
+pub mod figures;
 pub mod flight;
+pub mod mesh;
 pub mod metrics;
 pub mod npy;
 pub mod pil;
+pub mod planners;
 pub mod problem;
+pub mod record;
 pub mod scenario;
+pub mod sensing;
 pub mod sim;
 pub mod tlog;
 pub mod transport;

@@ -10,14 +10,19 @@ use harmonic_core::explore::SolverKind;
 use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
+use harmonic_sim::batch;
 use harmonic_sim::bench::{self, BenchSolver};
 use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::depth_link::{LinkConfig, DEFAULT_BAUD};
 use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
+use harmonic_sim::figures::{self, SliceSnapshot};
 use harmonic_sim::npy;
+use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::problem::{self, SolverChoice};
+use harmonic_sim::record::{self, MapSettings, Recorder};
 use harmonic_sim::scenario::{builtin_names, Scenario};
-use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::sensing::DriftConfig;
+use harmonic_sim::sim::{self, Report, SimConfig, StepView};
 use harmonic_sim::tlog;
 use harmonic_sim::transport::TransportSpec;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -50,6 +55,145 @@ enum Command {
     /// The firmware's budget: RAM and flash of the image, and instructions per phase measured
     /// under QEMU with -icount shift=0 on a processor-in-the-loop run (BENCHMARKS.md).
     FwBudget(FwBudgetArgs),
+    /// Run every planner on every scenario from the same random starts (parallel); write one
+    /// CSV row per run and the thesis-style tables. `bench merge` joins shards.
+    Bench(BenchArgs),
+    /// Integrate a recorded depth sequence (ours, or TUM RGB-D style) through the core and write
+    /// the map (map.npy labels, map.ply occupied voxel centres).
+    Replay(ReplayArgs),
+}
+
+#[derive(clap::Args)]
+struct ReplayArgs {
+    /// The sequence directory (depth.txt, groundtruth.txt, depth/*.png).
+    dir: PathBuf,
+    /// Output directory for map.npy and map.ply.
+    #[arg(long, default_value = "replay")]
+    out: PathBuf,
+    /// Intrinsics `fx,fy,cx,cy,width,height` (default: DIR/intrinsics.txt).
+    #[arg(long)]
+    intrinsics: Option<String>,
+    /// Depth units per metre in the PNGs: 1000 (ours, millimetres) or 5000 (TUM RGB-D).
+    #[arg(long, default_value_t = 1000.0, value_parser = parse_positive)]
+    depth_scale: f32,
+    /// Largest time difference (s) between a depth frame and the pose associated with it.
+    #[arg(long, default_value_t = 0.02, value_parser = parse_positive)]
+    max_time_difference: f32,
+}
+
+fn replay_sequence(args: &ReplayArgs) -> Result<(), String> {
+    let intrinsics = match &args.intrinsics {
+        Some(s) => Some(
+            record::parse_intrinsics(&s.split(',').map(|p| p.trim().to_string()).collect::<Vec<_>>())
+                .map_err(|e| format!("--intrinsics `{s}`: {e}"))?,
+        ),
+        None => None,
+    };
+    let cfg = record::ReplayConfig {
+        dir: args.dir.clone(),
+        intrinsics,
+        map: None,
+        depth_scale: args.depth_scale,
+        max_time_difference: f64::from(args.max_time_difference),
+    };
+    std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
+    let (npy_path, ply_path) = (args.out.join("map.npy"), args.out.join("map.ply"));
+    let summary = record::replay(&cfg, |map| {
+        figures::write_labels(map, &npy_path)?;
+        figures::write_ply(map, &ply_path)
+    })?;
+    println!("{}", serde_json::to_string(&summary).map_err(|e| e.to_string())?);
+    eprintln!(
+        "map: {} (labels), {} (occupied voxel centres)",
+        npy_path.display(),
+        ply_path.display()
+    );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+#[command(args_conflicts_with_subcommands = true)]
+struct BenchArgs {
+    #[command(subcommand)]
+    action: Option<BenchAction>,
+    /// `all` (the six thesis scenarios: s1, s2, kitchen, s4, apartment-thesis, garage) or
+    /// comma-separated built-in names or scenario files.
+    #[arg(long, default_value = "all")]
+    scenarios: String,
+    /// `all` or comma-separated planner names (see `explore --planner`).
+    #[arg(long, default_value = "all")]
+    planners: String,
+    /// Runs (random starts) per scenario and planner.
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..))]
+    runs: u32,
+    /// Seed of the first run; run k uses seed FIRST_SEED + k.
+    #[arg(long, default_value_t = 1)]
+    first_seed: u64,
+    /// Output directory (runs.csv, curves.csv, results.md, coverage_*.png).
+    #[arg(long, default_value = "results")]
+    out: PathBuf,
+    /// Run only shard I of N (jobs k with k mod N = I - 1), to split a sweep across machines.
+    #[arg(long, value_parser = batch::parse_shard)]
+    shard: Option<(usize, usize)>,
+    /// Worker threads (default: one per core).
+    #[arg(long, default_value_t = 0)]
+    jobs: usize,
+    /// Stop a run after this many scans.
+    #[arg(long, default_value_t = 3000)]
+    max_scans: u32,
+    /// Fly every path to its end before the next scan (the paper's mode).
+    #[arg(long)]
+    follow_full_path: bool,
+    #[command(flatten)]
+    sensing: SensingArgs,
+    /// No per-run progress lines.
+    #[arg(long)]
+    quiet: bool,
+}
+
+#[derive(Subcommand)]
+enum BenchAction {
+    /// Join the runs of several shard directories (or runs*.csv files) into one table.
+    Merge(MergeArgs),
+}
+
+#[derive(clap::Args)]
+struct MergeArgs {
+    /// Shard output directories or runs*.csv files.
+    #[arg(required = true)]
+    inputs: Vec<PathBuf>,
+    /// Where to write the joined runs.csv, curves.csv and results.md.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn bench_runs(args: &BenchArgs) -> Result<(), String> {
+    if let Some(BenchAction::Merge(m)) = &args.action {
+        let rows = batch::merge(&m.inputs, &m.out)?;
+        eprintln!("bench merge: {} runs into {}", rows.len(), m.out.display());
+        print!("{}", batch::markdown(&rows));
+        return Ok(());
+    }
+    let mut sim = SimConfig::default();
+    args.sensing.apply(&mut sim);
+    sim.max_scans = args.max_scans;
+    sim.follow_full_path = args.follow_full_path;
+    let planners = PlannerKind::parse_list(&args.planners).map_err(|e| format!("--planners: {e}"))?;
+    let cfg = batch::BenchConfig {
+        scenarios: batch::parse_scenarios(&args.scenarios)?,
+        planners,
+        runs: args.runs,
+        first_seed: args.first_seed,
+        shard: args.shard.unwrap_or((1, 1)),
+        jobs: args.jobs,
+        sim,
+    };
+    let rows = batch::run(&cfg, &args.out, args.quiet)?;
+    if cfg.shard.1 == 1 {
+        print!("{}", batch::markdown(&rows));
+    }
+    eprintln!("bench: {} runs; {}", rows.len(), args.out.display());
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -214,6 +358,69 @@ fn parse_dims(s: &str) -> Result<Dims, String> {
     }
 }
 
+/// Imperfect sensing, for `explore` and `bench`.
+#[derive(clap::Args, Clone)]
+struct SensingArgs {
+    /// Sensor noise model: `stereo` (σ = 1 px disparity noise per pixel, then the stereo
+    /// pipeline's 5 × 5 median), `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd median
+    /// window, 1 = unfiltered). The core then integrates depth only up to the range where the
+    /// depth error stays small (see `--trusted-range`).
+    #[arg(long, value_parser = parse_noise)]
+    noise: Option<StereoNoise>,
+    /// Range (m) up to which stereo depth is integrated; farther returns only clear free space
+    /// up to it. Default with `--noise`: where a 1σ (filtered) disparity error moves the depth
+    /// by 0.1 m (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered.
+    /// Without noise: the camera's 10 m.
+    #[arg(long, value_parser = parse_positive)]
+    trusted_range: Option<f32>,
+    /// Fraction of pixels (0-1) that return half their true depth (gross matching errors).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    outliers: f64,
+    /// Boxes the scenario marks `textureless = true` return no depth.
+    #[arg(long)]
+    textureless: bool,
+    /// Pose drift: random walk per keyframe, `SIGMA_POS_M,SIGMA_YAW_RAD` (e.g. 0.1,0.015).
+    #[arg(long, value_parser = parse_drift)]
+    drift: Option<DriftConfig>,
+}
+
+/// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera.
+const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
+
+impl SensingArgs {
+    fn apply(&self, cfg: &mut SimConfig) {
+        cfg.camera = cfg.camera.with_noise(self.noise);
+        cfg.camera.outliers = self.outliers as f32;
+        cfg.camera.textureless = self.textureless;
+        cfg.drift = self.drift;
+        let fx = cfg.camera.intrinsics.fx();
+        let range = match (self.trusted_range, self.noise) {
+            (Some(r), _) => r,
+            (None, Some(n)) => n.trusted_range(fx, TRUSTED_DEPTH_ERROR_M),
+            (None, None) => cfg.camera.max_range,
+        };
+        cfg.explorer.integration.max_range = range
+            .min(cfg.camera.max_range)
+            .max(cfg.explorer.integration.min_range + 0.1);
+    }
+}
+
+fn parse_drift(s: &str) -> Result<DriftConfig, String> {
+    let bad = || format!("expected SIGMA_POS_M,SIGMA_YAW_RAD (two numbers >= 0), got `{s}`");
+    let (p, y) = s.split_once(',').ok_or_else(bad)?;
+    let (p, y): (f32, f32) = (
+        p.trim().parse().map_err(|_| bad())?,
+        y.trim().parse().map_err(|_| bad())?,
+    );
+    if !(p.is_finite() && y.is_finite() && p >= 0.0 && y >= 0.0) {
+        return Err(bad());
+    }
+    Ok(DriftConfig {
+        sigma_position_m: p,
+        sigma_yaw_rad: y,
+    })
+}
+
 #[derive(clap::Args)]
 struct ExploreArgs {
     /// A built-in scenario name (see `harmonic-sim scenarios`) or a path to a scenario .toml file.
@@ -222,12 +429,15 @@ struct ExploreArgs {
     /// Output directory for report.json (created if missing).
     #[arg(long, default_value = "out")]
     out: PathBuf,
-    /// Sensor noise model: `stereo` (σ = 1 px disparity noise) or `stereo:SIGMA_PX`.
-    #[arg(long, value_parser = parse_noise)]
-    noise: Option<StereoNoise>,
+    #[command(flatten)]
+    sensing: SensingArgs,
     /// Random seed for sensor noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Start from the random free pose this seed draws instead of the scenario's start (bench
+    /// run k is `--start-seed k --seed k`).
+    #[arg(long)]
+    start_seed: Option<u64>,
     /// Vehicle radius in metres: obstacles are inflated by this much for planning.
     #[arg(long, default_value_t = 0.2, value_parser = parse_radius)]
     vehicle_radius: f32,
@@ -249,7 +459,17 @@ struct ExploreArgs {
     /// Stop after this many scans.
     #[arg(long, default_value_t = 3000)]
     max_scans: u32,
-    /// Laplace solver: `mg` (multigrid, default) or `gs` (the seed paper's Gauss-Seidel).
+    /// Scans at evenly spaced headings, turning on the spot, before the first plan (0: plan
+    /// after the first scan).
+    #[arg(long, default_value_t = 4)]
+    look_around: u32,
+    /// Planner: `harmonic` (the core, multigrid; default), `harmonic-gs` (the core with the
+    /// seed paper's Gauss-Seidel), or a baseline: `closest-frontier`, `random-frontier`,
+    /// `info-gain`, `weighted-info-gain`.
+    #[arg(long, default_value = "harmonic", value_parser = PlannerKind::from_str)]
+    planner: PlannerKind,
+    /// Laplace solver of the harmonic planner: `mg` (multigrid, default) or `gs` (the seed
+    /// paper's Gauss-Seidel; the same as `--planner harmonic-gs`).
     #[arg(long, default_value = "mg", value_parser = ["mg", "gs"])]
     solver: String,
     /// Solver relative-residual tolerance.
@@ -306,6 +526,19 @@ struct ExploreArgs {
     /// With `--core qemu`: the QEMU binary.
     #[arg(long, default_value = "qemu-system-arm")]
     qemu: String,
+    /// Write figures into the output directory: slice.png (occupancy, φ, descent directions and
+    /// the chosen path in the horizontal slice through the vehicle), top_view.png (the flown path
+    /// over the final map) and coverage.png.
+    #[arg(long)]
+    figures: bool,
+    /// The step whose plan slice.png shows (the first full plan at or after it; default: a
+    /// third of the way through the run).
+    #[arg(long, requires = "figures")]
+    figure_step: Option<u32>,
+    /// Record every integrated depth frame and its pose in DIR, TUM RGB-D style (16-bit PNG in
+    /// mm, depth.txt, groundtruth.txt) for `harmonic-sim replay`.
+    #[arg(long)]
+    record: Option<PathBuf>,
     /// No progress bar.
     #[arg(long)]
     quiet: bool,
@@ -360,17 +593,15 @@ fn parse_radius(s: &str) -> Result<f32, String> {
 }
 
 fn parse_noise(s: &str) -> Result<StereoNoise, String> {
-    let (kind, sigma) = match s.split_once(':') {
-        Some((k, v)) => (k, Some(v)),
-        None => (s, None),
-    };
+    let mut parts = s.split(':');
+    let kind = parts.next().unwrap_or("");
     if kind != "stereo" {
         return Err(format!(
-            "unknown noise model `{kind}` (expected `stereo` or `stereo:SIGMA_PX`)"
+            "unknown noise model `{kind}` (expected `stereo`, `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX`)"
         ));
     }
     let mut noise = StereoNoise::default();
-    if let Some(v) = sigma {
+    if let Some(v) = parts.next() {
         noise.sigma_px = match v.parse::<f32>() {
             Ok(x) if x.is_finite() && x >= 0.0 => x,
             _ => {
@@ -379,6 +610,19 @@ fn parse_noise(s: &str) -> Result<StereoNoise, String> {
                 ))
             }
         };
+    }
+    if let Some(w) = parts.next() {
+        noise.filter_px = match w.parse::<u8>() {
+            Ok(x) if x % 2 == 1 && x <= 15 => x,
+            _ => {
+                return Err(format!(
+                    "bad median window `{w}` (expected an odd number of pixels from 1 to 15; 1 = no filter)"
+                ))
+            }
+        };
+    }
+    if parts.next().is_some() {
+        return Err(format!("`{s}`: too many fields (stereo[:SIGMA_PX[:FILTER_PX]])"));
     }
     Ok(noise)
 }
@@ -397,6 +641,8 @@ fn main() -> ExitCode {
         Command::Tlog(args) => summarize_tlog(&args),
         Command::LinkEcho(args) => link_echo(&args),
         Command::FwBudget(args) => fw_budget(&args),
+        Command::Bench(args) => bench_runs(&args),
+        Command::Replay(args) => replay_sequence(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -412,10 +658,14 @@ fn main() -> ExitCode {
 }
 
 fn explore(args: ExploreArgs) -> Result<(), String> {
-    let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    let mut scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    if let Some(seed) = args.start_seed {
+        scenario = scenario.with_random_start(seed);
+    }
     let mut cfg = SimConfig::default();
-    cfg.camera = cfg.camera.with_noise(args.noise);
+    args.sensing.apply(&mut cfg);
     cfg.seed = args.seed;
+    cfg.planner = args.planner;
     cfg.explorer.vehicle_radius = args.vehicle_radius;
     cfg.explorer.solve.tolerance = args.tol;
     cfg.explorer.solver = if args.solver == "gs" {
@@ -429,6 +679,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     cfg.max_speed = args.max_speed;
     cfg.max_yaw_rate = args.max_yaw_rate.to_radians();
     cfg.max_scans = args.max_scans;
+    cfg.look_around = args.look_around;
     cfg.dump_problem = args.dump_problem.clone();
     let (burst_rate, burst_len) = args.link_burst.unwrap_or((0.0, DEFAULT_BURST_LEN));
     cfg.link = LinkConfig {
@@ -490,6 +741,54 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
         bar.set_message(line);
         bar.tick();
     };
+    if args.core == "qemu" && (args.figures || args.record.is_some()) {
+        return Err("--figures and --record need --core host".into());
+    }
+    let geometry = sim::scenario_geometry(&scenario).map_err(|e| e.to_string())?;
+    let mut recorder = match &args.record {
+        Some(dir) => {
+            let lo = cfg.explorer.log_odds;
+            let settings = MapSettings {
+                origin: geometry.origin().coords.into(),
+                dims: [geometry.dims().nx(), geometry.dims().ny(), geometry.dims().nz()],
+                resolution: geometry.resolution(),
+                log_odds: [lo.hit, lo.miss, lo.min, lo.max],
+                min_range: cfg.explorer.integration.min_range,
+                max_range: cfg.explorer.integration.max_range,
+                vehicle_radius: cfg.explorer.vehicle_radius,
+            };
+            Some(Recorder::create(dir, &settings)?)
+        }
+        None => None,
+    };
+    let mut snapshots: Vec<SliceSnapshot> = Vec::new();
+    let mut observe_error: Option<String> = None;
+    let map_npy = args.out.join("map.npy");
+    let map_ply = args.out.join("map.ply");
+    let mut final_map_written = false;
+    let observe = |view: &StepView<'_>| {
+        if let Some(r) = recorder.as_mut() {
+            if let Err(e) = r.step(view) {
+                observe_error.get_or_insert(e);
+            }
+        }
+        if args.figures {
+            if let Some(s) = SliceSnapshot::capture(view) {
+                snapshots.push(s);
+            }
+        }
+        if view.finished {
+            let map = view.planner.map();
+            let written =
+                figures::write_labels(map, &map_npy).and_then(|()| figures::write_ply(map, &map_ply));
+            match written {
+                Ok(()) => final_map_written = true,
+                Err(e) => {
+                    observe_error.get_or_insert(e);
+                }
+            }
+        }
+    };
     let report = if args.core == "qemu" {
         let pil = harmonic_sim::pil::PilConfig {
             firmware: args.firmware.clone(),
@@ -498,10 +797,29 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
         };
         harmonic_sim::pil::run(&scenario, &cfg, &pil, on_step)
     } else {
-        sim::run(&scenario, &cfg, on_step)
+        sim::run_observed(&scenario, &cfg, on_step, observe)
     }
     .map_err(|e| e.to_string())?;
     bar.finish_and_clear();
+    if let Some(e) = observe_error {
+        return Err(e);
+    }
+    if let Some(r) = recorder {
+        let n = r.finish()?;
+        if let Some(dir) = &args.record {
+            println!("recorded {n} frames: {}", dir.display());
+        }
+    }
+    if final_map_written {
+        println!(
+            "map: {} (labels), {} (occupied voxel centres)",
+            map_npy.display(),
+            map_ply.display()
+        );
+    }
+    if args.figures {
+        write_run_figures(&report, &snapshots, args.figure_step, &args.out)?;
+    }
 
     let path = args.out.join("report.json");
     let json = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
@@ -685,6 +1003,62 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
     Ok(())
 }
 
+/// The slice (at `--figure-step`, else the full plan a third of the way through the run), the
+/// top view and the run's coverage curve.
+fn write_run_figures(
+    report: &Report,
+    snapshots: &[SliceSnapshot],
+    step: Option<u32>,
+    out: &std::path::Path,
+) -> Result<(), String> {
+    let target = step.unwrap_or(report.steps_taken / 3);
+    let snap = snapshots
+        .iter()
+        .find(|s| s.step >= target)
+        .or_else(|| snapshots.last());
+    let mut written = Vec::new();
+    if let Some(snap) = snap {
+        let p = out.join("slice.png");
+        figures::slice_figure(snap, &report.scenario, &p)?;
+        written.push(p);
+    }
+    let p = out.join("top_view.png");
+    // The top view draws the map from map.npy, exactly as exported.
+    let grid = npy::read_u8_file(out.join("map.npy")).map_err(|e| format!("map.npy: {e}"))?;
+    figures::top_view_labels(
+        &grid,
+        report.grid_origin,
+        report.resolution,
+        &report.trajectory,
+        &format!(
+            "{}, {}: {:.1} m flown, {:.1} % free coverage",
+            report.scenario,
+            report.planner,
+            report.path_length_m,
+            100.0 * report.coverage_free
+        ),
+        &p,
+    )?;
+    written.push(p);
+    let curve = batch::Curve {
+        scenario: report.scenario.clone(),
+        planner: report.planner.clone(),
+        seed: 0,
+        points: report
+            .steps
+            .iter()
+            .map(|s| (s.path_length_m, s.coverage_free))
+            .collect(),
+    };
+    let p = out.join("coverage.png");
+    figures::coverage_curves(&[curve], &report.scenario, &p)?;
+    written.push(p);
+    for p in written {
+        println!("figure: {}", p.display());
+    }
+    Ok(())
+}
+
 fn bench_solve(args: &BenchSolveArgs) {
     println!("| grid | unknowns | frontier | solver | start | iterations | residual | ms | cell updates |");
     println!("|---|---|---|---|---|---|---|---|---|");
@@ -753,10 +1127,15 @@ fn solver_label(s: BenchSolver) -> &'static str {
 }
 
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 13] = [
+    let rows: [(&str, String); 15] = [
         ("scenario", r.scenario.clone()),
+        ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
         ("coverage (free)", format!("{:.2} %", r.coverage_free * 100.0)),
+        (
+            "coverage (observed)",
+            format!("{:.2} %", r.coverage_observed * 100.0),
+        ),
         (
             "coverage (surface)",
             format!("{:.2} %", r.coverage_surface * 100.0),
@@ -784,6 +1163,22 @@ fn print_summary(r: &Report) {
         ("wall time", format!("{:.1} s", r.wall_time_s)),
     ];
     let mut rows = rows.to_vec();
+    if let Some(a) = &r.map_accuracy {
+        rows.push((
+            "map accuracy",
+            format!(
+                "{:.2} % of all voxels, {:.2} % of observed ones match the noise-free map ({} false occupied, {} false free); {} reachable free voxels held occupied",
+                100.0 * a.all_voxels,
+                100.0 * a.observed_voxels,
+                a.false_occupied,
+                a.false_free,
+                r.free_marked_occupied
+            ),
+        ));
+    }
+    if let Some([e, y]) = r.final_drift {
+        rows.push(("final drift", format!("{e:.2} m, {:.1}°", y.to_degrees())));
+    }
     let l = &r.link;
     rows.push((
         "depth link",

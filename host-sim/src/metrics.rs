@@ -37,6 +37,9 @@ pub struct Coverage {
     pub surface: f64,
     /// Reachable free voxels the map holds as occupied (false obstacles).
     pub free_marked_occupied: usize,
+    /// Fraction of reachable free voxels the map has observed at all (free, occupied or
+    /// uncertain): how much was explored, whatever the sensor made of it.
+    pub observed: f64,
 }
 
 impl GroundTruth {
@@ -116,10 +119,13 @@ impl GroundTruth {
     /// Coverage of a map given as the occupancy of each voxel index (on the same grid): a map
     /// that lives elsewhere, say in the firmware of a processor-in-the-loop run.
     pub fn coverage_of(&self, occupancy: impl Fn(usize) -> Occupancy) -> Coverage {
-        let (mut free_seen, mut surf_seen, mut false_occ) = (0usize, 0usize, 0usize);
+        let (mut free_seen, mut surf_seen, mut false_occ, mut observed) = (0usize, 0usize, 0usize, 0usize);
         for i in 0..self.reachable.len() {
             let occ = occupancy(i);
             if self.reachable[i] {
+                if occ != Occupancy::Unknown {
+                    observed += 1;
+                }
                 match occ {
                     Occupancy::Free => free_seen += 1,
                     Occupancy::Occupied => false_occ += 1,
@@ -135,6 +141,7 @@ impl GroundTruth {
             free: frac(free_seen, self.reachable_count),
             surface: frac(surf_seen, self.surface_count),
             free_marked_occupied: false_occ,
+            observed: frac(observed, self.reachable_count),
         }
     }
 }
@@ -175,6 +182,9 @@ mod tests {
             }
         }
         let c = t.coverage(&map);
-        assert_eq!((c.free, c.surface, c.free_marked_occupied), (1.0, 1.0, 0));
+        assert_eq!(
+            (c.free, c.surface, c.free_marked_occupied, c.observed),
+            (1.0, 1.0, 0, 1.0)
+        );
     }
 }

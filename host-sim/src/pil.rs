@@ -628,6 +628,7 @@ pub fn run(
         termination,
         coverage_free: coverage.free,
         coverage_surface: coverage.surface,
+        coverage_observed: coverage.observed,
         free_marked_occupied: coverage.free_marked_occupied,
         path_length_m: path,
         scans: last.frames,
@@ -645,6 +646,10 @@ pub fn run(
         errors,
         link,
         steps_taken: steps.len() as u32,
+        grid_origin: geometry.origin().coords.into(),
+        map_accuracy: None,
+        final_drift: None,
+        trajectory: Vec::new(),
         mavlink: Some(MavlinkReport {
             endpoint: "emulator (qemu uart1)".into(),
             traffic: TrafficReport::default(),

@@ -19,7 +19,20 @@
 //! min = [0.0, 0.0, 0.0]
 //! max = [6.0, 8.0, 0.1]
 //! label = "floor slab"        # optional, for people reading the file
+//! textureless = false         # optional: stereo finds no depth on it (`explore --textureless`)
+//!
+//! [[mesh]]                    # a triangle mesh: Wavefront OBJ or STL (binary or ASCII)
+//! file = "models/chair.obj"   # relative to this file's directory
+//! scale = 0.01                # optional: a number or [sx, sy, sz] (e.g. centimetres → metres)
+//! rotate_z_deg = 90.0         # optional: about the map's z axis, after scaling
+//! translate = [2.0, 3.0, 0.1] # optional: after rotating
+//! fill = true                 # optional (default true): interiors of closed surfaces are solid
+//! textureless = false         # optional
 //! ```
+//!
+//! Meshes are ray cast exactly by the camera (a BVH over the triangles) and voxelised on the
+//! scenario grid for coverage: surface voxels and, with `fill`, the inside of closed surfaces
+//! (see [`crate::mesh`]).
 //!
 //! Unknown keys are errors. Every error is one line naming the file and the place: the TOML
 //! line and column for syntax and type errors (`office.toml:12:1: unknown field ...`), the item
@@ -54,13 +67,33 @@ pub const START_CLEARANCE: f32 = 0.3;
 /// How far (in voxels) a bounds extent may be from a whole number of voxels.
 const WHOLE_VOXEL_TOLERANCE: f32 = 1e-3;
 
-const BUILTIN_NAMES: [&str; 4] = ["apartment", "office", "two-level", "pil-small"];
-const BUILTIN_SOURCES: [&str; 4] = [
+const BUILTIN_NAMES: [&str; 10] = [
+    "apartment",
+    "office",
+    "two-level",
+    "s1",
+    "s2",
+    "kitchen",
+    "s4",
+    "apartment-thesis",
+    "garage",
+    "pil-small",
+];
+const BUILTIN_SOURCES: [&str; 10] = [
     include_str!("../scenarios/apartment.toml"),
     include_str!("../scenarios/office.toml"),
     include_str!("../scenarios/two-level.toml"),
+    include_str!("../scenarios/s1.toml"),
+    include_str!("../scenarios/s2.toml"),
+    include_str!("../scenarios/kitchen.toml"),
+    include_str!("../scenarios/s4.toml"),
+    include_str!("../scenarios/apartment-thesis.toml"),
+    include_str!("../scenarios/garage.toml"),
     include_str!("../scenarios/pil-small.toml"),
 ];
+
+/// The six scenarios of the seed thesis's comparison (Shade 2011, §6.5), in its order.
+pub const THESIS_SCENARIOS: [&str; 6] = ["s1", "s2", "kitchen", "s4", "apartment-thesis", "garage"];
 
 /// Names of the scenarios built into the simulator.
 pub fn builtin_names() -> &'static [&'static str] {
@@ -210,6 +243,79 @@ impl Scenario {
     pub fn name(&self) -> &str {
         &self.world.name
     }
+
+    /// The same scenario with a random start pose drawn from `seed`: a voxel centre at least
+    /// [`START_CLEARANCE`] from every obstacle and the bounds, in the space such positions
+    /// connect (through face neighbours) to the scenario's own start, drawn uniformly; the yaw
+    /// uniform in [−180°, 180°). The same seed always gives the same pose, so every planner of a
+    /// batch starts where the others did. If no such voxel exists the scenario is returned as is.
+    pub fn with_random_start(&self, seed: u64) -> Scenario {
+        use rand::{Rng, SeedableRng};
+        let [nx, ny, nz] = self.grid_dims();
+        let r = self.resolution;
+        let origin = self.world.bounds.min;
+        let centre = |x: usize, y: usize, z: usize| {
+            origin + nalgebra::Vector3::new(x as f32 + 0.5, y as f32 + 0.5, z as f32 + 0.5) * r
+        };
+        let index = |x: usize, y: usize, z: usize| x + nx * (y + ny * z);
+        let clear: Vec<bool> = (0..nx * ny * nz)
+            .map(|i| {
+                let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+                !self.world.sphere_collides(&centre(x, y, z), START_CLEARANCE)
+            })
+            .collect();
+        let g = (self.start_position - origin) / r;
+        let start = [g.x, g.y, g.z].map(|c| c.floor().max(0.0) as usize);
+        let (sx, sy, sz) = (start[0].min(nx - 1), start[1].min(ny - 1), start[2].min(nz - 1));
+        let mut reached = vec![false; clear.len()];
+        let mut stack = Vec::new();
+        if clear[index(sx, sy, sz)] {
+            reached[index(sx, sy, sz)] = true;
+            stack.push((sx, sy, sz));
+        }
+        let mut candidates = Vec::new();
+        while let Some((x, y, z)) = stack.pop() {
+            candidates.push((x, y, z));
+            let mut visit = |x: usize, y: usize, z: usize| {
+                let i = index(x, y, z);
+                if clear[i] && !reached[i] {
+                    reached[i] = true;
+                    stack.push((x, y, z));
+                }
+            };
+            if x > 0 {
+                visit(x - 1, y, z);
+            }
+            if x + 1 < nx {
+                visit(x + 1, y, z);
+            }
+            if y > 0 {
+                visit(x, y - 1, z);
+            }
+            if y + 1 < ny {
+                visit(x, y + 1, z);
+            }
+            if z > 0 {
+                visit(x, y, z - 1);
+            }
+            if z + 1 < nz {
+                visit(x, y, z + 1);
+            }
+        }
+        if candidates.is_empty() {
+            return self.clone();
+        }
+        // Sorted, so the draw does not depend on the fill order.
+        candidates.sort_unstable_by_key(|&(x, y, z)| index(x, y, z));
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let (x, y, z) = candidates[rng.random_range(0..candidates.len())];
+        let yaw_deg: f32 = rng.random_range(-180.0..180.0);
+        Scenario {
+            start_position: centre(x, y, z),
+            start_yaw: yaw_deg.to_radians(),
+            ..self.clone()
+        }
+    }
 }
 
 fn grid_dims(bounds: &Aabb, resolution: f32) -> [usize; 3] {
@@ -234,6 +340,37 @@ struct ScenarioFile {
     start: StartFile,
     #[serde(rename = "box", default)]
     boxes: Vec<Spanned<BoxFile>>,
+    #[serde(rename = "mesh", default)]
+    meshes: Vec<Spanned<MeshFile>>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MeshFile {
+    file: String,
+    #[serde(default)]
+    scale: Option<ScaleFile>,
+    #[serde(default)]
+    rotate_z_deg: f32,
+    #[serde(default)]
+    translate: [f32; 3],
+    #[serde(default = "default_true")]
+    fill: bool,
+    #[serde(default)]
+    textureless: bool,
+    #[allow(dead_code)]
+    label: Option<String>,
+}
+
+fn default_true() -> bool {
+    true
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(untagged)]
+enum ScaleFile {
+    Uniform(f32),
+    PerAxis([f32; 3]),
 }
 
 #[derive(Debug, Deserialize)]
@@ -258,6 +395,9 @@ struct BoxFile {
     // Read so that the key is allowed; it exists for people reading the file.
     #[allow(dead_code)]
     label: Option<String>,
+    /// No texture: a stereo camera finds no depth on it (`explore --textureless`).
+    #[serde(default)]
+    textureless: bool,
 }
 
 const AXES: [char; 3] = ['x', 'y', 'z'];
@@ -342,6 +482,7 @@ impl ScenarioFile {
         }
 
         let mut boxes = Vec::with_capacity(self.boxes.len());
+        let textureless: Vec<bool> = self.boxes.iter().map(|b| b.get_ref().textureless).collect();
         for (index, spanned) in self.boxes.iter().enumerate() {
             let b = spanned.get_ref();
             if let Some(problem) = box_problem(&b.min, &b.max) {
@@ -350,7 +491,53 @@ impl ScenarioFile {
             }
             boxes.push(Aabb::from_arrays(b.min, b.max));
         }
-        let world = World::new(self.name, bounds, boxes);
+        let mut world = World::new(self.name, bounds, boxes);
+        if textureless.iter().any(|&t| t) {
+            world.textureless = textureless;
+        }
+        let base = Path::new(origin).parent().filter(|p| p.exists());
+        for (index, spanned) in self.meshes.iter().enumerate() {
+            let m = spanned.get_ref();
+            let line = Some(line_column(text, spanned.span().start).0);
+            let location = format!("mesh[{index}]");
+            let scale = match m.scale {
+                None => [1.0; 3],
+                Some(ScaleFile::Uniform(s)) => [s; 3],
+                Some(ScaleFile::PerAxis(s)) => s,
+            };
+            if !scale.iter().all(|s| s.is_finite() && *s > 0.0)
+                || !m.translate.iter().all(|t| t.is_finite())
+                || !m.rotate_z_deg.is_finite()
+            {
+                return Err(invalid(
+                    &location,
+                    line,
+                    "scale must be positive, translate and rotate_z_deg finite".into(),
+                ));
+            }
+            let path = match base {
+                Some(b) if Path::new(&m.file).is_relative() => b.join(&m.file),
+                _ => Path::new(&m.file).to_path_buf(),
+            };
+            let mut mesh = crate::mesh::TriangleMesh::load(&path)
+                .map_err(|e| invalid(&location, line, format!("{}: {e}", path.display())))?;
+            mesh.transform(scale, m.rotate_z_deg.to_radians(), m.translate);
+            let source = format!(
+                "{} scale {scale:?} rotate_z {} translate {:?}",
+                path.display(),
+                m.rotate_z_deg,
+                m.translate
+            );
+            world
+                .meshes
+                .push(std::sync::Arc::new(crate::mesh::MeshObject::new(
+                    source,
+                    mesh,
+                    m.textureless,
+                    m.fill,
+                    (bounds.min, res, dims),
+                )));
+        }
 
         let p = self.start.position;
         if let Some(i) = (0..3).find(|&i| !p[i].is_finite()) {
@@ -374,6 +561,13 @@ impl ScenarioFile {
                 "start",
                 None,
                 format!("{p_text} is not inside the bounds with {START_CLEARANCE:?} m to spare"),
+            ));
+        }
+        if let Some(index) = world.first_mesh_within(&start, START_CLEARANCE) {
+            return Err(invalid(
+                "start",
+                None,
+                format!("{p_text} is within {START_CLEARANCE:?} m of mesh[{index}]"),
             ));
         }
         if let Some(index) = world.first_box_within(&start, START_CLEARANCE) {
@@ -428,6 +622,25 @@ max = [4, 3, 0.1]
         assert_eq!(s.world.boxes.len(), 1);
         assert!((s.start_yaw - std::f32::consts::FRAC_PI_2).abs() < 1e-6);
         assert_eq!(s.start_position, Point3::new(2.0, 1.5, 1.2));
+    }
+
+    #[test]
+    fn random_starts_are_clear_reproducible_and_spread() {
+        let s = Scenario::builtin("apartment-thesis").unwrap();
+        let a = s.with_random_start(7);
+        assert_eq!(a, s.with_random_start(7));
+        let starts: Vec<Scenario> = (1..=20).map(|seed| s.with_random_start(seed)).collect();
+        for t in &starts {
+            assert!(!t.world.sphere_collides(&t.start_position, START_CLEARANCE));
+            assert!((-std::f32::consts::PI..std::f32::consts::PI).contains(&t.start_yaw));
+            assert_eq!(t.world, s.world);
+        }
+        // Twenty draws over the whole apartment land in more than one room.
+        let rooms: std::collections::BTreeSet<(bool, bool)> = starts
+            .iter()
+            .map(|t| (t.start_position.x > 3.6, t.start_position.y > 4.5))
+            .collect();
+        assert!(rooms.len() >= 3, "{rooms:?}");
     }
 
     #[test]

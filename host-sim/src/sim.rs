@@ -34,7 +34,7 @@ use std::time::{Duration, Instant};
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{
-    forward_camera_pose, Clock, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
+    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
     SolverKind,
 };
 use harmonic_core::map::{self, Dims, MapGeometry};
@@ -48,7 +48,10 @@ use crate::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::camera::DepthCamera;
 use crate::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::metrics::{Coverage, GroundTruth};
+use crate::planners::baseline::Baseline;
+use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
 use crate::scenario::Scenario;
+use crate::sensing::{Drift, DriftConfig, MapAccuracy};
 use crate::world::World;
 
 /// Steps in a row without a depth frame after which the run gives up (`stuck:link`).
@@ -65,6 +68,9 @@ pub const REMOTE_STALL_S: f64 = 20.0;
 /// Simulation settings.
 #[derive(Debug, Clone)]
 pub struct SimConfig {
+    /// Which planner flies: the core's harmonic explorer (default) or a baseline.
+    /// [`PlannerKind::HarmonicGs`] overrides `explorer.solver` with Gauss-Seidel.
+    pub planner: PlannerKind,
     /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
     /// Depth camera.
@@ -83,8 +89,16 @@ pub struct SimConfig {
     pub follow_full_path: bool,
     /// Stop after this many steps (captures).
     pub max_scans: u32,
+    /// Scans at evenly spaced headings, turning on the spot, before the first plan (0 or 1:
+    /// plan after the first scan). Every planner starts the same way. Without it a start
+    /// whose first view leaves the vehicle's surroundings unobserved can end the run at once:
+    /// the vehicle's voxel is then the whole safe component, with no frontier, and the core
+    /// reports `complete`.
+    pub look_around: u32,
     /// Seed for sensor noise and link faults.
     pub seed: u64,
+    /// Random-walk drift of the believed pose per keyframe (not with MAVLink).
+    pub drift: Option<DriftConfig>,
     /// Write each full replan's problem (`step_NNNN.npy` labels and `step_NNNN.json` with the
     /// source voxel and the command that re-solves it) into this directory.
     pub dump_problem: Option<std::path::PathBuf>,
@@ -98,6 +112,7 @@ pub struct SimConfig {
 impl Default for SimConfig {
     fn default() -> Self {
         Self {
+            planner: PlannerKind::Harmonic,
             explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
             body_radius: 0.15,
@@ -107,7 +122,9 @@ impl Default for SimConfig {
             replan_distance: 1.0,
             follow_full_path: false,
             max_scans: 3000,
+            look_around: 4,
             seed: 1,
+            drift: None,
             dump_problem: None,
             link: LinkConfig::default(),
             mavlink: None,
@@ -211,6 +228,8 @@ pub struct Report {
     pub coverage_surface: f64,
     /// Reachable free voxels the map holds as occupied.
     pub free_marked_occupied: usize,
+    /// Reachable free voxels the map observed at all (free or not), fraction.
+    pub coverage_observed: f64,
     /// Path flown, metres.
     pub path_length_m: f64,
     /// Depth frames integrated.
@@ -234,6 +253,8 @@ pub struct Report {
     pub grid: [usize; 3],
     /// Voxel edge, metres.
     pub resolution: f32,
+    /// Minimum corner of voxel (0, 0, 0), map frame, metres.
+    pub grid_origin: [f32; 3],
     /// Reachable free voxels in the ground truth.
     pub reachable_free_voxels: usize,
     /// Unknown voxels sealed as unobservable at the end.
@@ -250,8 +271,49 @@ pub struct Report {
     pub mavlink: Option<MavlinkReport>,
     /// Processor-in-the-loop details; `None` unless the firmware flew ([`crate::pil`]).
     pub pil: Option<crate::pil::PilReport>,
+    /// With imperfect sensing (noise, outliers, textureless surfaces, drift): how closely the
+    /// map matches the noise-free map of the same run ([`crate::sensing`]).
+    pub map_accuracy: Option<MapAccuracy>,
+    /// With drift: the believed pose's position and yaw error at the end, metres and radians.
+    pub final_drift: Option<[f32; 2]>,
+    /// The true path flown, a point every 5 cm, map frame.
+    pub trajectory: Vec<[f32; 3]>,
     /// Per-step records.
     pub steps: Vec<StepRecord>,
+}
+
+/// A depth frame the planner integrated, with the camera pose it was integrated at.
+#[derive(Debug, Clone)]
+pub struct IntegratedFrame {
+    /// Depth, millimetres, row-major.
+    pub depth_mm: Vec<u16>,
+    /// Pinhole model.
+    pub intrinsics: harmonic_core::camera::Intrinsics,
+    /// Camera → map pose the planner used.
+    pub camera_pose: nalgebra::Isometry3<f32>,
+    /// The true camera pose (differs with drift).
+    pub true_pose: nalgebra::Isometry3<f32>,
+    /// Simulated time of the capture, s.
+    pub time_s: f64,
+}
+
+/// What an observer of [`run_observed`] sees after every step, and once more at the end.
+pub struct StepView<'a> {
+    /// Step number (0 for the view after the run).
+    pub step: u32,
+    /// True vehicle position and yaw.
+    pub vehicle: (Point3<f32>, f32),
+    /// The planner (map, labels, potential, waypoints of the last plan).
+    pub planner: &'a dyn Planner,
+    /// The step's record (`None` after the run).
+    pub record: Option<&'a StepRecord>,
+    /// Frames integrated this step.
+    pub frames: &'a [IntegratedFrame],
+    /// The vehicle positions at which the planner planned this step (for replaying the core's
+    /// body marking).
+    pub planned_at: Option<Point3<f32>>,
+    /// True once the run is over.
+    pub finished: bool,
 }
 
 /// Errors that stop a run.
@@ -337,15 +399,6 @@ pub fn scenario_geometry(scenario: &Scenario) -> Result<MapGeometry, SimError> {
         .map_err(|e| SimError::Grid(format!("{e:?}")))
 }
 
-/// Nanosecond host clock for the core's phase timing.
-struct HostClock(Instant);
-
-impl Clock for HostClock {
-    fn ticks(&mut self) -> u64 {
-        self.0.elapsed().as_nanos() as u64
-    }
-}
-
 fn ms(ns: u64) -> f64 {
     ns as f64 * 1e-6
 }
@@ -410,7 +463,12 @@ struct Track {
     distance: f64,
     collisions: Vec<[f32; 3]>,
     colliding: bool,
+    /// True positions, one every [`TRACK_SAMPLE_M`] of flight.
+    path: Vec<[f32; 3]>,
 }
+
+/// Spacing of the recorded true path, metres.
+const TRACK_SAMPLE_M: f32 = 0.05;
 
 impl Track {
     fn start(world: &World, p: &Point3<f32>, radius: f32) -> Self {
@@ -418,11 +476,19 @@ impl Track {
             distance: 0.0,
             collisions: Vec::new(),
             colliding: world.sphere_collides(p, radius),
+            path: vec![p.coords.into()],
         }
     }
 
     fn moved(&mut self, world: &World, p: &Point3<f32>, radius: f32, distance: f32) {
         self.distance += f64::from(distance);
+        if self
+            .path
+            .last()
+            .is_none_or(|l| (Point3::from(*l) - p).norm() >= TRACK_SAMPLE_M)
+        {
+            self.path.push(p.coords.into());
+        }
         let now = world.sphere_collides(p, radius);
         if now && !self.colliding {
             self.collisions.push(p.coords.into());
@@ -702,13 +768,13 @@ impl Rig<'_> {
 fn dump_problem(
     dir: &std::path::Path,
     step: u32,
-    explorer: &Explorer<'_>,
+    planner: &dyn Planner,
     position: &Point3<f32>,
     cfg: &SimConfig,
 ) -> Result<(), SimError> {
     let err = |e: std::io::Error| SimError::Dump(format!("{}: {e}", dir.display()));
     std::fs::create_dir_all(dir).map_err(err)?;
-    let map = explorer.map();
+    let map = planner.map();
     let grid = crate::problem::labels_from_map(map);
     let labels_path = dir.join(format!("step_{step:04}.npy"));
     std::fs::write(&labels_path, crate::npy::write_u8(&grid)).map_err(err)?;
@@ -731,18 +797,93 @@ fn dump_problem(
     Ok(())
 }
 
+/// The planner `cfg` asks for, over `storage`.
+fn make_planner<'s>(
+    cfg: &SimConfig,
+    geometry: MapGeometry,
+    storage: &'s mut HostStorage,
+) -> Result<Box<dyn Planner + 's>, SimError> {
+    let config_err = |e| SimError::Config(format!("{e:?}"));
+    Ok(match cfg.planner {
+        PlannerKind::Harmonic | PlannerKind::HarmonicGs => {
+            let mut explorer = cfg.explorer;
+            if cfg.planner == PlannerKind::HarmonicGs {
+                explorer.solver = SolverKind::GaussSeidel;
+            }
+            Box::new(HarmonicPlanner::new(
+                Explorer::new(geometry, explorer, storage.lend()).map_err(config_err)?,
+            ))
+        }
+        kind => Box::new(
+            Baseline::new(kind, geometry, cfg.explorer, storage.lend(), cfg.seed).map_err(config_err)?,
+        ),
+    })
+}
+
 /// Runs one exploration of `scenario` to termination. `progress` is called after every step.
 pub fn run(
     scenario: &Scenario,
     cfg: &SimConfig,
+    progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    run_observed(scenario, cfg, progress, |_| {})
+}
+
+/// [`run`], showing `observe` the planner and the frames after every step and at the end
+/// (figures, recordings and map exports read the run this way).
+pub fn run_observed(
+    scenario: &Scenario,
+    cfg: &SimConfig,
     mut progress: impl FnMut(&StepRecord),
+    mut observe: impl FnMut(&StepView<'_>),
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
     let geometry = scenario_geometry(scenario)?;
     let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
     let mut storage = HostStorage::new(&geometry.dims());
-    let mut explorer = Explorer::new(geometry, cfg.explorer, storage.lend())
-        .map_err(|e| SimError::Config(format!("{e:?}")))?;
+    let mut planner = make_planner(cfg, geometry, &mut storage)?;
+    if cfg.drift.is_some() && cfg.mavlink.is_some() {
+        return Err(SimError::Config("drift is simulated without MAVLink only".into()));
+    }
+    let mut drift = cfg.drift.map(|d| Drift::new(d, cfg.seed));
+    // The noise-free map of the same run, for the accuracy of maps made with imperfect sensing.
+    let measure_accuracy = !cfg.camera.is_exact() || drift.is_some();
+    let reference_len = if measure_accuracy {
+        geometry.dims().len()
+    } else {
+        1
+    };
+    let (mut ref_log_odds, mut ref_stamps) = (
+        vec![0i8; reference_len],
+        vec![0u32; map::touched_words(&geometry.dims()).max(1)],
+    );
+    let exact_camera = DepthCamera {
+        noise: None,
+        outliers: 0.0,
+        textureless: false,
+        ..cfg.camera
+    };
+    let reference_integration = harmonic_core::integrate::IntegrationParams {
+        max_range: cfg.camera.max_range,
+        ..cfg.explorer.integration
+    };
+    let stencil =
+        harmonic_core::domain::InflationStencil::new(cfg.explorer.vehicle_radius, geometry.resolution())
+            .map_err(|e| SimError::Config(format!("{e:?}")))?;
+    let mut reference = if measure_accuracy {
+        Some(
+            harmonic_core::map::VoxelMap::new(
+                geometry,
+                cfg.explorer.log_odds,
+                &mut ref_log_odds,
+                &mut ref_stamps,
+            )
+            .map_err(|e| SimError::Config(format!("{e:?}")))?,
+        )
+    } else {
+        None
+    };
+    let mut exact_depth = Vec::new();
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let mut vehicle = Vehicle {
         position: scenario.start_position,
@@ -768,7 +909,7 @@ pub fn run(
         dt: f64::from(cfg.dt),
         wall: remote.then(Instant::now),
     };
-    let mut clock = HostClock(Instant::now());
+    let mut clock = HostClock::new();
     let mut steps = Vec::new();
     let mut track = Track::start(world, &vehicle.position, cfg.body_radius);
     let mut consecutive_holds = 0u32;
@@ -794,11 +935,16 @@ pub fn run(
     }
 
     let mut taken = 0u32;
+    let mut looked = 0u32;
     for step in 1..=cfg.max_scans {
         taken = step;
         // The camera sees the world from where the vehicle truly is; the frame is stamped with
         // the pose the core believes.
         let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        let (position, yaw) = match &drift {
+            Some(d) => d.believed(&position, yaw),
+            None => (position, yaw),
+        };
         let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
         cfg.camera.render(world, &true_pose, &mut rng, &mut depth);
         let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
@@ -811,33 +957,74 @@ pub fn run(
         // Core side: integrate whatever arrived whole.
         let t0 = Instant::now();
         let mut integrated = 0u32;
+        let mut frames = Vec::new();
         for arrived in rig.link.take_arrived() {
             if let Some(frame) = arrived.frame() {
-                if explorer.integrate(&frame, &arrived.camera_pose).is_ok() {
+                if planner.integrate(&frame, &arrived.camera_pose) {
                     integrated += 1;
                     rig.link.note_integrated();
+                    frames.push(IntegratedFrame {
+                        depth_mm: frame.depth_mm().to_vec(),
+                        intrinsics: *frame.intrinsics(),
+                        camera_pose: arrived.camera_pose,
+                        true_pose,
+                        time_s: rig.t_s,
+                    });
                 }
             }
         }
         let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
+        if integrated > 0 {
+            if let Some(reference) = reference.as_mut() {
+                // The same view, noise-free, at the true pose.
+                exact_camera.render(world, &true_pose, &mut rng, &mut exact_depth);
+                if let Ok(frame) = DepthFrame::new(exact_camera.intrinsics, &exact_depth) {
+                    let _ = harmonic_core::integrate::integrate(
+                        reference,
+                        &frame,
+                        &true_pose,
+                        &reference_integration,
+                    );
+                }
+            }
+        }
 
         // Plan from where the vehicle is now (it may have drifted while the frame was sent).
         let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
-        let status_before = *explorer.status();
-        let outcome = if integrated > 0 {
+        let (position, yaw) = match &drift {
+            Some(d) => d.believed(&position, yaw),
+            None => (position, yaw),
+        };
+        if integrated > 0 {
+            if let Some(d) = drift.as_mut() {
+                d.keyframe(&position);
+            }
+        }
+        let status_before = *planner.status();
+        // Look around first: turn on the spot between the first scans, planning nothing.
+        let looking = integrated > 0 && looked + 1 < cfg.look_around;
+        let outcome = if looking {
+            looked += 1;
             steps_without_frame = 0;
-            Some(explorer.plan_timed(&position, yaw, &mut clock))
+            None
+        } else if integrated > 0 {
+            steps_without_frame = 0;
+            if let Some(reference) = reference.as_mut() {
+                crate::sensing::mark_body(reference, &stencil, &vehicle.position);
+            }
+            Some(planner.plan(&position, yaw, &mut clock))
         } else {
             steps_without_frame += 1;
             None
         };
-        let status = *explorer.status();
+        let status = *planner.status();
         let kept = status.plans_kept > status_before.plans_kept;
         if let (Some(dir), Some(_), false) = (&cfg.dump_problem, &outcome, kept) {
-            dump_problem(dir, step, &explorer, &position, cfg)?;
+            dump_problem(dir, step, planner.as_ref(), &position, cfg)?;
         }
-        let coverage = truth.coverage(explorer.map());
+        let coverage = truth.coverage(planner.map());
         let label = match outcome {
+            None if looking => "look_around".to_string(),
             None => "no_frame".to_string(),
             Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
             Some(PlanOutcome::Goal(_)) if kept => "kept".to_string(),
@@ -878,9 +1065,32 @@ pub fn run(
             path_length_m: track.distance,
         };
         progress(&record);
+        observe(&StepView {
+            step,
+            vehicle: (vehicle.position, vehicle.yaw),
+            planner: planner.as_ref(),
+            record: Some(&record),
+            frames: &frames,
+            planned_at: planned.then_some(position),
+            finished: false,
+        });
         steps.push(record);
 
         let Some(outcome) = outcome else {
+            if looking {
+                let turn = Goal {
+                    position,
+                    yaw: wrap_angle(yaw + std::f32::consts::TAU / cfg.look_around as f32),
+                    frontier: harmonic_core::map::VoxelIndex::new(0, 0, 0),
+                    escape: false,
+                };
+                if rig.mav.is_some() {
+                    rig.fly_mavlink(&mut vehicle, &[position], &turn, budget, &scene, &mut track)?;
+                } else {
+                    rig.fly_direct(&mut vehicle, &[], &turn, budget, &scene, &mut track)?;
+                }
+                continue;
+            }
             if steps_without_frame >= LINK_DEAD_STEPS {
                 termination = "stuck:link".into();
                 break;
@@ -909,7 +1119,17 @@ pub fn run(
             }
             PlanOutcome::Goal(goal) => {
                 consecutive_holds = 0;
-                let waypoints: Vec<Point3<f32>> = explorer.waypoints().to_vec();
+                let mut waypoints: Vec<Point3<f32>> = planner.waypoints().to_vec();
+                let mut goal = goal;
+                if let Some(d) = &drift {
+                    // The vehicle flies the plan in its believed frame: in the true world it
+                    // moves by the believed displacement.
+                    for w in waypoints.iter_mut() {
+                        *w = d.to_true(w);
+                    }
+                    goal.position = d.to_true(&goal.position);
+                    goal.yaw = d.to_true_yaw(goal.yaw);
+                }
                 if rig.mav.is_some() {
                     rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
                 } else {
@@ -927,8 +1147,17 @@ pub fn run(
         m.finish().map_err(SimError::Mavlink)?;
     }
 
-    let status = *explorer.status();
-    let coverage: Coverage = truth.coverage(explorer.map());
+    observe(&StepView {
+        step: 0,
+        vehicle: (vehicle.position, vehicle.yaw),
+        planner: planner.as_ref(),
+        record: None,
+        frames: &[],
+        planned_at: None,
+        finished: true,
+    });
+    let status = *planner.status();
+    let coverage: Coverage = truth.coverage(planner.map());
     let timing = Timing {
         integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
         domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
@@ -938,15 +1167,20 @@ pub fn run(
     let dims = geometry.dims();
     Ok(Report {
         scenario: scenario.world.name.clone(),
-        planner: "harmonic".into(),
-        solver: match cfg.explorer.solver {
-            SolverKind::Multigrid => "mg".into(),
-            SolverKind::GaussSeidel => "gs".into(),
+        planner: planner.kind().name().into(),
+        solver: match planner.kind() {
+            k if !k.is_harmonic() => "none".into(),
+            PlannerKind::HarmonicGs => "gs".into(),
+            _ => match cfg.explorer.solver {
+                SolverKind::Multigrid => "mg".into(),
+                SolverKind::GaussSeidel => "gs".into(),
+            },
         },
         termination,
         coverage_free: coverage.free,
         coverage_surface: coverage.surface,
         free_marked_occupied: coverage.free_marked_occupied,
+        coverage_observed: coverage.observed,
         path_length_m: track.distance,
         scans: status.frames,
         steps_taken: taken,
@@ -958,6 +1192,7 @@ pub fn run(
         wall_time_s: wall.elapsed().as_secs_f64(),
         grid: [dims.nx(), dims.ny(), dims.nz()],
         resolution: geometry.resolution(),
+        grid_origin: geometry.origin().coords.into(),
         reachable_free_voxels: truth.reachable_free(),
         sealed_voxels: status.map.sealed,
         timing,
@@ -965,6 +1200,14 @@ pub fn run(
         link: rig.link.report(),
         mavlink: rig.mav.as_ref().map(MavlinkLink::report),
         pil: None,
+        map_accuracy: reference
+            .as_ref()
+            .map(|r| crate::sensing::accuracy(planner.map(), r)),
+        final_drift: drift.as_ref().map(|d| {
+            let (e, y) = d.error_at(&vehicle.position);
+            [e, y]
+        }),
+        trajectory: track.path,
         steps,
     })
 }

@@ -129,39 +129,81 @@ pub struct World {
     pub bounds: Aabb,
     /// Solid obstacles: walls, slabs, furniture. They may touch or overlap.
     pub boxes: Vec<Aabb>,
+    /// Per box: a surface without texture, on which stereo matching finds no depth. Empty
+    /// means none is.
+    pub textureless: Vec<bool>,
+    /// Triangle-mesh obstacles (OBJ, STL), ray cast exactly and voxelised on the scenario grid.
+    pub meshes: Vec<std::sync::Arc<crate::mesh::MeshObject>>,
+}
+
+/// Where a ray first meets a surface.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the (unit) ray, metres.
+    pub t: f32,
+    /// The surface has no texture (stereo finds no depth on it).
+    pub textureless: bool,
 }
 
 impl World {
-    /// A world with the given name, bounds and obstacles.
+    /// A world with the given name, bounds and obstacles (all textured).
     pub fn new(name: impl Into<String>, bounds: Aabb, boxes: Vec<Aabb>) -> Self {
         Self {
             name: name.into(),
             bounds,
             boxes,
+            textureless: Vec::new(),
+            meshes: Vec::new(),
         }
     }
 
     /// Distance along the unit direction `dir` from `origin` to the first box surface it hits,
     /// or `None` if nothing is hit within `max_dist`. A ray starting inside a box hits at 0.
     pub fn raycast(&self, origin: &Point3<f32>, dir: &Vector3<f32>, max_dist: f32) -> Option<f32> {
+        self.raycast_hit(origin, dir, max_dist).map(|h| h.t)
+    }
+
+    /// [`World::raycast`], also telling whether the surface hit is textureless.
+    pub fn raycast_hit(&self, origin: &Point3<f32>, dir: &Vector3<f32>, max_dist: f32) -> Option<Hit> {
         let inv_dir = dir.map(|c| 1.0 / c);
-        let mut best: Option<f32> = None;
+        let mut best: Option<Hit> = None;
         let mut t_max = max_dist;
-        for b in &self.boxes {
+        for (i, b) in self.boxes.iter().enumerate() {
             if let Some(t) = b.ray_entry(origin, dir, &inv_dir, t_max) {
-                best = Some(t);
+                best = Some(Hit {
+                    t,
+                    textureless: self.textureless.get(i).copied().unwrap_or(false),
+                });
                 t_max = t;
                 if t == 0.0 {
                     break;
                 }
             }
         }
+        for m in &self.meshes {
+            if let Some(t) = m.bvh.raycast(&m.mesh, origin, dir, t_max) {
+                best = Some(Hit {
+                    t,
+                    textureless: m.textureless,
+                });
+                t_max = t;
+            }
+        }
         best
     }
 
-    /// True if the sphere intersects any box or is not entirely inside `bounds`.
+    /// Index of the first mesh closer than `radius` to `center` or enclosing it, if any.
+    pub fn first_mesh_within(&self, center: &Point3<f32>, radius: f32) -> Option<usize> {
+        self.meshes
+            .iter()
+            .position(|m| m.solid_at(center) || m.bvh.within(&m.mesh, center, radius))
+    }
+
+    /// True if the sphere intersects any box or mesh or is not entirely inside `bounds`.
     pub fn sphere_collides(&self, center: &Point3<f32>, radius: f32) -> bool {
-        self.first_box_within(center, radius).is_some() || !self.sphere_inside_bounds(center, radius)
+        self.first_box_within(center, radius).is_some()
+            || !self.sphere_inside_bounds(center, radius)
+            || self.first_mesh_within(center, radius).is_some()
     }
 
     /// True if the sphere lies entirely inside `bounds` (touching counts as inside).
@@ -188,10 +230,16 @@ impl World {
 
     /// True if the open cell `(min, max)` intersects the interior of any box by more than
     /// [`World::CELL_EPSILON`]: a box that only touches a face of the cell does not occupy it.
+    /// A mesh occupies the cell if its voxelisation (on the scenario grid, which the cell is
+    /// expected to be part of) marks the voxel at the cell's centre solid.
     pub fn cell_occupied(&self, min: &Point3<f32>, max: &Point3<f32>) -> bool {
         self.boxes
             .iter()
             .any(|b| b.overlaps_interior(min, max, Self::CELL_EPSILON))
+            || (!self.meshes.is_empty() && {
+                let c = nalgebra::center(min, max);
+                self.meshes.iter().any(|m| m.solid_at(&c))
+            })
     }
 
     /// Tolerance of [`World::cell_occupied`], metres: absorbs the rounding of grid-aligned

@@ -259,3 +259,32 @@ fn explore_records_a_tlog_that_the_tlog_command_reads_back() {
     );
     let _ = std::fs::remove_dir_all(dir);
 }
+
+#[test]
+fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
+    let one_line = |args: &[&str], needle: &str| {
+        let out = sim().args(args).output().unwrap();
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8(out.stderr).unwrap();
+        assert!(err.contains(needle), "{args:?}: {err}");
+        err
+    };
+    let err = one_line(
+        &["bench", "--planners", "closest-frontier,foo"],
+        "unknown planner `foo`",
+    );
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    let err = one_line(&["bench", "--scenarios", "s1,atlantis"], "atlantis");
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    one_line(&["bench", "--shard", "3/2"], "1 <= I <= N");
+    let err = one_line(
+        &["bench", "merge", "--out", "/tmp/unused", "/nonexistent-shard"],
+        "/nonexistent-shard",
+    );
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    let err = one_line(&["replay", "/nonexistent-recording"], "intrinsics");
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    one_line(&["explore", "--noise", "stereo:1:4"], "odd number");
+    one_line(&["explore", "--drift", "0.1"], "SIGMA_POS_M,SIGMA_YAW_RAD");
+    one_line(&["explore", "--planner", "greedy"], "unknown planner");
+}

@@ -1,0 +1,203 @@
+//! Exploration planners: the core's harmonic [`Explorer`] and the baselines of the seed thesis
+//! (Shade 2011, §6.5), behind one [`Planner`] interface so that the simulator flies all of them
+//! through the same map, camera, vehicle and run loop.
+//!
+//! | name | what it does |
+//! |---|---|
+//! | `harmonic` | the core's explorer with the multigrid solver (the default) |
+//! | `harmonic-gs` | the same with the seed paper's Gauss-Seidel solver |
+//! | `closest-frontier` | A* to the frontier with the shortest path (Yamauchi 1997) |
+//! | `random-frontier` | A* to a frontier drawn uniformly at random |
+//! | `info-gain` | the candidate pose that sees the most frontier voxels (Thrun's binary gain) |
+//! | `weighted-info-gain` | the candidate maximising g·exp(−λL), λ = 0.2 (González-Baños & Latombe) |
+//!
+//! The baselines ([`baseline`]) live on the host and use `std`, but they read the same map the
+//! core integrates into (the core's [`VoxelMap`] and [`integrate`](harmonic_core::integrate)),
+//! plan over the same inflated safe space (the labels of [`harmonic_core::domain::build`]: the
+//! vehicle's component of free space eroded by the vehicle radius; its frontier voxels are the
+//! harmonic planner's sinks) and end, like the core, when that space has no frontier left.
+//!
+//! "Planning ops" ([`Status::planning_ops`]) count each planner's elementary voxel operations:
+//! solver cell updates for the harmonic planners; search-node expansions plus voxels stepped by
+//! line-of-sight and visibility ray casts for the baselines.
+
+pub mod baseline;
+pub mod search;
+
+use std::fmt;
+use std::str::FromStr;
+use std::time::Instant;
+
+use harmonic_core::camera::DepthFrame;
+use harmonic_core::domain::Label;
+use harmonic_core::explore::{Clock, Explorer, PlanOutcome, SolverKind, Status};
+use harmonic_core::map::VoxelMap;
+use nalgebra::{Isometry3, Point3};
+
+/// The planners the simulator can fly.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum PlannerKind {
+    /// The core's harmonic explorer, multigrid solver.
+    Harmonic,
+    /// The core's harmonic explorer, Gauss-Seidel solver (the seed paper's).
+    HarmonicGs,
+    /// Closest frontier + A*.
+    ClosestFrontier,
+    /// Random frontier + A*.
+    RandomFrontier,
+    /// Information gain: most frontier voxels visible from a candidate pose.
+    InfoGain,
+    /// Information gain weighted by path length, g·exp(−λL).
+    WeightedInfoGain,
+}
+
+impl PlannerKind {
+    /// Every planner, in the order tables list them.
+    pub const ALL: [PlannerKind; 6] = [
+        PlannerKind::RandomFrontier,
+        PlannerKind::ClosestFrontier,
+        PlannerKind::InfoGain,
+        PlannerKind::WeightedInfoGain,
+        PlannerKind::HarmonicGs,
+        PlannerKind::Harmonic,
+    ];
+
+    /// The name `--planner` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            PlannerKind::Harmonic => "harmonic",
+            PlannerKind::HarmonicGs => "harmonic-gs",
+            PlannerKind::ClosestFrontier => "closest-frontier",
+            PlannerKind::RandomFrontier => "random-frontier",
+            PlannerKind::InfoGain => "info-gain",
+            PlannerKind::WeightedInfoGain => "weighted-info-gain",
+        }
+    }
+
+    /// True for the core's harmonic explorer (either solver).
+    pub fn is_harmonic(self) -> bool {
+        matches!(self, PlannerKind::Harmonic | PlannerKind::HarmonicGs)
+    }
+
+    /// Parses `all` or a comma-separated list of names (duplicates removed, order kept).
+    pub fn parse_list(s: &str) -> Result<Vec<PlannerKind>, String> {
+        if s.trim() == "all" {
+            return Ok(Self::ALL.to_vec());
+        }
+        let mut out = Vec::new();
+        for part in s.split(',') {
+            let k = part.trim().parse::<PlannerKind>()?;
+            if !out.contains(&k) {
+                out.push(k);
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl fmt::Display for PlannerKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for PlannerKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Self::ALL.into_iter().find(|k| k.name() == s).ok_or_else(|| {
+            let names: Vec<&str> = Self::ALL.iter().map(|k| k.name()).collect();
+            format!("unknown planner `{s}` (expected one of {})", names.join(", "))
+        })
+    }
+}
+
+/// Nanosecond host clock for per-phase timing (implements the core's [`Clock`]).
+pub struct HostClock(Instant);
+
+impl HostClock {
+    /// A clock starting now.
+    pub fn new() -> Self {
+        Self(Instant::now())
+    }
+}
+
+impl Default for HostClock {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Clock for HostClock {
+    fn ticks(&mut self) -> u64 {
+        self.0.elapsed().as_nanos() as u64
+    }
+}
+
+/// What the run loop asks of a planner: integrate frames, plan from a pose, and report.
+///
+/// Phase times in [`Status::phase_ticks`] are nanoseconds of a [`HostClock`]: for the harmonic
+/// planners domain / solve / streamline; for the baselines domain / search (A*, Dijkstra and
+/// the gain evaluation) / goal choice.
+pub trait Planner {
+    /// The planner's kind.
+    fn kind(&self) -> PlannerKind;
+    /// Integrates one depth frame taken from `camera_pose` (camera → map). False if the core
+    /// rejected it (counted in the status).
+    fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> bool;
+    /// Plans from the vehicle at `position` with heading `yaw`.
+    fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome;
+    /// Waypoints from the vehicle to the last goal, map frame.
+    fn waypoints(&self) -> &[Point3<f32>];
+    /// The occupancy map.
+    fn map(&self) -> &VoxelMap<'_>;
+    /// Status and counters (the core's [`Status`], filled the same way by every planner).
+    fn status(&self) -> &Status;
+    /// Domain labels of the last full plan.
+    fn labels(&self) -> &[Label];
+    /// The stored potential ψ = 1 − φ of the last plan (harmonic planners only).
+    fn potential(&self) -> Option<&[f32]> {
+        None
+    }
+}
+
+/// The core's explorer as a [`Planner`].
+pub struct HarmonicPlanner<'a> {
+    explorer: Explorer<'a>,
+}
+
+impl<'a> HarmonicPlanner<'a> {
+    /// Wraps an explorer.
+    pub fn new(explorer: Explorer<'a>) -> Self {
+        Self { explorer }
+    }
+}
+
+impl Planner for HarmonicPlanner<'_> {
+    fn kind(&self) -> PlannerKind {
+        match self.explorer.config().solver {
+            SolverKind::Multigrid => PlannerKind::Harmonic,
+            SolverKind::GaussSeidel => PlannerKind::HarmonicGs,
+        }
+    }
+    fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> bool {
+        self.explorer.integrate(frame, camera_pose).is_ok()
+    }
+    fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
+        self.explorer.plan_timed(position, yaw, clock)
+    }
+    fn waypoints(&self) -> &[Point3<f32>] {
+        self.explorer.waypoints()
+    }
+    fn map(&self) -> &VoxelMap<'_> {
+        self.explorer.map()
+    }
+    fn status(&self) -> &Status {
+        self.explorer.status()
+    }
+    fn labels(&self) -> &[Label] {
+        self.explorer.labels()
+    }
+    fn potential(&self) -> Option<&[f32]> {
+        Some(self.explorer.psi())
+    }
+}
