@@ -174,6 +174,8 @@ fn fake_autopilot(
 fn remote_run(spec: MavlinkSpec, steps: u32, tlog: Option<std::path::PathBuf>) -> Report {
     let cfg = SimConfig {
         max_scans: steps,
+        // No look-around turns at the start: these runs are short and must fly.
+        look_around: 1,
         mavlink: Some(MavlinkConfig {
             spec,
             tlog,
