@@ -181,7 +181,7 @@ pub fn build(
     if labels.len() < n || queue.is_empty() {
         return Err(DomainError::StorageTooSmall);
     }
-    let labels = &mut labels[..n];
+    let labels = labels.get_mut(..n).ok_or(DomainError::StorageTooSmall)?;
     let mut stats = DomainStats {
         free: safe_voxels(map, stencil, labels),
         ..Default::default()
@@ -345,7 +345,10 @@ impl Fill<'_> {
         let cap = self.queue.len();
         let Some(l) = labels.get_mut(i) else { return };
         if self.len < cap {
-            if let Some(slot) = self.queue.get_mut((self.head + self.len) % cap) {
+            // head < cap and len < cap, so one wrap is enough (and no division by cap).
+            let at = self.head + self.len;
+            let at = if at >= cap { at - cap } else { at };
+            if let Some(slot) = self.queue.get_mut(at) {
                 // Grid indices are below MAX_AXIS³ < 2³³; see Dims. Fits u32 for supported sizes.
                 *slot = i as u32;
             }
@@ -361,7 +364,10 @@ impl Fill<'_> {
             return None;
         }
         let i = self.queue.get(self.head).copied()?;
-        self.head = (self.head + 1) % self.queue.len();
+        self.head += 1;
+        if self.head >= self.queue.len() {
+            self.head = 0;
+        }
         self.len -= 1;
         Some(i as usize)
     }

@@ -348,8 +348,9 @@ impl<'a> Explorer<'a> {
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
-        let labels = &mut labels[..n];
-        let phi = &mut phi[..n];
+        let (Some(labels), Some(phi)) = (labels.get_mut(..n), phi.get_mut(..n)) else {
+            return Err(ConfigError::StorageTooSmall);
+        };
         labels.fill(Label::Outside);
         phi.fill(0.0);
         Ok(Self {

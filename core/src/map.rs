@@ -18,6 +18,8 @@
 //!
 //! Voxels are indexed `x + nx·(y + ny·z)`. The map frame is right-handed, z up, metres.
 
+use core::num::NonZeroUsize;
+
 use nalgebra::{Point3, Vector3};
 
 /// Fixed-point steps per unit of log-odds.
@@ -63,36 +65,36 @@ pub const FACE_OFFSETS: [[i32; 3]; 6] = [
 /// Grid dimensions, validated: every axis in `1..=MAX_AXIS`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Dims {
-    nx: usize,
-    ny: usize,
-    nz: usize,
+    // Non-zero by type, so `voxel`'s division and remainder cannot panic.
+    nx: NonZeroUsize,
+    ny: NonZeroUsize,
+    nz: NonZeroUsize,
 }
 
 impl Dims {
     /// Checked constructor.
     pub fn new(nx: usize, ny: usize, nz: usize) -> Result<Self, MapError> {
-        let ok = |n: usize| (1..=MAX_AXIS).contains(&n);
-        if ok(nx) && ok(ny) && ok(nz) {
-            Ok(Self { nx, ny, nz })
-        } else {
-            Err(MapError::BadDimensions)
+        let ok = |n: usize| NonZeroUsize::new(n).filter(|n| n.get() <= MAX_AXIS);
+        match (ok(nx), ok(ny), ok(nz)) {
+            (Some(nx), Some(ny), Some(nz)) => Ok(Self { nx, ny, nz }),
+            _ => Err(MapError::BadDimensions),
         }
     }
     /// Voxels along x.
     pub fn nx(&self) -> usize {
-        self.nx
+        self.nx.get()
     }
     /// Voxels along y.
     pub fn ny(&self) -> usize {
-        self.ny
+        self.ny.get()
     }
     /// Voxels along z.
     pub fn nz(&self) -> usize {
-        self.nz
+        self.nz.get()
     }
     /// Total number of voxels.
     pub fn len(&self) -> usize {
-        self.nx * self.ny * self.nz
+        self.nx() * self.ny() * self.nz()
     }
     /// Always false: a grid has at least one voxel.
     pub fn is_empty(&self) -> bool {
@@ -101,7 +103,7 @@ impl Dims {
     /// Linear index of a voxel that is known to be inside.
     #[inline]
     pub fn linear(&self, v: VoxelIndex) -> usize {
-        usize::from(v.x) + self.nx * (usize::from(v.y) + self.ny * usize::from(v.z))
+        usize::from(v.x) + self.nx() * (usize::from(v.y) + self.ny() * usize::from(v.z))
     }
     /// Voxel coordinates of a linear index (which must be `< len()`).
     #[inline]
@@ -115,7 +117,7 @@ impl Dims {
     #[inline]
     pub fn checked(&self, x: i32, y: i32, z: i32) -> Option<VoxelIndex> {
         let inside = |c: i32, n: usize| c >= 0 && (c as usize) < n;
-        if inside(x, self.nx) && inside(y, self.ny) && inside(z, self.nz) {
+        if inside(x, self.nx()) && inside(y, self.ny()) && inside(z, self.nz()) {
             Some(VoxelIndex::new(x as u16, y as u16, z as u16))
         } else {
             None
@@ -294,7 +296,7 @@ const OBSERVED_MIN: i8 = i8::MIN + 2;
 
 /// `u32` words of the per-frame "touched" bitset a grid of `dims` needs: one bit per voxel.
 pub const fn touched_words(dims: &Dims) -> usize {
-    (dims.nx * dims.ny * dims.nz).div_ceil(32)
+    (dims.nx.get() * dims.ny.get() * dims.nz.get()).div_ceil(32)
 }
 
 /// Counts of voxels by state.
@@ -334,13 +336,15 @@ impl<'a> VoxelMap<'a> {
         let dims = geometry.dims();
         let needed = dims.len();
         let words = touched_words(&dims);
-        for (got, needed) in [(log_odds.len(), needed), (touched.len(), words)] {
-            if got < needed {
-                return Err(MapError::StorageTooSmall { needed, got });
-            }
-        }
-        let log_odds = &mut log_odds[..needed];
-        let touched = &mut touched[..words];
+        let (log_odds_len, touched_len) = (log_odds.len(), touched.len());
+        let log_odds = log_odds.get_mut(..needed).ok_or(MapError::StorageTooSmall {
+            needed,
+            got: log_odds_len,
+        })?;
+        let touched = touched.get_mut(..words).ok_or(MapError::StorageTooSmall {
+            needed: words,
+            got: touched_len,
+        })?;
         log_odds.fill(UNKNOWN);
         touched.fill(0);
         Ok(Self {
@@ -376,8 +380,8 @@ impl<'a> VoxelMap<'a> {
     }
 
     fn apply(&mut self, i: usize, delta: i8) -> bool {
-        let bit = 1u32 << (i % 32);
-        let (Some(word), Some(lo)) = (self.touched.get_mut(i / 32), self.log_odds.get_mut(i)) else {
+        let bit = 1u32 << (i & 31);
+        let (Some(word), Some(lo)) = (self.touched.get_mut(i >> 5), self.log_odds.get_mut(i)) else {
             return false;
         };
         if *word & bit != 0 {

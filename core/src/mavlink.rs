@@ -1097,7 +1097,10 @@ impl InputWindow {
     /// Refills the (drained) window from the front of `input`; returns the bytes taken.
     fn fill(&mut self, input: &[u8]) -> usize {
         let n = input.len().min(INPUT_WINDOW);
-        self.bytes[..n].copy_from_slice(&input[..n]);
+        // n is within both lengths: both `get`s succeed (and their checks fold away).
+        if let (Some(window), Some(input)) = (self.bytes.get_mut(..n), input.get(..n)) {
+            window.copy_from_slice(input);
+        }
         self.start = 0;
         self.end = n;
         n
@@ -1112,7 +1115,9 @@ impl embedded_io::Read for InputWindow {
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
         let available = self.bytes.get(self.start..self.end).unwrap_or(&[]);
         let n = available.len().min(buf.len());
-        buf[..n].copy_from_slice(&available[..n]);
+        if let (Some(buf), Some(available)) = (buf.get_mut(..n), available.get(..n)) {
+            buf.copy_from_slice(available);
+        }
         self.start += n;
         Ok(n)
     }
