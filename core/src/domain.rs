@@ -390,8 +390,9 @@ fn safe_voxels(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Lab
 }
 
 /// The nearest safe voxel (by face-connected path through observed free space, inflated and
-/// fringe voxels included) to a vehicle that a new observation left in unsafe space, searching
-/// at most `max_visits` voxels. Overwrites `labels`.
+/// fringe voxels included) to a vehicle that a new observation left in unsafe space — inflated,
+/// or even an occupied voxel (a noisy return or a pose error put it there) — searching at most
+/// `max_visits` voxels. Overwrites `labels`.
 pub fn escape_target(
     map: &VoxelMap<'_>,
     stencil: &InflationStencil,
@@ -408,11 +409,9 @@ pub fn escape_target(
     }
     safe_voxels(map, stencil, labels);
     let start = dims.linear(vehicle);
-    match labels.get(start) {
-        Some(Label::Candidate) => return Some(vehicle),
-        // The vehicle is there, so an unknown start voxel is passable too.
-        _ if map.is_free(start) || map.is_unknown(start) => {}
-        _ => return None,
+    // The vehicle is there, so its voxel is passable whatever the map holds.
+    if labels.get(start) == Some(&Label::Candidate) {
+        return Some(vehicle);
     }
     // Walkable: free but unsafe. `Fill` marks what it has queued, so nothing is visited twice.
     let walkable = |l: Option<&Label>| matches!(l, Some(Label::Outside | Label::Fringe));

@@ -813,9 +813,18 @@ pub fn run(
         let mut integrated = 0u32;
         for arrived in rig.link.take_arrived() {
             if let Some(frame) = arrived.frame() {
-                if explorer.integrate(&frame, &arrived.camera_pose).is_ok() {
-                    integrated += 1;
-                    rig.link.note_integrated();
+                match explorer.integrate(&frame, &arrived.camera_pose) {
+                    Ok(_) => {
+                        integrated += 1;
+                        rig.link.note_integrated();
+                    }
+                    // Refused and counted by the core; over MAVLink the vehicle holds and the
+                    // fault goes out as a STATUSTEXT.
+                    Err(fault) => {
+                        if let Some(m) = rig.mav.as_mut() {
+                            m.bridge.apply(&PlanOutcome::Hold(fault));
+                        }
+                    }
                 }
             }
         }
