@@ -17,6 +17,7 @@ pub mod bench;
 pub mod camera;
 pub mod depth_link;
 pub mod fault;
+pub mod faults;
 pub mod flight;
 pub mod metrics;
 pub mod npy;

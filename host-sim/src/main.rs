@@ -50,6 +50,29 @@ enum Command {
     /// The firmware's budget: RAM and flash of the image, and instructions per phase measured
     /// under QEMU with -icount shift=0 on a processor-in-the-loop run (BENCHMARKS.md).
     FwBudget(FwBudgetArgs),
+    /// The fault campaign: explore a scenario once per cell of a matrix of injected faults
+    /// (link bit errors, frame loss, bursts, pose drift, sensor dropouts and outliers, a stale
+    /// pose stream) over MAVLink, and print completion, collisions and error counters per cell.
+    Faults(FaultsArgs),
+}
+
+#[derive(clap::Args)]
+struct FaultsArgs {
+    /// Built-in scenario name or path to a scenario TOML file.
+    #[arg(long, default_value = "apartment")]
+    scenario: String,
+    /// Output directory for faults.json and faults.md (created if missing).
+    #[arg(long, default_value = "out/faults")]
+    out: PathBuf,
+    /// Only the cells whose name contains one of these (comma-separated), e.g. `ber,stale`.
+    #[arg(long, value_delimiter = ',')]
+    cells: Vec<String>,
+    /// Stop each run after this many scans.
+    #[arg(long, default_value_t = 3000)]
+    max_scans: u32,
+    /// Random seed for sensor noise and injected faults.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
 }
 
 #[derive(clap::Args)]
@@ -397,6 +420,7 @@ fn main() -> ExitCode {
         Command::Tlog(args) => summarize_tlog(&args),
         Command::LinkEcho(args) => link_echo(&args),
         Command::FwBudget(args) => fw_budget(&args),
+        Command::Faults(args) => fault_campaign(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -508,6 +532,45 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     std::fs::write(&path, json).map_err(|e| format!("{}: {e}", path.display()))?;
     print_summary(&report);
     println!("report: {}", path.display());
+    Ok(())
+}
+
+fn fault_campaign(args: &FaultsArgs) -> Result<(), String> {
+    use harmonic_sim::faults;
+    let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    let cfg = SimConfig {
+        max_scans: args.max_scans,
+        seed: args.seed,
+        ..SimConfig::default()
+    };
+    let cells: Vec<_> = faults::default_matrix()
+        .into_iter()
+        .filter(|c| args.cells.is_empty() || args.cells.iter().any(|f| c.name.contains(f.as_str())))
+        .collect();
+    if cells.is_empty() {
+        return Err(format!("--cells {}: no cell matches", args.cells.join(",")));
+    }
+    std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
+    let total = cells.len();
+    let mut done = 0;
+    let results = faults::run(&scenario, &cfg, cells, |r| {
+        done += 1;
+        eprintln!(
+            "[{done}/{total}] {}: {}, {} collisions, {}/{} frames integrated",
+            r.cell.name, r.termination, r.collisions, r.frames_integrated, r.frames_sent
+        );
+    });
+    let table = faults::table(&results);
+    print!("{table}");
+    let json = serde_json::to_string_pretty(&results).map_err(|e| e.to_string())?;
+    for (name, text) in [("faults.json", json), ("faults.md", table)] {
+        let path = args.out.join(name);
+        std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    let collisions: u32 = results.iter().map(|r| r.collisions).sum();
+    if collisions > 0 {
+        return Err(format!("{collisions} collisions in the fault matrix"));
+    }
     Ok(())
 }
 
