@@ -149,7 +149,8 @@ impl Dims {
 pub enum MapError {
     /// An axis has zero voxels or more than [`MAX_AXIS`].
     BadDimensions,
-    /// Resolution not finite and positive, or origin not finite.
+    /// Resolution not finite and positive, origin not finite, or coordinates so large that
+    /// `f32` cannot resolve 1/64 of a voxel there.
     BadGeometry,
     /// A storage slice is shorter than the number of voxels.
     StorageTooSmall {
@@ -172,6 +173,16 @@ impl MapGeometry {
     /// `origin` is the minimum corner of voxel (0,0,0); `resolution` is the voxel edge in metres.
     pub fn new(dims: Dims, origin: Point3<f32>, resolution: f32) -> Result<Self, MapError> {
         if !(resolution.is_finite() && resolution > 0.0 && origin.coords.iter().all(|c| c.is_finite())) {
+            return Err(MapError::BadGeometry);
+        }
+        // Far from zero, f32 steps grow: a grid there could not tell its voxels apart (a goal
+        // at a voxel centre would convert back to another voxel, or outside the grid).
+        let extent = [dims.nx(), dims.ny(), dims.nz()];
+        let resolvable = origin.coords.iter().zip(extent).all(|(o, n)| {
+            let far = o.abs() + n as f32 * resolution;
+            far.is_finite() && far * f32::EPSILON <= resolution / 64.0
+        });
+        if !resolvable {
             return Err(MapError::BadGeometry);
         }
         Ok(Self {
@@ -493,6 +504,24 @@ mod tests {
 
     fn geometry(n: usize) -> MapGeometry {
         MapGeometry::new(Dims::new(n, n, n).unwrap(), Point3::origin(), 0.1).unwrap()
+    }
+
+    #[test]
+    fn geometry_too_far_out_for_f32_is_refused() {
+        // Found by the depth_integration fuzzer: an origin at 1.3e7 m with 0.5 m voxels put a
+        // voxel centre (an escape goal) outside the grid after rounding.
+        let d = Dims::new(10, 10, 10).unwrap();
+        assert_eq!(
+            MapGeometry::new(d, Point3::new(1.3e7, 0.0, 0.0), 0.5).err(),
+            Some(MapError::BadGeometry)
+        );
+        assert_eq!(
+            MapGeometry::new(d, Point3::origin(), f32::MAX).err(),
+            Some(MapError::BadGeometry)
+        );
+        let g = MapGeometry::new(d, Point3::new(-1000.0, 2000.0, 0.0), 0.05).unwrap();
+        let v = VoxelIndex::new(9, 9, 9);
+        assert_eq!(g.voxel_at(&g.center(v)), Some(v));
     }
 
     #[test]

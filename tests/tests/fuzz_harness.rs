@@ -42,9 +42,15 @@ fn corpus_dir(target: &str) -> PathBuf {
 /// Runs `harness` over every committed seed of `target`, then over `random` inputs of up to
 /// `max_len` bytes, and over each seed with a few bytes changed.
 fn exercise(target: &str, harness: fn(&[u8]), random: usize, max_len: usize) {
+    // Only the committed seeds: a local fuzzing run adds its own inputs to the same directory.
     let mut seeds: Vec<Vec<u8>> = fs::read_dir(corpus_dir(target))
         .unwrap_or_else(|e| panic!("{target} corpus: {e}"))
-        .map(|entry| fs::read(entry.unwrap().path()).unwrap())
+        .map(|entry| entry.unwrap().path())
+        .filter(|p| {
+            p.file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with("seed-"))
+        })
+        .map(|p| fs::read(p).unwrap())
         .collect();
     seeds.sort();
     assert!(seeds.len() >= 3, "{target}: seed corpus missing");
