@@ -158,3 +158,55 @@ impl<'a> DepthFrame<'a> {
         self.depth_mm
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bad_intrinsics_are_refused() {
+        let bad = |fx, fy, cx, cy, w, h| Intrinsics::new(fx, fy, cx, cy, w, h).err();
+        assert_eq!(
+            bad(50.0, 50.0, 5.0, 5.0, 0, 10),
+            Some(IntrinsicsError::EmptyImage)
+        );
+        assert_eq!(
+            bad(50.0, 50.0, 5.0, 5.0, 10, 0),
+            Some(IntrinsicsError::EmptyImage)
+        );
+        for f in [0.0, -50.0, f32::NAN, f32::INFINITY] {
+            assert_eq!(
+                bad(f, 50.0, 5.0, 5.0, 10, 10),
+                Some(IntrinsicsError::BadFocalLength)
+            );
+            assert_eq!(
+                bad(50.0, f, 5.0, 5.0, 10, 10),
+                Some(IntrinsicsError::BadFocalLength)
+            );
+        }
+        for (cx, cy) in [(-0.6, 5.0), (9.6, 5.0), (5.0, -1.0), (5.0, 10.0), (f32::NAN, 5.0)] {
+            assert_eq!(
+                bad(50.0, 50.0, cx, cy, 10, 10),
+                Some(IntrinsicsError::PrincipalPointOutsideImage)
+            );
+        }
+        assert!(Intrinsics::new(50.0, 50.0, -0.5, 9.5, 10, 10).is_ok());
+        assert_eq!(
+            Intrinsics::from_hfov(10, 10, 0.0).err(),
+            Some(IntrinsicsError::BadFocalLength)
+        );
+    }
+
+    #[test]
+    fn depth_frames_must_match_their_intrinsics() {
+        let i = Intrinsics::from_hfov(4, 3, 1.0).unwrap();
+        assert!(DepthFrame::new(i, &[0; 12]).is_ok());
+        for n in [0, 11, 13, 100] {
+            let depth = [0u16; 100];
+            assert_eq!(
+                DepthFrame::new(i, &depth[..n]).err(),
+                Some(DepthFrameError::SizeMismatch { expected: 12, got: n })
+            );
+        }
+    }
+}

@@ -181,7 +181,7 @@ pub fn build(
     if labels.len() < n || queue.is_empty() {
         return Err(DomainError::StorageTooSmall);
     }
-    let labels = &mut labels[..n];
+    let labels = labels.get_mut(..n).ok_or(DomainError::StorageTooSmall)?;
     let mut stats = DomainStats {
         free: safe_voxels(map, stencil, labels),
         ..Default::default()
@@ -345,7 +345,10 @@ impl Fill<'_> {
         let cap = self.queue.len();
         let Some(l) = labels.get_mut(i) else { return };
         if self.len < cap {
-            if let Some(slot) = self.queue.get_mut((self.head + self.len) % cap) {
+            // head < cap and len < cap, so one wrap is enough (and no division by cap).
+            let at = self.head + self.len;
+            let at = if at >= cap { at - cap } else { at };
+            if let Some(slot) = self.queue.get_mut(at) {
                 // Grid indices are below MAX_AXIS³ < 2³³; see Dims. Fits u32 for supported sizes.
                 *slot = i as u32;
             }
@@ -361,7 +364,10 @@ impl Fill<'_> {
             return None;
         }
         let i = self.queue.get(self.head).copied()?;
-        self.head = (self.head + 1) % self.queue.len();
+        self.head += 1;
+        if self.head >= self.queue.len() {
+            self.head = 0;
+        }
         self.len -= 1;
         Some(i as usize)
     }
@@ -384,8 +390,9 @@ fn safe_voxels(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Lab
 }
 
 /// The nearest safe voxel (by face-connected path through observed free space, inflated and
-/// fringe voxels included) to a vehicle that a new observation left in unsafe space, searching
-/// at most `max_visits` voxels. Overwrites `labels`.
+/// fringe voxels included) to a vehicle that a new observation left in unsafe space — inflated,
+/// or even an occupied voxel (a noisy return or a pose error put it there) — searching at most
+/// `max_visits` voxels. Overwrites `labels`.
 pub fn escape_target(
     map: &VoxelMap<'_>,
     stencil: &InflationStencil,
@@ -402,11 +409,9 @@ pub fn escape_target(
     }
     safe_voxels(map, stencil, labels);
     let start = dims.linear(vehicle);
-    match labels.get(start) {
-        Some(Label::Candidate) => return Some(vehicle),
-        // The vehicle is there, so an unknown start voxel is passable too.
-        _ if map.is_free(start) || map.is_unknown(start) => {}
-        _ => return None,
+    // The vehicle is there, so its voxel is passable whatever the map holds.
+    if labels.get(start) == Some(&Label::Candidate) {
+        return Some(vehicle);
     }
     // Walkable: free but unsafe. `Fill` marks what it has queued, so nothing is visited twice.
     let walkable = |l: Option<&Label>| matches!(l, Some(Label::Outside | Label::Fringe));

@@ -512,10 +512,11 @@ pub fn encode_map_slice(
     if count == 0 {
         return Ok((0, 0));
     }
-    let mut states = [0u8; MAP_SLICE_VOXELS / 4];
+    // Four two-bit states per byte: byte k >> 2, bit offset 2 · (k & 3).
+    let mut states = [0u8; MAP_SLICE_VOXELS >> 2];
     for k in 0..count {
-        if let Some(b) = states.get_mut(k / 4) {
-            *b |= occupancy_code(map.occupancy(first + k)) << (2 * (k % 4));
+        if let Some(b) = states.get_mut(k >> 2) {
+            *b |= occupancy_code(map.occupancy(first + k)) << (2 * (k & 3));
         }
     }
     let first32 = u32::try_from(first).map_err(|_| LinkError::BufferTooSmall)?;
@@ -562,7 +563,7 @@ impl Downlink<'_> {
     pub fn slice_state(&self, k: usize) -> Option<Occupancy> {
         match self {
             Downlink::MapSlice { count, states, .. } if k < usize::from(*count) => {
-                states.get(k / 4).map(|b| occupancy_of_code(b >> (2 * (k % 4))))
+                states.get(k >> 2).map(|b| occupancy_of_code(b >> (2 * (k & 3))))
             }
             _ => None,
         }

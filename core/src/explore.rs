@@ -348,8 +348,9 @@ impl<'a> Explorer<'a> {
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
-        let labels = &mut labels[..n];
-        let phi = &mut phi[..n];
+        let (Some(labels), Some(phi)) = (labels.get_mut(..n), phi.get_mut(..n)) else {
+            return Err(ConfigError::StorageTooSmall);
+        };
         labels.fill(Label::Outside);
         phi.fill(0.0);
         Ok(Self {
@@ -531,7 +532,11 @@ impl<'a> Explorer<'a> {
             self.status.phase_ticks.domain += t1.saturating_sub(t0);
             let stats = match built {
                 Ok(s) => s,
-                Err(DomainError::VehicleInInflatedSpace) => return self.escape(vehicle, yaw),
+                // Inflated space, or a voxel the map holds occupied (noise, pose error): the
+                // vehicle is there, so it steers to the nearest safe free voxel, if any.
+                Err(DomainError::VehicleInInflatedSpace | DomainError::VehicleNotFree) => {
+                    return self.escape(vehicle, yaw)
+                }
                 Err(_) => {
                     self.status.errors.vehicle_not_free += 1;
                     return PlanOutcome::Hold(Fault::VehicleNotFree);
@@ -726,3 +731,7 @@ pub fn forward_camera_pose(position: &Point3<f32>, yaw: f32) -> Isometry3<f32> {
     let r_yaw = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
     Isometry3::from_parts(nalgebra::Translation3::from(position.coords), r_yaw * r_cam)
 }
+
+#[cfg(test)]
+#[path = "explore_tests.rs"]
+mod tests;

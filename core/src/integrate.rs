@@ -222,68 +222,92 @@ pub fn traverse(
     let Some((t0, t1)) = clip_to_grid(&dims, &ga, &d) else {
         return 0;
     };
-    let n = [dims.nx(), dims.ny(), dims.nz()];
     let start = ga + d * t0;
     let end = ga + d * t1;
-    let cell_of = |p: &Vector3<f32>, axis: usize| -> i32 {
-        let max = n[axis] as i32 - 1;
-        (libm::floorf(p[axis]) as i32).clamp(0, max)
-    };
-    let mut cell = [cell_of(&start, 0), cell_of(&start, 1), cell_of(&start, 2)];
-    let last = [cell_of(&end, 0), cell_of(&end, 1), cell_of(&end, 2)];
-    let mut step = [0i32; 3];
-    let mut t_max = [f32::INFINITY; 3];
-    let mut t_delta = [f32::INFINITY; 3];
-    for axis in 0..3 {
-        if d[axis] > 0.0 {
-            step[axis] = 1;
-            t_max[axis] = (cell[axis] as f32 + 1.0 - ga[axis]) / d[axis];
-            t_delta[axis] = 1.0 / d[axis];
-        } else if d[axis] < 0.0 {
-            step[axis] = -1;
-            t_max[axis] = (cell[axis] as f32 - ga[axis]) / d[axis];
-            t_delta[axis] = -1.0 / d[axis];
-        }
-    }
+    let [mut x, mut y, mut z] = [
+        (dims.nx(), ga.x, d.x, start.x, end.x),
+        (dims.ny(), ga.y, d.y, start.y, end.y),
+        (dims.nz(), ga.z, d.z, start.z, end.z),
+    ]
+    .map(|(n, g, d, start, end)| DdaAxis::new(n, g, d, start, end));
     let mut visited = 0u32;
     // A segment crosses at most nx + ny + nz voxel boundaries inside the grid.
-    let cap = n[0] + n[1] + n[2] + 1;
+    let cap = dims.nx() + dims.ny() + dims.nz() + 1;
     for _ in 0..cap {
-        let Some(v) = dims.checked(cell[0], cell[1], cell[2]) else {
+        let Some(v) = dims.checked(x.cell, y.cell, z.cell) else {
             break;
         };
         visited += 1;
-        if !visit(v) || cell == last {
+        if !visit(v) || (x.cell == x.last && y.cell == y.last && z.cell == z.last) {
             break;
         }
-        let axis = if t_max[0] <= t_max[1] && t_max[0] <= t_max[2] {
-            0
-        } else if t_max[1] <= t_max[2] {
-            1
+        let axis = if x.t_max <= y.t_max && x.t_max <= z.t_max {
+            &mut x
+        } else if y.t_max <= z.t_max {
+            &mut y
         } else {
-            2
+            &mut z
         };
-        if t_max[axis] > t1 || step[axis] == 0 {
+        if axis.t_max > t1 || axis.step == 0 {
             break;
         }
-        cell[axis] += step[axis];
-        t_max[axis] += t_delta[axis];
+        axis.cell += axis.step;
+        axis.t_max += axis.t_delta;
     }
     visited
+}
+
+/// One axis of an Amanatides–Woo traversal.
+#[derive(Clone, Copy)]
+struct DdaAxis {
+    /// Current cell along the axis.
+    cell: i32,
+    /// Cell of the segment's end.
+    last: i32,
+    /// −1, 0 or +1.
+    step: i32,
+    /// Segment parameter of the next boundary crossing along this axis.
+    t_max: f32,
+    /// Segment parameter between two crossings.
+    t_delta: f32,
+}
+
+impl DdaAxis {
+    /// Axis with `n` cells; the segment starts at grid coordinate `g` with delta `d`, and its
+    /// clipped part runs from `start` to `end`.
+    fn new(n: usize, g: f32, d: f32, start: f32, end: f32) -> Self {
+        let max = n as i32 - 1;
+        let cell_of = |p: f32| (libm::floorf(p) as i32).clamp(0, max);
+        let cell = cell_of(start);
+        let (step, t_max, t_delta) = if d > 0.0 {
+            (1, (cell as f32 + 1.0 - g) / d, 1.0 / d)
+        } else if d < 0.0 {
+            (-1, (cell as f32 - g) / d, -1.0 / d)
+        } else {
+            (0, f32::INFINITY, f32::INFINITY)
+        };
+        Self {
+            cell,
+            last: cell_of(end),
+            step,
+            t_max,
+            t_delta,
+        }
+    }
 }
 
 /// Parameter interval `[t0, t1] ⊆ [0, 1]` of `g + t·d` inside the grid box, if any.
 fn clip_to_grid(dims: &Dims, g: &Vector3<f32>, d: &Vector3<f32>) -> Option<(f32, f32)> {
     let n = [dims.nx() as f32, dims.ny() as f32, dims.nz() as f32];
     let (mut t0, mut t1) = (0.0f32, 1.0f32);
-    for axis in 0..3 {
-        if d[axis] == 0.0 {
-            if g[axis] < 0.0 || g[axis] >= n[axis] {
+    for ((n, g), d) in n.into_iter().zip(g.iter()).zip(d.iter()) {
+        if *d == 0.0 {
+            if *g < 0.0 || *g >= n {
                 return None;
             }
         } else {
-            let ta = (0.0 - g[axis]) / d[axis];
-            let tb = (n[axis] - g[axis]) / d[axis];
+            let ta = (0.0 - g) / d;
+            let tb = (n - g) / d;
             let (lo, hi) = if ta < tb { (ta, tb) } else { (tb, ta) };
             t0 = t0.max(lo);
             t1 = t1.min(hi);

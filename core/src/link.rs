@@ -96,6 +96,8 @@
 //! delivered only if all its rows arrived in order; an image with a missing, damaged or
 //! contradictory chunk is dropped whole and counted in [`LinkCounters`].
 
+use core::num::NonZeroUsize;
+
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
 use crate::camera::{DepthFrame, Intrinsics, IntrinsicsError};
@@ -125,6 +127,10 @@ pub const STALE_FRAME_WINDOW: u32 = 16;
 
 /// Worst-case bytes on the wire for one frame whose payload (header and body) is
 /// `payload_len` bytes: COBS overhead, CRC and both delimiters included.
+#[allow(
+    clippy::integer_division_remainder_used,
+    reason = "the divisor is the constant 254 (a const fn cannot divide by a NonZero)"
+)]
 pub const fn max_encoded_len(payload_len: usize) -> usize {
     let n = payload_len.saturating_add(CRC_LEN);
     n.saturating_add(n / 254).saturating_add(3)
@@ -458,8 +464,8 @@ impl<'a> DepthChunk<'a> {
         depth_mm: &'a [u16],
     ) -> Result<Self, LinkError> {
         let bad = LinkError::Malformed(Malformed::ChunkGeometry);
-        let w = usize::from(width);
-        if w == 0 || !depth_mm.len().is_multiple_of(w) {
+        let w = NonZeroUsize::new(usize::from(width)).ok_or(bad)?;
+        if !depth_mm.len().is_multiple_of(w.get()) {
             return Err(bad);
         }
         let row_count = u16::try_from(depth_mm.len() / w).map_err(|_| bad)?;
@@ -551,7 +557,7 @@ impl Iterator for DepthSamples<'_> {
 
     fn size_hint(&self) -> (usize, Option<usize>) {
         let n = match self.source {
-            SampleSource::Wire(bytes) => bytes.len() / 2,
+            SampleSource::Wire(bytes) => bytes.len() >> 1,
             SampleSource::Native(values) => values.len(),
         };
         (n, Some(n))
@@ -724,6 +730,10 @@ impl Reader<'_> {
 
 const CRC32_INIT: u32 = 0xFFFF_FFFF;
 
+#[allow(
+    clippy::indexing_slicing,
+    reason = "evaluated at compile time (a bad index is a build error); i < 256 = the table's length"
+)]
 const CRC32_TABLE: [u32; 256] = {
     let mut table = [0u32; 256];
     let mut i = 0;
@@ -746,7 +756,9 @@ const CRC32_TABLE: [u32; 256] = {
 
 fn crc32_update(mut crc: u32, bytes: &[u8]) -> u32 {
     for &b in bytes {
-        crc = CRC32_TABLE[((crc ^ u32::from(b)) & 0xFF) as usize] ^ (crc >> 8);
+        // A u8 index into a 256-entry table: the compiler drops the check and the fallback.
+        let entry = CRC32_TABLE.get(usize::from(crc as u8 ^ b)).copied().unwrap_or(0);
+        crc = entry ^ (crc >> 8);
     }
     crc
 }

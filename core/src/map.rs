@@ -18,6 +18,8 @@
 //!
 //! Voxels are indexed `x + nx·(y + ny·z)`. The map frame is right-handed, z up, metres.
 
+use core::num::NonZeroUsize;
+
 use nalgebra::{Point3, Vector3};
 
 /// Fixed-point steps per unit of log-odds.
@@ -63,36 +65,36 @@ pub const FACE_OFFSETS: [[i32; 3]; 6] = [
 /// Grid dimensions, validated: every axis in `1..=MAX_AXIS`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Dims {
-    nx: usize,
-    ny: usize,
-    nz: usize,
+    // Non-zero by type, so `voxel`'s division and remainder cannot panic.
+    nx: NonZeroUsize,
+    ny: NonZeroUsize,
+    nz: NonZeroUsize,
 }
 
 impl Dims {
     /// Checked constructor.
     pub fn new(nx: usize, ny: usize, nz: usize) -> Result<Self, MapError> {
-        let ok = |n: usize| (1..=MAX_AXIS).contains(&n);
-        if ok(nx) && ok(ny) && ok(nz) {
-            Ok(Self { nx, ny, nz })
-        } else {
-            Err(MapError::BadDimensions)
+        let ok = |n: usize| NonZeroUsize::new(n).filter(|n| n.get() <= MAX_AXIS);
+        match (ok(nx), ok(ny), ok(nz)) {
+            (Some(nx), Some(ny), Some(nz)) => Ok(Self { nx, ny, nz }),
+            _ => Err(MapError::BadDimensions),
         }
     }
     /// Voxels along x.
     pub fn nx(&self) -> usize {
-        self.nx
+        self.nx.get()
     }
     /// Voxels along y.
     pub fn ny(&self) -> usize {
-        self.ny
+        self.ny.get()
     }
     /// Voxels along z.
     pub fn nz(&self) -> usize {
-        self.nz
+        self.nz.get()
     }
     /// Total number of voxels.
     pub fn len(&self) -> usize {
-        self.nx * self.ny * self.nz
+        self.nx() * self.ny() * self.nz()
     }
     /// Always false: a grid has at least one voxel.
     pub fn is_empty(&self) -> bool {
@@ -101,7 +103,7 @@ impl Dims {
     /// Linear index of a voxel that is known to be inside.
     #[inline]
     pub fn linear(&self, v: VoxelIndex) -> usize {
-        usize::from(v.x) + self.nx * (usize::from(v.y) + self.ny * usize::from(v.z))
+        usize::from(v.x) + self.nx() * (usize::from(v.y) + self.ny() * usize::from(v.z))
     }
     /// Voxel coordinates of a linear index (which must be `< len()`).
     #[inline]
@@ -115,7 +117,7 @@ impl Dims {
     #[inline]
     pub fn checked(&self, x: i32, y: i32, z: i32) -> Option<VoxelIndex> {
         let inside = |c: i32, n: usize| c >= 0 && (c as usize) < n;
-        if inside(x, self.nx) && inside(y, self.ny) && inside(z, self.nz) {
+        if inside(x, self.nx()) && inside(y, self.ny()) && inside(z, self.nz()) {
             Some(VoxelIndex::new(x as u16, y as u16, z as u16))
         } else {
             None
@@ -147,7 +149,8 @@ impl Dims {
 pub enum MapError {
     /// An axis has zero voxels or more than [`MAX_AXIS`].
     BadDimensions,
-    /// Resolution not finite and positive, or origin not finite.
+    /// Resolution not finite and positive, origin not finite, or coordinates so large that
+    /// `f32` cannot resolve 1/64 of a voxel there.
     BadGeometry,
     /// A storage slice is shorter than the number of voxels.
     StorageTooSmall {
@@ -170,6 +173,16 @@ impl MapGeometry {
     /// `origin` is the minimum corner of voxel (0,0,0); `resolution` is the voxel edge in metres.
     pub fn new(dims: Dims, origin: Point3<f32>, resolution: f32) -> Result<Self, MapError> {
         if !(resolution.is_finite() && resolution > 0.0 && origin.coords.iter().all(|c| c.is_finite())) {
+            return Err(MapError::BadGeometry);
+        }
+        // Far from zero, f32 steps grow: a grid there could not tell its voxels apart (a goal
+        // at a voxel centre would convert back to another voxel, or outside the grid).
+        let extent = [dims.nx(), dims.ny(), dims.nz()];
+        let resolvable = origin.coords.iter().zip(extent).all(|(o, n)| {
+            let far = o.abs() + n as f32 * resolution;
+            far.is_finite() && far * f32::EPSILON <= resolution / 64.0
+        });
+        if !resolvable {
             return Err(MapError::BadGeometry);
         }
         Ok(Self {
@@ -294,7 +307,7 @@ const OBSERVED_MIN: i8 = i8::MIN + 2;
 
 /// `u32` words of the per-frame "touched" bitset a grid of `dims` needs: one bit per voxel.
 pub const fn touched_words(dims: &Dims) -> usize {
-    (dims.nx * dims.ny * dims.nz).div_ceil(32)
+    (dims.nx.get() * dims.ny.get() * dims.nz.get()).div_ceil(32)
 }
 
 /// Counts of voxels by state.
@@ -334,13 +347,15 @@ impl<'a> VoxelMap<'a> {
         let dims = geometry.dims();
         let needed = dims.len();
         let words = touched_words(&dims);
-        for (got, needed) in [(log_odds.len(), needed), (touched.len(), words)] {
-            if got < needed {
-                return Err(MapError::StorageTooSmall { needed, got });
-            }
-        }
-        let log_odds = &mut log_odds[..needed];
-        let touched = &mut touched[..words];
+        let (log_odds_len, touched_len) = (log_odds.len(), touched.len());
+        let log_odds = log_odds.get_mut(..needed).ok_or(MapError::StorageTooSmall {
+            needed,
+            got: log_odds_len,
+        })?;
+        let touched = touched.get_mut(..words).ok_or(MapError::StorageTooSmall {
+            needed: words,
+            got: touched_len,
+        })?;
         log_odds.fill(UNKNOWN);
         touched.fill(0);
         Ok(Self {
@@ -376,8 +391,8 @@ impl<'a> VoxelMap<'a> {
     }
 
     fn apply(&mut self, i: usize, delta: i8) -> bool {
-        let bit = 1u32 << (i % 32);
-        let (Some(word), Some(lo)) = (self.touched.get_mut(i / 32), self.log_odds.get_mut(i)) else {
+        let bit = 1u32 << (i & 31);
+        let (Some(word), Some(lo)) = (self.touched.get_mut(i >> 5), self.log_odds.get_mut(i)) else {
             return false;
         };
         if *word & bit != 0 {
@@ -489,6 +504,24 @@ mod tests {
 
     fn geometry(n: usize) -> MapGeometry {
         MapGeometry::new(Dims::new(n, n, n).unwrap(), Point3::origin(), 0.1).unwrap()
+    }
+
+    #[test]
+    fn geometry_too_far_out_for_f32_is_refused() {
+        // Found by the depth_integration fuzzer: an origin at 1.3e7 m with 0.5 m voxels put a
+        // voxel centre (an escape goal) outside the grid after rounding.
+        let d = Dims::new(10, 10, 10).unwrap();
+        assert_eq!(
+            MapGeometry::new(d, Point3::new(1.3e7, 0.0, 0.0), 0.5).err(),
+            Some(MapError::BadGeometry)
+        );
+        assert_eq!(
+            MapGeometry::new(d, Point3::origin(), f32::MAX).err(),
+            Some(MapError::BadGeometry)
+        );
+        let g = MapGeometry::new(d, Point3::new(-1000.0, 2000.0, 0.0), 0.05).unwrap();
+        let v = VoxelIndex::new(9, 9, 9);
+        assert_eq!(g.voxel_at(&g.center(v)), Some(v));
     }
 
     #[test]

@@ -59,6 +59,8 @@ pub use ::mavlink::{MavHeader, MavlinkVersion};
 /// vehicle it sits on (MAVLink's convention; PX4 and ArduPilot vehicles default to 1) and is told
 /// apart by its component id.
 pub const DEFAULT_SYSTEM_ID: u8 = 1;
+/// Milliseconds before the same kind of pose rejection is announced again by STATUSTEXT.
+pub const REJECTION_REPEAT_MS: u64 = 5000;
 /// Component id the bridge sends with: `MAV_COMP_ID_ONBOARD_COMPUTER` (191), the id PX4 and
 /// MAVLink routers expect of a companion computer.
 pub const ONBOARD_COMPUTER_COMPONENT_ID: u8 = MavComponent::MAV_COMP_ID_ONBOARD_COMPUTER as u8;
@@ -166,6 +168,12 @@ pub struct BridgeConfig {
     /// Largest |x|, |y| or |z| (metres) of a believable position. Default 1000 m, far beyond
     /// any building, so only garbage is rejected.
     pub max_position_m: f32,
+    /// Largest step (metres) a position may take from the previous one of the same message
+    /// type while that one is still fresh. Default 1 m: at the 20–50 Hz autopilots stream
+    /// poses, a multirotor at 5 m/s moves 0.1–0.25 m between messages, so a longer step is an
+    /// estimator glitch. A jump that persists (an estimator reset) is accepted once the old
+    /// position has gone stale; the bridge holds meanwhile.
+    pub max_pose_jump_m: f32,
 }
 
 impl Default for BridgeConfig {
@@ -179,6 +187,7 @@ impl Default for BridgeConfig {
             setpoint_period_ms: 100,
             pose_timeout_ms: 500,
             max_position_m: 1000.0,
+            max_pose_jump_m: 1.0,
         }
     }
 }
@@ -195,6 +204,8 @@ pub enum BridgeConfigError {
     PoseTimeout,
     /// The position limit is not a positive finite number.
     MaxPosition,
+    /// The pose jump limit is not a positive finite number.
+    MaxPoseJump,
 }
 
 /// What a setpoint asks of the vehicle.
@@ -284,6 +295,9 @@ pub enum InputError {
     NotUnitQuaternion,
     /// An ODOMETRY pose in another frame than `MAV_FRAME_LOCAL_NED`.
     UnsupportedFrame,
+    /// A position more than [`BridgeConfig::max_pose_jump_m`] from the previous, still fresh,
+    /// one.
+    PoseJump,
 }
 
 /// Why [`Bridge::set_goal`] or [`Bridge::set_target`] kept the current setpoint. Counted in
@@ -336,6 +350,8 @@ pub struct BridgeCounters {
     pub rejected_quaternion: u32,
     /// ODOMETRYs in an unsupported frame.
     pub rejected_frame: u32,
+    /// Positions that jumped further than [`BridgeConfig::max_pose_jump_m`].
+    pub rejected_jump: u32,
     /// Messages from other systems, ignored.
     pub foreign_system: u32,
     /// Messages from other components of the target system, ignored.
@@ -353,6 +369,7 @@ impl BridgeCounters {
             .saturating_add(self.rejected_out_of_range)
             .saturating_add(self.rejected_quaternion)
             .saturating_add(self.rejected_frame)
+            .saturating_add(self.rejected_jump)
     }
 
     fn record(&mut self, error: InputError) {
@@ -363,6 +380,7 @@ impl BridgeCounters {
             InputError::OutOfRange => &mut self.rejected_out_of_range,
             InputError::NotUnitQuaternion => &mut self.rejected_quaternion,
             InputError::UnsupportedFrame => &mut self.rejected_frame,
+            InputError::PoseJump => &mut self.rejected_jump,
         };
         bump(counter);
     }
@@ -495,6 +513,8 @@ pub struct Bridge {
     pose_fault: bool,
     complete_reported: bool,
     last_fault: Option<Fault>,
+    /// The last pose rejection announced by STATUSTEXT, and when.
+    last_rejection: Option<(InputError, u64)>,
     counters: BridgeCounters,
 }
 
@@ -514,6 +534,9 @@ impl Bridge {
         if !(config.max_position_m.is_finite() && config.max_position_m > 0.0) {
             return Err(BridgeConfigError::MaxPosition);
         }
+        if !(config.max_pose_jump_m.is_finite() && config.max_pose_jump_m > 0.0) {
+            return Err(BridgeConfigError::MaxPoseJump);
+        }
         Ok(Self {
             config,
             sequence: 0,
@@ -529,6 +552,7 @@ impl Bridge {
             pose_fault: false,
             complete_reported: false,
             last_fault: None,
+            last_rejection: None,
             counters: BridgeCounters::default(),
         })
     }
@@ -744,7 +768,10 @@ impl Bridge {
             Ok(Received::Odometry) => bump(&mut self.counters.odometries_received),
             Ok(Received::Heartbeat) => bump(&mut self.counters.heartbeats_received),
             Ok(Received::Other) => bump(&mut self.counters.other_received),
-            Err(error) => self.counters.record(error),
+            Err(error) => {
+                self.counters.record(error);
+                self.announce_rejection(now_ms, error);
+            }
         }
         if result.is_ok() && self.setpoint.is_none() && self.latest_ned_pose().is_some() {
             self.hold();
@@ -884,6 +911,7 @@ impl Bridge {
         match message {
             MavMessage::LOCAL_POSITION_NED(data) => {
                 let position = self.check_position(data)?;
+                self.check_jump(now_ms, self.local_position.map(|p| (p.value, p.at_ms)), position)?;
                 self.local_position = Some(Stamped {
                     value: position,
                     at_ms: now_ms,
@@ -900,6 +928,11 @@ impl Bridge {
             }
             MavMessage::ODOMETRY(data) => {
                 let pose = self.check_odometry(data)?;
+                self.check_jump(
+                    now_ms,
+                    self.odometry.map(|o| (o.value.position, o.at_ms)),
+                    pose.position,
+                )?;
                 self.odometry = Some(Stamped {
                     value: pose,
                     at_ms: now_ms,
@@ -919,6 +952,51 @@ impl Bridge {
             return Err(InputError::OutOfRange);
         }
         Ok(xyz)
+    }
+
+    /// A WARNING STATUSTEXT for a rejected pose message: once per kind of rejection, again
+    /// after [`REJECTION_REPEAT_MS`] (so a bad stream does not flood the link). Messages
+    /// from other systems or components are normal on a shared bus and not announced.
+    fn announce_rejection(&mut self, now_ms: u64, error: InputError) {
+        if matches!(error, InputError::ForeignSystem | InputError::ForeignComponent) {
+            return;
+        }
+        let repeat = self
+            .last_rejection
+            .is_none_or(|(e, at)| e != error || now_ms.saturating_sub(at) >= REJECTION_REPEAT_MS);
+        if repeat {
+            self.last_rejection = Some((error, now_ms));
+            let mut text = StatusText::new();
+            let _ = write!(text, "pose rejected: {error:?}");
+            let _ = self.queue_text(MavSeverity::MAV_SEVERITY_WARNING, text);
+        }
+    }
+
+    /// Refuses `position` if it is further than the jump limit from `previous` while that is
+    /// still fresh.
+    fn check_jump(
+        &self,
+        now_ms: u64,
+        previous: Option<([f32; 3], u64)>,
+        position: [f32; 3],
+    ) -> Result<(), InputError> {
+        let Some((last, at_ms)) = previous else {
+            return Ok(());
+        };
+        if now_ms.saturating_sub(at_ms) > u64::from(self.config.pose_timeout_ms) {
+            return Ok(());
+        }
+        let d2: f32 = last
+            .iter()
+            .zip(position.iter())
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum();
+        let limit = self.config.max_pose_jump_m;
+        if d2 > limit * limit {
+            Err(InputError::PoseJump)
+        } else {
+            Ok(())
+        }
     }
 
     fn check_position(&self, data: &LOCAL_POSITION_NED_DATA) -> Result<[f32; 3], InputError> {
@@ -1097,7 +1175,10 @@ impl InputWindow {
     /// Refills the (drained) window from the front of `input`; returns the bytes taken.
     fn fill(&mut self, input: &[u8]) -> usize {
         let n = input.len().min(INPUT_WINDOW);
-        self.bytes[..n].copy_from_slice(&input[..n]);
+        // n is within both lengths: both `get`s succeed (and their checks fold away).
+        if let (Some(window), Some(input)) = (self.bytes.get_mut(..n), input.get(..n)) {
+            window.copy_from_slice(input);
+        }
         self.start = 0;
         self.end = n;
         n
@@ -1112,7 +1193,9 @@ impl embedded_io::Read for InputWindow {
     fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
         let available = self.bytes.get(self.start..self.end).unwrap_or(&[]);
         let n = available.len().min(buf.len());
-        buf[..n].copy_from_slice(&available[..n]);
+        if let (Some(buf), Some(available)) = (buf.get_mut(..n), available.get(..n)) {
+            buf.copy_from_slice(available);
+        }
         self.start += n;
         Ok(n)
     }
@@ -1483,6 +1566,72 @@ mod tests {
         let pose = bridge.pose(600).unwrap();
         assert_eq!(pose.source, PoseSource::LocalPositionAttitude);
         assert_eq!(pose.position, Point3::new(6.0, 5.0, 1.0));
+    }
+
+    #[test]
+    fn pose_jumps_are_rejected_announced_and_held_until_the_old_pose_is_stale() {
+        let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
+        let mut seq = 0;
+        let mut sent = Sent::default();
+        feed_pose(&mut bridge, 0, &mut seq, [1.0, 2.0, -1.0], 0.0);
+        poll_into(&mut bridge, 0, &mut sent);
+        // 0.5 m in 50 ms: plausible. 3 m in the next 50 ms: a glitch.
+        assert!(bridge
+            .handle(50, &autopilot(seq), &local_position(1.5, 2.0, -1.0))
+            .is_ok());
+        seq += 1;
+        assert_eq!(
+            bridge.handle(100, &autopilot(seq), &local_position(4.5, 2.0, -1.0)),
+            Err(InputError::PoseJump)
+        );
+        seq += 1;
+        assert_eq!(bridge.counters().rejected_jump, 1);
+        assert_eq!(bridge.pose(100).unwrap().position, Point3::new(2.0, 1.5, 1.0));
+        // The same kind of rejection again at once is counted, not announced twice.
+        assert_eq!(
+            bridge.handle(120, &autopilot(seq), &local_position(4.5, 2.0, -1.0)),
+            Err(InputError::PoseJump)
+        );
+        seq += 1;
+        assert_eq!(bridge.counters().rejected_jump, 2);
+        poll_into(&mut bridge, 120, &mut sent);
+        let warnings: Vec<_> = sent
+            .texts
+            .iter()
+            .filter(|(s, t)| *s == MavSeverity::MAV_SEVERITY_WARNING && t.contains("PoseJump"))
+            .collect();
+        assert_eq!(warnings.len(), 1, "{:?}", sent.texts);
+        // An estimator reset that persists: once the old position is stale, the bridge holds
+        // (no fresh pose) and then takes the new one.
+        assert!(matches!(bridge.pose(700), Err(PoseFault::Stale { .. })));
+        assert_eq!(
+            bridge.handle(700, &autopilot(seq), &local_position(4.5, 2.0, -1.0)),
+            Ok(Received::LocalPosition)
+        );
+        seq += 1;
+        bridge
+            .handle(700, &autopilot(seq), &attitude(0.0, 0.0, 0.0))
+            .unwrap();
+        assert_eq!(bridge.pose(700).unwrap().position, Point3::new(2.0, 4.5, 1.0));
+        // ODOMETRY is held to the same limit.
+        let q = [1.0, 0.0, 0.0, 0.0];
+        seq += 1;
+        assert!(bridge
+            .handle(710, &autopilot(seq), &odometry([0.0, 0.0, -1.0], q))
+            .is_ok());
+        seq += 1;
+        assert_eq!(
+            bridge.handle(720, &autopilot(seq), &odometry([0.0, 0.0, -9.0], q)),
+            Err(InputError::PoseJump)
+        );
+        assert_eq!(
+            Bridge::new(BridgeConfig {
+                max_pose_jump_m: 0.0,
+                ..BridgeConfig::default()
+            })
+            .err(),
+            Some(BridgeConfigError::MaxPoseJump)
+        );
     }
 
     #[test]

@@ -119,19 +119,15 @@ impl Field<'_> {
     fn centre_gradient(&self, v: VoxelIndex) -> Vector3<f32> {
         let dims = self.geometry.dims();
         let c = self.phi_at(v);
-        let mut g = Vector3::zeros();
-        for axis in 0..3 {
-            let side = |s: i32| {
-                let mut d = [0i32; 3];
-                d[axis] = s;
-                match dims.offset(v, d) {
-                    Some(n) if self.in_domain(n) => self.phi_at(n),
-                    _ => c,
-                }
-            };
-            g[axis] = 0.5 * (side(1) - side(-1));
-        }
-        g
+        let side = |d: [i32; 3]| match dims.offset(v, d) {
+            Some(n) if self.in_domain(n) => self.phi_at(n),
+            _ => c,
+        };
+        Vector3::new(
+            0.5 * (side([1, 0, 0]) - side([-1, 0, 0])),
+            0.5 * (side([0, 1, 0]) - side([0, -1, 0])),
+            0.5 * (side([0, 0, 1]) - side([0, 0, -1])),
+        )
     }
 
     /// Trilinear interpolation of the centre gradients of ψ of the in-domain voxels around `p`
@@ -144,20 +140,21 @@ impl Field<'_> {
         let mut sum = Vector3::zeros();
         let mut wsum = 0.0f32;
         for corner in 0..8u8 {
-            let o = [
-                (corner & 1) as i32,
-                ((corner >> 1) & 1) as i32,
-                ((corner >> 2) & 1) as i32,
-            ];
-            let Some(v) = dims.checked(base.x as i32 + o[0], base.y as i32 + o[1], base.z as i32 + o[2])
-            else {
+            let o = Vector3::new(corner & 1, (corner >> 1) & 1, (corner >> 2) & 1);
+            let Some(v) = dims.checked(
+                base.x as i32 + i32::from(o.x),
+                base.y as i32 + i32::from(o.y),
+                base.z as i32 + i32::from(o.z),
+            ) else {
                 continue;
             };
             if !self.in_domain(v) {
                 continue;
             }
-            let w = (0..3)
-                .map(|a| if o[a] == 1 { frac[a] } else { 1.0 - frac[a] })
+            let w = o
+                .iter()
+                .zip(frac.iter())
+                .map(|(&o, &f)| if o == 1 { f } else { 1.0 - f })
                 .product::<f32>();
             sum += self.centre_gradient(v) * w;
             wsum += w;

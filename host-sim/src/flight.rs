@@ -353,11 +353,13 @@ mod tests {
         assert_eq!(emulator.status_texts(), ["exploration started"]);
 
         // Back: the vehicle's pose, as the bridge reads it.
+        // Far-apart positions, each after the last went stale (the bridge refuses a jump of
+        // more than 1 m between fresh positions).
         let mut decoder = MavlinkDecoder::new();
         for (now, position, yaw) in [
             (0u64, Point3::new(0.5f32, 0.25, 1.0), 0.3f32),
-            (50, Point3::new(-2.0, 7.5, 2.75), -3.0),
-            (100, Point3::new(3.0, -1.0, 0.5), std::f32::consts::PI),
+            (600, Point3::new(-2.0, 7.5, 2.75), -3.0),
+            (1200, Point3::new(3.0, -1.0, 0.5), std::f32::consts::PI),
         ] {
             let mut bytes = Vec::new();
             emulator.poll(now, &position, yaw, &mut bytes);

@@ -18,6 +18,7 @@ pub mod bench;
 pub mod camera;
 pub mod depth_link;
 pub mod fault;
+pub mod faults;
 pub mod figures;
 pub mod flight;
 pub mod mesh;

@@ -61,6 +61,10 @@ enum Command {
     /// Integrate a recorded depth sequence (ours, or TUM RGB-D style) through the core and write
     /// the map (map.npy labels, map.ply occupied voxel centres).
     Replay(ReplayArgs),
+    /// The fault campaign: explore a scenario once per cell of a matrix of injected faults
+    /// (link bit errors, frame loss, bursts, pose drift, sensor dropouts and outliers, a stale
+    /// pose stream) over MAVLink, and print completion, collisions and error counters per cell.
+    Faults(FaultsArgs),
 }
 
 #[derive(clap::Args)]
@@ -194,6 +198,25 @@ fn bench_runs(args: &BenchArgs) -> Result<(), String> {
     }
     eprintln!("bench: {} runs; {}", rows.len(), args.out.display());
     Ok(())
+}
+
+#[derive(clap::Args)]
+struct FaultsArgs {
+    /// Built-in scenario name or path to a scenario TOML file.
+    #[arg(long, default_value = "apartment")]
+    scenario: String,
+    /// Output directory for faults.json and faults.md (created if missing).
+    #[arg(long, default_value = "out/faults")]
+    out: PathBuf,
+    /// Only the cells whose name contains one of these (comma-separated), e.g. `ber,stale`.
+    #[arg(long, value_delimiter = ',')]
+    cells: Vec<String>,
+    /// Stop each run after this many scans.
+    #[arg(long, default_value_t = 3000)]
+    max_scans: u32,
+    /// Random seed for sensor noise and injected faults.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
 }
 
 #[derive(clap::Args)]
@@ -643,6 +666,7 @@ fn main() -> ExitCode {
         Command::FwBudget(args) => fw_budget(&args),
         Command::Bench(args) => bench_runs(&args),
         Command::Replay(args) => replay_sequence(&args),
+        Command::Faults(args) => fault_campaign(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -826,6 +850,45 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     std::fs::write(&path, json).map_err(|e| format!("{}: {e}", path.display()))?;
     print_summary(&report);
     println!("report: {}", path.display());
+    Ok(())
+}
+
+fn fault_campaign(args: &FaultsArgs) -> Result<(), String> {
+    use harmonic_sim::faults;
+    let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    let cfg = SimConfig {
+        max_scans: args.max_scans,
+        seed: args.seed,
+        ..SimConfig::default()
+    };
+    let cells: Vec<_> = faults::default_matrix()
+        .into_iter()
+        .filter(|c| args.cells.is_empty() || args.cells.iter().any(|f| c.name.contains(f.as_str())))
+        .collect();
+    if cells.is_empty() {
+        return Err(format!("--cells {}: no cell matches", args.cells.join(",")));
+    }
+    std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
+    let total = cells.len();
+    let mut done = 0;
+    let results = faults::run(&scenario, &cfg, cells, |r| {
+        done += 1;
+        eprintln!(
+            "[{done}/{total}] {}: {}, {} collisions, {}/{} frames integrated",
+            r.cell.name, r.termination, r.collisions, r.frames_integrated, r.frames_sent
+        );
+    });
+    let table = faults::table(&results);
+    print!("{table}");
+    let json = serde_json::to_string_pretty(&results).map_err(|e| e.to_string())?;
+    for (name, text) in [("faults.json", json), ("faults.md", table)] {
+        let path = args.out.join(name);
+        std::fs::write(&path, text).map_err(|e| format!("{}: {e}", path.display()))?;
+    }
+    let collisions: u32 = results.iter().map(|r| r.collisions).sum();
+    if collisions > 0 {
+        return Err(format!("{collisions} collisions in the fault matrix"));
+    }
     Ok(())
 }
 

@@ -107,6 +107,23 @@ pub struct SimConfig {
     /// Fly over MAVLink (see the [module documentation](self)); `None`: the vehicle flies the
     /// waypoints directly.
     pub mavlink: Option<MavlinkConfig>,
+    /// Sensor and pose faults (the depth link has its own, in [`LinkConfig::faults`]).
+    pub faults: SimFaults,
+}
+
+/// Faults the simulator injects besides the depth link's: what `harmonic-sim faults` varies.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct SimFaults {
+    /// Probability that a depth pixel reads 0 (no return) although it saw something.
+    pub sensor_dropout: f64,
+    /// Probability that a depth pixel reads a uniformly random depth in the camera's range.
+    pub sensor_outlier: f64,
+    /// Pose drift: the position the core is told moves away from the truth at this rate, m/s
+    /// (along the map's x = y diagonal). The vehicle flies the setpoints in the believed frame.
+    pub pose_drift_m_per_s: f32,
+    /// A stale pose stream: over MAVLink, the autopilot sends nothing from `start` for
+    /// `duration` seconds of simulated time.
+    pub pose_outage_s: Option<(f64, f64)>,
 }
 
 impl Default for SimConfig {
@@ -128,6 +145,7 @@ impl Default for SimConfig {
             dump_problem: None,
             link: LinkConfig::default(),
             mavlink: None,
+            faults: SimFaults::default(),
         }
     }
 }
@@ -513,11 +531,26 @@ struct Rig<'b> {
     dt: f64,
     /// Against a remote autopilot: the wall-clock start.
     wall: Option<Instant>,
+    /// Injected pose faults.
+    faults: SimFaults,
 }
 
 impl Rig<'_> {
     fn now_ms(&self) -> u64 {
         to_ms(self.t_s)
+    }
+
+    /// Believed minus true position: the injected pose drift by now.
+    fn drift(&self) -> nalgebra::Vector3<f32> {
+        let d = self.faults.pose_drift_m_per_s * self.t_s as f32 * std::f32::consts::FRAC_1_SQRT_2;
+        nalgebra::Vector3::new(d, d, 0.0)
+    }
+
+    /// True while the injected pose outage silences the autopilot.
+    fn pose_outage(&self) -> bool {
+        self.faults
+            .pose_outage_s
+            .is_some_and(|(start, duration)| self.t_s >= start && self.t_s < start + duration)
     }
 
     /// One time step: against a remote autopilot, sleeps until the wall clock has caught up
@@ -540,10 +573,12 @@ impl Rig<'_> {
     /// or what a remote autopilot sent is read.
     fn pull(&mut self, vehicle: &Vehicle) -> Result<(), SimError> {
         let now = self.now_ms();
+        if self.pose_outage() {
+            return Ok(());
+        }
+        let reported = vehicle.position + self.drift();
         match self.mav.as_mut() {
-            Some(mav) => mav
-                .pull(now, &vehicle.position, vehicle.yaw)
-                .map_err(SimError::Mavlink),
+            Some(mav) => mav.pull(now, &reported, vehicle.yaw).map_err(SimError::Mavlink),
             None => Ok(()),
         }
     }
@@ -574,9 +609,14 @@ impl Rig<'_> {
                 Err(_) => 0.0,
             });
         }
+        let drift = self.drift();
+        let Some(mav) = self.mav.as_mut() else {
+            return Ok(0.0);
+        };
         Ok(match mav.emulator_setpoint() {
             Some(setpoint) => {
-                let s = vehicle.step_towards(&setpoint.position, max_step);
+                // The autopilot flies its (drifted) estimate onto the setpoint.
+                let s = vehicle.step_towards(&(setpoint.position - drift), max_step);
                 vehicle.slew_yaw(setpoint.yaw, yaw_step);
                 s
             }
@@ -603,13 +643,12 @@ impl Rig<'_> {
         loop {
             let now = self.now_ms();
             let Some(mav) = self.mav.as_ref() else {
-                return Ok((vehicle.position, vehicle.yaw));
+                return Ok((vehicle.position + self.drift(), vehicle.yaw));
             };
             match mav.pose(now) {
                 Ok(pose) => return Ok(pose),
-                Err(e) if !mav.is_remote() || self.t_s - start > REMOTE_POSE_TIMEOUT_S => {
-                    return Err(SimError::Mavlink(e))
-                }
+                // Stale (a remote autopilot, or an injected outage): hold and wait.
+                Err(e) if self.t_s - start > REMOTE_POSE_TIMEOUT_S => return Err(SimError::Mavlink(e)),
                 Err(_) => {
                     let moved = self.exchange(vehicle, 0.0, 0.0)?;
                     track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
@@ -713,8 +752,8 @@ impl Rig<'_> {
             };
             let (position, yaw) = match mav.pose(now) {
                 Ok(pose) => pose,
-                Err(e) if !mav.is_remote() => return Err(SimError::Mavlink(e)),
-                // A remote pose gone stale: the bridge holds; keep exchanging until it is back.
+                // The pose gone stale (a remote link, an injected outage): the bridge holds;
+                // keep exchanging until it is back.
                 Err(_) => (vehicle.position, vehicle.yaw),
             };
             while next + 1 < waypoints.len()
@@ -761,6 +800,23 @@ impl Rig<'_> {
             self.advance()?;
         }
         Ok(())
+    }
+}
+
+/// Sensor dropouts (0, no return) and outliers (a random depth in range), per pixel.
+fn inject_sensor_faults(faults: &SimFaults, camera: &DepthCamera, rng: &mut ChaCha8Rng, depth: &mut [u16]) {
+    use rand::Rng;
+    if faults.sensor_dropout <= 0.0 && faults.sensor_outlier <= 0.0 {
+        return;
+    }
+    let (lo, hi) = (camera.min_range * 1000.0, camera.max_range * 1000.0);
+    for d in depth.iter_mut() {
+        let u: f64 = rng.random();
+        if u < faults.sensor_dropout {
+            *d = 0;
+        } else if u < faults.sensor_dropout + faults.sensor_outlier {
+            *d = rng.random_range(lo..hi) as u16;
+        }
     }
 }
 
@@ -908,7 +964,9 @@ pub fn run_observed(
         t_s: 0.0,
         dt: f64::from(cfg.dt),
         wall: remote.then(Instant::now),
+        faults: cfg.faults,
     };
+    let mut sensor_rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x5e45_0f17);
     let mut clock = HostClock::new();
     let mut steps = Vec::new();
     let mut track = Track::start(world, &vehicle.position, cfg.body_radius);
@@ -947,6 +1005,7 @@ pub fn run_observed(
         };
         let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
         cfg.camera.render(world, &true_pose, &mut rng, &mut depth);
+        inject_sensor_faults(&cfg.faults, &cfg.camera, &mut sensor_rng, &mut depth);
         let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
             .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
         rig.link
@@ -960,16 +1019,25 @@ pub fn run_observed(
         let mut frames = Vec::new();
         for arrived in rig.link.take_arrived() {
             if let Some(frame) = arrived.frame() {
-                if planner.integrate(&frame, &arrived.camera_pose) {
-                    integrated += 1;
-                    rig.link.note_integrated();
-                    frames.push(IntegratedFrame {
-                        depth_mm: frame.depth_mm().to_vec(),
-                        intrinsics: *frame.intrinsics(),
-                        camera_pose: arrived.camera_pose,
-                        true_pose,
-                        time_s: rig.t_s,
-                    });
+                match planner.integrate(&frame, &arrived.camera_pose) {
+                    Ok(()) => {
+                        integrated += 1;
+                        rig.link.note_integrated();
+                        frames.push(IntegratedFrame {
+                            depth_mm: frame.depth_mm().to_vec(),
+                            intrinsics: *frame.intrinsics(),
+                            camera_pose: arrived.camera_pose,
+                            true_pose,
+                            time_s: rig.t_s,
+                        });
+                    }
+                    // Refused and counted by the core; over MAVLink the vehicle holds and the
+                    // fault goes out as a STATUSTEXT.
+                    Err(fault) => {
+                        if let Some(m) = rig.mav.as_mut() {
+                            m.bridge.apply(&PlanOutcome::Hold(fault));
+                        }
+                    }
                 }
             }
         }

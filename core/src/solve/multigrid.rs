@@ -199,7 +199,7 @@ impl<'a> Multigrid<'a> {
         let krylov = if storage.krylov.len() >= need.krylov {
             storage.krylov
         } else {
-            &mut storage.krylov[..0]
+            &mut []
         };
         let mut levels = HVec::new();
         let (mut offset, mut label_offset) = (0, 0);
@@ -453,7 +453,9 @@ impl<'a> Multigrid<'a> {
         let mut prev_dims = self.fine;
         let mut prev_offset: Option<usize> = None;
         for level in self.levels.iter_mut() {
-            let (done, rest) = self.labels.split_at_mut(level.label_offset);
+            let Some((done, rest)) = self.labels.split_at_mut_checked(level.label_offset) else {
+                break;
+            };
             // Empty when no face storage was lent: every level then takes `coarsen_labels`.
             let (faces_done, faces_rest) = self.faces.split_at_mut(level.label_offset.min(self.faces.len()));
             let (prev, prev_faces): (&[Label], Option<&[[u8; 4]]>) = match prev_offset {
@@ -516,9 +518,16 @@ impl<'a> Multigrid<'a> {
             };
             fine_cycle(fine, levels, values, coarse_labels, faces, pins)
         };
-        let (r, rest) = krylov.split_at_mut(n);
-        let (p, rest) = rest.split_at_mut(n);
-        let z = &mut rest[..n];
+        // `new` lends MGPCG at least 3n values or none (and then this is never called).
+        let Some((r, rest)) = krylov.split_at_mut_checked(n) else {
+            return res;
+        };
+        let Some((p, rest)) = rest.split_at_mut_checked(n) else {
+            return res;
+        };
+        let Some(z) = rest.get_mut(..n) else {
+            return res;
+        };
         residual_into(&dims, &fine_active, labels, phi, None, r);
         let b_norm = libm::sqrt(b2);
         if b_norm == 0.0 {
@@ -596,11 +605,11 @@ pub const FACE_ONE: u8 = 240;
 /// benchmark: a floor of ¼ diverges on 32×32×16, ⅓ converges in 35 cycles on 64×64×32, ½ in 41,
 /// "any open child face = fully open" in 63, the old label-only operator in 109). ½ is the
 /// safe choice: walls stay closed, and partial faces are never weaker than half.
-const MIN_OPEN_FACE: u8 = FACE_ONE / 2;
+const MIN_OPEN_FACE: u8 = FACE_ONE >> 1; // ½
 
 /// Unit of the sink conductance stored in a coarse cell's fourth face byte, in units of
 /// [`FACE_ONE`]: 1/16 of an open face, so a byte holds up to ~16 open faces of sink.
-const SINK_UNIT: u32 = FACE_ONE as u32 / 16;
+const SINK_UNIT: u32 = (FACE_ONE as u32) >> 4; // 1/16
 
 /// Labels and face conductances of one coarse level from the level below (`prev_faces` is
 /// `None` for the fine level, where a face is open when both its cells are in the domain).
@@ -632,14 +641,14 @@ fn coarsen(
     for z in 0..pnz {
         for y in 0..pny {
             let start = pnx * (y + pny * z);
-            let parent_row = dims.nx() * (y / 2 + dims.ny() * (z / 2));
+            let parent_row = dims.nx() * ((y >> 1) + dims.ny() * (z >> 1));
             for x in 0..pnx {
                 let i = start + x;
                 let label = prev.get(i).copied().unwrap_or(Label::Outside);
                 if !label.in_domain() {
                     continue;
                 }
-                let parent = parent_row + x / 2;
+                let parent = parent_row + (x >> 1);
                 let Some((c, f)) = coarse.get_mut(parent).zip(faces.get_mut(parent)) else {
                     continue;
                 };
@@ -679,7 +688,7 @@ fn coarsen(
                 // A coarse face is the sum of its child faces over four; a sink only halves (see
                 // the module doc).
                 if let Some(s) = f.get_mut(3) {
-                    let add = (sink / 2).div_ceil(SINK_UNIT);
+                    let add = (sink >> 1).div_ceil(SINK_UNIT);
                     *s = u8::try_from(u32::from(*s) + add).unwrap_or(u8::MAX);
                 }
             }
@@ -709,12 +718,12 @@ fn coarsen_labels(prev_dims: &Dims, prev: &[Label], dims: &Dims, coarse: &mut [L
     for z in 0..prev_dims.nz() {
         for y in 0..pny {
             let start = pnx * (y + pny * z);
-            let parent_row = dims.nx() * (y / 2 + dims.ny() * (z / 2));
+            let parent_row = dims.nx() * ((y >> 1) + dims.ny() * (z >> 1));
             for (x, l) in prev.get(start..start + pnx).unwrap_or(&[]).iter().enumerate() {
                 if !l.in_domain() {
                     continue;
                 }
-                if let Some(c) = coarse.get_mut(parent_row + x / 2) {
+                if let Some(c) = coarse.get_mut(parent_row + (x >> 1)) {
                     *c = match (*c, *l) {
                         (_, Label::Frontier) | (Label::Frontier, _) => Label::Frontier,
                         _ => Label::Interior,
@@ -768,7 +777,7 @@ fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 4]], colour: usize) -> u64 {
     for z in v.active.zs() {
         for y in v.active.ys() {
             let start = nx * (y + ny * z);
-            let mut x = (colour + y + z) % 2;
+            let mut x = (colour + y + z) & 1;
             while x < nx {
                 let i = start + x;
                 if let (Some(Label::Interior), Some(cell)) = (v.labels.get(i), cells.get(i)) {
@@ -853,7 +862,7 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
     for_each_row_mut(&v.dims, &v.active, v.labels, v.x, |st, row| {
         let nx = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + nx));
-        let first = (colour + st.y + st.z) % 2;
+        let first = (colour + st.y + st.z) & 1;
         let mut one = |x: usize| {
             if let (Some(Label::Interior), Some(cell)) = (st.labels.get(x), row.get(x)) {
                 let c = cell.get();
@@ -868,7 +877,7 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
                 if first == 0 {
                     one(0);
                 }
-                if (nx - 1) % 2 == first {
+                if (nx - 1) & 1 == first {
                     one(nx - 1);
                 }
                 updates += relax_inner(&inner, row, b_row, 2 - first);
@@ -917,7 +926,7 @@ fn relax_inner(inner: &super::Inner<'_>, row: &[Cell<f32>], b: Option<&[f32]>, s
 /// coarse neighbour on the side `c` lies towards (¼), `None` past the grid edge.
 #[inline]
 fn axis_parents(c: usize, n: usize) -> [(Option<usize>, f32); 2] {
-    let p = c / 2;
+    let p = c >> 1;
     let other = if c.is_multiple_of(2) {
         p.checked_sub(1)
     } else {
@@ -1021,7 +1030,7 @@ const ROW_BUF: usize = 256;
 /// on its side (¼; `usize::MAX` past the low edge, which reads as absent).
 #[inline(always)]
 fn fine_to_coarse_x(x: usize) -> (usize, usize) {
-    let c = x / 2;
+    let c = x >> 1;
     (
         c,
         if x.is_multiple_of(2) {
@@ -1318,8 +1327,16 @@ fn vcycle(
         work += relax(&mut fine, 0) + relax(&mut fine, 1);
     }
     let n = level.dims.len();
-    let (mine, rest) = values.split_at_mut(level.offset + 2 * n);
-    let (cx, cb) = mine[level.offset..].split_at_mut(n);
+    // `new` sized `values` for every level; a shortfall skips the coarse correction.
+    let Some((mine, rest)) = values.split_at_mut_checked(level.offset + 2 * n) else {
+        return work;
+    };
+    let Some((cx, cb)) = mine
+        .get_mut(level.offset..)
+        .and_then(|m| m.split_at_mut_checked(n))
+    else {
+        return work;
+    };
     let clabels = labels
         .get(level.label_offset..level.label_offset + n)
         .unwrap_or(&[]);

@@ -640,18 +640,18 @@ impl Planner for Baseline<'_> {
         self.kind
     }
 
-    fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> bool {
+    fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> Result<(), Fault> {
         match integrate::integrate(&mut self.map, frame, camera_pose, &self.config.integration) {
             Ok(stats) => {
                 self.intrinsics = Some(*frame.intrinsics());
                 self.status.frames += 1;
                 self.status.integration = stats;
                 self.status.integration_ops += u64::from(stats.voxel_updates);
-                true
+                Ok(())
             }
-            Err(_) => {
+            Err(e) => {
                 self.status.errors.frames_rejected += 1;
-                false
+                Err(Fault::Integrate(e))
             }
         }
     }

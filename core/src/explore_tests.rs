@@ -1,0 +1,259 @@
+//! The explorer's defined behaviour for bad input and dead ends (docs/RELIABILITY.md): each
+//! case returns a fault or outcome the caller acts on (hold), with its counter.
+
+extern crate std;
+
+use std::vec;
+use std::vec::Vec;
+
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+
+use super::*;
+use crate::camera::{DepthFrame, Intrinsics};
+use crate::map::{Dims, MapGeometry};
+use crate::solve::multigrid;
+
+struct Buffers {
+    log_odds: Vec<i8>,
+    touched: Vec<u32>,
+    labels: Vec<Label>,
+    phi: Vec<f32>,
+    queue: Vec<u32>,
+    values: Vec<f32>,
+    coarse_labels: Vec<Label>,
+    faces: Vec<[u8; 4]>,
+    krylov: Vec<f32>,
+}
+
+impl Buffers {
+    fn new(dims: &Dims) -> Self {
+        let n = dims.len();
+        let s = multigrid::scratch_size(dims);
+        Self {
+            log_odds: vec![0; n],
+            touched: vec![0; crate::map::touched_words(dims)],
+            labels: vec![Label::Outside; n],
+            phi: vec![0.0; n],
+            queue: vec![0; 4096],
+            values: vec![0.0; s.values],
+            coarse_labels: vec![Label::Outside; s.labels],
+            faces: vec![[0; 4]; s.faces],
+            krylov: vec![0.0; s.krylov],
+        }
+    }
+    fn explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Explorer<'_> {
+        let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        Explorer::new(
+            geometry,
+            config,
+            ExplorerStorage {
+                log_odds: &mut self.log_odds,
+                touched: &mut self.touched,
+                labels: &mut self.labels,
+                phi: &mut self.phi,
+                queue: &mut self.queue,
+                coarse_values: &mut self.values,
+                coarse_labels: &mut self.coarse_labels,
+                coarse_faces: &mut self.faces,
+                krylov: &mut self.krylov,
+            },
+        )
+        .unwrap()
+    }
+}
+
+fn intrinsics() -> Intrinsics {
+    Intrinsics::from_hfov(48, 48, 2.6).unwrap()
+}
+
+/// A camera at `p` looking along `dir` (map frame).
+fn looking(p: Point3<f32>, dir: Vector3<f32>) -> Isometry3<f32> {
+    let r = UnitQuaternion::rotation_between(&Vector3::z(), &dir)
+        .unwrap_or_else(|| UnitQuaternion::from_axis_angle(&Vector3::x_axis(), core::f32::consts::PI));
+    Isometry3::from_parts(Translation3::from(p.coords), r)
+}
+
+/// Integrates an image of constant depth `mm` (0 = no return) seen from `pose`.
+fn look(explorer: &mut Explorer<'_>, pose: &Isometry3<f32>, mm: u16) {
+    let depth = vec![mm; intrinsics().pixel_count()];
+    let frame = DepthFrame::new(intrinsics(), &depth).unwrap();
+    explorer.integrate(&frame, pose).unwrap();
+}
+
+const AXES: [[f32; 3]; 6] = [
+    [1.0, 0.0, 0.0],
+    [-1.0, 0.0, 0.0],
+    [0.0, 1.0, 0.0],
+    [0.0, -1.0, 0.0],
+    [0.0, 0.0, 1.0],
+    [0.0, 0.0, -1.0],
+];
+
+#[test]
+fn non_finite_vehicle_pose_holds_and_counts() {
+    let dims = Dims::new(12, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let mut e = b.explorer(dims, ExplorerConfig::default());
+    let p = Point3::new(0.6, 0.6, 0.3);
+    assert_eq!(
+        e.plan(&Point3::new(f32::NAN, 0.6, 0.3), 0.0),
+        PlanOutcome::Hold(Fault::BadPose)
+    );
+    assert_eq!(e.plan(&p, f32::INFINITY), PlanOutcome::Hold(Fault::BadPose));
+    assert_eq!(e.status().errors.bad_pose, 2);
+}
+
+#[test]
+fn vehicle_outside_the_grid_holds_and_counts() {
+    let dims = Dims::new(12, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let mut e = b.explorer(dims, ExplorerConfig::default());
+    for p in [
+        Point3::new(-0.05, 0.6, 0.3),
+        Point3::new(0.6, 1.3, 0.3),
+        Point3::new(0.6, 0.6, 1e9),
+    ] {
+        assert_eq!(e.plan(&p, 0.0), PlanOutcome::Hold(Fault::VehicleOutsideGrid));
+    }
+    assert_eq!(e.status().errors.vehicle_outside_grid, 3);
+}
+
+#[test]
+fn frames_with_bad_camera_poses_are_refused_without_touching_the_map() {
+    let dims = Dims::new(12, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let mut e = b.explorer(dims, ExplorerConfig::default());
+    let depth = vec![500u16; intrinsics().pixel_count()];
+    let frame = DepthFrame::new(intrinsics(), &depth).unwrap();
+    let before = e.map().counts();
+    let nan = Isometry3::from_parts(Translation3::new(f32::NAN, 0.0, 0.0), UnitQuaternion::identity());
+    let skewed = Isometry3::from_parts(
+        Translation3::new(0.6, 0.6, 0.3),
+        UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(1.2, 0.0, 0.0, 0.0)),
+    );
+    for pose in [nan, skewed] {
+        assert_eq!(
+            e.integrate(&frame, &pose),
+            Err(Fault::Integrate(IntegrateError::BadPose))
+        );
+    }
+    assert_eq!(e.status().errors.frames_rejected, 2);
+    assert_eq!(e.map().counts(), before);
+}
+
+#[test]
+fn no_frontier_from_the_start_is_complete() {
+    // A 0.6 m cube seen whole from its centre: nothing unknown is left, so nothing to explore.
+    let dims = Dims::new(6, 6, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig {
+        vehicle_radius: 0.05,
+        ..ExplorerConfig::default()
+    };
+    let mut e = b.explorer(dims, config);
+    let p = Point3::new(0.3, 0.3, 0.3);
+    for d in AXES {
+        look(&mut e, &looking(p, Vector3::from(d)), 0);
+    }
+    assert_eq!(e.map().counts().unknown, 0);
+    assert_eq!(e.plan(&p, 0.0), PlanOutcome::Complete);
+    assert_eq!(e.status().termination, Termination::Complete);
+}
+
+#[test]
+fn every_frontier_unreachable_is_complete() {
+    // A wall across a 2.0 × 0.4 × 0.4 m tube at x = 1.0 m. The vehicle's side is seen whole;
+    // beyond the wall a pocket next to unknown space was seen from the far end. Its frontier
+    // is in another component, unreachable: the vehicle's exploration is complete.
+    let dims = Dims::new(20, 4, 4).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig {
+        vehicle_radius: 0.05,
+        ..ExplorerConfig::default()
+    };
+    let mut e = b.explorer(dims, config);
+    let p = Point3::new(0.5, 0.2, 0.2);
+    look(&mut e, &looking(p, Vector3::x()), 500);
+    for d in &AXES[1..] {
+        look(&mut e, &looking(p, Vector3::from(*d)), 0);
+    }
+    look(&mut e, &looking(Point3::new(1.95, 0.2, 0.2), Vector3::x()), 0);
+    let outcome = e.plan(&p, 0.0);
+    assert_eq!(outcome, PlanOutcome::Complete, "{:?}", e.status().domain);
+    assert!(
+        e.status().domain.excluded > 0,
+        "the far pocket is excluded: {:?}",
+        e.status().domain
+    );
+}
+
+#[test]
+fn vehicle_in_an_occupied_voxel_escapes_to_free_space() {
+    // A wall seen 0.5 m ahead; then the vehicle is reported inside it (pose noise).
+    let dims = Dims::new(20, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let mut e = b.explorer(dims, ExplorerConfig::default());
+    let camera = Point3::new(0.45, 0.6, 0.3);
+    look(&mut e, &looking(camera, Vector3::x()), 500);
+    let inside = Point3::new(0.95, 0.6, 0.3);
+    let g = *e.map().geometry();
+    assert_eq!(
+        e.map().occupancy(g.dims().linear(g.voxel_at(&inside).unwrap())),
+        crate::map::Occupancy::Occupied
+    );
+    match e.plan(&inside, 0.0) {
+        PlanOutcome::Goal(goal) => {
+            assert!(goal.escape);
+            let v = g.voxel_at(&goal.position).unwrap();
+            assert!(
+                e.map().is_free(g.dims().linear(v)),
+                "escape goal not free: {goal:?}"
+            );
+        }
+        other => panic!("expected an escape goal, got {other:?}"),
+    }
+    assert_eq!(e.status().errors.escapes, 1);
+}
+
+#[test]
+fn vehicle_in_occupied_space_with_no_free_space_holds() {
+    // Seen from outside the grid, a wall fills the first layer: the grid holds no free voxel.
+    // The vehicle reported inside the wall has nowhere safe to go: hold, counted.
+    let dims = Dims::new(8, 8, 4).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig {
+        vehicle_radius: 0.0,
+        ..ExplorerConfig::default()
+    };
+    let mut e = b.explorer(dims, config);
+    look(&mut e, &looking(Point3::new(-0.5, 0.4, 0.2), Vector3::x()), 550);
+    let c = e.map().counts();
+    assert!(c.free == 0 && c.occupied > 0, "{c:?}");
+    let outcome = e.plan(&Point3::new(0.05, 0.45, 0.25), 0.0);
+    assert_eq!(outcome, PlanOutcome::Hold(Fault::VehicleNotFree));
+    assert_eq!(e.status().errors.vehicle_not_free, 1);
+}
+
+#[test]
+fn solver_cycle_cap_is_counted_and_the_goal_is_still_safe() {
+    let dims = Dims::new(30, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let mut config = ExplorerConfig::default();
+    config.solve.max_iterations = 1;
+    config.solve.tolerance = 1e-12;
+    let mut e = b.explorer(dims, config);
+    let p = Point3::new(0.3, 0.6, 0.3);
+    look(&mut e, &looking(p, Vector3::x()), 0);
+    let outcome = e.plan(&p, 0.0);
+    assert_eq!(e.status().errors.solver_not_converged, 1);
+    assert!(!e.status().solve.converged);
+    match outcome {
+        PlanOutcome::Goal(goal) => {
+            let g = *e.map().geometry();
+            let v = g.voxel_at(&goal.position).unwrap();
+            assert!(e.map().is_free(g.dims().linear(v)), "goal not free: {goal:?}");
+        }
+        PlanOutcome::Hold(_) => {}
+        PlanOutcome::Complete => panic!("unexplored space left, yet complete"),
+    }
+}

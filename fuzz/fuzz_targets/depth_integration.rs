@@ -1,0 +1,7 @@
+//! cargo-fuzz target; the harness (input format and oracle) is in `fuzz/harness/integrate.rs`.
+#![no_main]
+
+#[path = "../harness/integrate.rs"]
+mod harness;
+
+libfuzzer_sys::fuzz_target!(|data: &[u8]| harness::run(data));
