@@ -1,6 +1,8 @@
 //! cargo-fuzz target; the harness (input format and oracle) is in `fuzz/harness/integrate.rs`.
 #![no_main]
 
+#[path = "../harness/input.rs"]
+mod input;
 #[path = "../harness/integrate.rs"]
 mod harness;
 

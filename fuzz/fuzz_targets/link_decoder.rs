@@ -1,6 +1,8 @@
 //! cargo-fuzz target; the harness (input format and oracle) is in `fuzz/harness/link.rs`.
 #![no_main]
 
+#[path = "../harness/input.rs"]
+mod input;
 #[path = "../harness/link.rs"]
 mod harness;
 

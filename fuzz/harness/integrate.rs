@@ -18,36 +18,15 @@ use harmonic_core::map::{self, Dims, MapGeometry};
 use harmonic_core::solve::multigrid;
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
 
-/// Reads fields from the fuzz input, zeros once it runs out.
-struct Input<'a>(&'a [u8]);
+// The crate that includes this harness also includes `input.rs` as `crate::input`.
+use crate::input::{Floats, Input};
 
-impl Input<'_> {
-    fn u8(&mut self) -> u8 {
-        match self.0.split_first() {
-            Some((&b, rest)) => {
-                self.0 = rest;
-                b
-            }
-            None => 0,
-        }
-    }
-    fn u16(&mut self) -> u16 {
-        u16::from_le_bytes([self.u8(), self.u8()])
-    }
-    fn u32(&mut self) -> u32 {
-        u32::from_le_bytes([self.u8(), self.u8(), self.u8(), self.u8()])
-    }
-    /// A float that is usually plausible (multiples of 1/16 in ±8), sometimes raw bits.
-    fn float(&mut self) -> f32 {
-        match self.u8() {
-            0..=15 => f32::from_bits(self.u32()),
-            b => f32::from(b) / 16.0 - 8.0,
-        }
-    }
-    fn is_empty(&self) -> bool {
-        self.0.is_empty()
-    }
-}
+/// Plausible floats here: multiples of 1/16 in ±8.
+const FLOATS: Floats = Floats {
+    raw: 16,
+    step: 1.0 / 16.0,
+    offset: -8.0,
+};
 
 /// Runs the harness on one input. Panics only when the oracle finds a bug.
 pub fn run(data: &[u8]) {
@@ -60,9 +39,9 @@ pub fn run(data: &[u8]) {
         Ok(d) => d,
         Err(e) => panic!("small dims refused: {e:?}"),
     };
-    let origin = Point3::new(input.float(), input.float(), input.float());
+    let origin = Point3::new(input.float(FLOATS), input.float(FLOATS), input.float(FLOATS));
     let resolution = match input.u8() % 4 {
-        0 => input.float(),
+        0 => input.float(FLOATS),
         k => f32::from(k) * 0.1,
     };
     let Ok(geometry) = MapGeometry::new(dims, origin, resolution) else {
@@ -78,8 +57,8 @@ pub fn run(data: &[u8]) {
     };
     if input.u8() % 4 == 0 {
         config.integration = IntegrationParams {
-            min_range: input.float(),
-            max_range: input.float(),
+            min_range: input.float(FLOATS),
+            max_range: input.float(FLOATS),
             pixel_stride: u16::from(input.u8() % 4),
         };
     }
@@ -125,10 +104,10 @@ pub fn run(data: &[u8]) {
             continue;
         }
         let (w, h) = (u16::from(input.u8() % 24), u16::from(input.u8() % 16));
-        let fx = input.float() * 8.0;
-        let fy = input.float() * 8.0;
-        let cx = input.float() + f32::from(w) / 2.0;
-        let cy = input.float() + f32::from(h) / 2.0;
+        let fx = input.float(FLOATS) * 8.0;
+        let fy = input.float(FLOATS) * 8.0;
+        let cx = input.float(FLOATS) + f32::from(w) / 2.0;
+        let cy = input.float(FLOATS) + f32::from(h) / 2.0;
         let Ok(intrinsics) = Intrinsics::new(fx, fy, cx, cy, w, h) else {
             continue;
         };
@@ -145,11 +124,16 @@ pub fn run(data: &[u8]) {
             Err(e) => panic!("frame of the announced size refused: {e:?}"),
         };
         let t = Translation3::new(
-            centre.x + input.float() * resolution,
-            centre.y + input.float() * resolution,
-            centre.z + input.float() * resolution,
+            centre.x + input.float(FLOATS) * resolution,
+            centre.y + input.float(FLOATS) * resolution,
+            centre.z + input.float(FLOATS) * resolution,
         );
-        let q = Quaternion::new(input.float(), input.float(), input.float(), input.float());
+        let q = Quaternion::new(
+            input.float(FLOATS),
+            input.float(FLOATS),
+            input.float(FLOATS),
+            input.float(FLOATS),
+        );
         let rotation = if input.u8() % 4 == 0 {
             UnitQuaternion::new_unchecked(q)
         } else {
@@ -188,14 +172,14 @@ fn plan(explorer: &mut Explorer<'_>, input: &mut Input<'_>, centre: Point3<f32>)
     let geometry = *explorer.map().geometry();
     let r = geometry.resolution();
     let position = match input.u8() % 8 {
-        0 => Point3::new(input.float(), input.float(), input.float()),
+        0 => Point3::new(input.float(FLOATS), input.float(FLOATS), input.float(FLOATS)),
         _ => Point3::new(
-            centre.x + input.float() * r,
-            centre.y + input.float() * r,
-            centre.z + input.float() * r,
+            centre.x + input.float(FLOATS) * r,
+            centre.y + input.float(FLOATS) * r,
+            centre.z + input.float(FLOATS) * r,
         ),
     };
-    let yaw = input.float();
+    let yaw = input.float(FLOATS);
     match explorer.plan(&position, yaw) {
         PlanOutcome::Goal(goal) => {
             assert!(

@@ -25,39 +25,15 @@ const DECODER_BYTES: usize = 600;
 /// Assembler buffer: images of up to 24 × 16 pixels.
 const IMAGE_PIXELS: usize = 24 * 16;
 
-/// Reads fields from the fuzz input, zeros once it runs out.
-struct Input<'a>(&'a [u8]);
+// The crate that includes this harness also includes `input.rs` as `crate::input`.
+use crate::input::{Floats, Input};
 
-impl Input<'_> {
-    fn u8(&mut self) -> u8 {
-        match self.0.split_first() {
-            Some((&b, rest)) => {
-                self.0 = rest;
-                b
-            }
-            None => 0,
-        }
-    }
-    fn u16(&mut self) -> u16 {
-        u16::from_le_bytes([self.u8(), self.u8()])
-    }
-    fn u32(&mut self) -> u32 {
-        u32::from_le_bytes([self.u8(), self.u8(), self.u8(), self.u8()])
-    }
-    fn f32(&mut self) -> f32 {
-        f32::from_bits(self.u32())
-    }
-    /// A float that is usually plausible (small integers and halves), sometimes raw bits.
-    fn float(&mut self) -> f32 {
-        match self.u8() {
-            0..=31 => self.f32(),
-            b => f32::from(b) * 0.5 - 64.0,
-        }
-    }
-    fn is_empty(&self) -> bool {
-        self.0.is_empty()
-    }
-}
+/// Plausible floats here: small integers and halves.
+const FLOATS: Floats = Floats {
+    raw: 32,
+    step: 0.5,
+    offset: -64.0,
+};
 
 /// An owned copy of a receiver event, to compare slicings.
 #[derive(Debug, Clone, PartialEq)]
@@ -191,10 +167,10 @@ fn scripted_stream(data: &[u8]) -> Vec<u8> {
         match input.u8() % 8 {
             0 => {
                 let (w, h) = (u16::from(input.u8() % 32), u16::from(input.u8() % 24));
-                let fx = input.float();
-                let fy = input.float();
-                let cx = input.float();
-                let cy = input.float();
+                let fx = input.float(FLOATS);
+                let fy = input.float(FLOATS);
+                let cx = input.float(FLOATS);
+                let cy = input.float(FLOATS);
                 if let Ok(i) = Intrinsics::new(fx, fy, cx, cy, w, h) {
                     emit(&mut encoder, &Message::Intrinsics(i), &mut out);
                 }
@@ -234,8 +210,13 @@ fn scripted_stream(data: &[u8]) -> Vec<u8> {
             }
             4 => {
                 let frame_id = u32::from(input.u8());
-                let t = [input.float(), input.float(), input.float()];
-                let q = [input.float(), input.float(), input.float(), input.float()];
+                let t = [input.float(FLOATS), input.float(FLOATS), input.float(FLOATS)];
+                let q = [
+                    input.float(FLOATS),
+                    input.float(FLOATS),
+                    input.float(FLOATS),
+                    input.float(FLOATS),
+                ];
                 let q = match input.u8() % 2 {
                     0 => q,
                     _ => {

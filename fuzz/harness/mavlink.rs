@@ -21,39 +21,15 @@ use harmonic_core::mavlink::common::{
 use harmonic_core::mavlink::{encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder};
 use nalgebra::Point3;
 
-/// Reads fields from the fuzz input, zeros once it runs out.
-struct Input<'a>(&'a [u8]);
+// The crate that includes this harness also includes `input.rs` as `crate::input`.
+use crate::input::{Floats, Input};
 
-impl Input<'_> {
-    fn u8(&mut self) -> u8 {
-        match self.0.split_first() {
-            Some((&b, rest)) => {
-                self.0 = rest;
-                b
-            }
-            None => 0,
-        }
-    }
-    fn u16(&mut self) -> u16 {
-        u16::from_le_bytes([self.u8(), self.u8()])
-    }
-    fn u32(&mut self) -> u32 {
-        u32::from_le_bytes([self.u8(), self.u8(), self.u8(), self.u8()])
-    }
-    fn u64(&mut self) -> u64 {
-        u64::from(self.u32()) | (u64::from(self.u32()) << 32)
-    }
-    /// A float that is usually plausible (multiples of 0.25 around 0), sometimes raw bits.
-    fn float(&mut self) -> f32 {
-        match self.u8() {
-            0..=23 => f32::from_bits(self.u32()),
-            b => f32::from(b) * 0.25 - 32.0,
-        }
-    }
-    fn is_empty(&self) -> bool {
-        self.0.is_empty()
-    }
-}
+/// Plausible floats here: multiples of 0.25 around 0.
+const FLOATS: Floats = Floats {
+    raw: 24,
+    step: 0.25,
+    offset: -32.0,
+};
 
 /// Runs the harness on one input. Panics only when the oracle finds a bug.
 pub fn run(data: &[u8]) {
@@ -84,15 +60,15 @@ pub fn run(data: &[u8]) {
             }
             1 => Some(MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
                 time_boot_ms: input.u32(),
-                x: input.float(),
-                y: input.float(),
-                z: input.float(),
+                x: input.float(FLOATS),
+                y: input.float(FLOATS),
+                z: input.float(FLOATS),
                 ..LOCAL_POSITION_NED_DATA::DEFAULT
             })),
             2 => Some(MavMessage::ATTITUDE(ATTITUDE_DATA {
-                roll: input.float(),
-                pitch: input.float(),
-                yaw: input.float(),
+                roll: input.float(FLOATS),
+                pitch: input.float(FLOATS),
+                yaw: input.float(FLOATS),
                 ..ATTITUDE_DATA::DEFAULT
             })),
             3 => {
@@ -100,8 +76,13 @@ pub fn run(data: &[u8]) {
                     0 => MavFrame::MAV_FRAME_LOCAL_FRD,
                     _ => MavFrame::MAV_FRAME_LOCAL_NED,
                 };
-                let position = [input.float(), input.float(), input.float()];
-                let mut q = [input.float(), input.float(), input.float(), input.float()];
+                let position = [input.float(FLOATS), input.float(FLOATS), input.float(FLOATS)];
+                let mut q = [
+                    input.float(FLOATS),
+                    input.float(FLOATS),
+                    input.float(FLOATS),
+                    input.float(FLOATS),
+                ];
                 if input.u8() % 2 == 0 {
                     let n = q.iter().map(|c| c * c).sum::<f32>().sqrt();
                     q = q.map(|c| c / n);
@@ -134,8 +115,8 @@ pub fn run(data: &[u8]) {
                 None
             }
             9 => {
-                let position = Point3::new(input.float(), input.float(), input.float());
-                let yaw = input.float();
+                let position = Point3::new(input.float(FLOATS), input.float(FLOATS), input.float(FLOATS));
+                let yaw = input.float(FLOATS);
                 let _ = bridge.set_target(position, yaw);
                 None
             }
@@ -145,8 +126,8 @@ pub fn run(data: &[u8]) {
                     1 => PlanOutcome::Hold(Fault::VehicleNotFree),
                     2 => PlanOutcome::Hold(Fault::VehicleOutsideGrid),
                     _ => PlanOutcome::Goal(Goal {
-                        position: Point3::new(input.float(), input.float(), input.float()),
-                        yaw: input.float(),
+                        position: Point3::new(input.float(FLOATS), input.float(FLOATS), input.float(FLOATS)),
+                        yaw: input.float(FLOATS),
                         frontier: VoxelIndex::new(0, 0, 0),
                         escape: false,
                     }),

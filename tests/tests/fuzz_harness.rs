@@ -6,6 +6,8 @@
 //! `cargo test -p harmonic-tests --test fuzz_harness -- --ignored write_seed_corpus` rewrites
 //! the seed corpus (fuzz/corpus/TARGET/seed-*).
 
+#[path = "../../fuzz/harness/input.rs"]
+mod input;
 #[path = "../../fuzz/harness/integrate.rs"]
 mod integrate;
 #[path = "../../fuzz/harness/link.rs"]
