@@ -23,6 +23,7 @@
 //! queue costs time, never correctness.
 
 use heapless::Vec as HVec;
+use nalgebra::Point3;
 
 use crate::map::{Occupancy, VoxelIndex, VoxelMap};
 
@@ -387,6 +388,70 @@ fn safe_voxels(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Lab
     }
     inflate(map, stencil, labels);
     free
+}
+
+/// A voxel the vehicle's centre may pass: observed free, and nothing but observed free space
+/// within the vehicle radius (the domain's rule, checked locally).
+pub fn is_safe(map: &VoxelMap<'_>, stencil: &InflationStencil, v: VoxelIndex) -> bool {
+    let dims = map.dims();
+    map.is_free(dims.linear(v))
+        && stencil.offsets().all(|d| {
+            dims.offset(v, d)
+                .is_none_or(|n| map.occupancy(dims.linear(n)) == Occupancy::Free)
+        })
+}
+
+/// Marks the unknown voxels the vehicle's body reaches into — its voxel and every voxel the
+/// inflation stencil covers — as free: the vehicle is there, so they are. In flight this never
+/// changes anything (the domain keeps the body clear of unknown space); it matters at start-up,
+/// when everything around the vehicle is still unknown.
+pub fn mark_body(map: &mut VoxelMap<'_>, stencil: &InflationStencil, position: &Point3<f32>) {
+    let geometry = *map.geometry();
+    let dims = geometry.dims();
+    let Some(c) = geometry.voxel_at(position) else {
+        return;
+    };
+    map.mark_traversed(dims.linear(c));
+    for d in stencil.offsets() {
+        if let Some(v) = dims.offset(c, d) {
+            map.mark_traversed(dims.linear(v));
+        }
+    }
+}
+
+/// Voxels from a frontier voxel to the unexplored space that makes it one (fringe plus one).
+pub fn frontier_reach(stencil: &InflationStencil) -> i32 {
+    libm::ceilf(stencil.radius_voxels() + 0.5) as i32 + 1
+}
+
+/// True if any voxel within `reach` voxels (Chebyshev) of `v` satisfies `pred`.
+pub fn any_near(map: &VoxelMap<'_>, v: VoxelIndex, reach: i32, pred: impl Fn(usize) -> bool) -> bool {
+    let dims = map.dims();
+    for dz in -reach..=reach {
+        for dy in -reach..=reach {
+            for dx in -reach..=reach {
+                if dims.offset(v, [dx, dy, dz]).is_some_and(|n| pred(dims.linear(n))) {
+                    return true;
+                }
+            }
+        }
+    }
+    false
+}
+
+/// Seals every voxel within `reach` voxels (Chebyshev) of `v`: a frontier that was visited and
+/// could not be observed is taken out of the problem for good.
+pub fn seal_around(map: &mut VoxelMap<'_>, v: VoxelIndex, reach: i32) {
+    let dims = map.dims();
+    for dz in -reach..=reach {
+        for dy in -reach..=reach {
+            for dx in -reach..=reach {
+                if let Some(n) = dims.offset(v, [dx, dy, dz]) {
+                    map.seal(dims.linear(n));
+                }
+            }
+        }
+    }
 }
 
 /// The nearest safe voxel (by face-connected path through observed free space, inflated and

@@ -35,7 +35,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use crate::camera::{DepthFrame, Intrinsics};
 use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
-use crate::map::{Dims, LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, VoxelIndex, VoxelMap};
 use crate::solve::multigrid::{Method, Multigrid, MultigridStorage};
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
 use crate::streamline::{self, Field, StreamlineEnd, StreamlineError, StreamlineParams, Waypoints};
@@ -456,9 +456,12 @@ impl<'a> Explorer<'a> {
     fn keep_goal(&mut self, position: &Point3<f32>, goal: &Goal) -> bool {
         let geometry = *self.map.geometry();
         let res = geometry.resolution();
-        let still_open = self.any_near(goal.frontier, self.frontier_reach(), |i| {
-            self.map.is_unexplored(i)
-        });
+        let still_open = domain::any_near(
+            &self.map,
+            goal.frontier,
+            domain::frontier_reach(&self.stencil),
+            |i| self.map.is_unexplored(i),
+        );
         if !still_open || (goal.position - position).norm() <= 1.5 * res {
             return false;
         }
@@ -479,7 +482,7 @@ impl<'a> Explorer<'a> {
         let mut from = *position;
         for w in self.waypoints.iter().skip(k) {
             integrate::traverse(&geometry, &from, w, |v| {
-                clear &= self.is_safe(v);
+                clear &= domain::is_safe(&self.map, &self.stencil, v);
                 clear
             });
             if !clear {
@@ -495,17 +498,6 @@ impl<'a> Explorer<'a> {
         true
     }
 
-    /// A voxel the vehicle's centre may pass: observed free, and nothing but observed free
-    /// space within the vehicle radius (the domain's rule, checked locally).
-    fn is_safe(&self, v: VoxelIndex) -> bool {
-        let dims = self.map.dims();
-        self.map.is_free(dims.linear(v))
-            && self.stencil.offsets().all(|d| {
-                dims.offset(v, d)
-                    .is_none_or(|n| self.map.occupancy(dims.linear(n)) == Occupancy::Free)
-            })
-    }
-
     fn plan_inner(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> PlanOutcome {
         let errors = &mut self.status.errors;
         if !(position.coords.iter().all(|c| c.is_finite()) && yaw.is_finite()) {
@@ -517,7 +509,7 @@ impl<'a> Explorer<'a> {
             errors.vehicle_outside_grid += 1;
             return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
         };
-        self.mark_body(position);
+        domain::mark_body(&mut self.map, &self.stencil, position);
         let counts = self.map.counts();
         let unexplored = counts.unknown - counts.sealed;
         let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
@@ -584,7 +576,7 @@ impl<'a> Explorer<'a> {
                 self.fruitless_visits = self.fruitless_visits.saturating_add(1);
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
-                    self.seal_around(end.frontier);
+                    domain::seal_around(&mut self.map, end.frontier, domain::frontier_reach(&self.stencil));
                     self.status.errors.seals += 1;
                     continue;
                 }
@@ -595,44 +587,6 @@ impl<'a> Explorer<'a> {
         }
         self.status.errors.streamline_failures += 1;
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
-    }
-
-    /// Marks the unknown voxels the vehicle's body reaches into — its voxel and every voxel the
-    /// inflation stencil covers — as free: the vehicle is there, so they are. In flight this
-    /// never changes anything (the domain keeps the body clear of unknown space); it matters at
-    /// start-up, when everything around the vehicle is still unknown.
-    fn mark_body(&mut self, position: &Point3<f32>) {
-        let geometry = *self.map.geometry();
-        let dims = geometry.dims();
-        let Some(c) = geometry.voxel_at(position) else {
-            return;
-        };
-        self.map.mark_traversed(dims.linear(c));
-        for d in self.stencil.offsets() {
-            if let Some(v) = dims.offset(c, d) {
-                self.map.mark_traversed(dims.linear(v));
-            }
-        }
-    }
-
-    /// True if any voxel within `reach` voxels (Chebyshev) of `v` satisfies `pred`.
-    fn any_near(&self, v: VoxelIndex, reach: i32, pred: impl Fn(usize) -> bool) -> bool {
-        let dims = self.map.dims();
-        for dz in -reach..=reach {
-            for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    if dims.offset(v, [dx, dy, dz]).is_some_and(|n| pred(dims.linear(n))) {
-                        return true;
-                    }
-                }
-            }
-        }
-        false
-    }
-
-    /// Voxels from a frontier voxel to the unexplored space that makes it one.
-    fn frontier_reach(&self) -> i32 {
-        libm::ceilf(self.stencil.radius_voxels() + 0.5) as i32 + 1
     }
 
     /// The goal for a traced streamline: the waypoint nearest the end that sees the frontier.
@@ -681,21 +635,6 @@ impl<'a> Explorer<'a> {
                 && (last.position - position).norm() <= 1.5 * res
                 && (learned_nothing || last.frontier.distance_sq(&goal.frontier) <= 2)
         })
-    }
-
-    /// Seals the unexplored voxels that make `frontier` a frontier (those within reach of it).
-    fn seal_around(&mut self, frontier: VoxelIndex) {
-        let dims: Dims = self.map.dims();
-        let reach = self.frontier_reach();
-        for dz in -reach..=reach {
-            for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    if let Some(v) = dims.offset(frontier, [dx, dy, dz]) {
-                        self.map.seal(dims.linear(v));
-                    }
-                }
-            }
-        }
     }
 
     /// Goal back into the domain for a vehicle that a new observation left inside inflated space.

@@ -419,7 +419,7 @@ pub fn replay(
             }
             Event::Body(p) => {
                 if let Some(stencil) = &stencil {
-                    crate::sensing::mark_body(&mut map, stencil, p);
+                    harmonic_core::domain::mark_body(&mut map, stencil, p);
                     summary.body_marks += 1;
                 }
             }

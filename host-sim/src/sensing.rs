@@ -11,7 +11,6 @@
 //!   at its true pose — the seed thesis's measure (Shade 2011, Fig. 6.19), over the whole grid
 //!   and over the voxels either map observed.
 
-use harmonic_core::domain::InflationStencil;
 use harmonic_core::map::VoxelMap;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
@@ -144,23 +143,6 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
         observed_voxels: frac(same_observed, observed),
         false_occupied,
         false_free,
-    }
-}
-
-/// Marks the unknown voxels a vehicle body at `position` fills as free (the core's rule: its
-/// voxel and every voxel of the inflation stencil). Used by the host planners and reference
-/// maps, which must treat the body as the core does.
-pub fn mark_body(map: &mut VoxelMap<'_>, stencil: &InflationStencil, position: &Point3<f32>) {
-    let geometry = *map.geometry();
-    let dims = geometry.dims();
-    let Some(c) = geometry.voxel_at(position) else {
-        return;
-    };
-    map.mark_traversed(dims.linear(c));
-    for d in stencil.offsets() {
-        if let Some(v) = dims.offset(c, d) {
-            map.mark_traversed(dims.linear(v));
-        }
     }
 }
 

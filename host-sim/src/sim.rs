@@ -1078,7 +1078,7 @@ pub fn run_observed(
         } else if integrated > 0 {
             steps_without_frame = 0;
             if let Some(reference) = reference.as_mut() {
-                crate::sensing::mark_body(reference, &stencil, &vehicle.position);
+                harmonic_core::domain::mark_body(reference, &stencil, &vehicle.position);
             }
             Some(planner.plan(&position, yaw, &mut clock))
         } else {

@@ -42,7 +42,7 @@ use harmonic_core::explore::{
     ConfigError, ExplorerConfig, ExplorerStorage, Fault, Goal, PlanOutcome, Status, Termination,
 };
 use harmonic_core::integrate::{self, traverse};
-use harmonic_core::map::{MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use harmonic_core::map::{MapGeometry, VoxelIndex, VoxelMap};
 use harmonic_core::streamline::{StreamlineEnd, StreamlineError};
 use nalgebra::{Isometry3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -181,7 +181,7 @@ impl<'a> Baseline<'a> {
             self.status.errors.vehicle_outside_grid += 1;
             return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
         };
-        self.mark_body(position);
+        domain::mark_body(&mut self.map, &self.stencil, position);
         let counts = self.map.counts();
         let unexplored = counts.unknown - counts.sealed;
         let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
@@ -241,7 +241,7 @@ impl<'a> Baseline<'a> {
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
                     for w in &target.watch {
-                        self.seal_around(*w);
+                        domain::seal_around(&mut self.map, *w, domain::frontier_reach(&self.stencil));
                     }
                     self.status.errors.seals += 1;
                     continue;
@@ -297,7 +297,7 @@ impl<'a> Baseline<'a> {
     fn unknown_behind(&self, f: VoxelIndex) -> Point3<f32> {
         let dims = self.map.dims();
         let g = self.map.geometry();
-        let reach = self.frontier_reach();
+        let reach = domain::frontier_reach(&self.stencil);
         let (mut sum, mut n) = (Vector3::zeros(), 0u32);
         for dz in -reach..=reach {
             for dy in -reach..=reach {
@@ -493,39 +493,6 @@ impl<'a> Baseline<'a> {
         }
     }
 
-    /// Voxels from a frontier voxel to the unexplored space that makes it one (the core's reach).
-    fn frontier_reach(&self) -> i32 {
-        (self.stencil.radius_voxels() + 0.5).ceil() as i32 + 1
-    }
-
-    fn any_near(&self, v: VoxelIndex, reach: i32, pred: impl Fn(usize) -> bool) -> bool {
-        let dims = self.map.dims();
-        for dz in -reach..=reach {
-            for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    if dims.offset(v, [dx, dy, dz]).is_some_and(|n| pred(dims.linear(n))) {
-                        return true;
-                    }
-                }
-            }
-        }
-        false
-    }
-
-    fn seal_around(&mut self, v: VoxelIndex) {
-        let dims = self.map.dims();
-        let reach = self.frontier_reach();
-        for dz in -reach..=reach {
-            for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    if let Some(n) = dims.offset(v, [dx, dy, dz]) {
-                        self.map.seal(dims.linear(n));
-                    }
-                }
-            }
-        }
-    }
-
     fn is_fruitless_revisit(&self, goal: &Goal, position: &Point3<f32>, learned_nothing: bool) -> bool {
         let res = self.map.geometry().resolution();
         self.commitment.as_ref().is_some_and(|c| {
@@ -533,21 +500,6 @@ impl<'a> Baseline<'a> {
                 && (c.goal.position - position).norm() <= 1.5 * res
                 && (learned_nothing || c.goal.frontier.distance_sq(&goal.frontier) <= 2)
         })
-    }
-
-    /// The vehicle's body is free space: marks the unknown voxels it fills (as the core does).
-    fn mark_body(&mut self, position: &Point3<f32>) {
-        crate::sensing::mark_body(&mut self.map, &self.stencil, position);
-    }
-
-    /// A voxel the vehicle's centre may pass: free, and only free space within its radius.
-    fn is_safe(&self, v: VoxelIndex) -> bool {
-        let dims = self.map.dims();
-        self.map.is_free(dims.linear(v))
-            && self.stencil.offsets().all(|d| {
-                dims.offset(v, d)
-                    .is_none_or(|n| self.map.occupancy(dims.linear(n)) == Occupancy::Free)
-            })
     }
 
     /// The committed goal still stands: a watched voxel is still open, the vehicle is on the
@@ -561,11 +513,11 @@ impl<'a> Baseline<'a> {
         }
         let geometry = *self.map.geometry();
         let res = geometry.resolution();
-        let reach = self.frontier_reach();
+        let reach = domain::frontier_reach(&self.stencil);
         let open = c
             .watch
             .iter()
-            .any(|w| self.any_near(*w, reach, |i| self.map.is_unexplored(i)));
+            .any(|w| domain::any_near(&self.map, *w, reach, |i| self.map.is_unexplored(i)));
         if !open || (c.goal.position - position).norm() <= 1.5 * res {
             return false;
         }
@@ -592,7 +544,7 @@ impl<'a> Baseline<'a> {
         let mut from = *position;
         for w in &self.waypoints[k..] {
             traverse(&geometry, &from, w, |v| {
-                clear &= self.is_safe(v);
+                clear &= domain::is_safe(&self.map, &self.stencil, v);
                 clear
             });
             if !clear {
