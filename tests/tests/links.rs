@@ -174,6 +174,8 @@ fn fake_autopilot(
 fn remote_run(spec: MavlinkSpec, steps: u32, tlog: Option<std::path::PathBuf>) -> Report {
     let cfg = SimConfig {
         max_scans: steps,
+        // Plan from the first scan: these runs are short and count on the vehicle moving.
+        look_around: 0,
         mavlink: Some(MavlinkConfig {
             spec,
             tlog,
