@@ -9,7 +9,12 @@
 //! ([`depth_link`]): the core's wire format at a baud rate, over a transport ([`transport`]:
 //! in-process pipe, TCP, serial), through an optional fault injector ([`fault`]). MAVLink
 //! traffic can be recorded as a `.tlog` ([`tlog`]). The simulator renders and flies; every
-//! decision is the core's.
+//! decision of the harmonic planner is the core's.
+//!
+//! The evaluation suite: the seed thesis's baseline planners behind one interface with the core
+//! ([`planners`]), triangle-mesh worlds ([`mesh`]), sensing faults and map accuracy
+//! ([`sensing`], [`camera`]), batch runs with thesis-style tables ([`batch`]), figures and map
+//! exports ([`figures`]), and TUM RGB-D recordings with replay ([`record`]).
 #![warn(missing_docs)]
 
 pub mod autopilot;

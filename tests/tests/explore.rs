@@ -103,11 +103,20 @@ fn pil_small_is_explored_completely_on_the_host() {
     assert_complete(&explore("pil-small"));
 }
 
-/// The six worlds of the thesis's comparison (the evaluation suite, docs/RESULTS.md): the
-/// harmonic planner must complete each from its default start.
 #[test]
-fn thesis_scenarios_are_explored_completely() {
-    for name in ["s1", "s2", "kitchen", "s4", "apartment-thesis", "garage"] {
+fn thesis_scenarios_are_explored_completely_without_collisions() {
+    for name in ["s1", "kitchen", "apartment-thesis", "garage"] {
+        assert_complete(&explore(name));
+    }
+}
+
+/// s2 and s4 take one and three minutes each; docs/RESULTS.md's bench runs them (every
+/// baseline run complete; the harmonic planner 4 of 5 in s2, 5 of 5 in s4).
+/// `cargo test --release -p harmonic-tests --test explore -- --ignored large`
+#[test]
+#[ignore]
+fn large_thesis_scenarios_are_explored_completely_without_collisions() {
+    for name in ["s2", "s4"] {
         assert_complete(&explore(name));
     }
 }
