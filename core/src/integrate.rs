@@ -2,10 +2,17 @@
 //!
 //! Each used pixel becomes a ray from the camera centre. A valid return marks its endpoint voxel
 //! with a *hit* and every voxel the ray crosses before it with a *miss* (Amanatides–Woo voxel
-//! traversal, [`traverse`]). Pixels with no return (depth 0) or a return beyond the maximum range
-//! clear free space up to the maximum range with no occupied endpoint. Returns closer than the
-//! minimum range are physically implausible for the sensor and are counted as invalid, not
-//! integrated.
+//! traversal, [`traverse`]). A return beyond the maximum range clears free space up to the maximum
+//! range with no occupied endpoint. Returns closer than the minimum range are physically
+//! implausible for the sensor and are counted as invalid, not integrated.
+//!
+//! A pixel with no return (depth 0) is weaker evidence: it may be open space beyond the sensor's
+//! reach, but it may as well be a dropout, a textureless surface or a failed stereo match in
+//! front of a wall. Such a ray clears unknown and free voxels up to the maximum range but stops
+//! at the first voxel the map holds occupied (including one hit by another pixel of the same
+//! frame) and never lowers it: only a measured return behind a voxel may erode it. Without this
+//! rule a single dropout pixel erases wall voxels seen before and opens a path through the wall
+//! (the fault campaign's "sensor dropout" cell, docs/RELIABILITY.md).
 //!
 //! A voxel is updated at most once per frame. Endpoints are applied in a first pass and rays in a
 //! second, so a voxel that one pixel hits and another passes through counts as a hit (OctoMap's
@@ -14,7 +21,7 @@
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::camera::DepthFrame;
-use crate::map::{Dims, MapGeometry, VoxelIndex, VoxelMap};
+use crate::map::{Dims, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 
 /// How depth pixels are turned into map updates.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -48,6 +55,8 @@ pub struct IntegrationStats {
     pub returns: u32,
     /// Pixels with depth 0.
     pub no_return: u32,
+    /// Of those, rays that stopped at a voxel held occupied instead of clearing through it.
+    pub no_return_blocked: u32,
     /// Pixels whose return lies beyond the maximum range.
     pub beyond_range: u32,
     /// Pixels closer than the minimum range: counted, not integrated.
@@ -113,6 +122,7 @@ pub fn integrate(
     // Pass 2: free space along every usable ray, classifying pixels as we go.
     for_each_pixel_ray(frame, camera_pose, params, |ray| {
         stats.pixels += 1;
+        let mut weak = false;
         let (end, endpoint) = match ray {
             PixelRay::Invalid => {
                 stats.invalid += 1;
@@ -120,6 +130,7 @@ pub fn integrate(
             }
             PixelRay::NoReturn { end } => {
                 stats.no_return += 1;
+                weak = true;
                 (end, None)
             }
             PixelRay::BeyondRange { end } => {
@@ -141,7 +152,12 @@ pub fn integrate(
             if Some(v) == endpoint {
                 return false;
             }
-            if map.apply_miss(dims.linear(v)) {
+            let i = dims.linear(v);
+            if weak && map.occupancy(i) == Occupancy::Occupied {
+                stats.no_return_blocked += 1;
+                return false;
+            }
+            if map.apply_miss(i) {
                 stats.voxel_updates += 1;
             }
             true
@@ -489,6 +505,42 @@ mod tests {
         }
         assert_eq!(map.occupancy(at(8)), Occupancy::Unknown);
         assert_eq!(map.counts().occupied, 0);
+    }
+
+    #[test]
+    fn no_return_stops_at_an_occupied_voxel_and_never_erodes_it() {
+        let mut f = Fixture {
+            lo: [0; 4096],
+            st: [0; 128],
+        };
+        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let params = IntegrationParams {
+            min_range: 0.1,
+            max_range: 1.2,
+            pixel_stride: 1,
+        };
+        let d = g.dims();
+        let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
+        let frame = |mm: &'static [u16; 1]| DepthFrame::new(intr, mm).unwrap();
+        // A wall at x = 0.55 m (voxel 5), seen once.
+        integrate(&mut map, &frame(&[500]), &looking_along_x(), &params).unwrap();
+        assert_eq!(map.occupancy(at(5)), Occupancy::Occupied);
+        // Dropouts, however many: the wall stays, nothing behind it is cleared.
+        for _ in 0..10 {
+            let s = integrate(&mut map, &frame(&[0]), &looking_along_x(), &params).unwrap();
+            assert_eq!((s.no_return, s.no_return_blocked), (1, 1));
+        }
+        assert_eq!(map.occupancy(at(5)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(4)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(6)), Occupancy::Unknown);
+        // Measured returns behind it do erode it (the wall moved, or was noise).
+        for _ in 0..10 {
+            integrate(&mut map, &frame(&[1000]), &looking_along_x(), &params).unwrap();
+        }
+        assert_eq!(map.occupancy(at(5)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
     }
 
     #[test]

