@@ -47,3 +47,21 @@ fn stale_pose_and_link_bursts_are_ridden_out_without_collisions() {
         u64::from(bursts.frames_lost)
     );
 }
+
+/// Dropouts read as "no return": they must never erase a wall the map has seen (before the fix,
+/// one dropout ray cleared a wall voxel and the vehicle flew into it), and slow pose drift is
+/// tolerated.
+#[test]
+fn sensor_dropouts_and_slow_pose_drift_end_without_collisions() {
+    let scenario = Scenario::builtin("apartment").unwrap();
+    let results = faults::run(
+        &scenario,
+        &SimConfig::default(),
+        cells(&["sensor dropout 5 %", "pose drift 2 mm/s"]),
+        |_| {},
+    );
+    for r in &results {
+        assert_eq!(r.termination, "complete", "{}", r.cell.name);
+        assert_eq!(r.collisions, 0, "{}", r.cell.name);
+    }
+}
