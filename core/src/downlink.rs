@@ -55,7 +55,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 220;
+pub const PLAN_REPORT_LEN: usize = 224;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -245,6 +245,7 @@ impl PlanReport {
             e.streamline_failures,
             e.solver_not_converged,
             e.seals,
+            e.pose_jumps,
         ] {
             w.u32(v);
         }
@@ -298,6 +299,7 @@ impl PlanReport {
             streamline_failures: r.u32(),
             solver_not_converged: r.u32(),
             seals: r.u32(),
+            pose_jumps: r.u32(),
         };
         // Counters the link may add later arrive as 0 from a core that does not send them.
         #[allow(clippy::needless_update)]
@@ -382,6 +384,7 @@ fn outcome_code(o: &ReportOutcome) -> (u8, u8, u8) {
                     match e {
                         IntegrateError::BadPose => 0,
                         IntegrateError::BadRange => 1,
+                        IntegrateError::PoseJump => 2,
                     },
                 ),
             };
@@ -410,6 +413,7 @@ fn outcome_from_code(outcome: u8, fault: u8, detail: u8) -> Option<ReportOutcome
             (5, 3) => Fault::Solver(SolveError::Diverged),
             (6, 0) => Fault::Integrate(IntegrateError::BadPose),
             (6, 1) => Fault::Integrate(IntegrateError::BadRange),
+            (6, 2) => Fault::Integrate(IntegrateError::PoseJump),
             _ => return None,
         }),
         _ => return None,

@@ -74,7 +74,17 @@ pub struct ExplorerConfig {
     /// receding-horizon caller can oscillate between two frontiers whose pull swaps as the
     /// source moves.
     pub commit_to_goal: bool,
+    /// A frame whose camera is farther than this (metres) from the previous integrated frame's
+    /// is refused ([`IntegrateError::PoseJump`], counted in [`ErrorCounters::pose_jumps`]): a
+    /// pose that jumps would write the frame's walls into the wrong place. If
+    /// [`FRAMES_TO_ACCEPT_JUMP`] frames in a row agree with each other on the new place (the
+    /// estimator relocalised), the new place is taken. Not finite or ≤ 0: no check.
+    pub max_frame_jump_m: f32,
 }
+
+/// Refused frames in a row, each within [`ExplorerConfig::max_frame_jump_m`] of the one before,
+/// after which a jumped camera pose is accepted as the new reference.
+pub const FRAMES_TO_ACCEPT_JUMP: u8 = 3;
 
 impl Default for ExplorerConfig {
     fn default() -> Self {
@@ -88,6 +98,7 @@ impl Default for ExplorerConfig {
             view_margin: 0.8,
             stall_visits: 2,
             commit_to_goal: true,
+            max_frame_jump_m: 2.0,
         }
     }
 }
@@ -190,6 +201,8 @@ pub struct ErrorCounters {
     pub solver_not_converged: u32,
     /// Times unknown voxels were sealed as unobservable.
     pub seals: u32,
+    /// Frames refused because their camera pose jumped (also in `frames_rejected`).
+    pub pose_jumps: u32,
 }
 
 /// How exploration stands.
@@ -302,6 +315,10 @@ pub struct Explorer<'a> {
     waypoints: Waypoints,
     intrinsics: Option<Intrinsics>,
     last_goal: Option<Goal>,
+    /// Camera position of the last integrated frame.
+    last_frame_origin: Option<Point3<f32>>,
+    /// A jumped camera position being refused, and how many frames in a row agreed on it.
+    jump_candidate: Option<(Point3<f32>, u8)>,
     fruitless_visits: u8,
     /// Unexplored voxels at the previous full plan, to tell visits that taught nothing.
     unexplored_at_last_plan: Option<u32>,
@@ -364,6 +381,8 @@ impl<'a> Explorer<'a> {
             waypoints: Waypoints::new(),
             intrinsics: None,
             last_goal: None,
+            last_frame_origin: None,
+            jump_candidate: None,
             fruitless_visits: 0,
             unexplored_at_last_plan: None,
             status: Status::default(),
@@ -401,8 +420,16 @@ impl<'a> Explorer<'a> {
         frame: &DepthFrame<'_>,
         camera_pose: &Isometry3<f32>,
     ) -> Result<IntegrationStats, Fault> {
+        let origin = Point3::from(camera_pose.translation.vector);
+        if self.pose_jumped(&origin) {
+            self.status.errors.frames_rejected += 1;
+            self.status.errors.pose_jumps += 1;
+            return Err(Fault::Integrate(IntegrateError::PoseJump));
+        }
         match integrate::integrate(&mut self.map, frame, camera_pose, &self.config.integration) {
             Ok(stats) => {
+                self.last_frame_origin = Some(origin);
+                self.jump_candidate = None;
                 self.intrinsics = Some(*frame.intrinsics());
                 self.status.frames += 1;
                 self.status.integration = stats;
@@ -414,6 +441,33 @@ impl<'a> Explorer<'a> {
                 Err(Fault::Integrate(e))
             }
         }
+    }
+
+    /// True if a frame taken from `origin` must be refused as a pose jump (see
+    /// [`ExplorerConfig::max_frame_jump_m`]); tracks the run of agreeing refused frames.
+    fn pose_jumped(&mut self, origin: &Point3<f32>) -> bool {
+        let max = self.config.max_frame_jump_m;
+        let Some(last) = self.last_frame_origin else {
+            return false;
+        };
+        // A non-finite origin is refused by integration itself (BadPose).
+        if !(max.is_finite() && max > 0.0) || !origin.coords.iter().all(|c| c.is_finite()) {
+            return false;
+        }
+        if (origin - last).norm() <= max {
+            return false;
+        }
+        let agreeing = match self.jump_candidate {
+            Some((p, n)) if (origin - p).norm() <= max => n.saturating_add(1),
+            _ => 1,
+        };
+        if agreeing > FRAMES_TO_ACCEPT_JUMP {
+            // The new place has persisted: take it (integrate() sets the reference).
+            self.jump_candidate = None;
+            return false;
+        }
+        self.jump_candidate = Some((*origin, agreeing));
+        true
     }
 
     /// Plans from the vehicle at `position` (map frame) with heading `yaw`.

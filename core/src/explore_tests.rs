@@ -142,6 +142,42 @@ fn frames_with_bad_camera_poses_are_refused_without_touching_the_map() {
 }
 
 #[test]
+fn camera_pose_jumps_are_refused_until_the_new_place_persists() {
+    let dims = Dims::new(40, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let mut e = b.explorer(dims, ExplorerConfig::default());
+    let depth = vec![500u16; intrinsics().pixel_count()];
+    let frame = DepthFrame::new(intrinsics(), &depth).unwrap();
+    let at = |x: f32| forward_camera_pose(&Point3::new(x, 0.6, 0.3), 0.0);
+    assert!(e.integrate(&frame, &at(0.6)).is_ok());
+    // Within the 2 m limit of the last frame: integrated.
+    assert!(e.integrate(&frame, &at(1.6)).is_ok());
+    let before = e.map().counts();
+    // 2.4 m on: refused, counted, map untouched, three times in a row.
+    for _ in 0..FRAMES_TO_ACCEPT_JUMP {
+        assert_eq!(
+            e.integrate(&frame, &at(4.0)),
+            Err(Fault::Integrate(IntegrateError::PoseJump))
+        );
+    }
+    assert_eq!(e.map().counts(), before);
+    assert_eq!(e.status().errors.pose_jumps, u32::from(FRAMES_TO_ACCEPT_JUMP));
+    assert_eq!(
+        e.status().errors.frames_rejected,
+        u32::from(FRAMES_TO_ACCEPT_JUMP)
+    );
+    // A frame back near the reference is taken at once, and resets the run.
+    assert!(e.integrate(&frame, &at(1.7)).is_ok());
+    assert!(e.integrate(&frame, &at(4.3)).is_err());
+    // The new place persists (the estimator relocalised): taken after the run.
+    for _ in 1..FRAMES_TO_ACCEPT_JUMP {
+        assert!(e.integrate(&frame, &at(4.3)).is_err());
+    }
+    assert!(e.integrate(&frame, &at(4.3)).is_ok());
+    assert!(e.integrate(&frame, &at(4.4)).is_ok());
+}
+
+#[test]
 fn no_frontier_from_the_start_is_complete() {
     // A 0.6 m cube seen whole from its centre: nothing unknown is left, so nothing to explore.
     let dims = Dims::new(6, 6, 6).unwrap();

@@ -77,6 +77,10 @@ pub enum IntegrateError {
     BadPose,
     /// The range limits are not finite or not `0 < min < max`.
     BadRange,
+    /// The camera pose is farther from the previous frame's than
+    /// [`ExplorerConfig::max_frame_jump_m`](crate::explore::ExplorerConfig::max_frame_jump_m)
+    /// (refused by the explorer; [`integrate`] itself has no memory of earlier frames).
+    PoseJump,
 }
 
 /// Integrates one depth frame taken from `camera_pose` (camera frame → map frame).
