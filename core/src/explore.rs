@@ -451,7 +451,7 @@ impl<'a> Explorer<'a> {
             return false;
         };
         // A non-finite origin is refused by integration itself (BadPose).
-        if !(max.is_finite() && max > 0.0) || !origin.coords.iter().all(|c| c.is_finite()) {
+        if !(max.is_finite() && max > 0.0 && origin.coords.iter().all(|c| c.is_finite())) {
             return false;
         }
         if (origin - last).norm() <= max {
