@@ -28,7 +28,7 @@ use harmonic_core::explore::{
     Clock, ConfigError, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
 };
 use harmonic_core::link::{DepthReceiver, LinkError, LinkEvent};
-use harmonic_core::map::{Dims, MapGeometry};
+use harmonic_core::map::{Dims, MapError, MapGeometry};
 use harmonic_core::mavlink::common::TIMESYNC_DATA;
 use harmonic_core::mavlink::{
     write_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, AUTOPILOT_COMPONENT_ID,
@@ -96,11 +96,10 @@ impl Default for Storage {
     }
 }
 
-/// The firmware's map geometry.
-pub fn geometry() -> MapGeometry {
-    // Constant, valid dimensions and geometry: neither constructor can fail.
-    let dims = Dims::new(NX, NY, NZ).unwrap_or_else(|_| unreachable!());
-    MapGeometry::new(dims, Point3::from(ORIGIN), RESOLUTION).unwrap_or_else(|_| unreachable!())
+/// The firmware's map geometry. (The constants are valid, so this is `Ok`; a port that edits
+/// them gets the reason at boot instead of a panic.)
+pub fn geometry() -> Result<MapGeometry, MapError> {
+    MapGeometry::new(Dims::new(NX, NY, NZ)?, Point3::from(ORIGIN), RESOLUTION)
 }
 
 /// The explorer configuration: the host's defaults, with plain V-cycles (no Krylov storage
@@ -250,7 +249,7 @@ pub fn build_explorer<'a>(
         depth,
     } = storage;
     let explorer = Explorer::new(
-        geometry(),
+        geometry().map_err(ConfigError::Map)?,
         explorer_config(),
         ExplorerStorage {
             log_odds,
@@ -530,7 +529,7 @@ mod tests {
 
     #[test]
     fn the_grid_fits_the_multigrid_scratch_and_the_budget() {
-        let g = geometry();
+        let g = geometry().unwrap();
         let need = harmonic_core::solve::multigrid::scratch_size(&g.dims());
         assert_eq!(need.values, 2 * COARSE_CELLS);
         assert_eq!(need.labels, COARSE_CELLS);

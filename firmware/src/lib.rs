@@ -15,6 +15,19 @@
 //! lints cover [`app`].
 #![cfg_attr(target_os = "none", no_std)]
 #![warn(missing_docs)]
+// As in harmonic-core: no panicking constructs outside tests (README, *No panics*).
+#![cfg_attr(
+    not(test),
+    deny(
+        clippy::unwrap_used,
+        clippy::expect_used,
+        clippy::panic,
+        clippy::indexing_slicing,
+        clippy::unreachable,
+        clippy::todo,
+        clippy::unimplemented
+    )
+)]
 
 pub mod app;
 #[cfg(target_os = "none")]

@@ -3,6 +3,19 @@
 //! watchdog on every pass. On the host this binary only explains how to build the real one.
 #![cfg_attr(target_os = "none", no_std)]
 #![cfg_attr(target_os = "none", no_main)]
+// As in harmonic-core: no panicking constructs outside tests (README, *No panics*).
+#![cfg_attr(
+    not(test),
+    deny(
+        clippy::unwrap_used,
+        clippy::expect_used,
+        clippy::panic,
+        clippy::indexing_slicing,
+        clippy::unreachable,
+        clippy::todo,
+        clippy::unimplemented
+    )
+)]
 
 #[cfg(target_os = "none")]
 mod image {

@@ -108,8 +108,8 @@ pub struct PilReport {
 }
 
 /// The firmware's grid.
-pub fn firmware_geometry() -> MapGeometry {
-    fw::geometry()
+pub fn firmware_geometry() -> Result<MapGeometry, SimError> {
+    fw::geometry().map_err(|e| SimError::Config(format!("the firmware's grid constants: {e:?}")))
 }
 
 /// Builds the firmware with cargo into `target_dir` (the workspace's `target/` if `None`) and
@@ -449,7 +449,7 @@ pub fn run(
     mut progress: impl FnMut(&StepRecord),
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
-    let geometry = firmware_geometry();
+    let geometry = firmware_geometry()?;
     check_fits(scenario, &geometry)?;
     std::fs::create_dir_all(&pil.out).map_err(io("output directory"))?;
     let elf = match &pil.firmware {
@@ -808,7 +808,7 @@ mod tests {
 
     #[test]
     fn pil_small_fits_the_firmware_grid_and_apartment_does_not() {
-        let g = firmware_geometry();
+        let g = firmware_geometry().unwrap();
         assert!(check_fits(&Scenario::builtin("pil-small").unwrap(), &g).is_ok());
         let e = check_fits(&Scenario::builtin("apartment").unwrap(), &g).unwrap_err();
         assert!(e.to_string().contains("does not fit the firmware's grid"), "{e}");
