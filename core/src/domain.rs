@@ -419,6 +419,32 @@ pub fn mark_body(map: &mut VoxelMap<'_>, stencil: &InflationStencil, position: &
     }
 }
 
+/// Marks every unknown voxel whose centre lies within `radius` metres of `position` free (see
+/// [`mark_body`]); returns how many changed. The explorer uses it, with twice the vehicle
+/// radius, only when the vehicle's safe component would otherwise be its own voxel alone.
+pub fn mark_clearance(map: &mut VoxelMap<'_>, position: &Point3<f32>, radius: f32) -> u32 {
+    let geometry = *map.geometry();
+    let dims = geometry.dims();
+    let Some(c) = geometry.voxel_at(position) else {
+        return 0;
+    };
+    let reach = libm::ceilf(radius / geometry.resolution()) as i32;
+    let mut changed = 0;
+    for dz in -reach..=reach {
+        for dy in -reach..=reach {
+            for dx in -reach..=reach {
+                if let Some(v) = dims.offset(c, [dx, dy, dz]) {
+                    if (geometry.center(v) - position).norm() <= radius && map.mark_traversed(dims.linear(v))
+                    {
+                        changed += 1;
+                    }
+                }
+            }
+        }
+    }
+    changed
+}
+
 /// Voxels from a frontier voxel to the unexplored space that makes it one (fringe plus one).
 pub fn frontier_reach(stencil: &InflationStencil) -> i32 {
     libm::ceilf(stencil.radius_voxels() + 0.5) as i32 + 1

@@ -55,7 +55,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 224;
+pub const PLAN_REPORT_LEN: usize = 228;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -246,6 +246,7 @@ impl PlanReport {
             e.solver_not_converged,
             e.seals,
             e.pose_jumps,
+            e.clearances,
         ] {
             w.u32(v);
         }
@@ -300,6 +301,7 @@ impl PlanReport {
             solver_not_converged: r.u32(),
             seals: r.u32(),
             pose_jumps: r.u32(),
+            clearances: r.u32(),
         };
         // Counters the link may add later arrive as 0 from a core that does not send them.
         #[allow(clippy::needless_update)]

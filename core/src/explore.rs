@@ -203,6 +203,9 @@ pub struct ErrorCounters {
     pub seals: u32,
     /// Frames refused because their camera pose jumped (also in `frames_rejected`).
     pub pose_jumps: u32,
+    /// Plans that found the vehicle walled in by unobservable unknown voxels around its body
+    /// and marked twice the vehicle radius around it free instead of reporting complete.
+    pub clearances: u32,
 }
 
 /// How exploration stands.
@@ -590,6 +593,17 @@ impl<'a> Explorer<'a> {
             };
             self.status.domain = stats;
             if stats.frontier == 0 {
+                // The vehicle's component is its own voxel, walled in by unknown voxels just
+                // above or below the body that a level camera never sees (a vehicle off voxel
+                // centres): not a finished exploration. Take the clearance a vehicle that got
+                // here must have (twice the radius, counted) and build again.
+                if stats.interior <= 1
+                    && stats.fringe > 0
+                    && domain::mark_clearance(&mut self.map, position, 2.0 * self.config.vehicle_radius) > 0
+                {
+                    self.status.errors.clearances += 1;
+                    continue;
+                }
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
             }

@@ -197,6 +197,32 @@ fn no_frontier_from_the_start_is_complete() {
 }
 
 #[test]
+fn a_vehicle_walled_in_by_unseen_voxels_around_its_body_is_not_complete() {
+    // A vehicle on voxel corners that has only looked level (four headings from 120°, as from
+    // s2's original start): the voxels just above and below its body are outside the camera's
+    // view and beyond the body marking, so every neighbour of its voxel is within the radius of
+    // unknown space and the safe component has no frontier. That is not a finished
+    // exploration (without the rule this plan returned Complete): the explorer takes twice the
+    // radius around the body as clear.
+    let dims = Dims::new(30, 30, 20).unwrap();
+    let mut b = Buffers::new(&dims);
+    let mut e = b.explorer(dims, ExplorerConfig::default());
+    let p = Point3::new(1.5, 1.5, 1.0);
+    // The thesis's camera: 75° field of view, level.
+    let intr = Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap();
+    let depth = vec![5000u16; intr.pixel_count()];
+    let frame = DepthFrame::new(intr, &depth).unwrap();
+    for k in 0..4 {
+        let yaw = 120f32.to_radians() + k as f32 * core::f32::consts::FRAC_PI_2;
+        e.integrate(&frame, &forward_camera_pose(&p, yaw)).unwrap();
+    }
+    let outcome = e.plan(&p, 0.0);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
+    assert_eq!(e.status().errors.clearances, 1);
+    assert!(e.status().domain.frontier > 0);
+}
+
+#[test]
 fn every_frontier_unreachable_is_complete() {
     // A wall across a 2.0 × 0.4 × 0.4 m tube at x = 1.0 m. The vehicle's side is seen whole;
     // beyond the wall a pocket next to unknown space was seen from the far end. Its frontier
