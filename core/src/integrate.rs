@@ -3,8 +3,10 @@
 //! Each used pixel becomes a ray from the camera centre. A valid return marks its endpoint voxel
 //! with a *hit* and every voxel the ray crosses before it with a *miss* (Amanatides–Woo voxel
 //! traversal, [`traverse`]). Pixels with no return (depth 0) or a return beyond the maximum range
-//! clear free space up to the maximum range with no occupied endpoint. Returns closer than the
-//! minimum range are physically implausible for the sensor and are counted as invalid, not
+//! clear free space up to the maximum range with no occupied endpoint — unless the sensor says
+//! otherwise ([`NoReturn::Unknown`]: a stereo matcher's 0 means "no match", which a wall without
+//! texture gives as readily as open space, so it must not clear anything). Returns closer than
+//! the minimum range are physically implausible for the sensor and are counted as invalid, not
 //! integrated.
 //!
 //! A voxel is updated at most once per frame. Endpoints are applied in a first pass and rays in a
@@ -16,6 +18,19 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use crate::camera::DepthFrame;
 use crate::map::{Dims, MapGeometry, VoxelIndex, VoxelMap};
 
+/// What a depth-0 pixel means.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum NoReturn {
+    /// Nothing within the sensor's range (an active depth camera): clear free space up to the
+    /// maximum range.
+    #[default]
+    ClearToMaxRange,
+    /// Nothing measured (a stereo matcher found no reliable match): the pixel says nothing and
+    /// updates no voxel.
+    Unknown,
+}
+
 /// How depth pixels are turned into map updates.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct IntegrationParams {
@@ -25,6 +40,8 @@ pub struct IntegrationParams {
     pub max_range: f32,
     /// Use every k-th pixel in both directions (1 = all pixels).
     pub pixel_stride: u16,
+    /// What depth 0 means.
+    pub no_return: NoReturn,
 }
 
 impl Default for IntegrationParams {
@@ -34,6 +51,7 @@ impl Default for IntegrationParams {
             min_range: 0.3,
             max_range: 10.0,
             pixel_stride: 1,
+            no_return: NoReturn::ClearToMaxRange,
         }
     }
 }
@@ -46,7 +64,7 @@ pub struct IntegrationStats {
     pub pixels: u32,
     /// Pixels with a valid return inside the range.
     pub returns: u32,
-    /// Pixels with depth 0.
+    /// Pixels with depth 0 (integrated or not, per [`IntegrationParams::no_return`]).
     pub no_return: u32,
     /// Pixels whose return lies beyond the maximum range.
     pub beyond_range: u32,
@@ -120,6 +138,9 @@ pub fn integrate(
             }
             PixelRay::NoReturn { end } => {
                 stats.no_return += 1;
+                if params.no_return == NoReturn::Unknown {
+                    return;
+                }
                 (end, None)
             }
             PixelRay::BeyondRange { end } => {
@@ -432,6 +453,7 @@ mod tests {
             min_range: 0.3,
             max_range: 10.0,
             pixel_stride: 1,
+            ..IntegrationParams::default()
         };
         let s = integrate(&mut map, &frame, &looking_along_x(), &params).unwrap();
         assert_eq!(s.returns, 1);
@@ -458,6 +480,7 @@ mod tests {
             min_range: 0.3,
             max_range: 0.75,
             pixel_stride: 1,
+            ..IntegrationParams::default()
         };
         let d = g.dims();
         let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
@@ -489,6 +512,43 @@ mod tests {
         }
         assert_eq!(map.occupancy(at(8)), Occupancy::Unknown);
         assert_eq!(map.counts().occupied, 0);
+    }
+
+    #[test]
+    fn unknown_no_return_updates_nothing_but_far_returns_still_clear() {
+        let mut f = Fixture {
+            lo: [0; 4096],
+            st: [0; 128],
+        };
+        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let params = IntegrationParams {
+            min_range: 0.3,
+            max_range: 0.75,
+            no_return: NoReturn::Unknown,
+            ..IntegrationParams::default()
+        };
+        let s = integrate(
+            &mut map,
+            &DepthFrame::new(intr, &[0u16]).unwrap(),
+            &looking_along_x(),
+            &params,
+        )
+        .unwrap();
+        assert_eq!((s.no_return, s.voxel_updates, s.voxels_traversed), (1, 0, 0));
+        assert_eq!(map.counts().free, 0);
+        // A measured return beyond the range still clears up to it.
+        let s = integrate(
+            &mut map,
+            &DepthFrame::new(intr, &[5000u16]).unwrap(),
+            &looking_along_x(),
+            &params,
+        )
+        .unwrap();
+        assert_eq!(s.beyond_range, 1);
+        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
+        assert_eq!(map.occupancy(at(7)), Occupancy::Free);
     }
 
     #[test]
