@@ -36,6 +36,7 @@ pub mod record;
 pub mod scenario;
 pub mod sensing;
 pub mod sim;
+pub mod stereo;
 pub mod tlog;
 pub mod transport;
 pub mod world;

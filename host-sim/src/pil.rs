@@ -649,6 +649,7 @@ pub fn run(
         grid_origin: geometry.origin().coords.into(),
         map_accuracy: None,
         final_drift: None,
+        stereo: None,
         trajectory: Vec::new(),
         mavlink: Some(MavlinkReport {
             endpoint: "emulator (qemu uart1)".into(),
