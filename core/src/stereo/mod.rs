@@ -53,11 +53,11 @@
 //! - `u16`: `6 · W · D + D` for the three vertical and three horizontal window sums, plus
 //!   `4 · (2k + 1) · W` with the DoG prefilter;
 //! - `u8`: `2 · (4r + 2) · W` for the row rings;
-//! - `u32`: `D + 3 · W` per-row work, plus `2 · ⌈W·H/32⌉ + speckle_size + 1` for speckle
-//!   removal (two bits per pixel; 0 without it).
+//! - `u32`: `D + 3 · W` per-row work (`+ 2 · W` with the prefilter), plus
+//!   `2 · ⌈W·H/32⌉ + speckle_size + 1` for speckle removal (two bits per pixel; 0 without it).
 //!
 //! With `W` the width and `D` the disparity range: 100 × 100 px, 64 disparities, 11 × 11
-//! windows and DoG (σ 1.0/1.6, k = 5) need 92 KiB; without the speckle bitmaps, which grow
+//! windows and DoG (σ 1.0/1.6, k = 5) need 93 KiB; without the speckle bitmaps, which grow
 //! with the height, the matcher's memory is `O(W · D)`.
 
 pub mod prefilter;
@@ -246,7 +246,11 @@ pub fn scratch_size(params: &StereoParams) -> Result<ScratchSize, StereoError> {
     let (w, d) = (usize::from(params.width), usize::from(params.num_disparities));
     let r = params.half();
     let k = params.prefilter.radius()?;
-    let filter = if k > 0 { 4 * (2 * k + 1) * w } else { 0 };
+    let (filter, dog) = if k > 0 {
+        (4 * (2 * k + 1) * w, 2 * w)
+    } else {
+        (0, 0)
+    };
     let speckle = if params.speckle_size > 0 {
         speckle_scratch_words(params.width, params.height, params.speckle_size)
     } else {
@@ -255,7 +259,7 @@ pub fn scratch_size(params: &StereoParams) -> Result<ScratchSize, StereoError> {
     Ok(ScratchSize {
         bytes: 2 * (4 * r + 2) * w,
         halfwords: 6 * w * d + d + filter,
-        words: d + 3 * w + speckle,
+        words: d + 3 * w + dog + speckle,
     })
 }
 
@@ -330,6 +334,9 @@ pub struct StereoMatcher<'a> {
     right_best: &'a mut [u32],
     left_best: &'a mut [u32],
     texture: &'a mut [u32],
+    /// The prefilter's vertical sums of one row.
+    dog_small: &'a mut [u32],
+    dog_large: &'a mut [u32],
     speckle: &'a mut [u32],
     rows_in: usize,
     rows_filtered: usize,
@@ -367,7 +374,8 @@ impl<'a> StereoMatcher<'a> {
         };
         let (mut b, mut hw, mut wd) = (scratch.bytes, scratch.halfwords, scratch.words);
         let frows = if k > 0 { (2 * k + 1) * w } else { 0 };
-        let speckle_words = need.words - (nd + 3 * w);
+        let dog = if k > 0 { w } else { 0 };
+        let speckle_words = need.words - (nd + 3 * w + 2 * dog);
         Ok(Self {
             params,
             w,
@@ -399,6 +407,8 @@ impl<'a> StereoMatcher<'a> {
             right_best: take(&mut wd, w)?,
             left_best: take(&mut wd, w)?,
             texture: take(&mut wd, w)?,
+            dog_small: take(&mut wd, dog)?,
+            dog_large: take(&mut wd, dog)?,
             speckle: take(&mut wd, speckle_words)?,
             rows_in: 0,
             rows_filtered: 0,
@@ -515,15 +525,32 @@ impl<'a> StereoMatcher<'a> {
         };
         let (w, h) = (self.w, self.h);
         let slot = ring_slot(p, self.ring_rows) * w;
+        let frows = 2 * k + 1;
         let [ls, ll, rs, rl] = &self.filter;
         for (ring_small, ring_large, out) in [
             (&**ls, &**ll, self.ring_left.get_mut(slot..slot + w)),
             (&**rs, &**rl, self.ring_right.get_mut(slot..slot + w)),
         ] {
             let Some(out) = out else { continue };
-            for (x, o) in out.iter_mut().enumerate() {
-                let a = prefilter::vertical_at(&small, filter_rows(ring_small, p, k, w, h), x);
-                let b = prefilter::vertical_at(&large, filter_rows(ring_large, p, k, w, h), x);
+            self.dog_small.fill(0);
+            self.dog_large.fill(0);
+            for (i, (&ws, &wl)) in small.taps().iter().zip(large.taps()).enumerate() {
+                let src = (p + i).saturating_sub(k).min(h - 1);
+                let at = ring_slot(src, frows) * w;
+                for (acc, ring, weight) in [
+                    (&mut *self.dog_small, ring_small, ws),
+                    (&mut *self.dog_large, ring_large, wl),
+                ] {
+                    let row = ring.get(at..at + w).unwrap_or(&[]);
+                    for (a, &v) in acc.iter_mut().zip(row) {
+                        *a += u32::from(weight) * u32::from(v);
+                    }
+                }
+            }
+            for (o, (&a, &b)) in out
+                .iter_mut()
+                .zip(self.dog_small.iter().zip(self.dog_large.iter()))
+            {
                 *o = prefilter::dog_pixel(a, b);
             }
         }
@@ -691,16 +718,6 @@ impl<'a> StereoMatcher<'a> {
             }
         }
     }
-}
-
-/// The `2k + 1` horizontally filtered rows around row `p` (clamped to the image) in a
-/// prefilter ring of `2k + 1` rows.
-fn filter_rows(ring: &[u16], p: usize, k: usize, w: usize, h: usize) -> impl Iterator<Item = &[u16]> {
-    (0..2 * k + 1).map(move |i| {
-        let src = (p + i).saturating_sub(k).min(h - 1);
-        let slot = ring_slot(src, 2 * k + 1) * w;
-        ring.get(slot..slot + w).unwrap_or(&[])
-    })
 }
 
 /// The `nd` sums of column `c` in a `[x][d]` buffer.

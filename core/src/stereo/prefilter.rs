@@ -47,7 +47,8 @@ impl Kernel {
         Self { weights, radius }
     }
 
-    fn taps(&self) -> &[u16] {
+    /// The weights, `2·radius + 1` of them.
+    pub(crate) fn taps(&self) -> &[u16] {
         self.weights.get(..2 * self.radius + 1).unwrap_or(&[])
     }
 }
@@ -66,24 +67,13 @@ pub(crate) fn horizontal(kernel: &Kernel, row: &[u8], out: &mut [u16]) {
     }
 }
 
-/// Vertical pass of both Gaussians at one column given their rows' horizontal passes, and the
-/// band-pass response as a `u8` around 128.
+/// The band-pass response as a `u8` around 128, from both Gaussians' vertical passes at one
+/// pixel (value·65536 each).
 pub(crate) fn dog_pixel(small: u32, large: u32) -> u8 {
     // Both are value·65536; the difference fits an i32 (|·| < 2^24).
     let diff = small as i32 - large as i32;
     let scaled = (diff * DOG_GAIN + (1 << 15)) >> 16;
     (scaled.clamp(-DOG_CAP, DOG_CAP) + 128) as u8
-}
-
-/// Weighted sum of `rows` (value·256 each) at column `x` with the kernel's weights (one row per
-/// tap, already clamped to the image): value·65536.
-pub(crate) fn vertical_at<'r>(kernel: &Kernel, rows: impl Iterator<Item = &'r [u16]>, x: usize) -> u32 {
-    kernel
-        .taps()
-        .iter()
-        .zip(rows)
-        .map(|(&w, row)| u32::from(w) * u32::from(row.get(x).copied().unwrap_or(0)))
-        .sum()
 }
 
 /// Kernel radius for a DoG with the given large sigma.

@@ -615,9 +615,12 @@ fn scratch_size_matches_the_documented_formula() {
     let p = StereoParams::new(100, 100, 64);
     let s = scratch_size(&p).unwrap();
     // r = 5, k = 5: rings 2·22·100 bytes; sums 6·100·64 + 64 + 4·11·100 halfwords;
-    // 64 + 300 + 2·313 + speckle + 1 words (speckle 39 → clamp 20..2000 → 39).
+    // 64 + 300 + 200 + 2·313 + speckle + 1 words (speckle 10 000 / 256 = 39).
     assert_eq!(s.bytes, 4400);
     assert_eq!(s.halfwords, 6 * 6400 + 64 + 4400);
-    assert_eq!(s.words, 64 + 300 + 2 * 313 + usize::from(p.speckle_size) + 1);
+    assert_eq!(
+        s.words,
+        64 + 300 + 200 + 2 * 313 + usize::from(p.speckle_size) + 1
+    );
     assert!(s.total_bytes() < 100 * 1024, "{}", s.total_bytes());
 }
