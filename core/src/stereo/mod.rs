@@ -173,8 +173,8 @@ pub struct StereoParams {
 
 impl StereoParams {
     /// Defaults for a `width × height` pair: 11 × 11 windows, 10 % uniqueness, left–right
-    /// tolerance 1 px, minimum texture 2 grey levels, speckles up to 1/400 of the image
-    /// (at least 20 px) within 1 px, DoG σ 1.0/1.6.
+    /// tolerance 1 px, minimum texture 2 grey levels, speckles up to 1/256 of the image
+    /// (20–2000 px) within 1 px, DoG σ 1.0/1.6.
     pub fn new(width: u16, height: u16, num_disparities: u16) -> Self {
         let pixels = u32::from(width) * u32::from(height);
         Self {
