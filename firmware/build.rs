@@ -18,5 +18,8 @@ fn main() {
     println!("cargo:rustc-link-search={}", out.display());
     println!("cargo:rustc-link-arg-bins=-Tlink.x");
     println!("cargo:rustc-link-arg-bins=-Tdefmt.x");
+    // examples/stereo_bench.rs is a second image for the same board.
+    println!("cargo:rustc-link-arg-examples=-Tlink.x");
+    println!("cargo:rustc-link-arg-examples=-Tdefmt.x");
     // Keep the stack reserve visible to the size check: see `_stack_reserve` in memory.x.
 }

@@ -6,13 +6,15 @@
 //! range with no occupied endpoint. Returns closer than the minimum range are physically
 //! implausible for the sensor and are counted as invalid, not integrated.
 //!
-//! A pixel with no return (depth 0) is weaker evidence: it may be open space beyond the sensor's
-//! reach, but it may as well be a dropout, a textureless surface or a failed stereo match in
-//! front of a wall. Such a ray clears unknown and free voxels up to the maximum range but stops
-//! at the first voxel the map holds occupied (including one hit by another pixel of the same
-//! frame) and never lowers it: only a measured return behind a voxel may erode it. Without this
-//! rule a single dropout pixel erases wall voxels seen before and opens a path through the wall
-//! (the fault campaign's "sensor dropout" cell, docs/RELIABILITY.md).
+//! A pixel with no return (depth 0) is weaker evidence. What it means depends on the sensor
+//! ([`NoReturn`]). From an active depth camera it may be open space beyond the sensor's reach,
+//! but it may as well be a dropout in front of a wall: such a ray clears unknown and free voxels
+//! up to the maximum range but stops at the first voxel the map holds occupied (including one
+//! hit by another pixel of the same frame) and never lowers it; only a measured return behind a
+//! voxel may erode it. Without this rule a single dropout pixel erases wall voxels seen before
+//! and opens a path through the wall (the fault campaign's "sensor dropout" cell,
+//! docs/RELIABILITY.md). From a stereo matcher ([`NoReturn::Unknown`]) a 0 means "no match",
+//! which a wall without texture gives as readily as open space, so it updates nothing.
 //!
 //! A voxel is updated at most once per frame. Endpoints are applied in a first pass and rays in a
 //! second, so a voxel that one pixel hits and another passes through counts as a hit (OctoMap's
@@ -23,6 +25,19 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use crate::camera::DepthFrame;
 use crate::map::{Dims, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 
+/// What a depth-0 pixel means.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum NoReturn {
+    /// Nothing within the sensor's range (an active depth camera): clear free space up to the
+    /// maximum range.
+    #[default]
+    ClearToMaxRange,
+    /// Nothing measured (a stereo matcher found no reliable match): the pixel says nothing and
+    /// updates no voxel.
+    Unknown,
+}
+
 /// How depth pixels are turned into map updates.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct IntegrationParams {
@@ -32,6 +47,8 @@ pub struct IntegrationParams {
     pub max_range: f32,
     /// Use every k-th pixel in both directions (1 = all pixels).
     pub pixel_stride: u16,
+    /// What depth 0 means.
+    pub no_return: NoReturn,
 }
 
 impl Default for IntegrationParams {
@@ -41,6 +58,7 @@ impl Default for IntegrationParams {
             min_range: 0.3,
             max_range: 10.0,
             pixel_stride: 1,
+            no_return: NoReturn::ClearToMaxRange,
         }
     }
 }
@@ -53,7 +71,7 @@ pub struct IntegrationStats {
     pub pixels: u32,
     /// Pixels with a valid return inside the range.
     pub returns: u32,
-    /// Pixels with depth 0.
+    /// Pixels with depth 0 (integrated or not, per [`IntegrationParams::no_return`]).
     pub no_return: u32,
     /// Of those, rays that stopped at a voxel held occupied instead of clearing through it.
     pub no_return_blocked: u32,
@@ -134,6 +152,9 @@ pub fn integrate(
             }
             PixelRay::NoReturn { end } => {
                 stats.no_return += 1;
+                if params.no_return == NoReturn::Unknown {
+                    return;
+                }
                 weak = true;
                 (end, None)
             }
@@ -452,6 +473,7 @@ mod tests {
             min_range: 0.3,
             max_range: 10.0,
             pixel_stride: 1,
+            ..IntegrationParams::default()
         };
         let s = integrate(&mut map, &frame, &looking_along_x(), &params).unwrap();
         assert_eq!(s.returns, 1);
@@ -478,6 +500,7 @@ mod tests {
             min_range: 0.3,
             max_range: 0.75,
             pixel_stride: 1,
+            ..IntegrationParams::default()
         };
         let d = g.dims();
         let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
@@ -524,6 +547,7 @@ mod tests {
             min_range: 0.1,
             max_range: 1.2,
             pixel_stride: 1,
+            no_return: NoReturn::ClearToMaxRange,
         };
         let d = g.dims();
         let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
@@ -545,6 +569,43 @@ mod tests {
         }
         assert_eq!(map.occupancy(at(5)), Occupancy::Free);
         assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+    }
+
+    #[test]
+    fn unknown_no_return_updates_nothing_but_far_returns_still_clear() {
+        let mut f = Fixture {
+            lo: [0; 4096],
+            st: [0; 128],
+        };
+        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let params = IntegrationParams {
+            min_range: 0.3,
+            max_range: 0.75,
+            no_return: NoReturn::Unknown,
+            ..IntegrationParams::default()
+        };
+        let s = integrate(
+            &mut map,
+            &DepthFrame::new(intr, &[0u16]).unwrap(),
+            &looking_along_x(),
+            &params,
+        )
+        .unwrap();
+        assert_eq!((s.no_return, s.voxel_updates, s.voxels_traversed), (1, 0, 0));
+        assert_eq!(map.counts().free, 0);
+        // A measured return beyond the range still clears up to it.
+        let s = integrate(
+            &mut map,
+            &DepthFrame::new(intr, &[5000u16]).unwrap(),
+            &looking_along_x(),
+            &params,
+        )
+        .unwrap();
+        assert_eq!(s.beyond_range, 1);
+        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
+        assert_eq!(map.occupancy(at(7)), Occupancy::Free);
     }
 
     #[test]

@@ -32,6 +32,10 @@
 //! - [`downlink`] — the core's reports back over the depth link's return channel: a
 //!   [`PlanReport`](downlink::PlanReport) after every frame (the camera side's "frame N done")
 //!   and the map as two-bit voxel states, in the link's framing.
+//! - [`stereo`] — the depth source before all of this when the board receives rectified
+//!   stereo rows instead of depth: a streaming SAD block matcher (five windows, left–right
+//!   check, uniqueness, sub-pixel parabola, speckle removal, DoG prefilter) whose memory is
+//!   bounded by the image width times the disparity range; disparity in 1/16 px, depth in mm.
 //! - [`mavlink`] — the bridge to the flight stack: HEARTBEAT and position + yaw setpoints
 //!   (SET_POSITION_TARGET_LOCAL_NED) streamed at a steady rate, LOCAL_POSITION_NED / ATTITUDE /
 //!   ODOMETRY in as the vehicle pose with a staleness fault, the one map ↔ NED conversion, and
@@ -68,4 +72,5 @@ pub mod link;
 pub mod map;
 pub mod mavlink;
 pub mod solve;
+pub mod stereo;
 pub mod streamline;

@@ -60,6 +60,7 @@ pub fn run(data: &[u8]) {
             min_range: input.float(FLOATS),
             max_range: input.float(FLOATS),
             pixel_stride: u16::from(input.u8() % 4),
+            ..IntegrationParams::default()
         };
     }
     config.solve.max_iterations = u32::from(input.u8() % 64) + 1;

@@ -2,6 +2,7 @@
 //!
 //! The `std` host simulator around `harmonic-core`: box worlds from scenario files
 //! ([`scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`camera`]),
+//! a textured stereo camera whose pairs the core's block matcher turns into depth ([`stereo`]),
 //! a multirotor that flies the core's plans ([`sim`]), directly or over MAVLink
 //! ([`autopilot`]) through an emulated flight stack ([`flight`]) or a real autopilot over UDP,
 //! and ground-truth coverage metrics ([`metrics`]); or with the core running as firmware on an
@@ -36,6 +37,7 @@ pub mod record;
 pub mod scenario;
 pub mod sensing;
 pub mod sim;
+pub mod stereo;
 pub mod tlog;
 pub mod transport;
 pub mod world;

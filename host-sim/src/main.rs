@@ -65,6 +65,360 @@ enum Command {
     /// (link bit errors, frame loss, bursts, pose drift, sensor dropouts and outliers, a stale
     /// pose stream) over MAVLink, and print completion, collisions and error counters per cell.
     Faults(FaultsArgs),
+    /// Match a rectified stereo pair (PNG, grey or RGB) with the core's block matcher and write
+    /// the disparity; with --gt, print Middlebury bad-pixel rates.
+    Stereo(StereoArgs),
+    /// Render a textured stereo pair from a scenario, with ground truth, to try `stereo` on.
+    StereoRender(StereoRenderArgs),
+    /// Accuracy and speed of the core's matcher on pairs rendered from scenarios
+    /// (BENCHMARKS.md); optionally writes the pairs for scripts/stereo_opencv.py.
+    BenchStereo(BenchStereoArgs),
+}
+
+/// The matcher's settings on the command line.
+#[derive(clap::Args, Clone)]
+struct MatcherArgs {
+    /// Disparities searched: 0..N pixels.
+    #[arg(long, default_value_t = 64)]
+    ndisp: u16,
+    /// Side of each of the five SAD windows (odd, 3-15; the match footprint is 2W-1 pixels).
+    #[arg(long, default_value_t = 7)]
+    window: u8,
+    /// Uniqueness margin, percent (0 turns the test off).
+    #[arg(long, default_value_t = 10)]
+    uniqueness: u8,
+    /// Left-right check tolerance, pixels.
+    #[arg(long, default_value_t = 1)]
+    lr_max_diff: u8,
+    /// No left-right check.
+    #[arg(long)]
+    no_lr: bool,
+    /// Minimum mean horizontal gradient over the centre window, grey levels (0: off).
+    #[arg(long, default_value_t = 2)]
+    min_texture: u8,
+    /// Blobs of at most this many pixels are removed (0: off; default: 1/256 of the image,
+    /// 20-2000).
+    #[arg(long)]
+    speckle_size: Option<u16>,
+    /// Prefilter: `dog` (Difference of Gaussians, sigma 1.0 and 1.6 px), `dog:S1:S2`, or `none`.
+    #[arg(long, default_value = "dog", value_parser = parse_prefilter)]
+    prefilter: harmonic_core::stereo::Prefilter,
+}
+
+impl MatcherArgs {
+    fn params(&self, width: u16, height: u16) -> harmonic_core::stereo::StereoParams {
+        let defaults = harmonic_core::stereo::StereoParams::new(width, height, self.ndisp);
+        harmonic_core::stereo::StereoParams {
+            window: self.window,
+            uniqueness_percent: self.uniqueness,
+            lr_max_diff: (!self.no_lr).then_some(self.lr_max_diff),
+            min_texture: self.min_texture,
+            speckle_size: self.speckle_size.unwrap_or(defaults.speckle_size),
+            prefilter: self.prefilter,
+            ..defaults
+        }
+    }
+}
+
+fn parse_prefilter(s: &str) -> Result<harmonic_core::stereo::Prefilter, String> {
+    use harmonic_core::stereo::Prefilter;
+    match s {
+        "none" => return Ok(Prefilter::None),
+        "dog" => return Ok(Prefilter::DEFAULT_DOG),
+        _ => {}
+    }
+    let bad = || format!("expected `dog`, `dog:SIGMA_SMALL:SIGMA_LARGE` or `none`, got `{s}`");
+    let mut parts = s.split(':');
+    if parts.next() != Some("dog") {
+        return Err(bad());
+    }
+    let mut sigma = || parts.next().and_then(|v| v.parse::<f32>().ok()).ok_or_else(bad);
+    let (sigma_small, sigma_large) = (sigma()?, sigma()?);
+    Ok(Prefilter::DoG {
+        sigma_small,
+        sigma_large,
+    })
+}
+
+#[derive(clap::Args)]
+#[command(
+    after_help = "Disparity files (--out, --gt) hold float32 pixels: PFM (.pfm, Middlebury's \
+format, little-endian, rows bottom to top) or NumPy (.npy, shape (H, W)). Pixels without a valid \
+match are +inf in both formats (Middlebury's convention for unknown disparity; np.isfinite \
+selects the valid ones). Ground-truth pixels that are not finite are not evaluated."
+)]
+struct StereoArgs {
+    /// Left (reference) image, PNG; RGB is converted to grey.
+    #[arg(long)]
+    left: PathBuf,
+    /// Right image, PNG, the same size.
+    #[arg(long)]
+    right: PathBuf,
+    /// Output disparity, pixels, .pfm or .npy; +inf where there is no valid match.
+    #[arg(long)]
+    out: PathBuf,
+    /// Ground-truth disparity (.pfm or .npy, pixels): print bad-1.0, bad-2.0 and density.
+    #[arg(long)]
+    gt: Option<PathBuf>,
+    /// Middlebury non-occlusion mask (PNG, 255 = visible in both views): evaluate only there.
+    #[arg(long, requires = "gt")]
+    mask: Option<PathBuf>,
+    #[command(flatten)]
+    matcher: MatcherArgs,
+}
+
+#[derive(clap::Args)]
+struct StereoRenderArgs {
+    /// A built-in scenario name or a scenario .toml file.
+    #[arg(long, default_value = "apartment")]
+    scenario: String,
+    /// Render from the random free pose this seed draws instead of the scenario's start.
+    #[arg(long)]
+    start_seed: Option<u64>,
+    /// Output directory: left.png, right.png, gt.pfm, gt.npy, mask.png, calib.txt.
+    #[arg(long, default_value = "out/stereo-pair")]
+    out: PathBuf,
+    /// Resolution as a multiple of the 100x100 thesis camera (75 degree FOV).
+    #[arg(long, default_value_t = 2)]
+    scale: u16,
+    /// Baseline, metres.
+    #[arg(long, default_value_t = 0.12, value_parser = parse_positive)]
+    baseline: f32,
+    /// Sensor noise, grey levels (standard deviation).
+    #[arg(long, default_value_t = 1.0)]
+    pixel_noise: f32,
+    /// Random seed for the sensor noise.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+}
+
+#[derive(clap::Args)]
+struct BenchStereoArgs {
+    /// Scenarios to render pairs in (comma-separated).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "apartment,office,kitchen,garage"
+    )]
+    scenarios: Vec<String>,
+    /// Pairs per scenario, from random free poses (start seeds 1..=N).
+    #[arg(long, default_value_t = 5)]
+    pairs: u32,
+    /// Resolution as a multiple of the 100x100 thesis camera.
+    #[arg(long, default_value_t = 2)]
+    scale: u16,
+    /// Baseline, metres.
+    #[arg(long, default_value_t = 0.12, value_parser = parse_positive)]
+    baseline: f32,
+    /// Timed repetitions of each match (the fastest counts).
+    #[arg(long, default_value_t = 3)]
+    repeat: u32,
+    /// Write every pair (and our disparity, ours.pfm) into DIR/SCENARIO-K/ for
+    /// scripts/stereo_opencv.py.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    matcher: MatcherArgs,
+}
+
+fn stereo_match(args: &StereoArgs) -> Result<(), String> {
+    use harmonic_sim::stereo as st;
+    let (w, h, left) = st::read_png_gray(&args.left)?;
+    let (wr, hr, right) = st::read_png_gray(&args.right)?;
+    if (w, h) != (wr, hr) {
+        return Err(format!("left is {w}x{h}, right is {wr}x{hr}"));
+    }
+    let params = args.matcher.params(w, h);
+    let mut buffers = st::MatcherBuffers::new(&params)?;
+    // The first run pays for touching fresh memory; time the second.
+    st::match_pair(params, &left, &right, &mut buffers)?;
+    let t0 = std::time::Instant::now();
+    let (disparity, stats) = st::match_pair(params, &left, &right, &mut buffers)?;
+    let ms = t0.elapsed().as_secs_f64() * 1e3;
+    let disparity = st::disparity_to_f32(&disparity);
+    st::write_disparity(&args.out, w, h, &disparity)?;
+    let n = f64::from(w) * f64::from(h);
+    println!(
+        "{w}x{h}, {} disparities, window {}: {:.1} ms ({:.2} ns per pixel-disparity); {:.1} % of pixels matched",
+        params.num_disparities,
+        params.window,
+        ms,
+        ms * 1e6 / (n * f64::from(params.num_disparities)),
+        100.0 * f64::from(stats.valid) / n
+    );
+    println!(
+        "rejected: {} border, {} textureless, {} ambiguous, {} left-right, {} speckle",
+        stats.border, stats.textureless, stats.ambiguous, stats.inconsistent, stats.speckles
+    );
+    println!("disparity: {} (+inf = no match)", args.out.display());
+    if let Some(gt_path) = &args.gt {
+        let (gw, gh, gt) = st::read_disparity(gt_path)?;
+        if (gw, gh) != (w, h) {
+            return Err(format!("ground truth is {gw}x{gh}, the images {w}x{h}"));
+        }
+        let mask = match &args.mask {
+            Some(p) => {
+                let (mw, mh, m) = st::read_png_gray(p)?;
+                if (mw, mh) != (w, h) {
+                    return Err(format!("mask is {mw}x{mh}, the images {w}x{h}"));
+                }
+                Some(m)
+            }
+            None => None,
+        };
+        let m = st::StereoMetrics::evaluate(&disparity, &gt, mask.as_deref());
+        let region = if mask.is_some() {
+            "non-occluded"
+        } else {
+            "ground-truth"
+        };
+        println!(
+            "bad-1.0 {:.2} %, bad-2.0 {:.2} % of {} valid {region} pixels; density {:.2} % of {}; bad-2.0 with holes counted {:.2} %; mean error {:.3} px",
+            m.bad1, m.bad2, m.valid, m.density, m.evaluated, m.bad2_with_holes, m.mean_abs_error
+        );
+    }
+    Ok(())
+}
+
+fn stereo_render(args: &StereoRenderArgs) -> Result<(), String> {
+    use harmonic_sim::stereo as st;
+    use rand::SeedableRng;
+    let mut scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
+    if let Some(seed) = args.start_seed {
+        scenario = scenario.with_random_start(seed);
+    }
+    let rig = st::StereoRig {
+        scale: args.scale,
+        baseline_m: args.baseline,
+        pixel_noise: args.pixel_noise,
+        ..st::StereoRig::default()
+    };
+    let k = rig.render_intrinsics(&harmonic_sim::camera::DepthCamera::default_thesis().intrinsics)?;
+    let pose = harmonic_sim::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
+    let pair = st::render_pair(
+        &scenario.world,
+        &k,
+        &pose,
+        rig.baseline_m,
+        rig.pixel_noise,
+        &mut rng,
+    );
+    st::write_pair(&args.out, &pair, &k, rig.baseline_m, rig.num_disparities)?;
+    let finite: Vec<f32> = pair.disparity.iter().copied().filter(|d| d.is_finite()).collect();
+    let max = finite.iter().copied().fold(0.0, f32::max);
+    println!(
+        "{}: {}x{} pair from ({:.2}, {:.2}, {:.2}) yaw {:.0} deg, fx {:.1} px, baseline {} m; true disparity up to {:.1} px",
+        scenario.world.name,
+        k.width(),
+        k.height(),
+        scenario.start_position.x,
+        scenario.start_position.y,
+        scenario.start_position.z,
+        scenario.start_yaw.to_degrees(),
+        k.fx(),
+        rig.baseline_m,
+        max
+    );
+    let d = args.out.display();
+    println!("wrote {d}/left.png, right.png, gt.pfm, gt.npy, mask.png, calib.txt; try");
+    println!(
+        "  harmonic-sim stereo --left {d}/left.png --right {d}/right.png --gt {d}/gt.pfm --mask {d}/mask.png --out {d}/disp.pfm"
+    );
+    Ok(())
+}
+
+fn bench_stereo(args: &BenchStereoArgs) -> Result<(), String> {
+    use harmonic_sim::stereo as st;
+    use rand::SeedableRng;
+    let camera = harmonic_sim::camera::DepthCamera::default_thesis();
+    let rig = st::StereoRig {
+        scale: args.scale,
+        baseline_m: args.baseline,
+        num_disparities: args.matcher.ndisp,
+        window: args.matcher.window,
+        ..st::StereoRig::default()
+    };
+    let k = rig.render_intrinsics(&camera.intrinsics)?;
+    let params = args.matcher.params(k.width(), k.height());
+    let mut buffers = st::MatcherBuffers::new(&params)?;
+    let pixels = f64::from(k.width()) * f64::from(k.height());
+    let work = pixels * f64::from(params.num_disparities);
+    println!(
+        "{}x{} px (fx {:.1}), baseline {} m, {} disparities, window {} (footprint {}), prefilter {:?}",
+        k.width(),
+        k.height(),
+        k.fx(),
+        rig.baseline_m,
+        params.num_disparities,
+        params.window,
+        2 * u32::from(params.window) - 1,
+        params.prefilter
+    );
+    println!("| scenario | pairs | bad-1.0 % | bad-2.0 % | density % | bad-2.0 with holes % | mean error px | ms per pair | ns per pixel-disparity |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    let mut all: Vec<(st::StereoMetrics, f64)> = Vec::new();
+    let row = |name: &str, rows: &[(st::StereoMetrics, f64)]| {
+        let n = rows.len().max(1) as f64;
+        let mean = |f: &dyn Fn(&st::StereoMetrics) -> f64| rows.iter().map(|(m, _)| f(m)).sum::<f64>() / n;
+        let ms = rows.iter().map(|(_, t)| t).sum::<f64>() / n;
+        println!(
+            "| {name} | {} | {:.2} | {:.2} | {:.1} | {:.2} | {:.3} | {:.2} | {:.2} |",
+            rows.len(),
+            mean(&|m| m.bad1),
+            mean(&|m| m.bad2),
+            mean(&|m| m.density),
+            mean(&|m| m.bad2_with_holes),
+            mean(&|m| m.mean_abs_error),
+            ms,
+            ms * 1e6 / work
+        );
+    };
+    for name in &args.scenarios {
+        let base = Scenario::by_name_or_path(name).map_err(|e| e.to_string())?;
+        let mut rows = Vec::new();
+        for i in 1..=u64::from(args.pairs) {
+            let scenario = base.with_random_start(i);
+            let pose = harmonic_sim::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(i);
+            let pair = st::render_pair(
+                &scenario.world,
+                &k,
+                &pose,
+                rig.baseline_m,
+                rig.pixel_noise,
+                &mut rng,
+            );
+            let mut best = f64::INFINITY;
+            let mut result = None;
+            for _ in 0..args.repeat.max(1) {
+                let t0 = std::time::Instant::now();
+                let r = st::match_pair(params, &pair.left, &pair.right, &mut buffers)?;
+                best = best.min(t0.elapsed().as_secs_f64() * 1e3);
+                result = Some(r);
+            }
+            let Some((disparity, _)) = result else { continue };
+            let disparity = st::disparity_to_f32(&disparity);
+            let m = st::StereoMetrics::evaluate(&disparity, &pair.disparity, Some(&pair.mask));
+            if let Some(out) = &args.out {
+                let dir = out.join(format!("{}-{i}", base.world.name));
+                st::write_pair(&dir, &pair, &k, rig.baseline_m, params.num_disparities)?;
+                st::write_pfm(&dir.join("ours.pfm"), k.width(), k.height(), &disparity)?;
+            }
+            rows.push((m, best));
+        }
+        row(&base.world.name, &rows);
+        all.extend(rows);
+    }
+    row("**all**", &all);
+    if let Some(out) = &args.out {
+        println!(
+            "pairs: {}/SCENARIO-K/ (compare: python3 scripts/stereo_opencv.py {})",
+            out.display(),
+            out.display()
+        );
+    }
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -179,6 +533,7 @@ fn bench_runs(args: &BenchArgs) -> Result<(), String> {
         return Ok(());
     }
     let mut sim = SimConfig::default();
+    args.sensing.check()?;
     args.sensing.apply(&mut sim);
     sim.max_scans = args.max_scans;
     sim.follow_full_path = args.follow_full_path;
@@ -301,6 +656,11 @@ struct FwBudgetArgs {
     /// same scenario again and reports cold solves on the same planning problems.
     #[arg(long)]
     cold_firmware: Option<PathBuf>,
+    /// Instead: the core's stereo matcher on the MCU. Builds firmware/examples/stereo_bench.rs
+    /// (a separate image, so the flight firmware's RAM is untouched), runs it under QEMU and
+    /// prints instructions per 100x100 frame with 64 disparities.
+    #[arg(long)]
+    stereo: bool,
 }
 
 #[derive(clap::Args)]
@@ -412,12 +772,33 @@ struct SensingArgs {
     /// Pose drift: random walk per keyframe, `SIGMA_POS_M,SIGMA_YAW_RAD` (e.g. 0.1,0.015).
     #[arg(long, value_parser = parse_drift)]
     drift: Option<DriftConfig>,
+    /// Depth source: `camera` (the depth camera, with `--noise` if given) or `stereo` (a
+    /// textured stereo pair rendered at each scan, 2x the camera's resolution with a 0.12 m
+    /// baseline, matched by the core's block matcher; pixels without a match are unknown, not
+    /// free; returns integrated up to `--trusted-range`, default 2.8 m).
+    #[arg(long, default_value = "camera", value_parser = ["camera", "stereo"])]
+    depth_from: String,
+    /// With `--depth-from stereo`: rendering resolution as a multiple of the 100x100 camera.
+    #[arg(long, default_value_t = 2)]
+    stereo_scale: u16,
+    /// With `--depth-from stereo`: the matcher's window (odd, 3-15).
+    #[arg(long, default_value_t = 7)]
+    stereo_window: u8,
 }
 
 /// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera.
 const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
 
 impl SensingArgs {
+    fn check(&self) -> Result<(), String> {
+        if self.depth_from == "stereo" && (self.noise.is_some() || self.outliers > 0.0 || self.textureless) {
+            return Err(
+                "--noise, --outliers and --textureless model the depth camera; with --depth-from stereo the matcher makes its own errors (textureless boxes render flat)".into(),
+            );
+        }
+        Ok(())
+    }
+
     fn apply(&self, cfg: &mut SimConfig) {
         cfg.camera = cfg.camera.with_noise(self.noise);
         cfg.camera.outliers = self.outliers as f32;
@@ -432,6 +813,14 @@ impl SensingArgs {
         cfg.explorer.integration.max_range = range
             .min(cfg.camera.max_range)
             .max(cfg.explorer.integration.min_range + 0.1);
+        if self.depth_from == "stereo" {
+            let rig = harmonic_sim::stereo::StereoRig {
+                scale: self.stereo_scale,
+                window: self.stereo_window,
+                ..harmonic_sim::stereo::StereoRig::default()
+            };
+            sim::use_stereo_depth(cfg, rig, self.trusted_range);
+        }
     }
 }
 
@@ -674,6 +1063,9 @@ fn main() -> ExitCode {
         Command::Bench(args) => bench_runs(&args),
         Command::Replay(args) => replay_sequence(&args),
         Command::Faults(args) => fault_campaign(&args),
+        Command::Stereo(args) => stereo_match(&args),
+        Command::StereoRender(args) => stereo_render(&args),
+        Command::BenchStereo(args) => bench_stereo(&args),
         Command::BenchSolve(args) => {
             bench_solve(&args);
             Ok(())
@@ -694,6 +1086,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
         scenario = scenario.with_random_start(seed);
     }
     let mut cfg = SimConfig::default();
+    args.sensing.check()?;
     args.sensing.apply(&mut cfg);
     cfg.seed = args.seed;
     cfg.planner = args.planner;
@@ -911,6 +1304,9 @@ const PLAN_BUDGET: u64 = 48_000_000;
 
 fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
     use harmonic_sim::pil;
+    if args.stereo {
+        return fw_stereo_budget(args);
+    }
     let elf = match &args.firmware {
         Some(p) => p.clone(),
         None => pil::build_firmware(None).map_err(|e| e.to_string())?,
@@ -1075,6 +1471,57 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
         m(max(&cycle) as f64)
     );
     println!("report: {}", path.display());
+    Ok(())
+}
+
+/// `fw-budget --stereo`: the matcher's instructions per frame on the emulated Cortex-M4F.
+fn fw_stereo_budget(args: &FwBudgetArgs) -> Result<(), String> {
+    use harmonic_sim::pil;
+    let elf = match &args.firmware {
+        Some(p) => p.clone(),
+        None => pil::build_firmware_example("stereo_bench", None).map_err(|e| e.to_string())?,
+    };
+    let size = pil::image_size(&elf)?;
+    println!("stereo_bench {}", elf.display());
+    println!(
+        "RAM (.data + .bss + stack reserve) {} bytes ({:.1} KiB), flash {:.1} KiB",
+        size.ram,
+        size.ram as f64 / 1024.0,
+        size.flash as f64 / 1024.0
+    );
+    let out = pil::run_semihosted(&args.qemu, &elf, std::time::Duration::from_secs(600))
+        .map_err(|e| e.to_string())?;
+    println!("| frame | window | prefilter | matcher scratch (bytes) | instructions (millions) | per pixel-disparity | disparity to depth (millions) | density % | bad-1.0 % |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    let mut rows = 0;
+    for line in out.lines().filter(|l| l.starts_with("stereo ")) {
+        let field = |key: &str| {
+            line.split_whitespace()
+                .find_map(|kv| kv.strip_prefix(key).and_then(|v| v.strip_prefix('=')))
+                .unwrap_or("?")
+        };
+        let num = |key: &str| field(key).parse::<f64>().unwrap_or(f64::NAN);
+        let work = num("width") * num("height") * num("ndisp");
+        println!(
+            "| {}x{}x{} | {} | {} | {} | {:.1} | {:.1} | {:.2} | {:.1} | {:.2} |",
+            field("width"),
+            field("height"),
+            field("ndisp"),
+            field("window"),
+            field("prefilter"),
+            field("scratch_bytes"),
+            num("match_instructions") / 1e6,
+            num("match_instructions") / work,
+            num("depth_instructions") / 1e6,
+            100.0 * num("valid") / num("known"),
+            100.0 * num("bad1") / num("valid")
+        );
+        rows += 1;
+    }
+    if rows == 0 {
+        return Err(format!("stereo_bench printed no results:\n{out}"));
+    }
+    println!("instructions from the board timer under QEMU -icount shift=0 (1 tick = 40 instructions); density and bad-1.0 against the synthetic pair's ground truth (pixels visible to both cameras)");
     Ok(())
 }
 
@@ -1253,6 +1700,24 @@ fn print_summary(r: &Report) {
     }
     if let Some([e, y]) = r.final_drift {
         rows.push(("final drift", format!("{e:.2} m, {:.1}°", y.to_degrees())));
+    }
+    if let Some(s) = &r.stereo {
+        rows.push((
+            "stereo depth",
+            format!(
+                "{} pairs of {}x{} px, baseline {} m, {} disparities, window {}: {:.1} % of pixels matched, {:.1} % of depth pixels valid; render {:.1} ms, match {:.1} ms per pair",
+                s.frames,
+                s.render_size[0],
+                s.render_size[1],
+                s.baseline_m,
+                s.num_disparities,
+                s.window,
+                100.0 * s.mean_match_density,
+                100.0 * s.mean_depth_density,
+                s.mean_render_ms,
+                s.mean_match_ms
+            ),
+        ));
     }
     let l = &r.link;
     rows.push((

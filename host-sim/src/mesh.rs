@@ -194,6 +194,15 @@ impl TriangleMesh {
         self.triangles[t].map(|i| self.vertices[i as usize])
     }
 
+    /// Unit normal of triangle `t` (right-handed winding), or zero for a degenerate one.
+    pub fn triangle_normal(&self, t: usize) -> Vector3<f32> {
+        let c = self.corners(t);
+        (c[1] - c[0])
+            .cross(&(c[2] - c[0]))
+            .try_normalize(1e-12)
+            .unwrap_or_else(Vector3::zeros)
+    }
+
     /// The box around every vertex.
     pub fn bounds(&self) -> Aabb {
         let mut lo = Point3::from([f32::INFINITY; 3]);
@@ -310,12 +319,23 @@ impl Bvh {
         dir: &Vector3<f32>,
         t_max: f32,
     ) -> Option<f32> {
+        self.raycast_triangle(mesh, origin, dir, t_max).map(|(t, _)| t)
+    }
+
+    /// [`Bvh::raycast`], also returning the index of the triangle hit.
+    pub fn raycast_triangle(
+        &self,
+        mesh: &TriangleMesh,
+        origin: &Point3<f32>,
+        dir: &Vector3<f32>,
+        t_max: f32,
+    ) -> Option<(f32, usize)> {
         if self.nodes.is_empty() {
             return None;
         }
         let inv = dir.map(|c| 1.0 / c);
         let mut best = t_max;
-        let mut hit = false;
+        let mut hit = None;
         let mut stack = Vec::with_capacity(64);
         stack.push(0usize);
         while let Some(i) = stack.pop() {
@@ -329,7 +349,7 @@ impl Bvh {
                     if let Some(d) = ray_triangle(origin, dir, &mesh.corners(t as usize)) {
                         if d <= best {
                             best = d;
-                            hit = true;
+                            hit = Some(t as usize);
                         }
                     }
                 }
@@ -338,7 +358,7 @@ impl Bvh {
                 stack.push(i + 1);
             }
         }
-        hit.then_some(best)
+        hit.map(|t| (best, t))
     }
 
     /// Every distance at which the ray crosses a triangle (for inside tests).

@@ -370,6 +370,70 @@ fn f32_kind(descr: &str) -> Option<(bool, usize)> {
     }
 }
 
+/// Writes a 2-D `float32` image of `height × width` (row-major) as a `.npy` file of shape
+/// `(height, width)`, as `numpy.save` would.
+///
+/// # Panics
+///
+/// If `data.len()` is not `height × width`.
+pub fn write_f32_image(height: usize, width: usize, data: &[f32]) -> Vec<u8> {
+    assert_eq!(
+        height * width,
+        data.len(),
+        "write_f32_image: {height} x {width} != {}",
+        data.len()
+    );
+    let mut out = header_bytes_for("<f4", &[height, width], data.len() * 4);
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// Reads a `float32` image: shape `(height, width)` or `(height, width, 1)`. Returns
+/// `(height, width, data)` in row-major order.
+pub fn read_f32_image(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), NpyError> {
+    let (header, data) = split_header(bytes)?;
+    let Some((big_endian, _)) = f32_kind(&header.descr) else {
+        return Err(NpyError::UnsupportedDtype {
+            found: header.descr,
+            expected: "'<f4' or '>f4'",
+        });
+    };
+    if header.fortran_order {
+        return Err(NpyError::FortranOrder);
+    }
+    let (h, w) = match header.shape.as_slice() {
+        &[h, w] | &[h, w, 1] => (h, w),
+        _ => return Err(NpyError::NotThreeD { shape: header.shape }),
+    };
+    let shape = [h, w, 1];
+    let expected = h
+        .checked_mul(w)
+        .and_then(|n| n.checked_mul(4))
+        .ok_or(NpyError::ShapeOverflow { shape, itemsize: 4 })?;
+    if data.len() != expected {
+        return Err(NpyError::DataLength {
+            shape,
+            itemsize: 4,
+            expected,
+            found: data.len(),
+        });
+    }
+    let values = data
+        .chunks_exact(4)
+        .map(|c| {
+            let b = [c[0], c[1], c[2], c[3]];
+            if big_endian {
+                f32::from_be_bytes(b)
+            } else {
+                f32::from_le_bytes(b)
+            }
+        })
+        .collect();
+    Ok((h, w, values))
+}
+
 /// Parses and validates everything but the element values: returns the shape, the element kind
 /// and the data section, whose length is checked to be product(shape) × itemsize.
 fn read_raw<'a, K>(
@@ -768,10 +832,18 @@ fn check_len<T>(arr: &Array3<T>) {
 /// Magic, version, header length and the padded header for a C-order array, with capacity for
 /// `data_len` more bytes.
 fn header_bytes(descr: &str, shape: [usize; 3], data_len: usize) -> Vec<u8> {
-    let [nx, ny, nz] = shape;
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': ({nx}, {ny}, {nz}), }}");
+    header_bytes_for(descr, &shape, data_len)
+}
+
+/// [`header_bytes`] for any number (≥ 2) of dimensions.
+fn header_bytes_for(descr: &str, shape: &[usize], data_len: usize) -> Vec<u8> {
+    let dims: Vec<String> = shape.iter().map(usize::to_string).collect();
+    let mut header = format!(
+        "{{'descr': '{descr}', 'fortran_order': False, 'shape': ({}), }}",
+        dims.join(", ")
+    );
     // Room for the growable (first, in C order) axis to be rewritten in place with more digits.
-    let digits = nx.to_string().len();
+    let digits = dims.first().map_or(1, String::len);
     header.extend(std::iter::repeat_n(
         ' ',
         GROWTH_AXIS_MAX_DIGITS.saturating_sub(digits),

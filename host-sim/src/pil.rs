@@ -140,6 +140,102 @@ pub fn build_firmware(target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
     Ok(target_dir.join("thumbv7em-none-eabihf/release/harmonic-fw"))
 }
 
+/// Builds the firmware example `name` (firmware/examples/NAME.rs, e.g. `stereo_bench`) like
+/// [`build_firmware`] and returns the ELF's path.
+pub fn build_firmware_example(name: &str, target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let target_dir = target_dir.map_or_else(|| workspace.join("target"), Path::to_path_buf);
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let status = Command::new(cargo)
+        .current_dir(&workspace)
+        .args([
+            "build",
+            "-p",
+            "harmonic-fw",
+            "--release",
+            "--target",
+            "thumbv7em-none-eabihf",
+            "--example",
+            name,
+        ])
+        .arg("--target-dir")
+        .arg(&target_dir)
+        .status()
+        .map_err(|e| SimError::Config(format!("cargo build of {name}: {e}")))?;
+    if !status.success() {
+        return Err(SimError::Config(format!(
+            "cargo build of {name} failed ({status})"
+        )));
+    }
+    Ok(target_dir
+        .join("thumbv7em-none-eabihf/release/examples")
+        .join(name))
+}
+
+/// Runs an image that talks only over semihosting (no UARTs) under QEMU with `-icount shift=0`
+/// until it exits, and returns what it printed. A non-zero exit status is an error.
+pub fn run_semihosted(qemu: &str, elf: &Path, timeout: Duration) -> Result<String, SimError> {
+    let args: Vec<String> = [
+        "-machine",
+        "mps2-an386",
+        "-cpu",
+        "cortex-m4",
+        "-display",
+        "none",
+        "-monitor",
+        "none",
+        "-nodefaults",
+        "-nic",
+        "none",
+        "-semihosting-config",
+        "enable=on,target=native",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain(icount_args())
+    .chain(["-kernel".into(), elf.display().to_string()])
+    .collect();
+    let mut child = Command::new(qemu)
+        .args(&args)
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .map_err(|e| {
+            SimError::Config(format!(
+                "cannot start {qemu}: {e} (is qemu-system-arm installed?)"
+            ))
+        })?;
+    let start = Instant::now();
+    loop {
+        match child.try_wait() {
+            Ok(Some(status)) => {
+                let mut out = String::new();
+                if let Some(mut s) = child.stdout.take() {
+                    let _ = s.read_to_string(&mut out);
+                }
+                if !status.success() {
+                    return Err(SimError::Config(format!(
+                        "{} exited with {status}: {out}",
+                        elf.display()
+                    )));
+                }
+                return Ok(out);
+            }
+            Ok(None) if start.elapsed() > timeout => {
+                let _ = child.kill();
+                let _ = child.wait();
+                return Err(SimError::Config(format!(
+                    "{} did not finish in {timeout:?}",
+                    elf.display()
+                )));
+            }
+            Ok(None) => std::thread::sleep(Duration::from_millis(20)),
+            Err(e) => return Err(SimError::Config(format!("waiting for {qemu}: {e}"))),
+        }
+    }
+}
+
 /// QEMU with its two sockets and the log it writes.
 struct Board {
     child: Child,
@@ -649,6 +745,7 @@ pub fn run(
         grid_origin: geometry.origin().coords.into(),
         map_accuracy: None,
         final_drift: None,
+        stereo: None,
         trajectory: Vec::new(),
         mavlink: Some(MavlinkReport {
             endpoint: "emulator (qemu uart1)".into(),

@@ -344,6 +344,7 @@ pub fn replay(
         min_range: settings.min_range,
         max_range: settings.max_range,
         pixel_stride: 1,
+        ..IntegrationParams::default()
     };
     let stencil = (settings.vehicle_radius > 0.0)
         .then(|| InflationStencil::new(settings.vehicle_radius, settings.resolution))

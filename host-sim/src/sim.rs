@@ -52,6 +52,7 @@ use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
 use crate::scenario::Scenario;
 use crate::sensing::{Drift, DriftConfig, MapAccuracy};
+use crate::stereo::{StereoDepth, StereoReport, StereoRig};
 use crate::world::World;
 
 /// Steps in a row without a depth frame after which the run gives up (`stuck:link`).
@@ -109,6 +110,42 @@ pub struct SimConfig {
     pub mavlink: Option<MavlinkConfig>,
     /// Sensor and pose faults (the depth link has its own, in [`LinkConfig::faults`]).
     pub faults: SimFaults,
+    /// Where depth frames come from: the depth camera (default) or rendered stereo pairs
+    /// matched by the core ([`use_stereo_depth`]).
+    pub depth_source: DepthSource,
+}
+
+/// Where the depth frames of a run come from.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub enum DepthSource {
+    /// [`SimConfig::camera`] renders depth directly (with its noise model, if any).
+    #[default]
+    Camera,
+    /// A stereo pair is rendered at the camera's pose and matched by
+    /// [`harmonic_core::stereo`] ([`crate::stereo::StereoDepth`]); the frame has the camera's
+    /// intrinsics.
+    Stereo(StereoRig),
+}
+
+/// Depth error (m) at the range up to which stereo depth is integrated by default.
+pub const STEREO_TRUSTED_ERROR_M: f32 = 0.1;
+/// Disparity error (render pixels) assumed for the default stereo range: the matcher's
+/// sub-pixel error on rendered pairs (BENCHMARKS.md) with a margin.
+pub const STEREO_TRUSTED_SIGMA_PX: f32 = 0.2;
+
+/// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than
+/// free space, and returns are integrated up to `trusted_range` metres (default: where a
+/// [`STEREO_TRUSTED_SIGMA_PX`] disparity error moves the depth by [`STEREO_TRUSTED_ERROR_M`];
+/// 2.8 m for the default rig), farther ones only clearing free space up to it.
+pub fn use_stereo_depth(cfg: &mut SimConfig, rig: StereoRig, trusted_range: Option<f32>) {
+    cfg.depth_source = DepthSource::Stereo(rig);
+    cfg.explorer.integration.no_return = harmonic_core::integrate::NoReturn::Unknown;
+    let fx = cfg.camera.intrinsics.fx() * f32::from(rig.scale.max(1));
+    let range = trusted_range
+        .unwrap_or_else(|| rig.trusted_range(fx, STEREO_TRUSTED_SIGMA_PX, STEREO_TRUSTED_ERROR_M));
+    cfg.explorer.integration.max_range = range
+        .min(cfg.camera.max_range)
+        .max(cfg.explorer.integration.min_range + 0.1);
 }
 
 /// Faults the simulator injects besides the depth link's: what `harmonic-sim faults` varies.
@@ -146,6 +183,7 @@ impl Default for SimConfig {
             link: LinkConfig::default(),
             mavlink: None,
             faults: SimFaults::default(),
+            depth_source: DepthSource::Camera,
         }
     }
 }
@@ -294,6 +332,8 @@ pub struct Report {
     pub map_accuracy: Option<MapAccuracy>,
     /// With drift: the believed pose's position and yaw error at the end, metres and radians.
     pub final_drift: Option<[f32; 2]>,
+    /// With stereo depth ([`DepthSource::Stereo`]): matcher statistics.
+    pub stereo: Option<StereoReport>,
     /// The true path flown, a point every 5 cm, map frame.
     pub trajectory: Vec<[f32; 3]>,
     /// Per-step records.
@@ -903,7 +943,13 @@ pub fn run_observed(
     }
     let mut drift = cfg.drift.map(|d| Drift::new(d, cfg.seed));
     // The noise-free map of the same run, for the accuracy of maps made with imperfect sensing.
-    let measure_accuracy = !cfg.camera.is_exact() || drift.is_some();
+    let mut stereo = match cfg.depth_source {
+        DepthSource::Camera => None,
+        DepthSource::Stereo(rig) => {
+            Some(StereoDepth::new(rig, &cfg.camera.intrinsics).map_err(SimError::Config)?)
+        }
+    };
+    let measure_accuracy = !cfg.camera.is_exact() || drift.is_some() || stereo.is_some();
     let reference_len = if measure_accuracy {
         geometry.dims().len()
     } else {
@@ -1004,7 +1050,14 @@ pub fn run_observed(
             None => (position, yaw),
         };
         let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
-        cfg.camera.render(world, &true_pose, &mut rng, &mut depth);
+        match stereo.as_mut() {
+            Some(stereo) => {
+                stereo
+                    .render_depth(world, &true_pose, &mut rng, &mut depth)
+                    .map_err(SimError::Config)?;
+            }
+            None => cfg.camera.render(world, &true_pose, &mut rng, &mut depth),
+        }
         inject_sensor_faults(&cfg.faults, &cfg.camera, &mut sensor_rng, &mut depth);
         let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
             .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
@@ -1275,6 +1328,7 @@ pub fn run_observed(
             let (e, y) = d.error_at(&vehicle.position);
             [e, y]
         }),
+        stereo: stereo.as_ref().map(StereoDepth::report),
         trajectory: track.path,
         steps,
     })

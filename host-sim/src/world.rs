@@ -145,6 +145,20 @@ pub struct Hit {
     pub textureless: bool,
 }
 
+/// Where a ray first meets a surface, which surface it is and which way it faces: what a
+/// camera that renders intensities needs ([`crate::stereo`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SurfaceHit {
+    /// Distance along the (unit) ray, metres.
+    pub t: f32,
+    /// The surface has no texture.
+    pub textureless: bool,
+    /// Which obstacle: the box index, or the number of boxes plus the mesh index.
+    pub surface: usize,
+    /// Unit normal facing the ray's origin (for a ray starting inside a box: against the ray).
+    pub normal: Vector3<f32>,
+}
+
 impl World {
     /// A world with the given name, bounds and obstacles (all textured).
     pub fn new(name: impl Into<String>, bounds: Aabb, boxes: Vec<Aabb>) -> Self {
@@ -190,6 +204,52 @@ impl World {
             }
         }
         best
+    }
+
+    /// [`World::raycast_hit`], also telling which surface was hit and its normal.
+    pub fn raycast_surface(
+        &self,
+        origin: &Point3<f32>,
+        dir: &Vector3<f32>,
+        max_dist: f32,
+    ) -> Option<SurfaceHit> {
+        let inv_dir = dir.map(|c| 1.0 / c);
+        let mut best: Option<(f32, usize, Option<usize>)> = None;
+        let mut t_max = max_dist;
+        for (i, b) in self.boxes.iter().enumerate() {
+            if let Some(t) = b.ray_entry(origin, dir, &inv_dir, t_max) {
+                best = Some((t, i, None));
+                t_max = t;
+                if t == 0.0 {
+                    break;
+                }
+            }
+        }
+        for (k, m) in self.meshes.iter().enumerate() {
+            if let Some((t, tri)) = m.bvh.raycast_triangle(&m.mesh, origin, dir, t_max) {
+                best = Some((t, self.boxes.len() + k, Some(tri)));
+                t_max = t;
+            }
+        }
+        let (t, surface, triangle) = best?;
+        let (textureless, normal) = match triangle {
+            Some(tri) => {
+                let m = &self.meshes[surface - self.boxes.len()];
+                (m.textureless, m.mesh.triangle_normal(tri))
+            }
+            None => (
+                self.textureless.get(surface).copied().unwrap_or(false),
+                box_normal(&self.boxes[surface], &(origin + dir * t), dir, t),
+            ),
+        };
+        // Face the viewer whatever the winding.
+        let normal = if normal.dot(dir) > 0.0 { -normal } else { normal };
+        Some(SurfaceHit {
+            t,
+            textureless,
+            surface,
+            normal,
+        })
     }
 
     /// Index of the first mesh closer than `radius` to `center` or enclosing it, if any.
@@ -245,6 +305,26 @@ impl World {
     /// Tolerance of [`World::cell_occupied`], metres: absorbs the rounding of grid-aligned
     /// coordinates such as 0.1 m, which f32 cannot represent exactly.
     pub const CELL_EPSILON: f32 = 1e-4;
+}
+
+/// Outward normal of the face of `b` that the point `p` (on its surface) lies on; `t == 0`
+/// (the ray starts inside): against the ray.
+fn box_normal(b: &Aabb, p: &Point3<f32>, dir: &Vector3<f32>, t: f32) -> Vector3<f32> {
+    if t == 0.0 {
+        return -dir;
+    }
+    let mut best = (f32::INFINITY, Vector3::zeros());
+    for i in 0..3 {
+        for (face, sign) in [(b.min[i], -1.0), (b.max[i], 1.0)] {
+            let gap = (p[i] - face).abs();
+            if gap < best.0 {
+                let mut n = Vector3::zeros();
+                n[i] = sign;
+                best = (gap, n);
+            }
+        }
+    }
+    best.1
 }
 
 #[cfg(test)]

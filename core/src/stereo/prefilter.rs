@@ -1,0 +1,109 @@
+//! The Difference-of-Gaussians prefilter (seed thesis Sec. 3.2.4), streamed row by row.
+//!
+//! DoG approximates a Laplacian of Gaussian: a band-pass that removes the brightness offset
+//! between the two cameras and flat shading, and keeps the texture matching needs. It is
+//! separable, so each Gaussian costs `2·(2k+1)` multiply-adds per pixel for radius `k`.
+//!
+//! Fixed point: kernel weights sum to 256. The horizontal pass keeps `value·256` in a `u16`
+//! (at most 255·256), the vertical pass `value·65536` in a `u32`. The band-pass response
+//! `G(σ_small) − G(σ_large)` is scaled by [`DOG_GAIN`], clamped to ±[`DOG_CAP`] and offset to
+//! 128, so the matcher sees a `u8` image again (OpenCV's `preFilterCap` does the same).
+//! Rows past the top and bottom edge replicate the edge row; columns replicate the edge column.
+
+/// Largest kernel radius, pixels: `ceil(3·σ_large)` must not exceed it.
+pub const MAX_RADIUS: usize = 8;
+/// Gain applied to the band-pass response before it is clamped to `u8`.
+pub const DOG_GAIN: i32 = 4;
+/// The response is clamped to ±`DOG_CAP` around 128.
+pub const DOG_CAP: i32 = 127;
+
+/// Integer Gaussian weights for offsets `-radius..=radius`, summing to 256.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Kernel {
+    weights: [u16; 2 * MAX_RADIUS + 1],
+    radius: usize,
+}
+
+impl Kernel {
+    /// A normalised Gaussian of standard deviation `sigma` truncated at `radius`.
+    pub(crate) fn gaussian(sigma: f32, radius: usize) -> Self {
+        let mut real = [0f32; 2 * MAX_RADIUS + 1];
+        let mut total = 0f32;
+        for (i, w) in real.iter_mut().enumerate().take(2 * radius + 1) {
+            let x = i as f32 - radius as f32;
+            *w = libm::expf(-x * x / (2.0 * sigma * sigma));
+            total += *w;
+        }
+        let mut weights = [0u16; 2 * MAX_RADIUS + 1];
+        let mut sum = 0u32;
+        for (w, r) in weights.iter_mut().zip(real.iter()).take(2 * radius + 1) {
+            *w = libm::roundf(256.0 * r / total) as u16;
+            sum += u32::from(*w);
+        }
+        // Rounding may miss 256 by a few units: the centre weight takes the difference.
+        if let Some(centre) = weights.get_mut(radius) {
+            *centre = (i64::from(*centre) + 256 - i64::from(sum)).clamp(0, 256) as u16;
+        }
+        Self { weights, radius }
+    }
+
+    /// The weights, `2·radius + 1` of them.
+    pub(crate) fn taps(&self) -> &[u16] {
+        self.weights.get(..2 * self.radius + 1).unwrap_or(&[])
+    }
+}
+
+/// Horizontal pass of one row: `out[x] = Σ w_i · row[clamp(x + i)]` (value·256).
+pub(crate) fn horizontal(kernel: &Kernel, row: &[u8], out: &mut [u16]) {
+    let last = row.len().saturating_sub(1);
+    let r = kernel.radius;
+    for (x, o) in out.iter_mut().enumerate() {
+        let mut acc = 0u32;
+        for (i, &w) in kernel.taps().iter().enumerate() {
+            let at = (x + i).saturating_sub(r).min(last);
+            acc += u32::from(w) * u32::from(row.get(at).copied().unwrap_or(0));
+        }
+        *o = acc.min(u32::from(u16::MAX)) as u16;
+    }
+}
+
+/// The band-pass response as a `u8` around 128, from both Gaussians' vertical passes at one
+/// pixel (value·65536 each).
+pub(crate) fn dog_pixel(small: u32, large: u32) -> u8 {
+    // Both are value·65536; the difference fits an i32 (|·| < 2^24).
+    let diff = small as i32 - large as i32;
+    let scaled = (diff * DOG_GAIN + (1 << 15)) >> 16;
+    (scaled.clamp(-DOG_CAP, DOG_CAP) + 128) as u8
+}
+
+/// Kernel radius for a DoG with the given large sigma.
+pub(crate) fn radius_for(sigma_large: f32) -> usize {
+    libm::ceilf(3.0 * sigma_large).max(1.0) as usize
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kernels_sum_to_256_and_are_symmetric() {
+        for (sigma, r) in [(0.5, 2), (1.0, 3), (1.6, 5), (2.6, 8)] {
+            let k = Kernel::gaussian(sigma, r);
+            let taps = k.taps();
+            assert_eq!(taps.iter().map(|&w| u32::from(w)).sum::<u32>(), 256, "{sigma}");
+            for i in 0..taps.len() {
+                assert_eq!(taps[i], taps[taps.len() - 1 - i]);
+            }
+        }
+    }
+
+    #[test]
+    fn flat_rows_give_a_flat_response() {
+        let k = Kernel::gaussian(1.0, 5);
+        let row = [77u8; 20];
+        let mut out = [0u16; 20];
+        horizontal(&k, &row, &mut out);
+        assert!(out.iter().all(|&v| v == 77 * 256));
+        assert_eq!(dog_pixel(77 * 65536, 77 * 65536), 128);
+    }
+}
