@@ -451,6 +451,29 @@ mod tests {
         st: [u32; 128],
     }
 
+    impl Fixture {
+        fn new() -> Self {
+            Self {
+                lo: [0; 4096],
+                st: [0; 128],
+            }
+        }
+        /// An all-unknown map over [`cube16`].
+        fn map(&mut self) -> VoxelMap<'_> {
+            VoxelMap::new(cube16(), LogOddsParams::default(), &mut self.lo, &mut self.st).unwrap()
+        }
+    }
+
+    /// 16³ voxels of 0.1 m from the origin.
+    fn cube16() -> MapGeometry {
+        MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap()
+    }
+
+    /// A one-pixel camera looking along its z axis.
+    fn one_pixel() -> Intrinsics {
+        Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap()
+    }
+
     fn looking_along_x() -> Isometry3<f32> {
         // Camera z → map x, camera x → map −y, camera y → map −z.
         let r = nalgebra::Matrix3::new(0.0, 0.0, 1.0, -1.0, 0.0, 0.0, 0.0, -1.0, 0.0);
@@ -460,13 +483,10 @@ mod tests {
 
     #[test]
     fn single_pixel_marks_free_ray_and_occupied_endpoint() {
-        let mut f = Fixture {
-            lo: [0; 4096],
-            st: [0; 128],
-        };
-        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
-        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let mut f = Fixture::new();
+        let g = cube16();
+        let mut map = f.map();
+        let intr = one_pixel();
         let depth = [1000u16]; // 1.0 m straight ahead along +x.
         let frame = DepthFrame::new(intr, &depth).unwrap();
         let params = IntegrationParams {
@@ -489,13 +509,10 @@ mod tests {
 
     #[test]
     fn no_return_clears_to_max_range_and_too_close_is_invalid() {
-        let mut f = Fixture {
-            lo: [0; 4096],
-            st: [0; 128],
-        };
-        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
-        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let mut f = Fixture::new();
+        let g = cube16();
+        let mut map = f.map();
+        let intr = one_pixel();
         let params = IntegrationParams {
             min_range: 0.3,
             max_range: 0.75,
@@ -536,13 +553,10 @@ mod tests {
 
     #[test]
     fn no_return_stops_at_an_occupied_voxel_and_never_erodes_it() {
-        let mut f = Fixture {
-            lo: [0; 4096],
-            st: [0; 128],
-        };
-        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
-        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let mut f = Fixture::new();
+        let g = cube16();
+        let mut map = f.map();
+        let intr = one_pixel();
         let params = IntegrationParams {
             min_range: 0.1,
             max_range: 1.2,
@@ -573,13 +587,10 @@ mod tests {
 
     #[test]
     fn unknown_no_return_updates_nothing_but_far_returns_still_clear() {
-        let mut f = Fixture {
-            lo: [0; 4096],
-            st: [0; 128],
-        };
-        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
-        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let mut f = Fixture::new();
+        let g = cube16();
+        let mut map = f.map();
+        let intr = one_pixel();
         let params = IntegrationParams {
             min_range: 0.3,
             max_range: 0.75,
@@ -610,12 +621,9 @@ mod tests {
 
     #[test]
     fn occupied_wins_within_one_frame() {
-        let mut f = Fixture {
-            lo: [0; 4096],
-            st: [0; 128],
-        };
-        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
+        let mut f = Fixture::new();
+        let g = cube16();
+        let mut map = f.map();
         // Two pixels on the same ray line: the first ends at 0.5 m, the second passes to 1.0 m.
         // A huge focal length makes both pixels' rays coincide to within 1e-6 rad.
         let intr = Intrinsics::new(1e6, 1.0, 0.0, 0.0, 2, 1).unwrap();
@@ -639,13 +647,9 @@ mod tests {
 
     #[test]
     fn bad_pose_is_rejected() {
-        let mut f = Fixture {
-            lo: [0; 4096],
-            st: [0; 128],
-        };
-        let g = MapGeometry::new(Dims::new(16, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut f.lo, &mut f.st).unwrap();
-        let intr = Intrinsics::new(1.0, 1.0, 0.0, 0.0, 1, 1).unwrap();
+        let mut f = Fixture::new();
+        let mut map = f.map();
+        let intr = one_pixel();
         let depth = [1000u16];
         let frame = DepthFrame::new(intr, &depth).unwrap();
         let mut pose = looking_along_x();

@@ -329,20 +329,20 @@ pub fn read_u8_file(path: impl AsRef<Path>) -> Result<Array3<u8>, NpyError> {
     read_u8(&bytes)
 }
 
+/// One `float32` from 4 bytes of a `.npy` body.
+fn f32_of(c: &[u8], big_endian: bool) -> f32 {
+    let b = [c[0], c[1], c[2], c[3]];
+    if big_endian {
+        f32::from_be_bytes(b)
+    } else {
+        f32::from_le_bytes(b)
+    }
+}
+
 /// Reads a 3-D `float32` array (`'<f4'` or `'>f4'`) from the bytes of a `.npy` file.
 pub fn read_f32(bytes: &[u8]) -> Result<Array3<f32>, NpyError> {
     let (shape, big_endian, data) = read_raw(bytes, f32_kind, "'<f4' or '>f4'")?;
-    let data = data
-        .chunks_exact(4)
-        .map(|c| {
-            let b = [c[0], c[1], c[2], c[3]];
-            if big_endian {
-                f32::from_be_bytes(b)
-            } else {
-                f32::from_le_bytes(b)
-            }
-        })
-        .collect();
+    let data = data.chunks_exact(4).map(|c| f32_of(c, big_endian)).collect();
     Ok(Array3 { shape, data })
 }
 
@@ -420,17 +420,7 @@ pub fn read_f32_image(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), NpyError
             found: data.len(),
         });
     }
-    let values = data
-        .chunks_exact(4)
-        .map(|c| {
-            let b = [c[0], c[1], c[2], c[3]];
-            if big_endian {
-                f32::from_be_bytes(b)
-            } else {
-                f32::from_le_bytes(b)
-            }
-        })
-        .collect();
+    let values = data.chunks_exact(4).map(|c| f32_of(c, big_endian)).collect();
     Ok((h, w, values))
 }
 

@@ -115,34 +115,22 @@ pub fn firmware_geometry() -> Result<MapGeometry, SimError> {
 /// Builds the firmware with cargo into `target_dir` (the workspace's `target/` if `None`) and
 /// returns the ELF's path.
 pub fn build_firmware(target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
-    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let target_dir = target_dir.map_or_else(|| workspace.join("target"), Path::to_path_buf);
-    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-    let status = Command::new(cargo)
-        .current_dir(&workspace)
-        .args([
-            "build",
-            "-p",
-            "harmonic-fw",
-            "--release",
-            "--target",
-            "thumbv7em-none-eabihf",
-        ])
-        .arg("--target-dir")
-        .arg(&target_dir)
-        .status()
-        .map_err(|e| SimError::Config(format!("cargo build of the firmware: {e}")))?;
-    if !status.success() {
-        return Err(SimError::Config(format!(
-            "cargo build of the firmware failed ({status})"
-        )));
-    }
+    let target_dir = cargo_build_firmware(&[], "the firmware", target_dir)?;
     Ok(target_dir.join("thumbv7em-none-eabihf/release/harmonic-fw"))
 }
 
 /// Builds the firmware example `name` (firmware/examples/NAME.rs, e.g. `stereo_bench`) like
 /// [`build_firmware`] and returns the ELF's path.
 pub fn build_firmware_example(name: &str, target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
+    let target_dir = cargo_build_firmware(&["--example", name], name, target_dir)?;
+    Ok(target_dir
+        .join("thumbv7em-none-eabihf/release/examples")
+        .join(name))
+}
+
+/// `cargo build -p harmonic-fw --release --target thumbv7em-none-eabihf EXTRA` into
+/// `target_dir` (the workspace's `target/` if `None`); returns the target directory.
+fn cargo_build_firmware(extra: &[&str], what: &str, target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
     let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let target_dir = target_dir.map_or_else(|| workspace.join("target"), Path::to_path_buf);
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
@@ -155,46 +143,26 @@ pub fn build_firmware_example(name: &str, target_dir: Option<&Path>) -> Result<P
             "--release",
             "--target",
             "thumbv7em-none-eabihf",
-            "--example",
-            name,
         ])
+        .args(extra)
         .arg("--target-dir")
         .arg(&target_dir)
         .status()
-        .map_err(|e| SimError::Config(format!("cargo build of {name}: {e}")))?;
+        .map_err(|e| SimError::Config(format!("cargo build of {what}: {e}")))?;
     if !status.success() {
         return Err(SimError::Config(format!(
-            "cargo build of {name} failed ({status})"
+            "cargo build of {what} failed ({status})"
         )));
     }
-    Ok(target_dir
-        .join("thumbv7em-none-eabihf/release/examples")
-        .join(name))
+    Ok(target_dir)
 }
 
 /// Runs an image that talks only over semihosting (no UARTs) under QEMU with `-icount shift=0`
 /// until it exits, and returns what it printed. A non-zero exit status is an error.
 pub fn run_semihosted(qemu: &str, elf: &Path, timeout: Duration) -> Result<String, SimError> {
-    let args: Vec<String> = [
-        "-machine",
-        "mps2-an386",
-        "-cpu",
-        "cortex-m4",
-        "-display",
-        "none",
-        "-monitor",
-        "none",
-        "-nodefaults",
-        "-nic",
-        "none",
-        "-semihosting-config",
-        "enable=on,target=native",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .chain(icount_args())
-    .chain(["-kernel".into(), elf.display().to_string()])
-    .collect();
+    let args: Vec<String> = machine_args()
+        .chain(["-kernel".into(), elf.display().to_string()])
+        .collect();
     let mut child = Command::new(qemu)
         .args(&args)
         .stdin(Stdio::null())
@@ -263,40 +231,23 @@ impl Board {
         let (p0, p1) = (port(&l0)?, port(&l1)?);
         let defmt = std::fs::File::create(out.join("firmware.defmt")).map_err(io("firmware.defmt"))?;
         let qemu_log = std::fs::File::create(out.join("qemu.log")).map_err(io("qemu.log"))?;
-        let args: Vec<String> = [
-            "-machine",
-            "mps2-an386",
-            "-cpu",
-            "cortex-m4",
-            "-display",
-            "none",
-            "-monitor",
-            "none",
-            "-nodefaults",
-            "-nic",
-            "none",
-            "-semihosting-config",
-            "enable=on,target=native",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .chain(icount_args())
-        .chain([
-            "-serial".into(),
-            format!("tcp:127.0.0.1:{p0}"),
-            "-serial".into(),
-            format!("tcp:127.0.0.1:{p1}"),
-            "-kernel".into(),
-            elf.display().to_string(),
-        ])
-        // Extra QEMU options for debugging, e.g. `-monitor unix:/tmp/m.sock,server=on,wait=off`.
-        .chain(
-            std::env::var("HARMONIC_QEMU_EXTRA")
-                .unwrap_or_default()
-                .split_whitespace()
-                .map(str::to_string),
-        )
-        .collect();
+        let args: Vec<String> = machine_args()
+            .chain([
+                "-serial".into(),
+                format!("tcp:127.0.0.1:{p0}"),
+                "-serial".into(),
+                format!("tcp:127.0.0.1:{p1}"),
+                "-kernel".into(),
+                elf.display().to_string(),
+            ])
+            // Extra QEMU options for debugging, e.g. `-monitor unix:/tmp/m.sock,server=on,wait=off`.
+            .chain(
+                std::env::var("HARMONIC_QEMU_EXTRA")
+                    .unwrap_or_default()
+                    .split_whitespace()
+                    .map(str::to_string),
+            )
+            .collect();
         let command = format!("{qemu} {}", args.join(" "));
         let mut child = Command::new(qemu)
             .args(&args)
@@ -368,6 +319,29 @@ fn accept(listener: &TcpListener, child: &mut Child) -> Result<TcpStream, SimErr
             Err(e) => return Err(io("accept")(e)),
         }
     }
+}
+
+/// QEMU's board (mps2-an386, Cortex-M4, no display, monitor, network or default devices),
+/// semihosting on, and [`icount_args`]; the caller adds the serial ports and the image.
+fn machine_args() -> impl Iterator<Item = String> {
+    [
+        "-machine",
+        "mps2-an386",
+        "-cpu",
+        "cortex-m4",
+        "-display",
+        "none",
+        "-monitor",
+        "none",
+        "-nodefaults",
+        "-nic",
+        "none",
+        "-semihosting-config",
+        "enable=on,target=native",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .chain(icount_args())
 }
 
 /// `-icount shift=0`: deterministic instruction counting (1 ns of board time per instruction),
