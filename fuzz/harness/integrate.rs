@@ -1,19 +1,13 @@
 //! Fuzz harness for depth integration and planning through the [`Explorer`]: arbitrary
 //! intrinsics, depth values, camera poses (including non-finite values and non-unit
-//! quaternions), range settings, grid placement and vehicle positions. Shared by
-//! `fuzz/fuzz_targets/depth_integration.rs` and `tests/tests/fuzz_harness.rs`.
-//!
-//! The oracle checks:
-//!
-//! - no panic;
-//! - a frame with a bad pose is refused, counted, and leaves the map as it was;
-//! - the map's voxel counts always add up to the grid size;
-//! - a goal is finite, inside the grid, and in a voxel the map knows to be free.
+//! quaternions), range settings and what a no-return pixel means, grid placement and vehicle
+//! positions. Shared by `fuzz/fuzz_targets/depth_integration.rs` and
+//! `tests/tests/fuzz_harness.rs`.
 
 use harmonic_core::camera::{DepthFrame, Intrinsics};
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{Explorer, ExplorerConfig, ExplorerStorage, Fault, PlanOutcome, SolverKind};
-use harmonic_core::integrate::IntegrationParams;
+use harmonic_core::integrate::{IntegrationParams, NoReturn};
 use harmonic_core::map::{self, Dims, MapGeometry};
 use harmonic_core::solve::multigrid;
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
@@ -60,6 +54,11 @@ pub fn run(data: &[u8]) {
             min_range: input.float(FLOATS),
             max_range: input.float(FLOATS),
             pixel_stride: u16::from(input.u8() % 4),
+            no_return: if input.u8() % 2 == 0 {
+                NoReturn::ClearToMaxRange
+            } else {
+                NoReturn::Unknown
+            },
             ..IntegrationParams::default()
         };
     }
