@@ -59,7 +59,6 @@ pub fn run(data: &[u8]) {
             } else {
                 NoReturn::Unknown
             },
-            ..IntegrationParams::default()
         };
     }
     config.solve.max_iterations = u32::from(input.u8() % 64) + 1;
