@@ -17,7 +17,7 @@
 //! them by mistake drops them as an unknown type, and the other way round.
 //!
 //! ```text
-//! 0x81 PlanReport, 220 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
+//! 0x81 PlanReport, 232 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
 //!   0  u32 frame_id   of the frame just planned from     0  u32 first   voxel index
 //!   4  u8  outcome    0 goal 1 kept 2 escape             4  u16 count   1 ..= MAP_SLICE_VOXELS
 //!                     3 complete 4 hold                  6  u8[]  two bits per voxel, voxel
@@ -33,8 +33,8 @@
 //!  68  u64 ticks of integrate, domain, solve, streamline+goal
 //! 100  u64 integration_ops, planning_ops  (totals)
 //! 116  u32 sealed voxels
-//! 120  u32 × 8  ErrorCounters, in declaration order
-//! 152  u64 bytes, u32 × 15  LinkCounters, in declaration order
+//! 120  u32 × 11 ErrorCounters, in declaration order
+//! 164  u64 bytes, u32 × 15  LinkCounters, in declaration order
 //! ```
 //!
 //! Fault codes: 1 BadPose, 2 VehicleOutsideGrid, 3 VehicleNotFree, 4 Streamline (detail:
@@ -55,7 +55,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 228;
+pub const PLAN_REPORT_LEN: usize = 232;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -247,6 +247,7 @@ impl PlanReport {
             e.seals,
             e.pose_jumps,
             e.clearances,
+            e.plateaus,
         ] {
             w.u32(v);
         }
@@ -302,6 +303,7 @@ impl PlanReport {
             seals: r.u32(),
             pose_jumps: r.u32(),
             clearances: r.u32(),
+            plateaus: r.u32(),
         };
         // Counters the link may add later arrive as 0 from a core that does not send them.
         #[allow(clippy::needless_update)]

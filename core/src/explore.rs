@@ -195,7 +195,7 @@ pub struct ErrorCounters {
     pub vehicle_not_free: u32,
     /// Plans that had to steer the vehicle out of inflated space first.
     pub escapes: u32,
-    /// Streamlines that stalled or ran too long.
+    /// Streamlines that stalled or ran too long, leaving the vehicle holding.
     pub streamline_failures: u32,
     /// Solves that hit the iteration cap before the tolerance.
     pub solver_not_converged: u32,
@@ -206,6 +206,9 @@ pub struct ErrorCounters {
     /// Plans that found the vehicle walled in by unobservable unknown voxels around its body
     /// and marked twice the vehicle radius around it free instead of reporting complete.
     pub clearances: u32,
+    /// Streamlines that stalled on a plateau of φ (below f32 resolution, far from the vehicle)
+    /// after leaving the vehicle's voxel: the vehicle flew the traced part instead of holding.
+    pub plateaus: u32,
 }
 
 /// How exploration stands.
@@ -227,7 +230,8 @@ pub struct Goal {
     pub position: Point3<f32>,
     /// Goal yaw about map z, radians (0 = +x).
     pub yaw: f32,
-    /// The frontier voxel the streamline ended in.
+    /// The frontier voxel the streamline ended in (for an escape, the escape voxel; for a
+    /// streamline that stalled on a plateau, the voxel it stalled in).
     pub frontier: VoxelIndex,
     /// True if the goal is an escape from inflated space rather than a streamline.
     pub escape: bool,
@@ -632,8 +636,19 @@ impl<'a> Explorer<'a> {
             {
                 Ok(end) => end,
                 Err(e) => {
-                    self.status.errors.streamline_failures += 1;
                     self.status.streamline = None;
+                    // Far from the vehicle φ can fall below what f32 resolves (a big hall):
+                    // the streamline stalls on a plateau after a stretch of good descent.
+                    // That stretch still leads towards the frontiers; fly it and plan again
+                    // from its end, where the new source makes the field steep again.
+                    if e == StreamlineError::Stalled {
+                        if let Some(goal) = self.plateau_goal(vehicle, yaw) {
+                            self.status.errors.plateaus += 1;
+                            self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
+                            return PlanOutcome::Goal(goal);
+                        }
+                    }
+                    self.status.errors.streamline_failures += 1;
                     return PlanOutcome::Hold(Fault::Streamline(e));
                 }
             };
@@ -706,6 +721,31 @@ impl<'a> Explorer<'a> {
     }
 
     /// Goal back into the domain for a vehicle that a new observation left inside inflated space.
+    /// The goal for a streamline that stalled on a plateau: the last traced waypoint, if the
+    /// trace got at least a voxel away from the vehicle's voxel. Every waypoint lies in a
+    /// domain voxel, so the goal is known free and clear of inflated space.
+    fn plateau_goal(&mut self, vehicle: VoxelIndex, yaw: f32) -> Option<Goal> {
+        let geometry = *self.map.geometry();
+        let (&last, before) = self.waypoints.split_last()?;
+        let stalled_in = geometry.voxel_at(&last)?;
+        let start = before.first()?;
+        if stalled_in == vehicle || (last - start).norm() < geometry.resolution() {
+            return None;
+        }
+        let direction = before.last().map_or(last - start, |p| last - p);
+        let yaw = if direction.x.abs() + direction.y.abs() > 1e-6 {
+            libm::atan2f(direction.y, direction.x)
+        } else {
+            yaw
+        };
+        Some(Goal {
+            position: last,
+            yaw,
+            frontier: stalled_in,
+            escape: false,
+        })
+    }
+
     fn escape(&mut self, vehicle: VoxelIndex, yaw: f32) -> PlanOutcome {
         self.status.errors.escapes += 1;
         let target = domain::escape_target(&self.map, &self.stencil, vehicle, self.labels, self.queue, 4096);

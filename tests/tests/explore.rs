@@ -121,6 +121,26 @@ fn large_thesis_scenarios_are_explored_completely_without_collisions() {
     }
 }
 
+/// Far from the vehicle in a big hall φ falls below what f32 resolves, and the streamline
+/// stalls on a plateau after metres of good descent. From this start in s2 (10 × 10 × 5 m) that
+/// used to end the run `stuck:Streamline(Stalled)` after 11 scans at 45 % coverage; the vehicle
+/// now flies the traced part and plans again from there.
+#[test]
+fn a_streamline_stalled_on_a_plateau_still_moves_the_vehicle() {
+    let scenario = Scenario::builtin("s2").unwrap().with_random_start(6);
+    let cfg = SimConfig {
+        seed: 6,
+        max_scans: 30,
+        ..SimConfig::default()
+    };
+    let r = sim::run(&scenario, &cfg, |_| {}).unwrap();
+    assert_eq!(r.termination, "scan_limit", "{:?}", r.errors);
+    assert!(r.errors.plateaus >= 1, "no plateau met: {:?}", r.errors);
+    assert_eq!(r.errors.streamline_failures, 0);
+    assert!(r.path_length_m > 5.0, "path {:.1} m", r.path_length_m);
+    assert_eq!(r.collisions, 0);
+}
+
 #[test]
 fn every_builtin_is_covered_by_these_tests() {
     assert_eq!(
