@@ -116,12 +116,15 @@ impl std::fmt::Display for ProblemError {
 
 impl std::error::Error for ProblemError {}
 
-/// The map's state as a label grid (for `--dump-problem`).
+/// The map's state as a label grid (for `--dump-problem`). Unknown voxels the planner sealed
+/// as unobservable are written as occupied: the domain treats them so (they inflate and make no
+/// frontier), which keeps `solve` on the dump the explorer's own problem.
 pub fn labels_from_map(map: &VoxelMap<'_>) -> Array3<u8> {
     let dims = map.dims();
     Array3::from_fn([dims.nx(), dims.ny(), dims.nz()], |x, y, z| {
         let i = dims.linear(VoxelIndex::new(x as u16, y as u16, z as u16));
         match map.occupancy(i) {
+            Occupancy::Unknown if map.is_sealed(i) => labels::OCCUPIED,
             Occupancy::Unknown => labels::UNKNOWN,
             Occupancy::Free => labels::FREE,
             Occupancy::Occupied | Occupancy::Uncertain => labels::OCCUPIED,
@@ -261,6 +264,39 @@ mod tests {
             let b = phi.get(6, 1, 1).unwrap();
             assert!(a > b && *b > 0.0, "decreasing along the corridor: {a} {b}");
         }
+    }
+
+    #[test]
+    fn a_dumped_map_solves_to_the_explorers_own_domain() {
+        // The corridor's unknown end sealed as unobservable: no frontier for the explorer,
+        // so none for `solve` on the dump either.
+        let grid = corridor();
+        let dims = Dims::new(12, 3, 3).unwrap();
+        let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let (mut lo, mut st) = (vec![0i8; dims.len()], vec![0u32; touched_words(&dims)]);
+        let mut map = VoxelMap::new(geometry, LogOddsParams::default(), &mut lo, &mut st).unwrap();
+        for x in 0..12u16 {
+            for (y, z) in (0..3u16).flat_map(|y| (0..3u16).map(move |z| (y, z))) {
+                let i = dims.linear(VoxelIndex::new(x, y, z));
+                if x < 11 {
+                    map.apply_miss(i);
+                } else {
+                    map.seal(i);
+                }
+            }
+        }
+        let dumped = labels_from_map(&map);
+        assert_eq!(dumped.get(11, 1, 1), Some(&labels::OCCUPIED));
+        assert_eq!(dumped.get(3, 1, 1), Some(&labels::FREE));
+        let (_, s) = solve(&dumped, &request(SolverChoice::Multigrid)).unwrap();
+        assert_eq!(s.frontier, 0, "sealed voxels make no frontier");
+        assert_eq!(
+            solve(&grid, &request(SolverChoice::Multigrid))
+                .unwrap()
+                .1
+                .frontier,
+            9
+        );
     }
 
     #[test]
