@@ -111,7 +111,7 @@ fn thesis_scenarios_are_explored_completely_without_collisions() {
 }
 
 /// s2 and s4 take one and three minutes each; docs/RESULTS.md's bench runs them (every
-/// baseline run complete; the harmonic planner 4 of 5 in s2, 5 of 5 in s4).
+/// baseline run complete; the harmonic planner 30 of 30 in each since the plateau goal).
 /// `cargo test --release -p harmonic-tests --test explore -- --ignored large`
 #[test]
 #[ignore]
