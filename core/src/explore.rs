@@ -695,14 +695,9 @@ impl<'a> Explorer<'a> {
             }
             None => (end.end, end.direction),
         };
-        let yaw = if look.x.abs() + look.y.abs() > 1e-3 * look.norm().max(1e-6) {
-            libm::atan2f(look.y, look.x)
-        } else {
-            yaw
-        };
         Goal {
             position,
-            yaw,
+            yaw: heading(&look, yaw),
             frontier: end.frontier,
             escape: false,
         }
@@ -720,12 +715,11 @@ impl<'a> Explorer<'a> {
         })
     }
 
-    /// Goal back into the domain for a vehicle that a new observation left inside inflated space.
     /// The goal for a streamline that stalled on a plateau: the last traced waypoint, if the
     /// trace got at least a voxel away from the vehicle's voxel. Every waypoint lies in a
     /// domain voxel, so the goal is known free and clear of inflated space.
-    fn plateau_goal(&mut self, vehicle: VoxelIndex, yaw: f32) -> Option<Goal> {
-        let geometry = *self.map.geometry();
+    fn plateau_goal(&self, vehicle: VoxelIndex, yaw: f32) -> Option<Goal> {
+        let geometry = self.map.geometry();
         let (&last, before) = self.waypoints.split_last()?;
         let stalled_in = geometry.voxel_at(&last)?;
         let start = before.first()?;
@@ -733,19 +727,15 @@ impl<'a> Explorer<'a> {
             return None;
         }
         let direction = before.last().map_or(last - start, |p| last - p);
-        let yaw = if direction.x.abs() + direction.y.abs() > 1e-6 {
-            libm::atan2f(direction.y, direction.x)
-        } else {
-            yaw
-        };
         Some(Goal {
             position: last,
-            yaw,
+            yaw: heading(&direction, yaw),
             frontier: stalled_in,
             escape: false,
         })
     }
 
+    /// Goal back into the domain for a vehicle that a new observation left inside inflated space.
     fn escape(&mut self, vehicle: VoxelIndex, yaw: f32) -> PlanOutcome {
         self.status.errors.escapes += 1;
         let target = domain::escape_target(&self.map, &self.stencil, vehicle, self.labels, self.queue, 4096);
@@ -767,6 +757,15 @@ impl<'a> Explorer<'a> {
                 PlanOutcome::Hold(Fault::VehicleNotFree)
             }
         }
+    }
+}
+
+/// Yaw that looks along `d`, or `fallback` when `d` is (nearly) vertical.
+fn heading(d: &Vector3<f32>, fallback: f32) -> f32 {
+    if d.x.abs() + d.y.abs() > 1e-3 * d.norm().max(1e-6) {
+        libm::atan2f(d.y, d.x)
+    } else {
+        fallback
     }
 }
 

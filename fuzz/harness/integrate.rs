@@ -3,6 +3,13 @@
 //! quaternions), range settings and what a no-return pixel means, grid placement and vehicle
 //! positions. Shared by `fuzz/fuzz_targets/depth_integration.rs` and
 //! `tests/tests/fuzz_harness.rs`.
+//!
+//! The oracle checks:
+//!
+//! - no panic;
+//! - a frame with a bad pose is refused, counted, and leaves the map as it was;
+//! - the map's voxel counts always add up to the grid size;
+//! - a goal is finite, inside the grid, and in a voxel the map knows to be free.
 
 use harmonic_core::camera::{DepthFrame, Intrinsics};
 use harmonic_core::domain::Label;
