@@ -13,11 +13,17 @@
 //! 1. mark the voxels the vehicle's own body fills as free (it is there, so they are);
 //! 2. build the domain around the vehicle ([`crate::domain`]); no frontier in the vehicle's
 //!    component means exploration is **complete**;
-//! 3. solve Laplace's equation, warm-started from the previous φ ([`crate::solve`]);
+//! 3. solve the planning field ([`crate::field`]: by default the frontier-sourced screened
+//!    field, u = 1 on frontiers, ∇²u = κ²u elsewhere; or the seed's Laplace field with the
+//!    vehicle as source), warm-started from the previous solution ([`crate::solve`]);
 //! 4. trace the streamline from the vehicle to a frontier ([`crate::streamline`]);
-//! 5. choose the goal: the point on the streamline closest to its end from which the camera,
-//!    turned towards the frontier, sees it inside its field of view and beyond its minimum range
-//!    (the streamline's end itself if no such point exists); the goal yaw faces the frontier.
+//! 5. choose the goal (the view): the *first* point of the streamline from which the frontier
+//!    is in plain sight (free voxels all the way) within [`ExplorerConfig::view_range_m`] and
+//!    inside the vertical field of view — often the vehicle's own position, which then only
+//!    turns to look; if that view taught nothing, the point *closest to the end* that sees it
+//!    beyond the minimum range; if no point of the streamline sees it (a frontier inside the
+//!    minimum range, or straight above or below), a point backed off from it, level with it,
+//!    that does. The goal yaw faces the frontier.
 //!
 //! Frontiers the camera cannot resolve from any reachable pose (for example unknown voxels
 //! inside the minimum range under the vehicle) would make the loop revisit the same place
@@ -34,6 +40,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::camera::{DepthFrame, Intrinsics};
 use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label};
+use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, VoxelIndex, VoxelMap};
 use crate::solve::multigrid::{Method, Multigrid, MultigridStorage};
@@ -59,6 +66,8 @@ pub struct ExplorerConfig {
     pub integration: IntegrationParams,
     /// Vehicle radius (planning clearance) in metres; obstacles are inflated by it.
     pub vehicle_radius: f32,
+    /// Which potential plans (the screened frontier-sourced field by default).
+    pub field: PlanningField,
     /// Solver choice.
     pub solver: SolverKind,
     /// Solver stopping rule.
@@ -67,6 +76,12 @@ pub struct ExplorerConfig {
     pub streamline: StreamlineParams,
     /// Fraction of the camera's half field of view a goal must keep the frontier inside.
     pub view_margin: f32,
+    /// Look from a distance: the goal is the *first* point of the streamline from which the
+    /// frontier lies within this range (metres), inside the vertical field of view and in
+    /// plain sight through known free voxels. The vehicle stops there and turns to it instead of
+    /// flying up to it. If that view taught nothing, the next goal for the frontier is the
+    /// near one (the last such point). 0: always the near one.
+    pub view_range_m: f32,
     /// Fruitless visits to the same frontier before the unknown behind it is sealed.
     pub stall_visits: u8,
     /// Keep flying to the current goal, without re-solving, while its frontier voxel is still a
@@ -92,10 +107,12 @@ impl Default for ExplorerConfig {
             log_odds: LogOddsParams::default(),
             integration: IntegrationParams::default(),
             vehicle_radius: 0.2,
+            field: PlanningField::default(),
             solver: SolverKind::default(),
             solve: SolveParams::default(),
             streamline: StreamlineParams::default(),
             view_margin: 0.8,
+            view_range_m: 1.5,
             stall_visits: 2,
             commit_to_goal: true,
             max_frame_jump_m: 2.0,
@@ -209,6 +226,9 @@ pub struct ErrorCounters {
     /// Streamlines that stalled on a plateau of φ (below f32 resolution, far from the vehicle)
     /// after leaving the vehicle's voxel: the vehicle flew the traced part instead of holding.
     pub plateaus: u32,
+    /// Screened-field streamlines that stalled (u unresolved far from every frontier) and
+    /// were traced again on a field with half the κ.
+    pub screening_retries: u32,
 }
 
 /// How exploration stands.
@@ -329,6 +349,12 @@ pub struct Explorer<'a> {
     fruitless_visits: u8,
     /// Unexplored voxels at the previous full plan, to tell visits that taught nothing.
     unexplored_at_last_plan: Option<u32>,
+    /// The screened field's current κ, 1/voxel (lowered while frontiers are far).
+    kappa_voxel: f32,
+    /// The last goal looks at its frontier from afar ([`ExplorerConfig::view_range_m`]).
+    goal_from_afar: bool,
+    /// The next goal choice takes the near point (a view from afar taught nothing).
+    go_near: bool,
     status: Status,
 }
 
@@ -392,6 +418,12 @@ impl<'a> Explorer<'a> {
             jump_candidate: None,
             fruitless_visits: 0,
             unexplored_at_last_plan: None,
+            goal_from_afar: false,
+            go_near: false,
+            kappa_voxel: match config.field {
+                PlanningField::Screened(p) => p.kappa_voxel(geometry.resolution()),
+                PlanningField::Harmonic => 0.0,
+            },
             status: Status::default(),
         })
     }
@@ -575,6 +607,7 @@ impl<'a> Explorer<'a> {
         let unexplored = counts.unknown - counts.sealed;
         let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
         self.unexplored_at_last_plan = Some(unexplored);
+        let last_from_afar = core::mem::take(&mut self.goal_from_afar);
 
         // Each pass either returns or seals something and tries again; sealing is bounded by the
         // number of unknown voxels, the pass count keeps one call's work bounded too.
@@ -611,10 +644,7 @@ impl<'a> Explorer<'a> {
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
             }
-            let solved = match self.multigrid.as_mut() {
-                Some(mg) => mg.solve(self.labels, self.phi, &self.config.solve, Method::Auto),
-                None => solve::gauss_seidel(&geometry.dims(), self.labels, self.phi, &self.config.solve),
-            };
+            let solved = self.solve_field(vehicle);
             let t2 = clock.ticks();
             self.status.phase_ticks.solve += t2.saturating_sub(t1);
             match solved {
@@ -642,6 +672,13 @@ impl<'a> Explorer<'a> {
                     // That stretch still leads towards the frontiers; fly it and plan again
                     // from its end, where the new source makes the field steep again.
                     if e == StreamlineError::Stalled {
+                        // The screened field has no interior maximum; a stall means the solve
+                        // did not resolve u this far from the frontiers. A smaller κ raises u
+                        // at the vehicle: solve again with half of it.
+                        if self.lower_screening() {
+                            self.status.errors.screening_retries += 1;
+                            continue;
+                        }
                         if let Some(goal) = self.plateau_goal(vehicle, yaw) {
                             self.status.errors.plateaus += 1;
                             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
@@ -653,9 +690,16 @@ impl<'a> Explorer<'a> {
                 }
             };
             self.status.streamline = Some(end);
+            let revisit = self.is_fruitless_revisit(end.frontier, position, learned_nothing);
+            // A look from afar that taught nothing is not yet fruitless: go near first, and
+            // stay near while the frontier keeps calling.
+            let retry_near = revisit && last_from_afar;
+            self.go_near = revisit && (last_from_afar || self.go_near);
             let goal = self.choose_goal(&end, yaw);
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
-            if self.is_fruitless_revisit(&goal, position, learned_nothing) {
+            if retry_near {
+                // Not fruitless yet, and not a fresh start either.
+            } else if revisit {
                 self.fruitless_visits = self.fruitless_visits.saturating_add(1);
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
@@ -672,6 +716,66 @@ impl<'a> Explorer<'a> {
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
     }
 
+    /// Solves the planning field over the domain just built (see [`crate::field`]). For the
+    /// screened field the vehicle's voxel joins the interior, and while `u` at the vehicle falls
+    /// below [`ScreenedParams::min_vehicle_value`](field::ScreenedParams::min_vehicle_value)
+    /// (the nearest frontier is far) κ is lowered and the field solved again; once `u` there is
+    /// large again κ returns towards its configured value for the next plan. Planning ops of
+    /// every solve are counted; the stats returned add up the iterations.
+    fn solve_field(&mut self, vehicle: VoxelIndex) -> Result<SolveStats, SolveError> {
+        let dims = self.map.geometry().dims();
+        let PlanningField::Screened(params) = self.config.field else {
+            return self.solve_once(0.0, self.config.solve.tolerance);
+        };
+        field::release_source(self.labels);
+        let full = params.kappa_voxel(self.map.geometry().resolution());
+        let at_vehicle = dims.linear(vehicle);
+        let mut total: Option<SolveStats> = None;
+        for _ in 0..field::MAX_SCREENING_SOLVES {
+            let kappa = self.kappa_voxel.clamp(field::MIN_KAPPA_VOXEL, full);
+            let mut stats = self.solve_once(kappa * kappa, params.tolerance)?;
+            if let Some(t) = total {
+                stats.iterations += t.iterations;
+                stats.cell_updates += t.cell_updates;
+            }
+            total = Some(stats);
+            let u = self.phi.get(at_vehicle).copied().unwrap_or(0.0);
+            if u >= params.min_vehicle_value || kappa <= field::MIN_KAPPA_VOXEL {
+                // Near frontiers again: let κ recover for the next plan.
+                if u >= params.raise_above {
+                    self.kappa_voxel = (2.0 * kappa).min(full);
+                }
+                break;
+            }
+            self.kappa_voxel = params.lowered_kappa(kappa, u);
+        }
+        total.ok_or(SolveError::StorageTooSmall)
+    }
+
+    /// Halves the screened field's κ if it can go lower; false for the seed's field.
+    fn lower_screening(&mut self) -> bool {
+        match self.config.field {
+            PlanningField::Screened(_) if self.kappa_voxel > field::MIN_KAPPA_VOXEL => {
+                self.kappa_voxel = (0.5 * self.kappa_voxel).max(field::MIN_KAPPA_VOXEL);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// One solve of the current domain with `screening` (κ²h², 0 for Laplace) to `tolerance`.
+    fn solve_once(&mut self, screening: f32, tolerance: f32) -> Result<SolveStats, SolveError> {
+        let params = SolveParams {
+            screening,
+            tolerance,
+            ..self.config.solve
+        };
+        match self.multigrid.as_mut() {
+            Some(mg) => mg.solve(self.labels, self.phi, &params, Method::Auto),
+            None => solve::gauss_seidel(&self.map.geometry().dims(), self.labels, self.phi, &params),
+        }
+    }
+
     /// The goal for a traced streamline: the waypoint nearest the end that sees the frontier.
     /// Trims the waypoints to end at the goal.
     fn choose_goal(&mut self, end: &StreamlineEnd, yaw: f32) -> Goal {
@@ -686,14 +790,45 @@ impl<'a> Explorer<'a> {
             let horizontal = libm::sqrtf(d.x * d.x + d.y * d.y);
             d.norm() >= min_range && d.z.abs() <= horizontal * tan_v
         };
-        let chosen = self.waypoints.iter().rposition(sees);
+        let geometry = *self.map.geometry();
+        let from_afar = self.config.view_range_m > 0.0 && !self.go_near;
+        let in_sight = |p: &Point3<f32>| {
+            if (target - p).norm() > self.config.view_range_m || !sees(p) {
+                return false;
+            }
+            let dims = geometry.dims();
+            let mut clear = true;
+            integrate::traverse(&geometry, p, &target, |v| {
+                clear &= self.map.is_free(dims.linear(v));
+                clear
+            });
+            clear
+        };
+        let afar = if from_afar {
+            self.waypoints.iter().position(in_sight)
+        } else {
+            None
+        };
+        self.goal_from_afar = afar.is_some();
+        let chosen = afar.or_else(|| self.waypoints.iter().rposition(sees));
         let (position, look) = match chosen {
             Some(k) => {
                 self.waypoints.truncate(k + 1);
                 let p = self.waypoints.get(k).copied().unwrap_or(end.end);
                 (p, target - p)
             }
-            None => (end.end, end.direction),
+            None => match self.step_back(&target, &sees) {
+                // Too near to see (inside the minimum range, or straight above or below):
+                // back off to where the camera sees it.
+                Some(p) => {
+                    let start = self.waypoints.first().copied().unwrap_or(p);
+                    self.waypoints.clear();
+                    let _ = self.waypoints.push(start);
+                    let _ = self.waypoints.push(p);
+                    (p, target - p)
+                }
+                None => (end.end, end.direction),
+            },
         };
         Goal {
             position,
@@ -703,15 +838,63 @@ impl<'a> Explorer<'a> {
         }
     }
 
+    /// A viewpoint for a frontier `target` that no point of the streamline sees: the nearest to
+    /// the vehicle of a ring of points around the target (level with it, 0.1 m past the
+    /// minimum range and farther) that is a domain voxel, reached from the vehicle in a straight
+    /// line through domain voxels, and sees the target through free voxels.
+    fn step_back(&self, target: &Point3<f32>, sees: &impl Fn(&Point3<f32>) -> bool) -> Option<Point3<f32>> {
+        let geometry = *self.map.geometry();
+        let dims = geometry.dims();
+        let start = *self.waypoints.first()?;
+        let min_range = self.config.integration.min_range + geometry.resolution();
+        let in_domain = |p: &Point3<f32>| {
+            geometry
+                .voxel_at(p)
+                .is_some_and(|v| self.labels.get(dims.linear(v)).is_some_and(|l| l.in_domain()))
+        };
+        let mut best: Option<(f32, Point3<f32>)> = None;
+        for r in [min_range + 0.1, min_range + 0.3, min_range + 0.6] {
+            for k in 0..8 {
+                let a = k as f32 * core::f32::consts::FRAC_PI_4;
+                let p = target + Vector3::new(r * libm::cosf(a), r * libm::sinf(a), 0.0);
+                let d = (p - start).norm();
+                if best.is_some_and(|(b, _)| d >= b) || !sees(&p) || !in_domain(&p) {
+                    continue;
+                }
+                let mut ok = true;
+                integrate::traverse(&geometry, &start, &p, |v| {
+                    ok &= self.labels.get(dims.linear(v)).is_some_and(|l| l.in_domain());
+                    ok
+                });
+                integrate::traverse(&geometry, &p, target, |v| {
+                    ok &= self.map.is_free(dims.linear(v));
+                    ok
+                });
+                if ok {
+                    best = Some((d, p));
+                }
+            }
+            if best.is_some() {
+                break;
+            }
+        }
+        best.map(|(_, p)| p)
+    }
+
     /// The vehicle stands at its last goal and either targets the same frontier again or its
     /// visit taught nothing (no voxel observed since the last full plan) — the signature of a
     /// frontier the camera cannot resolve, including loops between two such goals.
-    fn is_fruitless_revisit(&self, goal: &Goal, position: &Point3<f32>, learned_nothing: bool) -> bool {
+    fn is_fruitless_revisit(
+        &self,
+        frontier: VoxelIndex,
+        position: &Point3<f32>,
+        learned_nothing: bool,
+    ) -> bool {
         let res = self.map.geometry().resolution();
         self.last_goal.is_some_and(|last| {
             !last.escape
                 && (last.position - position).norm() <= 1.5 * res
-                && (learned_nothing || last.frontier.distance_sq(&goal.frontier) <= 2)
+                && (learned_nothing || last.frontier.distance_sq(&frontier) <= 2)
         })
     }
 

@@ -319,3 +319,59 @@ fn solver_cycle_cap_is_counted_and_the_goal_is_still_safe() {
         PlanOutcome::Complete => panic!("unexplored space left, yet complete"),
     }
 }
+
+/// A 4.0 × 2.4 × 1.2 m corridor seen free up to x = 2.5 m, unknown beyond; the vehicle at
+/// x = 0.6 m plans once with `view_range_m`. Returns the goal, the frontier voxel's centre, the
+/// vehicle, whether the goal was chosen from afar and whether every voxel between the goal and
+/// the frontier is free.
+fn plan_in_a_half_seen_corridor(view_range_m: f32) -> (Goal, Point3<f32>, Point3<f32>, bool, bool) {
+    let dims = Dims::new(40, 24, 12).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig {
+        view_range_m,
+        ..ExplorerConfig::default()
+    };
+    let mut e = b.explorer(dims, config);
+    // The thesis's camera (its vertical field of view decides which points see a frontier).
+    e.intrinsics = Some(Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap());
+    e.map.begin_frame();
+    for i in 0..dims.len() {
+        if dims.voxel(i).x < 25 {
+            e.map.apply_miss(i);
+        }
+    }
+    let p = Point3::new(0.6, 1.2, 0.6);
+    let PlanOutcome::Goal(goal) = e.plan(&p, 0.0) else {
+        panic!("no goal: {:?}", e.status());
+    };
+    let g = *e.map().geometry();
+    let frontier = g.center(goal.frontier);
+    let mut clear = true;
+    integrate::traverse(&g, &goal.position, &frontier, |v| {
+        clear &= e.map().is_free(g.dims().linear(v));
+        clear
+    });
+    (goal, frontier, p, e.goal_from_afar, clear)
+}
+
+#[test]
+fn a_frontier_in_plain_sight_is_looked_at_from_afar() {
+    // From afar: the goal is the first point of the streamline that sees the frontier through
+    // free voxels within the view range (1.5 m), and it faces the frontier.
+    let (goal, frontier, vehicle, afar, clear) = plan_in_a_half_seen_corridor(1.5);
+    assert!(afar && clear, "{goal:?}");
+    let to_frontier = frontier - goal.position;
+    let d = to_frontier.norm();
+    assert!((1.3..=1.5).contains(&d), "{goal:?} is {d} m from {frontier}");
+    let yaw_error = heading(&to_frontier, 0.0) - goal.yaw;
+    assert!(libm::fabsf(libm::remainderf(yaw_error, core::f32::consts::TAU)) < 0.05);
+    // The near rule (view range 0) flies on to just outside the camera's minimum range.
+    let (near, near_frontier, _, near_afar, _) = plan_in_a_half_seen_corridor(0.0);
+    assert!(!near_afar);
+    let near_d = (near.position - near_frontier).norm();
+    assert!(
+        (0.4..0.6).contains(&near_d),
+        "{near:?} is {near_d} m from {near_frontier}"
+    );
+    assert!((goal.position - vehicle).norm() + 0.5 < (near.position - vehicle).norm());
+}

@@ -20,8 +20,12 @@
 //!   most once per frame; no-return pixels clear free space to the maximum range.
 //! - [`domain`] — boundary conditions: free space eroded by the vehicle radius, the vehicle's
 //!   connected component, source (φ = 1) and frontier (φ = 0) voxels; walls are zero-flux.
-//! - [`solve`] — Laplace's equation over the domain (cell-centred finite volumes); the
-//!   reference Gauss-Seidel solver with a relative-residual stop.
+//! - [`field`] — which potential plans: the seed's (vehicle φ = 1, frontiers φ = 0, Laplace)
+//!   or the default frontier-sourced screened field (u = 1 on frontiers, ∇²u = κ²u elsewhere),
+//!   which prefers near frontiers and keeps the guarantee that every streamline ends on one.
+//! - [`solve`] — Laplace's equation (or the screened one) over the domain (cell-centred finite
+//!   volumes): in-place multigrid, and the reference Gauss-Seidel solver with a
+//!   relative-residual stop.
 //! - [`streamline`] — steepest descent of φ from the vehicle to a frontier (trilinear
 //!   gradient, RK4, discrete fallback), with fixed-capacity waypoints.
 //! - [`explore`] — the [`Explorer`](explore::Explorer) that owns the loop and reports status,
@@ -67,6 +71,7 @@ pub mod camera;
 pub mod domain;
 pub mod downlink;
 pub mod explore;
+pub mod field;
 pub mod integrate;
 pub mod link;
 pub mod map;

@@ -1,7 +1,9 @@
 //! Streamlines: steepest descent of φ from the vehicle to a frontier.
 //!
 //! The field holds ψ = 1 − φ (see [`crate::solve`]), so descending φ is ascending ψ; all
-//! differences are taken in ψ, where the vehicle's surroundings have full f32 precision.
+//! differences are taken in ψ, where the vehicle's surroundings have full f32 precision. The
+//! default planning field ([`crate::field`]) stores its u (1 on frontiers, smaller elsewhere)
+//! in the same buffer, and the same ascent follows it to a frontier.
 //!
 //! The gradient is taken by central differences at voxel centres (a neighbour outside the domain
 //! mirrors the centre value — zero flux — so walls contribute no normal component) and
@@ -90,7 +92,8 @@ pub struct Field<'a> {
     pub geometry: &'a MapGeometry,
     /// Domain labels.
     pub labels: &'a [Label],
-    /// Stored potential ψ = 1 − φ.
+    /// Stored potential: ψ = 1 − φ for the seed's field, u for the screened field (both 1 on
+    /// frontiers, rising towards them).
     pub phi: &'a [f32],
 }
 

@@ -69,6 +69,7 @@ impl Solver {
             tolerance: 1e-6,
             max_iterations: 400,
             warm_start: false,
+            ..SolveParams::default()
         };
         let stats = mg.solve(labels, &mut psi, &params, method).unwrap();
         assert!(stats.converged, "{method:?} did not converge: {stats:?}");

@@ -147,6 +147,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
             tolerance,
             max_iterations: 1_000_000,
             warm_start,
+            screening: 0.0,
         };
         match solver {
             BenchSolver::Multigrid(method) => {

@@ -7,6 +7,7 @@ use std::str::FromStr;
 
 use clap::{Parser, Subcommand};
 use harmonic_core::explore::SolverKind;
+use harmonic_core::field::PlanningField;
 use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
@@ -504,6 +505,8 @@ struct BenchArgs {
     follow_full_path: bool,
     #[command(flatten)]
     sensing: SensingArgs,
+    #[command(flatten)]
+    field: FieldArgs,
     /// No per-run progress lines.
     #[arg(long)]
     quiet: bool,
@@ -535,6 +538,7 @@ fn bench_runs(args: &BenchArgs) -> Result<(), String> {
     let mut sim = SimConfig::default();
     args.sensing.check()?;
     args.sensing.apply(&mut sim);
+    args.field.apply(&mut sim);
     sim.max_scans = args.max_scans;
     sim.follow_full_path = args.follow_full_path;
     let planners = PlannerKind::parse_list(&args.planners).map_err(|e| format!("--planners: {e}"))?;
@@ -786,6 +790,31 @@ struct SensingArgs {
     stereo_window: u8,
 }
 
+/// Settings of the `harmonic` planner's default field (harmonic_core::field).
+#[derive(clap::Args)]
+struct FieldArgs {
+    /// Decay length 1/κ of the screened, frontier-sourced field of `--planner harmonic`, in
+    /// metres: how much nearness outweighs frontier size (small: the nearest frontier wins;
+    /// large: the largest frontier region wins).
+    #[arg(long, value_parser = parse_positive)]
+    decay_length: Option<f32>,
+    /// Look from a distance: the core's goal is the first point of its streamline from which
+    /// the frontier is in plain sight within this range (metres); 0 flies up to it.
+    #[arg(long)]
+    view_range: Option<f32>,
+}
+
+impl FieldArgs {
+    fn apply(&self, cfg: &mut SimConfig) {
+        if let (Some(d), PlanningField::Screened(p)) = (self.decay_length, &mut cfg.explorer.field) {
+            p.decay_length_m = d;
+        }
+        if let Some(r) = self.view_range {
+            cfg.explorer.view_range_m = r.max(0.0);
+        }
+    }
+}
+
 /// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera.
 const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
 
@@ -850,6 +879,8 @@ struct ExploreArgs {
     out: PathBuf,
     #[command(flatten)]
     sensing: SensingArgs,
+    #[command(flatten)]
+    field: FieldArgs,
     /// Random seed for sensor noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -882,7 +913,9 @@ struct ExploreArgs {
     /// after the first scan).
     #[arg(long, default_value_t = 4)]
     look_around: u32,
-    /// Planner: `harmonic` (the core, multigrid; default), `harmonic-gs` (the core with the
+    /// Planner: `harmonic` (the core with its default field, frontier-sourced and screened, on
+    /// multigrid; the default), `harmonic-laplace` (the core with the seed's Laplace field,
+    /// vehicle φ = 1 and frontiers φ = 0, on multigrid), `harmonic-gs` (the seed's field on the
     /// seed paper's Gauss-Seidel), or a baseline: `closest-frontier`, `random-frontier`,
     /// `info-gain`, `weighted-info-gain`.
     #[arg(long, default_value = "harmonic", value_parser = PlannerKind::from_str)]
@@ -891,7 +924,8 @@ struct ExploreArgs {
     /// paper's Gauss-Seidel; the same as `--planner harmonic-gs`).
     #[arg(long, default_value = "mg", value_parser = ["mg", "gs"])]
     solver: String,
-    /// Solver relative-residual tolerance.
+    /// Relative-residual tolerance of the seed's Laplace solve (`harmonic-laplace`, `harmonic-gs`); the
+    /// default screened field solves to its own 1e-5 (harmonic_core::field::ScreenedParams).
     #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
     tol: f32,
     /// Write every planning step's problem (labels .npy + source) here, for `harmonic-sim solve`.
@@ -1088,6 +1122,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     let mut cfg = SimConfig::default();
     args.sensing.check()?;
     args.sensing.apply(&mut cfg);
+    args.field.apply(&mut cfg);
     cfg.seed = args.seed;
     cfg.planner = args.planner;
     cfg.explorer.vehicle_radius = args.vehicle_radius;

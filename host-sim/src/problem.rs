@@ -187,6 +187,7 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
         tolerance: req.tolerance,
         max_iterations: 1_000_000,
         warm_start: false,
+        screening: 0.0,
     };
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
         SolverChoice::Multigrid => {

@@ -70,7 +70,9 @@ pub const REMOTE_STALL_S: f64 = 20.0;
 #[derive(Debug, Clone)]
 pub struct SimConfig {
     /// Which planner flies: the core's harmonic explorer (default) or a baseline.
-    /// [`PlannerKind::HarmonicGs`] overrides `explorer.solver` with Gauss-Seidel.
+    /// [`PlannerKind::HarmonicLaplace`] and [`PlannerKind::HarmonicGs`] override
+    /// `explorer.field` with the seed's Laplace field; `HarmonicGs` also overrides
+    /// `explorer.solver` with Gauss-Seidel.
     pub planner: PlannerKind,
     /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
@@ -901,8 +903,11 @@ fn make_planner<'s>(
 ) -> Result<Box<dyn Planner + 's>, SimError> {
     let config_err = |e| SimError::Config(format!("{e:?}"));
     Ok(match cfg.planner {
-        PlannerKind::Harmonic | PlannerKind::HarmonicGs => {
+        PlannerKind::Harmonic | PlannerKind::HarmonicLaplace | PlannerKind::HarmonicGs => {
             let mut explorer = cfg.explorer;
+            if cfg.planner != PlannerKind::Harmonic {
+                explorer.field = harmonic_core::field::PlanningField::Harmonic;
+            }
             if cfg.planner == PlannerKind::HarmonicGs {
                 explorer.solver = SolverKind::GaussSeidel;
             }

@@ -39,6 +39,11 @@ pub struct SolveParams {
     pub max_iterations: u32,
     /// Start from the φ already in the buffer (interior voxels) instead of 0.
     pub warm_start: bool,
+    /// Screening `κ²h²` (κ in 1/m, h the voxel size): each interior row gains `−κ²h²·ψᵢ`,
+    /// which turns Laplace's equation into the screened one `∇²u = κ²u`. 0 (the default) is
+    /// the seed's Laplace problem; see [`crate::field`] for the frontier-sourced field that
+    /// uses it. Negative or non-finite values are refused ([`SolveError::BadScreening`]).
+    pub screening: f32,
 }
 
 impl Default for SolveParams {
@@ -47,6 +52,7 @@ impl Default for SolveParams {
             tolerance: 1e-6,
             max_iterations: 20_000,
             warm_start: true,
+            screening: 0.0,
         }
     }
 }
@@ -83,6 +89,8 @@ pub enum SolveError {
     ScratchTooSmall,
     /// Plain V-cycles diverged (residual grew a thousandfold or became non-finite); φ was reset.
     Diverged,
+    /// Screening negative or not finite.
+    BadScreening,
 }
 
 /// Value of the stored potential ψ = 1 − φ at the source.
@@ -135,20 +143,72 @@ impl Residual {
     }
 }
 
-/// Relative residual of the current ψ (see [`Residual`]).
+/// Relative residual of the current ψ (see [`Residual`]) for Laplace's equation.
 pub fn relative_residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> f32 {
     residual(dims, labels, psi).relative
 }
 
-/// Residual and rounding floor of the current ψ.
+/// Residual and rounding floor of the current ψ for Laplace's equation.
 pub fn residual(dims: &Dims, labels: &[Label], psi: &[f32]) -> Residual {
+    screened_residual(dims, labels, psi, 0.0)
+}
+
+/// Residual and rounding floor of the current ψ for the screened equation with
+/// [`SolveParams::screening`] `screening`.
+pub fn screened_residual(dims: &Dims, labels: &[Label], psi: &[f32], screening: f32) -> Residual {
     residual_with(
         dims,
         &Active::all(dims),
+        &Screen::new(screening),
         labels,
         psi,
         dirichlet_norm2(dims, labels),
     )
+}
+
+/// The screening term of a level: the diagonal shift `s` and the reciprocal diagonals
+/// `1 / (n + s)` for each in-domain neighbour count `n`, so the smoothers keep a table lookup.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Screen {
+    pub(crate) shift: f32,
+    inv: [f32; 8],
+}
+
+impl Screen {
+    /// No screening: Laplace's equation.
+    pub(crate) const NONE: Screen = Screen {
+        shift: 0.0,
+        inv: INV_COUNT,
+    };
+
+    /// The screening `shift` (≥ 0; anything else is treated as 0).
+    pub(crate) fn new(shift: f32) -> Self {
+        if !(shift.is_finite() && shift > 0.0) {
+            return Self::NONE;
+        }
+        let mut inv = [0.0f32; 8];
+        for (n, v) in inv.iter_mut().enumerate().take(7) {
+            *v = 1.0 / (n as f32 + shift);
+        }
+        Screen { shift, inv }
+    }
+
+    /// The same screening on a level `depth` halvings coarser: the mass term scales with the
+    /// cell volume and the rediscretised face term with the cell size, so `s` grows by 4 per
+    /// level.
+    pub(crate) fn coarser(&self, depth: usize) -> Self {
+        if self.shift == 0.0 {
+            return Self::NONE;
+        }
+        let scale = libm::powf(4.0, depth as f32);
+        Self::new(self.shift * scale)
+    }
+
+    /// `1 / (n + s)` (0 for an isolated cell of the Laplace problem).
+    #[inline(always)]
+    pub(crate) fn inv(&self, n: u32) -> f32 {
+        self.inv.get(n as usize & 7).copied().unwrap_or(0.0)
+    }
 }
 
 /// `‖b‖²`: the squared norm of the Dirichlet contributions to the interior rows (each frontier
@@ -201,12 +261,13 @@ pub(crate) fn dirichlet_norm2(dims: &Dims, labels: &[Label]) -> f64 {
 pub(crate) fn residual_with(
     dims: &Dims,
     active: &Active,
+    screen: &Screen,
     labels: &[Label],
     psi: &[f32],
     b2: f64,
 ) -> Residual {
     let (mut r2, mut e2) = (0.0f64, 0.0f64);
-    for_each_row(dims, active, labels, psi, |st, row| {
+    for_each_row(dims, active, screen, labels, psi, |st, row| {
         let (mut row_r, mut row_e) = (0.0f32, 0.0f32);
         row_residuals(st, row, None, |x, r, n| {
             let c = row.at(x);
@@ -258,6 +319,8 @@ impl RowValues for [Cell<f32>] {
 /// the row's end simply reads as "outside the domain", so edges need no separate code path, and
 /// the in-domain test becomes a 0/1 weight instead of a branch per face.
 pub(crate) struct Stencil<'r> {
+    /// The level's screening.
+    pub(crate) screen: Screen,
     /// Row coordinates.
     pub(crate) y: usize,
     /// Row coordinates.
@@ -274,10 +337,6 @@ pub(crate) struct Stencil<'r> {
 const INV_COUNT: [f32; 8] = [0.0, 1.0, 0.5, 1.0 / 3.0, 0.25, 0.2, 1.0 / 6.0, 0.0];
 
 /// `1 / n` for a neighbour count, 0 for none.
-#[inline(always)]
-pub(crate) fn inv_count(n: u32) -> f32 {
-    INV_COUNT.get(n as usize & 7).copied().unwrap_or(0.0)
-}
 
 #[inline(always)]
 fn in_domain(l: Option<&Label>) -> bool {
@@ -289,6 +348,7 @@ impl<'r> Stencil<'r> {
     /// `after = values[start + nx..]` around it.
     pub(crate) fn new(
         dims: &Dims,
+        screen: &Screen,
         y: usize,
         z: usize,
         labels: &'r [Label],
@@ -314,6 +374,7 @@ impl<'r> Stencil<'r> {
                 .unwrap_or(&[])
         };
         Stencil {
+            screen: *screen,
             y,
             z,
             start,
@@ -424,11 +485,12 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
     mut f: F,
 ) {
     let nx = row.len();
+    let shift = st.screen.shift;
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
     let edge = |x: usize, f: &mut F| {
         if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
             let (flux, n) = st.flux(row, x, c);
-            f(x, bx(x) + flux, n);
+            f(x, bx(x) + flux - shift * c, n);
         }
     };
     let Some(inner) = st.inner().filter(|_| nx >= 3) else {
@@ -447,7 +509,7 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
         };
         if lc == Label::Interior {
             let (flux, n) = cut.flux(row, x, c);
-            f(x, bx(x) + flux, n);
+            f(x, bx(x) + flux - shift * c, n);
         }
     }
     edge(nx - 1, &mut f);
@@ -528,6 +590,7 @@ impl Active {
 pub(crate) fn for_each_row(
     dims: &Dims,
     active: &Active,
+    screen: &Screen,
     labels: &[Label],
     values: &[f32],
     mut f: impl FnMut(&Stencil<'_>, &[f32]),
@@ -540,7 +603,7 @@ pub(crate) fn for_each_row(
             values.get(start..start + nx),
             values.get(start + nx..),
         ) {
-            f(&Stencil::new(dims, y, z, labels, before, after), row);
+            f(&Stencil::new(dims, screen, y, z, labels, before, after), row);
         }
     });
 }
@@ -550,6 +613,7 @@ pub(crate) fn for_each_row(
 pub(crate) fn for_each_row_mut(
     dims: &Dims,
     active: &Active,
+    screen: &Screen,
     labels: &[Label],
     values: &mut [f32],
     mut f: impl FnMut(&Stencil<'_>, &[Cell<f32>]),
@@ -561,7 +625,7 @@ pub(crate) fn for_each_row_mut(
         if rest.len() >= nx {
             let (row, after) = rest.split_at_mut(nx);
             let row = Cell::from_mut(row).as_slice_of_cells();
-            f(&Stencil::new(dims, y, z, labels, before, after), row);
+            f(&Stencil::new(dims, screen, y, z, labels, before, after), row);
         }
     });
 }
@@ -580,6 +644,9 @@ pub(crate) fn checked_problem<'l, 'p>(
     };
     if !(params.tolerance.is_finite() && params.tolerance > 0.0) {
         return Err(SolveError::BadTolerance);
+    }
+    if !(params.screening.is_finite() && params.screening >= 0.0) {
+        return Err(SolveError::BadScreening);
     }
     prepare(labels, psi, params.warm_start);
     Ok((labels, psi))
@@ -601,13 +668,14 @@ pub fn gauss_seidel(
         prepare(labels, phi, false);
     }
     let active = Active::of(dims, labels);
-    let mut res = residual_with(dims, &active, labels, phi, b2);
+    let screen = Screen::new(params.screening);
+    let mut res = residual_with(dims, &active, &screen, labels, phi, b2);
     let mut stats = SolveStats {
         initial_residual: res.relative,
         ..Default::default()
     };
     while !res.meets(params.tolerance) && stats.iterations < params.max_iterations {
-        for_each_row_mut(dims, &active, labels, phi, |st, row| {
+        for_each_row_mut(dims, &active, &screen, labels, phi, |st, row| {
             for (x, (l, cell)) in st.labels.iter().zip(row).enumerate() {
                 if *l != Label::Interior {
                     continue;
@@ -615,14 +683,14 @@ pub fn gauss_seidel(
                 let c = cell.get();
                 let (flux, count) = st.flux(row, x, c);
                 if count > 0 {
-                    cell.set(c + flux * inv_count(count));
+                    cell.set(c + (flux - screen.shift * c) * screen.inv(count));
                     stats.cell_updates += 1;
                 }
             }
         });
         stats.iterations += 1;
         if stats.iterations.is_multiple_of(CHECK_EVERY) || stats.iterations == params.max_iterations {
-            res = residual_with(dims, &active, labels, phi, b2);
+            res = residual_with(dims, &active, &screen, labels, phi, b2);
         }
     }
     clamp_to_bounds(labels, phi);
@@ -652,6 +720,7 @@ mod tests {
             tolerance: 1e-6,
             max_iterations: 100_000,
             warm_start: false,
+            ..SolveParams::default()
         };
         let s = gauss_seidel(&dims, &labels, &mut phi, &params).unwrap();
         assert!(s.converged, "{s:?}");
@@ -690,6 +759,7 @@ mod tests {
             tolerance: 1e-6,
             max_iterations: 3,
             warm_start: false,
+            ..SolveParams::default()
         };
         let s = gauss_seidel(&dims, &labels, &mut phi, &params).unwrap();
         assert_eq!(s.iterations, 3);

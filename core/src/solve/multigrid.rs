@@ -58,7 +58,7 @@ use core::cell::Cell;
 use heapless::Vec as HVec;
 
 use super::{
-    for_each_row, for_each_row_mut, inv_count, residual_with, Active, Residual, RowValues, SolveError,
+    for_each_row, for_each_row_mut, residual_with, Active, Residual, RowValues, Screen, SolveError,
     SolveParams, SolveStats,
 };
 use crate::domain::Label;
@@ -172,6 +172,8 @@ pub struct Multigrid<'a> {
     full_multigrid: bool,
     /// Rows of the fine grid with interior cells, for the current problem.
     fine_active: Active,
+    /// Screening of the current problem on the fine level.
+    screen: Screen,
 }
 
 /// One level's view: its labels, unknowns and right-hand side (`None` = 0, with Dirichlet
@@ -186,6 +188,8 @@ struct View<'v> {
     faces: Option<&'v [[u8; 4]]>,
     x: &'v mut [f32],
     b: Option<&'v [f32]>,
+    /// This level's screening (its diagonal shift in units of a fine face).
+    screen: Screen,
 }
 
 impl<'a> Multigrid<'a> {
@@ -225,6 +229,7 @@ impl<'a> Multigrid<'a> {
             pins: HVec::new(),
             full_multigrid: true,
             fine_active: Active::all(&fine),
+            screen: Screen::NONE,
         })
     }
 
@@ -261,6 +266,8 @@ impl<'a> Multigrid<'a> {
         let mut stats = SolveStats::default();
         stats.cell_updates += self.build_labels(labels);
         self.fine_active = Active::of(&self.fine, labels);
+        self.screen = Screen::new(params.screening);
+        let screen = self.screen;
         let active = self.fine_active;
         let b2 = super::dirichlet_norm2(&self.fine, labels);
         if b2 == 0.0 {
@@ -268,11 +275,11 @@ impl<'a> Multigrid<'a> {
             // source's value, and ψ = 0 there is the exact solution.
             super::prepare(labels, phi, false);
         }
-        let mut res = residual_with(&self.fine, &active, labels, phi, b2);
+        let mut res = residual_with(&self.fine, &active, &screen, labels, phi, b2);
         stats.initial_residual = res.relative;
         if !params.warm_start && self.full_multigrid && b2 > 0.0 {
             stats.cell_updates += self.full_multigrid(labels, phi);
-            res = residual_with(&self.fine, &active, labels, phi, b2);
+            res = residual_with(&self.fine, &active, &screen, labels, phi, b2);
             stats.cell_updates += n as u64;
         }
         let use_pcg = match method {
@@ -298,6 +305,7 @@ impl<'a> Multigrid<'a> {
                     faces: None,
                     x: &mut *phi,
                     b: None,
+                    screen,
                 };
                 stats.cell_updates += fine_cycle(
                     fine,
@@ -308,7 +316,7 @@ impl<'a> Multigrid<'a> {
                     &self.pins,
                 );
                 stats.iterations += 1;
-                res = residual_with(&self.fine, &active, labels, phi, b2);
+                res = residual_with(&self.fine, &active, &screen, labels, phi, b2);
                 stats.cell_updates += n as u64;
                 let _ = self.history.push(res.relative);
                 let limit = DIVERGED * stats.initial_residual.max(params.tolerance);
@@ -390,6 +398,7 @@ impl<'a> Multigrid<'a> {
                     faces: cfaces,
                     x: &mut *x,
                     b: None,
+                    screen: self.screen.coarser(k + 1),
                 };
                 interpolate_into(&mut view, &coarser.dims, cl, cx, true);
             }
@@ -401,6 +410,7 @@ impl<'a> Multigrid<'a> {
                 faces: cfaces,
                 x: &mut *x,
                 b: Some(&*b),
+                screen: self.screen.coarser(k + 1),
             };
             if rest_levels.is_empty() {
                 for _ in 0..COARSEST_SWEEPS {
@@ -427,6 +437,7 @@ impl<'a> Multigrid<'a> {
                 faces: None,
                 x: phi,
                 b: None,
+                screen: self.screen,
             };
             interpolate_into(&mut view, &level.dims, cl, cx, true);
             work += self.fine.len() as u64;
@@ -501,9 +512,11 @@ impl<'a> Multigrid<'a> {
             history,
             pins,
             fine_active,
+            screen,
             ..
         } = self;
         let fine_active = *fine_active;
+        let screen = *screen;
         let dims = *fine;
         let n = dims.len();
         let mut precondition = |r: &[f32], z: &mut [f32]| -> u64 {
@@ -515,6 +528,7 @@ impl<'a> Multigrid<'a> {
                 faces: None,
                 x: z,
                 b: Some(r),
+                screen,
             };
             fine_cycle(fine, levels, values, coarse_labels, faces, pins)
         };
@@ -528,7 +542,7 @@ impl<'a> Multigrid<'a> {
         let Some(z) = rest.get_mut(..n) else {
             return res;
         };
-        residual_into(&dims, &fine_active, labels, phi, None, r);
+        residual_into(&dims, &fine_active, &screen, labels, phi, None, r);
         let b_norm = libm::sqrt(b2);
         if b_norm == 0.0 {
             return res;
@@ -538,8 +552,8 @@ impl<'a> Multigrid<'a> {
         // f32 drift between CG's recursive residual and the true one cannot stall the solve.
         for pass in 0..MAX_RESTARTS {
             if pass > 0 {
-                residual_into(&dims, &fine_active, labels, phi, None, r);
-                res = residual_with(&dims, &fine_active, labels, phi, b2);
+                residual_into(&dims, &fine_active, &screen, labels, phi, None, r);
+                res = residual_with(&dims, &fine_active, &screen, labels, phi, b2);
                 stats.cell_updates += 2 * n as u64;
             }
             if res.meets(params.tolerance) || stats.iterations >= params.max_iterations {
@@ -552,7 +566,7 @@ impl<'a> Multigrid<'a> {
             let start = res.relative;
             while stats.iterations < params.max_iterations {
                 // z ← A p
-                apply(&dims, &fine_active, labels, p, z);
+                apply(&dims, &fine_active, &screen, labels, p, z);
                 stats.cell_updates += n as u64;
                 let pq = dot(p, z);
                 if !(pq > 0.0 && rho.is_finite()) {
@@ -588,7 +602,7 @@ impl<'a> Multigrid<'a> {
         }
         // Report the true residual, not the recurrence's.
         stats.cell_updates += n as u64;
-        residual_with(&dims, &fine_active, labels, phi, b2)
+        residual_with(&dims, &fine_active, &screen, labels, phi, b2)
     }
 }
 
@@ -773,6 +787,8 @@ fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 4]], colour: usize) -> u64 {
     let (nx, ny) = (v.dims.nx(), v.dims.ny());
     let nxy = nx * ny;
     let cells = Cell::from_mut(&mut *v.x).as_slice_of_cells();
+    // The screening in face-conductance units.
+    let shift = v.screen.shift * f32::from(FACE_ONE);
     let mut updates = 0u64;
     for z in v.active.zs() {
         for y in v.active.ys() {
@@ -784,7 +800,8 @@ fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 4]], colour: usize) -> u64 {
                     let (flux, sum) = weighted_flux(faces, cells, i, nx, nxy);
                     if sum > 0.0 {
                         let b = v.b.map_or(0.0, |b| b.at(i));
-                        cell.set(cell.get() + (flux + f32::from(FACE_ONE) * b) / sum);
+                        let c = cell.get();
+                        cell.set(c + (flux - shift * c + f32::from(FACE_ONE) * b) / (sum + shift));
                         updates += 1;
                     }
                 }
@@ -819,8 +836,8 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
 }
 
 /// `out ← A p` on interior cells (0 elsewhere); `p` must be 0 off the interior.
-fn apply(dims: &Dims, active: &Active, labels: &[Label], p: &[f32], out: &mut [f32]) {
-    residual_into(dims, active, labels, p, None, out);
+fn apply(dims: &Dims, active: &Active, screen: &Screen, labels: &[Label], p: &[f32], out: &mut [f32]) {
+    residual_into(dims, active, screen, labels, p, None, out);
     for o in out.iter_mut() {
         *o = -*o;
     }
@@ -830,6 +847,7 @@ fn apply(dims: &Dims, active: &Active, labels: &[Label], p: &[f32], out: &mut [f
 fn residual_into(
     dims: &Dims,
     active: &Active,
+    screen: &Screen,
     labels: &[Label],
     x: &[f32],
     b: Option<&[f32]>,
@@ -837,7 +855,7 @@ fn residual_into(
 ) {
     // Rows outside the active box hold no interior cell: their residual is 0.
     out.fill(0.0);
-    for_each_row(dims, active, labels, x, |st, row| {
+    for_each_row(dims, active, screen, labels, x, |st, row| {
         let n = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + n));
         let Some(out_row) = out.get_mut(st.start..st.start + n) else {
@@ -859,7 +877,8 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
     }
     let mut updates = 0u64;
     let b = v.b;
-    for_each_row_mut(&v.dims, &v.active, v.labels, v.x, |st, row| {
+    let screen = v.screen;
+    for_each_row_mut(&v.dims, &v.active, &screen, v.labels, v.x, |st, row| {
         let nx = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + nx));
         let first = (colour + st.y + st.z) & 1;
@@ -868,7 +887,7 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
                 let c = cell.get();
                 let (flux, n) = st.flux(row, x, c);
                 let bx = b_row.map_or(0.0, |b| b.at(x));
-                cell.set(c + (flux + bx) * inv_count(n));
+                cell.set(c + (flux - screen.shift * c + bx) * screen.inv(n));
                 updates += u64::from(n > 0);
             }
         };
@@ -880,7 +899,7 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
                 if (nx - 1) & 1 == first {
                     one(nx - 1);
                 }
-                updates += relax_inner(&inner, row, b_row, 2 - first);
+                updates += relax_inner(&inner, &screen, row, b_row, 2 - first);
             }
             _ => {
                 let mut x = first;
@@ -898,7 +917,13 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
 /// exist. Every slice is cut to the row length first, so the neighbour reads compile without
 /// bounds checks and the in-domain tests become selects.
 #[inline(always)]
-fn relax_inner(inner: &super::Inner<'_>, row: &[Cell<f32>], b: Option<&[f32]>, start: usize) -> u64 {
+fn relax_inner(
+    inner: &super::Inner<'_>,
+    screen: &Screen,
+    row: &[Cell<f32>],
+    b: Option<&[f32]>,
+    start: usize,
+) -> u64 {
     let nx = row.len();
     let Some(cut) = inner.cut(nx) else {
         return 0;
@@ -914,7 +939,7 @@ fn relax_inner(inner: &super::Inner<'_>, row: &[Cell<f32>], b: Option<&[f32]>, s
             let c = cell.get();
             let (flux, n) = cut.flux(row, x, c);
             let bx = b.map_or(0.0, |b| b.at(x));
-            cell.set(c + (flux + bx) * inv_count(n));
+            cell.set(c + (flux - screen.shift * c + bx) * screen.inv(n));
             updates += u64::from(n > 0);
         }
         x += 2;
@@ -1107,7 +1132,7 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
                     ) else {
                         return;
                     };
-                    let st = super::Stencil::new(&fine.dims, y, z, fine.labels, before, after);
+                    let st = super::Stencil::new(&fine.dims, &fine.screen, y, z, fine.labels, before, after);
                     let b_row = fine.b.and_then(|b| b.get(start..start + fnx));
                     super::row_residuals(&st, row, b_row, scatter);
                 }
@@ -1117,7 +1142,9 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
                         if fine.labels.get(i) == Some(&Label::Interior) {
                             let (flux, _) = weighted_flux(faces, x_all, i, fnx, nxy);
                             let b = fine.b.map_or(0.0, |b| b.at(i));
-                            scatter(x, b + flux * (1.0 / f32::from(FACE_ONE)), 0);
+                            let c = x_all.get(i).copied().unwrap_or(0.0);
+                            let screened = fine.screen.shift * c;
+                            scatter(x, b + flux * (1.0 / f32::from(FACE_ONE)) - screened, 0);
                         }
                     }
                 }
@@ -1232,7 +1259,7 @@ fn local_smooth(v: &mut View<'_>, pins: &[[usize; 3]]) -> u64 {
         }
         let b = v.b.map_or(0.0, |b| b.at(i));
         if let Some(xi) = v.x.get_mut(i) {
-            *xi = c + (flux + b) * inv_count(n);
+            *xi = c + (flux - v.screen.shift * c + b) * v.screen.inv(n);
         }
         work += 1;
     };
@@ -1278,6 +1305,7 @@ fn fine_cycle(
         faces: ff,
         x,
         b,
+        screen,
     } = fine;
     work += vcycle(
         View {
@@ -1287,6 +1315,7 @@ fn fine_cycle(
             faces: ff,
             x: &mut *x,
             b,
+            screen,
         },
         levels,
         values,
@@ -1300,6 +1329,7 @@ fn fine_cycle(
         faces: ff,
         x,
         b,
+        screen,
     };
     work + local_smooth(&mut fine, pins)
 }
@@ -1362,6 +1392,7 @@ fn vcycle(
             faces: faces.get(level.label_offset..level.label_offset + n),
             x: cx,
             b: Some(cb),
+            screen: fine.screen.coarser(1),
         };
         work += vcycle(coarse, &rest_levels, rest, labels, faces);
     }
@@ -1429,6 +1460,7 @@ mod tests {
             tolerance: 1e-6,
             max_iterations,
             warm_start: false,
+            ..SolveParams::default()
         };
         let s = mg.solve(labels, &mut phi, &params, method).unwrap();
         let history = mg.history().to_vec();
@@ -1443,6 +1475,7 @@ mod tests {
             tolerance: 6e-7,
             max_iterations: 400_000,
             warm_start: false,
+            ..SolveParams::default()
         };
         let gs = gauss_seidel(&dims, &labels, &mut reference, &params).unwrap();
         assert!(gs.converged, "{gs:?}");
@@ -1512,6 +1545,7 @@ mod tests {
             tolerance: 1e-6,
             max_iterations: 300,
             warm_start: false,
+            ..SolveParams::default()
         };
         let s = mg.solve(&labels, &mut phi, &params, Method::VCycle).unwrap();
         assert!(s.converged, "{s:?}");

@@ -4,8 +4,9 @@
 //!
 //! | name | what it does |
 //! |---|---|
-//! | `harmonic` | the core's explorer with the multigrid solver (the default) |
-//! | `harmonic-gs` | the same with the seed paper's Gauss-Seidel solver |
+//! | `harmonic` | the core's explorer with its default field (frontier-sourced, screened; [`harmonic_core::field`]) on multigrid |
+//! | `harmonic-laplace` | the core's explorer with the seed's field (vehicle φ = 1, frontiers φ = 0, Laplace) on multigrid |
+//! | `harmonic-gs` | the seed's field with the seed paper's Gauss-Seidel solver |
 //! | `closest-frontier` | A* to the frontier with the shortest path (Yamauchi 1997) |
 //! | `random-frontier` | A* to a frontier drawn uniformly at random |
 //! | `info-gain` | the candidate pose that sees the most frontier voxels (Thrun's binary gain) |
@@ -31,15 +32,18 @@ use std::time::Instant;
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{Clock, Explorer, Fault, PlanOutcome, SolverKind, Status};
+use harmonic_core::field::PlanningField;
 use harmonic_core::map::VoxelMap;
 use nalgebra::{Isometry3, Point3};
 
 /// The planners the simulator can fly.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum PlannerKind {
-    /// The core's harmonic explorer, multigrid solver.
+    /// The core's explorer with its default (screened, frontier-sourced) field, multigrid.
     Harmonic,
-    /// The core's harmonic explorer, Gauss-Seidel solver (the seed paper's).
+    /// The core's explorer with the seed's Laplace field, multigrid.
+    HarmonicLaplace,
+    /// The core's explorer with the seed's Laplace field and the seed paper's Gauss-Seidel.
     HarmonicGs,
     /// Closest frontier + A*.
     ClosestFrontier,
@@ -53,12 +57,13 @@ pub enum PlannerKind {
 
 impl PlannerKind {
     /// Every planner, in the order tables list them.
-    pub const ALL: [PlannerKind; 6] = [
+    pub const ALL: [PlannerKind; 7] = [
         PlannerKind::RandomFrontier,
         PlannerKind::ClosestFrontier,
         PlannerKind::InfoGain,
         PlannerKind::WeightedInfoGain,
         PlannerKind::HarmonicGs,
+        PlannerKind::HarmonicLaplace,
         PlannerKind::Harmonic,
     ];
 
@@ -66,6 +71,7 @@ impl PlannerKind {
     pub fn name(self) -> &'static str {
         match self {
             PlannerKind::Harmonic => "harmonic",
+            PlannerKind::HarmonicLaplace => "harmonic-laplace",
             PlannerKind::HarmonicGs => "harmonic-gs",
             PlannerKind::ClosestFrontier => "closest-frontier",
             PlannerKind::RandomFrontier => "random-frontier",
@@ -74,9 +80,12 @@ impl PlannerKind {
         }
     }
 
-    /// True for the core's harmonic explorer (either solver).
+    /// True for the core's explorer (any field, either solver).
     pub fn is_harmonic(self) -> bool {
-        matches!(self, PlannerKind::Harmonic | PlannerKind::HarmonicGs)
+        matches!(
+            self,
+            PlannerKind::Harmonic | PlannerKind::HarmonicLaplace | PlannerKind::HarmonicGs
+        )
     }
 
     /// Parses `all` or a comma-separated list of names (duplicates removed, order kept).
@@ -163,21 +172,25 @@ pub trait Planner {
 /// The core's explorer as a [`Planner`].
 pub struct HarmonicPlanner<'a> {
     explorer: Explorer<'a>,
+    kind: PlannerKind,
 }
 
 impl<'a> HarmonicPlanner<'a> {
-    /// Wraps an explorer.
+    /// Wraps an explorer; its kind is read off its field and solver.
     pub fn new(explorer: Explorer<'a>) -> Self {
-        Self { explorer }
+        let config = explorer.config();
+        let kind = match (config.field, config.solver) {
+            (PlanningField::Harmonic, SolverKind::GaussSeidel) => PlannerKind::HarmonicGs,
+            (PlanningField::Harmonic, SolverKind::Multigrid) => PlannerKind::HarmonicLaplace,
+            (PlanningField::Screened(_), _) => PlannerKind::Harmonic,
+        };
+        Self { explorer, kind }
     }
 }
 
 impl Planner for HarmonicPlanner<'_> {
     fn kind(&self) -> PlannerKind {
-        match self.explorer.config().solver {
-            SolverKind::Multigrid => PlannerKind::Harmonic,
-            SolverKind::GaussSeidel => PlannerKind::HarmonicGs,
-        }
+        self.kind
     }
     fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> Result<(), Fault> {
         self.explorer.integrate(frame, camera_pose).map(|_| ())
