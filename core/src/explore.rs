@@ -355,6 +355,8 @@ pub struct Explorer<'a> {
     goal_from_afar: bool,
     /// The next goal choice takes the near point (a view from afar taught nothing).
     go_near: bool,
+    /// Where the vehicle was at the last plan.
+    last_plan_position: Option<Point3<f32>>,
     status: Status,
 }
 
@@ -420,6 +422,7 @@ impl<'a> Explorer<'a> {
             unexplored_at_last_plan: None,
             goal_from_afar: false,
             go_near: false,
+            last_plan_position: None,
             kappa_voxel: match config.field {
                 PlanningField::Screened(p) => p.kappa_voxel(geometry.resolution()),
                 PlanningField::Harmonic => 0.0,
@@ -518,7 +521,14 @@ impl<'a> Explorer<'a> {
     pub fn plan_timed(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> PlanOutcome {
         self.status.plans += 1;
         self.status.phase_ticks = PhaseTicks::default();
-        if self.config.commit_to_goal {
+        // A kept goal moves the vehicle; one that did not since the last plan is dropped, so a
+        // controller that cannot follow it (or a path that ends where the vehicle is) never
+        // freezes the loop.
+        let moved = self
+            .last_plan_position
+            .replace(*position)
+            .is_none_or(|last| (last - position).norm() > 0.01 * self.map.geometry().resolution());
+        if self.config.commit_to_goal && moved {
             if let Some(goal) = self.last_goal.filter(|g| !g.escape) {
                 let t0 = clock.ticks();
                 let kept = self.keep_goal(position, &goal);
@@ -583,10 +593,15 @@ impl<'a> Explorer<'a> {
             }
             from = *w;
         }
-        // Drop the waypoints already passed; start from where the vehicle is.
-        let rest: Waypoints = core::iter::once(*position)
+        // Drop the waypoints already passed; start from where the vehicle is. A sparse path
+        // (a step-back goal is one straight segment) may leave only the vehicle: the goal
+        // itself is then the rest of the way.
+        let mut rest: Waypoints = core::iter::once(*position)
             .chain(self.waypoints.iter().skip(k + 1).copied())
             .collect();
+        if rest.len() == 1 {
+            let _ = rest.push(goal.position);
+        }
         self.waypoints = rest;
         true
     }

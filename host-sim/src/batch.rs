@@ -816,7 +816,7 @@ mod tests {
             sim: SimConfig::default(),
         };
         let all = cfg.jobs();
-        assert_eq!(all.len(), 2 * 6 * 5);
+        assert_eq!(all.len(), 2 * PlannerKind::ALL.len() * 5);
         let mut seen = 0;
         for i in 1..=3 {
             cfg.shard = (i, 3);

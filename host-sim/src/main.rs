@@ -802,6 +802,11 @@ struct FieldArgs {
     /// the frontier is in plain sight within this range (metres); 0 flies up to it.
     #[arg(long)]
     view_range: Option<f32>,
+    /// Ablation: closest and random frontier choose their goal by the core's view rule (the
+    /// first point of the path from which the frontier is in plain sight within the view
+    /// range) instead of the thesis's (fly up to it).
+    #[arg(long)]
+    baseline_views: bool,
 }
 
 impl FieldArgs {
@@ -812,6 +817,7 @@ impl FieldArgs {
         if let Some(r) = self.view_range {
             cfg.explorer.view_range_m = r.max(0.0);
         }
+        cfg.baseline_views = self.baseline_views;
     }
 }
 

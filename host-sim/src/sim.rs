@@ -74,6 +74,9 @@ pub struct SimConfig {
     /// `explorer.field` with the seed's Laplace field; `HarmonicGs` also overrides
     /// `explorer.solver` with Gauss-Seidel.
     pub planner: PlannerKind,
+    /// Closest and random frontier choose their goal by the core's view rule (an ablation; see
+    /// [`Baseline::with_core_views`]).
+    pub baseline_views: bool,
     /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
     /// Depth camera.
@@ -169,6 +172,7 @@ impl Default for SimConfig {
     fn default() -> Self {
         Self {
             planner: PlannerKind::Harmonic,
+            baseline_views: false,
             explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
             body_radius: 0.15,
@@ -915,9 +919,15 @@ fn make_planner<'s>(
                 Explorer::new(geometry, explorer, storage.lend()).map_err(config_err)?,
             ))
         }
-        kind => Box::new(
-            Baseline::new(kind, geometry, cfg.explorer, storage.lend(), cfg.seed).map_err(config_err)?,
-        ),
+        kind => {
+            let baseline =
+                Baseline::new(kind, geometry, cfg.explorer, storage.lend(), cfg.seed).map_err(config_err)?;
+            if cfg.baseline_views {
+                Box::new(baseline.with_core_views())
+            } else {
+                Box::new(baseline)
+            }
+        }
     })
 }
 

@@ -336,8 +336,6 @@ pub(crate) struct Stencil<'r> {
 /// 1 / n for the neighbour counts a cell can have (0 for none: no update).
 const INV_COUNT: [f32; 8] = [0.0, 1.0, 0.5, 1.0 / 3.0, 0.25, 0.2, 1.0 / 6.0, 0.0];
 
-/// `1 / n` for a neighbour count, 0 for none.
-
 #[inline(always)]
 fn in_domain(l: Option<&Label>) -> bool {
     l.is_some_and(|l| l.in_domain())

@@ -117,10 +117,26 @@ pub struct Baseline<'a> {
     commitment: Option<Commitment>,
     fruitless_visits: u8,
     unexplored_at_last_plan: Option<u32>,
+    /// Frontier goals follow the core's view rule (see [`Baseline::with_core_views`]).
+    core_views: bool,
+    /// The last goal looked at its frontier from afar.
+    goal_from_afar: bool,
+    /// The next frontier goal takes the near point (a look from afar taught nothing).
+    go_near: bool,
     status: Status,
 }
 
 impl<'a> Baseline<'a> {
+    /// Lets frontier targets (closest and random frontier) choose their goal by the core's view
+    /// rule instead of the thesis's: the first point of the path from which the frontier voxel
+    /// is in plain sight within [`ExplorerConfig::view_range_m`] (near again after a look that
+    /// taught nothing). An ablation: it asks whether the harmonic planner's gain over closest
+    /// frontier comes from its field or from this rule.
+    pub fn with_core_views(mut self) -> Self {
+        self.core_views = true;
+        self
+    }
+
     /// A baseline of `kind` (not a harmonic kind) over `geometry`, in `storage` (only the map
     /// buffers, labels and queue are used). `seed` drives its random choices.
     pub fn new(
@@ -162,6 +178,9 @@ impl<'a> Baseline<'a> {
             commitment: None,
             fruitless_visits: 0,
             unexplored_at_last_plan: None,
+            core_views: false,
+            goal_from_afar: false,
+            go_near: false,
             status: Status::default(),
         })
     }
@@ -185,6 +204,7 @@ impl<'a> Baseline<'a> {
         let counts = self.map.counts();
         let unexplored = counts.unknown - counts.sealed;
         let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
+        let last_from_afar = std::mem::take(&mut self.goal_from_afar);
         self.unexplored_at_last_plan = Some(unexplored);
         let vehicle_i = geometry.dims().linear(vehicle);
 
@@ -225,6 +245,9 @@ impl<'a> Baseline<'a> {
             };
             let path = self.search.path(target.voxel);
             self.waypoints = smooth(&geometry, self.labels, position, &path, &mut steps);
+            let revisit = self.core_views && self.revisits(target.frontier, position, learned_nothing);
+            let retry_near = revisit && last_from_afar;
+            self.go_near = revisit && (last_from_afar || self.go_near);
             let goal = self.choose_goal(&target, yaw);
             self.status.planning_ops += self.search.expansions - expansions0 + steps;
             self.status.streamline = Some(StreamlineEnd {
@@ -236,7 +259,9 @@ impl<'a> Baseline<'a> {
                 fallback_steps: 0,
             });
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
-            if self.is_fruitless_revisit(&goal, position, learned_nothing) {
+            if retry_near {
+                // A look from afar that taught nothing: go near before calling it fruitless.
+            } else if self.is_fruitless_revisit(&goal, position, learned_nothing) {
                 self.fruitless_visits = self.fruitless_visits.saturating_add(1);
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
@@ -457,8 +482,15 @@ impl<'a> Baseline<'a> {
                 };
                 let step = 0.5 * self.map.geometry().resolution();
                 let mut chosen = None;
+                if self.core_views && !self.go_near {
+                    chosen = self.first_in_sight(target.frontier, step);
+                }
+                self.goal_from_afar = chosen.is_some();
                 // Walk back from the end of the polyline in half-voxel steps.
                 'walk: for k in (1..self.waypoints.len()).rev() {
+                    if chosen.is_some() {
+                        break;
+                    }
                     let (a, b) = (self.waypoints[k - 1], self.waypoints[k]);
                     let len = (b - a).norm();
                     let n = (len / step).ceil().max(1.0) as usize;
@@ -491,6 +523,50 @@ impl<'a> Baseline<'a> {
                 }
             }
         }
+    }
+
+    /// The core's view rule on the path: the first point, walking from the vehicle in steps of
+    /// `step` metres, from which `frontier` lies within the view range, inside the vertical
+    /// field of view, in plain sight through free voxels. `(segment end index, point)`.
+    fn first_in_sight(&self, frontier: VoxelIndex, step: f32) -> Option<(usize, Point3<f32>)> {
+        let view = self.view();
+        let g = *self.map.geometry();
+        let f = g.center(frontier);
+        let in_sight = |q: &Point3<f32>| {
+            let d = f - q;
+            let horizontal = (d.x * d.x + d.y * d.y).sqrt();
+            if d.norm() > self.config.view_range_m || d.z.abs() > horizontal * view.tan_half_v {
+                return false;
+            }
+            let mut clear = true;
+            traverse(&g, q, &f, |v| {
+                clear &= self.map.is_free(g.dims().linear(v));
+                clear
+            });
+            clear
+        };
+        for k in 1..self.waypoints.len() {
+            let (a, b) = (self.waypoints[k - 1], self.waypoints[k]);
+            let n = ((b - a).norm() / step).ceil().max(1.0) as usize;
+            for s in 0..=n {
+                let q = a + (b - a) * (s as f32 / n as f32);
+                if in_sight(&q) {
+                    return Some((k, q));
+                }
+            }
+        }
+        None
+    }
+
+    /// The vehicle stands at its last goal and targets (about) the same frontier, or its last
+    /// visit taught nothing.
+    fn revisits(&self, frontier: VoxelIndex, position: &Point3<f32>, learned_nothing: bool) -> bool {
+        let res = self.map.geometry().resolution();
+        self.commitment.as_ref().is_some_and(|c| {
+            !c.goal.escape
+                && (c.goal.position - position).norm() <= 1.5 * res
+                && (learned_nothing || c.goal.frontier.distance_sq(&frontier) <= 2)
+        })
     }
 
     fn is_fruitless_revisit(&self, goal: &Goal, position: &Point3<f32>, learned_nothing: bool) -> bool {
