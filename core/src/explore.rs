@@ -358,7 +358,7 @@ pub fn check_frame_timing(
     let turning = max_rate.is_finite()
         && max_rate > 0.0
         // A rate that is not finite is no measurement: refused too.
-        && timing.yaw_rate.is_some_and(|r| !(r.abs() <= max_rate));
+        && timing.yaw_rate.is_some_and(|r| r.is_nan() || r.abs() > max_rate);
     let stale = config.max_frame_pose_lag_ms > 0 && timing.pose_lag_ms > config.max_frame_pose_lag_ms;
     let error = if stale {
         errors.stale_pose_frames = errors.stale_pose_frames.saturating_add(1);
