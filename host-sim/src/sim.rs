@@ -4,8 +4,9 @@
 //! The simulator never plans for the core. Each step it
 //!
 //! 1. renders the depth camera at the vehicle's true pose at the frame's instant and sends the
-//!    frame, stamped with the pose the core believes for that instant, over the depth link ([`crate::depth_link`]: the link's wire
-//!    format at its baud rate, through the configured transport and fault injector);
+//!    frame, stamped with the pose the core believes for that instant, over the depth link
+//!    ([`crate::depth_link`]: the link's wire format at its baud rate, through the configured
+//!    transport and fault injector);
 //! 2. keeps time running while the frame is on the wire (about 0.22 s at 921600 baud): the
 //!    vehicle hovers, and over MAVLink the bridge keeps streaming its setpoint;
 //! 3. hands every image that arrived whole to [`Explorer::integrate`] and asks
@@ -34,8 +35,9 @@
 //! Pose reports describe the past: each carries the autopilot's `time_boot_ms` of the instant
 //! it was sampled, arrives some latency later, and the next one is a stream period away. So a
 //! frame is captured at an instant of the *autopilot's* clock — the newest one for which both
-//! position and attitude have arrived ([`PoseHistory::newest_ms`](harmonic_core::mavlink::PoseHistory::newest_ms))
-//! — and its camera pose is the pose of that instant from the bridge's history
+//! position and attitude have arrived
+//! ([`PoseHistory::newest_ms`](harmonic_core::mavlink::PoseHistory::newest_ms)) — and its camera
+//! pose is the pose of that instant from the bridge's history
 //! ([`PoseHistory::pose_at`](harmonic_core::mavlink::PoseHistory::pose_at), interpolated by
 //! `time_boot_ms` when position and attitude were not sampled together). Against a remote
 //! autopilot the camera renders at that same pose: it is the only truth there is. Against the
