@@ -517,24 +517,18 @@ mod tests {
         };
         let mut emulator = FlightEmulator::new().with_timing(timing);
         let mut decoder = MavlinkDecoder::new();
-        // (poll time, LOCAL_POSITION_NED stamps that came out then)
-        let mut seen: Vec<(u64, Vec<(u32, f32, f32)>)> = Vec::new();
+        // (poll time, time_boot_ms, NED east, NED east velocity) of every LOCAL_POSITION_NED out.
+        let mut out: Vec<(u64, u32, f32, f32)> = Vec::new();
         for now in (0u64..=300).step_by(25) {
             // Flying map +x (East) at 1 m/s: NED east = now / 1000.
             let mut bytes = Vec::new();
             emulator.poll(now, &Point3::new(now as f32 * 1e-3, 0.0, 1.0), 0.0, &mut bytes);
-            let mut stamps = Vec::new();
             decoder.push(&bytes, |_, m| {
                 if let MavMessage::LOCAL_POSITION_NED(d) = m {
-                    stamps.push((d.time_boot_ms, d.y, d.vy));
+                    out.push((now, d.time_boot_ms, d.y, d.vy));
                 }
             });
-            seen.push((now, stamps));
         }
-        let out: Vec<(u64, u32, f32, f32)> = seen
-            .iter()
-            .flat_map(|(now, s)| s.iter().map(move |(t, e, v)| (*now, *t, *e, *v)))
-            .collect();
         // Sampled at 0, 100, 200, 300 ms; each leaves 50 ms later (300's is still in flight),
         // stamped with its sampling instant on a clock that started 7 s earlier.
         let expected = [(50u64, 7000u32, 0.0f32), (150, 7100, 0.1), (250, 7200, 0.2)];
