@@ -17,7 +17,7 @@
 //! them by mistake drops them as an unknown type, and the other way round.
 //!
 //! ```text
-//! 0x81 PlanReport, 236 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
+//! 0x81 PlanReport, 244 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
 //!   0  u32 frame_id   of the frame just planned from     0  u32 first   voxel index
 //!   4  u8  outcome    0 goal 1 kept 2 escape             4  u16 count   1 ..= MAP_SLICE_VOXELS
 //!                     3 complete 4 hold                  6  u8[]  two bits per voxel, voxel
@@ -33,14 +33,14 @@
 //!  68  u64 ticks of integrate, domain, solve, streamline+goal
 //! 100  u64 integration_ops, planning_ops  (totals)
 //! 116  u32 sealed voxels
-//! 120  u32 × 12 ErrorCounters, in declaration order
-//! 168  u64 bytes, u32 × 15  LinkCounters, in declaration order
+//! 120  u32 × 14 ErrorCounters, in declaration order
+//! 176  u64 bytes, u32 × 15  LinkCounters, in declaration order
 //! ```
 //!
 //! Fault codes: 1 BadPose, 2 VehicleOutsideGrid, 3 VehicleNotFree, 4 Streamline (detail:
 //! 0 StartOutsideDomain, 1 Stalled, 2 TooLong, 3 StorageTooSmall), 5 Solver (detail:
 //! 0 StorageTooSmall, 1 BadTolerance, 2 ScratchTooSmall, 3 Diverged, 4 BadScreening),
-//! 6 Integrate (detail: 0 BadPose, 1 BadRange, 2 PoseJump).
+//! 6 Integrate (detail: 0 BadPose, 1 BadRange, 2 PoseJump, 3 TurningTooFast, 4 StalePose).
 
 use crate::explore::{ErrorCounters, Fault, PlanOutcome, Status};
 use crate::integrate::IntegrateError;
@@ -55,7 +55,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 236;
+pub const PLAN_REPORT_LEN: usize = 244;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -248,6 +248,8 @@ impl PlanReport {
             e.pose_jumps,
             e.clearances,
             e.plateaus,
+            e.turning_frames,
+            e.stale_pose_frames,
             e.screening_retries,
         ] {
             w.u32(v);
@@ -305,6 +307,8 @@ impl PlanReport {
             pose_jumps: r.u32(),
             clearances: r.u32(),
             plateaus: r.u32(),
+            turning_frames: r.u32(),
+            stale_pose_frames: r.u32(),
             screening_retries: r.u32(),
         };
         // Counters the link may add later arrive as 0 from a core that does not send them.
@@ -392,6 +396,8 @@ fn outcome_code(o: &ReportOutcome) -> (u8, u8, u8) {
                         IntegrateError::BadPose => 0,
                         IntegrateError::BadRange => 1,
                         IntegrateError::PoseJump => 2,
+                        IntegrateError::TurningTooFast => 3,
+                        IntegrateError::StalePose => 4,
                     },
                 ),
             };
@@ -422,6 +428,8 @@ fn outcome_from_code(outcome: u8, fault: u8, detail: u8) -> Option<ReportOutcome
             (6, 0) => Fault::Integrate(IntegrateError::BadPose),
             (6, 1) => Fault::Integrate(IntegrateError::BadRange),
             (6, 2) => Fault::Integrate(IntegrateError::PoseJump),
+            (6, 3) => Fault::Integrate(IntegrateError::TurningTooFast),
+            (6, 4) => Fault::Integrate(IntegrateError::StalePose),
             _ => return None,
         }),
         _ => return None,

@@ -95,6 +95,33 @@ pub struct ExplorerConfig {
     /// [`FRAMES_TO_ACCEPT_JUMP`] frames in a row agree with each other on the new place (the
     /// estimator relocalised), the new place is taken. Not finite or ≤ 0: no check.
     pub max_frame_jump_m: f32,
+    /// A frame taken while the vehicle yawed faster than this (rad/s, either way) is refused by
+    /// [`Explorer::integrate_timed`] ([`IntegrateError::TurningTooFast`], counted in
+    /// [`ErrorCounters::turning_frames`]): between two pose samples a turning camera's heading
+    /// is only as good as the interpolation, and a degree of heading error moves a wall 9 cm at
+    /// 5 m. Default 30°/s (0.52 rad/s): a look-around or goal turn runs at 90°/s, so frames are
+    /// taken once it has finished. Not finite or ≤ 0: no check.
+    pub max_frame_yaw_rate: f32,
+    /// A frame whose newest pose sample is older than the frame by more than this (ms) is
+    /// refused by [`Explorer::integrate_timed`] ([`IntegrateError::StalePose`], counted in
+    /// [`ErrorCounters::stale_pose_frames`]): its pose would be a guess. Default 150 ms: three
+    /// periods of a 20 Hz pose stream, or one of a 10 Hz stream plus 50 ms of latency. 0: no
+    /// check.
+    pub max_frame_pose_lag_ms: u32,
+}
+
+/// How a frame's camera pose relates in time to the frame, for [`Explorer::integrate_timed`].
+/// The caller measures it from the pose stream (see
+/// [`PoseHistory`](crate::mavlink::PoseHistory)).
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FrameTiming {
+    /// The vehicle's yaw rate when the frame was taken, rad/s (either sign), measured from the
+    /// pose samples' timestamps; `None` if unknown (a single sample), which is not refused.
+    pub yaw_rate: Option<f32>,
+    /// How much older than the frame the newest pose sample was when the frame was taken, ms
+    /// (0 when the pose was interpolated between samples around the frame's instant).
+    pub pose_lag_ms: u32,
 }
 
 /// Refused frames in a row, each within [`ExplorerConfig::max_frame_jump_m`] of the one before,
@@ -116,6 +143,8 @@ impl Default for ExplorerConfig {
             stall_visits: 2,
             commit_to_goal: true,
             max_frame_jump_m: 2.0,
+            max_frame_yaw_rate: 30.0 * core::f32::consts::PI / 180.0,
+            max_frame_pose_lag_ms: 150,
         }
     }
 }
@@ -226,6 +255,12 @@ pub struct ErrorCounters {
     /// Streamlines that stalled on a plateau of φ (below f32 resolution, far from the vehicle)
     /// after leaving the vehicle's voxel: the vehicle flew the traced part instead of holding.
     pub plateaus: u32,
+    /// Frames refused because the vehicle turned faster than
+    /// [`ExplorerConfig::max_frame_yaw_rate`] when they were taken (also in `frames_rejected`).
+    pub turning_frames: u32,
+    /// Frames refused because the pose stream was older than the frame by more than
+    /// [`ExplorerConfig::max_frame_pose_lag_ms`] (also in `frames_rejected`).
+    pub stale_pose_frames: u32,
     /// Screened-field streamlines that stalled (u unresolved far from every frontier) and
     /// were traced again on a field with half the κ.
     pub screening_retries: u32,
@@ -328,6 +363,34 @@ pub struct Status {
     pub phase_ticks: PhaseTicks,
     /// Fault counters.
     pub errors: ErrorCounters,
+}
+
+/// Checks a frame's [`FrameTiming`] against `config`'s limits
+/// ([`ExplorerConfig::max_frame_yaw_rate`], [`ExplorerConfig::max_frame_pose_lag_ms`]); a
+/// refusal is counted in `errors` (and in [`ErrorCounters::frames_rejected`]). Planners other
+/// than [`Explorer`] share it.
+pub fn check_frame_timing(
+    config: &ExplorerConfig,
+    timing: &FrameTiming,
+    errors: &mut ErrorCounters,
+) -> Result<(), IntegrateError> {
+    let max_rate = config.max_frame_yaw_rate;
+    let turning = max_rate.is_finite()
+        && max_rate > 0.0
+        // A rate that is not finite is no measurement: refused too.
+        && timing.yaw_rate.is_some_and(|r| r.is_nan() || r.abs() > max_rate);
+    let stale = config.max_frame_pose_lag_ms > 0 && timing.pose_lag_ms > config.max_frame_pose_lag_ms;
+    let error = if stale {
+        errors.stale_pose_frames = errors.stale_pose_frames.saturating_add(1);
+        IntegrateError::StalePose
+    } else if turning {
+        errors.turning_frames = errors.turning_frames.saturating_add(1);
+        IntegrateError::TurningTooFast
+    } else {
+        return Ok(());
+    };
+    errors.frames_rejected = errors.frames_rejected.saturating_add(1);
+    Err(error)
 }
 
 /// The exploration core.
@@ -456,8 +519,31 @@ impl<'a> Explorer<'a> {
         &self.status
     }
 
-    /// Integrates one depth frame taken from `camera_pose` (camera → map).
+    /// Integrates one depth frame taken from `camera_pose` (camera → map). Without a
+    /// [`FrameTiming`] the turn-rate and pose-lag checks cannot run; a caller that knows when
+    /// its poses were sampled uses [`Explorer::integrate_timed`].
     pub fn integrate(
+        &mut self,
+        frame: &DepthFrame<'_>,
+        camera_pose: &Isometry3<f32>,
+    ) -> Result<IntegrationStats, Fault> {
+        self.integrate_pose(frame, camera_pose)
+    }
+
+    /// [`integrate`](Self::integrate), first refusing (and counting) a frame taken while the
+    /// vehicle turned faster than [`ExplorerConfig::max_frame_yaw_rate`] or whose pose stream
+    /// lagged it by more than [`ExplorerConfig::max_frame_pose_lag_ms`].
+    pub fn integrate_timed(
+        &mut self,
+        frame: &DepthFrame<'_>,
+        camera_pose: &Isometry3<f32>,
+        timing: &FrameTiming,
+    ) -> Result<IntegrationStats, Fault> {
+        check_frame_timing(&self.config, timing, &mut self.status.errors).map_err(Fault::Integrate)?;
+        self.integrate_pose(frame, camera_pose)
+    }
+
+    fn integrate_pose(
         &mut self,
         frame: &DepthFrame<'_>,
         camera_pose: &Isometry3<f32>,

@@ -375,3 +375,64 @@ fn a_frontier_in_plain_sight_is_looked_at_from_afar() {
     );
     assert!((goal.position - vehicle).norm() + 0.5 < (near.position - vehicle).norm());
 }
+
+#[test]
+fn frames_taken_while_turning_fast_or_on_a_stale_pose_are_refused_and_counted() {
+    let dims = Dims::new(12, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig::default();
+    let mut e = b.explorer(dims, config);
+    let depth = vec![500u16; intrinsics().pixel_count()];
+    let frame = DepthFrame::new(intrinsics(), &depth).unwrap();
+    let pose = forward_camera_pose(&Point3::new(0.6, 0.6, 0.3), 0.0);
+    let limit = config.max_frame_yaw_rate;
+    let lag = config.max_frame_pose_lag_ms;
+    let timing = |yaw_rate: Option<f32>, pose_lag_ms: u32| FrameTiming {
+        yaw_rate,
+        pose_lag_ms,
+    };
+    let before = e.map().counts();
+    for (t, expected) in [
+        // Turning faster than the limit, either way; an unmeasurable rate.
+        (timing(Some(limit * 1.1), 0), IntegrateError::TurningTooFast),
+        (timing(Some(-limit * 3.0), 0), IntegrateError::TurningTooFast),
+        (timing(Some(f32::NAN), 0), IntegrateError::TurningTooFast),
+        // The newest pose older than the frame by more than the bound.
+        (timing(Some(0.0), lag + 1), IntegrateError::StalePose),
+        (timing(None, 10 * lag), IntegrateError::StalePose),
+    ] {
+        assert_eq!(
+            e.integrate_timed(&frame, &pose, &t),
+            Err(Fault::Integrate(expected)),
+            "{t:?}"
+        );
+    }
+    assert_eq!(e.map().counts(), before, "refused frames leave the map alone");
+    let errors = e.status().errors;
+    assert_eq!(
+        (
+            errors.turning_frames,
+            errors.stale_pose_frames,
+            errors.frames_rejected
+        ),
+        (3, 2, 5)
+    );
+    // At the limits, or with no rate measured yet: integrated.
+    assert!(e
+        .integrate_timed(&frame, &pose, &timing(Some(limit), lag))
+        .is_ok());
+    assert!(e.integrate_timed(&frame, &pose, &timing(None, 0)).is_ok());
+    assert_eq!(e.status().frames, 2);
+    // Limits switched off: anything goes.
+    let off = ExplorerConfig {
+        max_frame_yaw_rate: 0.0,
+        max_frame_pose_lag_ms: 0,
+        ..config
+    };
+    let mut errors = ErrorCounters::default();
+    assert_eq!(
+        check_frame_timing(&off, &timing(Some(100.0), 100_000), &mut errors),
+        Ok(())
+    );
+    assert_eq!(errors, ErrorCounters::default());
+}

@@ -99,6 +99,16 @@ pub enum IntegrateError {
     /// [`ExplorerConfig::max_frame_jump_m`](crate::explore::ExplorerConfig::max_frame_jump_m)
     /// (refused by the explorer; [`integrate`] itself has no memory of earlier frames).
     PoseJump,
+    /// The vehicle was turning faster than
+    /// [`ExplorerConfig::max_frame_yaw_rate`](crate::explore::ExplorerConfig::max_frame_yaw_rate)
+    /// when the frame was taken (refused by the explorer, given the frame's
+    /// [`FrameTiming`](crate::explore::FrameTiming)).
+    TurningTooFast,
+    /// The pose stream was older than the frame by more than
+    /// [`ExplorerConfig::max_frame_pose_lag_ms`](crate::explore::ExplorerConfig::max_frame_pose_lag_ms)
+    /// (refused by the explorer, given the frame's
+    /// [`FrameTiming`](crate::explore::FrameTiming)).
+    StalePose,
 }
 
 /// Integrates one depth frame taken from `camera_pose` (camera frame → map frame).

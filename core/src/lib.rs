@@ -42,8 +42,9 @@
 //!   bounded by the image width times the disparity range; disparity in 1/16 px, depth in mm.
 //! - [`mavlink`] — the bridge to the flight stack: HEARTBEAT and position + yaw setpoints
 //!   (SET_POSITION_TARGET_LOCAL_NED) streamed at a steady rate, LOCAL_POSITION_NED / ATTITUDE /
-//!   ODOMETRY in as the vehicle pose with a staleness fault, the one map ↔ NED conversion, and
-//!   MAVLink 2 bytes through the `mavlink` crate.
+//!   ODOMETRY in as the vehicle pose with a staleness fault, the one map ↔ NED conversion,
+//!   MAVLink 2 bytes through the `mavlink` crate, and a history of the poses by the autopilot's
+//!   `time_boot_ms` that gives the pose of a camera frame's instant (`PoseHistory`).
 //!
 //! Frames: the map frame is right-handed, z up, metres; poses are `Isometry3<f32>`. The camera
 //! frame is x right, y down, z forward. Depth is `u16` millimetres, 0 = no return.

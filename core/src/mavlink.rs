@@ -15,6 +15,9 @@
 //!   types are generated from the official XML definitions (common dialect). Nothing here packs
 //!   MAVLink bytes by hand.
 //! - [`BridgeCounters`] and [`DecoderCounters`] — every message and fault, for the status output.
+//! - [`PoseHistory`] — the last poses by the autopilot's own clock (`time_boot_ms`), for the
+//!   pose at the instant a camera frame was taken ([`PoseHistory::pose_at`], interpolated
+//!   between the samples that bracket it) and the yaw rate then.
 //!
 //! # Frames
 //!
@@ -1087,6 +1090,296 @@ fn vehicle_pose(pose: &NedPose, source: PoseSource, age_ms: u64) -> VehiclePose 
         source,
         age_ms,
     }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Poses by the autopilot's clock
+
+/// A sample that moved the autopilot's clock back by more than this (ms) is taken as a restart
+/// of the autopilot: the history starts over. A smaller step back is a reordered message.
+pub const HISTORY_RESTART_MS: u32 = 1000;
+
+/// One sample of a pose stream, stamped with the autopilot's time and the local arrival time.
+#[derive(Debug, Clone, Copy)]
+struct TimedSample {
+    /// Position `[north, east, down]` or attitude `[roll, pitch, yaw]` (NED, FRD body).
+    value: [f32; 3],
+    time_boot_ms: u32,
+    arrived_ms: u64,
+}
+
+/// Counts of what a [`PoseHistory`] did with the samples it was given.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize))]
+pub struct PoseHistoryCounters {
+    /// Samples stored.
+    pub samples: u32,
+    /// Samples older than the newest of their stream (reordered), dropped.
+    pub out_of_order: u32,
+    /// Times the autopilot's clock went back by more than [`HISTORY_RESTART_MS`] and the
+    /// history started over.
+    pub restarts: u32,
+}
+
+/// The vehicle pose at one instant of the autopilot's clock ([`PoseHistory::pose_at`]), map
+/// frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TimedPose {
+    /// Vehicle position, map frame, metres.
+    pub position: Point3<f32>,
+    /// Heading about map z, radians in (−π, π], counter-clockwise from +x.
+    pub yaw: f32,
+    /// Body frame (x forward, y left, z up) → map frame.
+    pub attitude: Isometry3<f32>,
+    /// The instant, autopilot milliseconds since boot (`time_boot_ms`).
+    pub time_boot_ms: u32,
+    /// Yaw rate about map z at that instant, rad/s (counter-clockwise positive), measured from
+    /// the timestamps of the attitude samples around it; `None` from a single sample.
+    pub yaw_rate: Option<f32>,
+    /// Local arrival time (the caller's clock, ms) of the latest sample used.
+    pub arrived_ms: u64,
+}
+
+/// Why [`PoseHistory::pose_at`] has no pose for an instant.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum PoseAtError {
+    /// No position or no attitude sample yet.
+    NoPose,
+    /// The instant is after the newest sample of a stream: wait for it.
+    NotYet {
+        /// The latest instant both streams cover ([`PoseHistory::newest_ms`]).
+        newest_ms: u32,
+    },
+    /// The instant is before the oldest sample kept.
+    Forgotten,
+}
+
+/// The autopilot's recent poses, by its own clock: the last `N` position samples
+/// (LOCAL_POSITION_NED, or ODOMETRY) and the last `N` attitude samples (ATTITUDE, or ODOMETRY),
+/// each stamped with the message's `time_boot_ms` (ODOMETRY: `time_usec` / 1000).
+///
+/// [`PoseHistory::pose_at`] gives the pose at any instant the samples cover: position linearly
+/// interpolated, roll, pitch and yaw each along the shorter arc, between the two samples of each
+/// stream that bracket it — by the autopilot's timestamps, never by arrival times, so latency
+/// and jitter on the link do not move a pose in time. A camera frame taken at a known instant
+/// of the autopilot's clock gets exactly the pose of that instant (as exact as the samples and
+/// straight-line motion between them). Rates are measured from the samples, not read from the
+/// messages' rate fields, which autopilots may leave at zero.
+///
+/// It trusts its input: feed it only messages [`Bridge::handle`] accepted. `time_boot_ms` is
+/// taken not to wrap (it does after 49 days).
+#[derive(Debug, Clone)]
+pub struct PoseHistory<const N: usize> {
+    positions: heapless::Deque<TimedSample, N>,
+    attitudes: heapless::Deque<TimedSample, N>,
+    counters: PoseHistoryCounters,
+}
+
+impl<const N: usize> Default for PoseHistory<N> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<const N: usize> PoseHistory<N> {
+    /// An empty history.
+    pub const fn new() -> Self {
+        Self {
+            positions: heapless::Deque::new(),
+            attitudes: heapless::Deque::new(),
+            counters: PoseHistoryCounters {
+                samples: 0,
+                out_of_order: 0,
+                restarts: 0,
+            },
+        }
+    }
+
+    /// What happened to the samples so far.
+    pub fn counters(&self) -> &PoseHistoryCounters {
+        &self.counters
+    }
+
+    /// Forgets every sample.
+    pub fn clear(&mut self) {
+        self.positions.clear();
+        self.attitudes.clear();
+    }
+
+    /// Stores the pose samples of `message`, which arrived at `arrived_ms` (the caller's
+    /// clock). Other messages are ignored. Returns true if a sample was stored.
+    pub fn record(&mut self, arrived_ms: u64, message: &MavMessage) -> bool {
+        match message {
+            MavMessage::LOCAL_POSITION_NED(d) => {
+                self.push_position(arrived_ms, d.time_boot_ms, [d.x, d.y, d.z])
+            }
+            MavMessage::ATTITUDE(d) => {
+                self.push_attitude(arrived_ms, d.time_boot_ms, [d.roll, d.pitch, d.yaw])
+            }
+            MavMessage::ODOMETRY(d) => {
+                let [w, x, y, z] = d.q;
+                let q = UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z));
+                let (roll, pitch, yaw) = q.euler_angles();
+                // time_usec is since boot on PX4 and ArduPilot; ms fits u32 for 49 days.
+                let t = (d.time_usec as f64 * 1e-3) as u32;
+                let p = self.push_position(arrived_ms, t, [d.x, d.y, d.z]);
+                let a = self.push_attitude(arrived_ms, t, [roll, pitch, yaw]);
+                p || a
+            }
+            _ => false,
+        }
+    }
+
+    fn push_position(&mut self, arrived_ms: u64, time_boot_ms: u32, value: [f32; 3]) -> bool {
+        let sample = TimedSample {
+            value,
+            time_boot_ms,
+            arrived_ms,
+        };
+        self.push(sample, true)
+    }
+
+    fn push_attitude(&mut self, arrived_ms: u64, time_boot_ms: u32, value: [f32; 3]) -> bool {
+        let sample = TimedSample {
+            value,
+            time_boot_ms,
+            arrived_ms,
+        };
+        self.push(sample, false)
+    }
+
+    fn push(&mut self, sample: TimedSample, position: bool) -> bool {
+        if !sample.value.iter().all(|v| v.is_finite()) {
+            return false;
+        }
+        let newest = if position {
+            self.positions.back()
+        } else {
+            self.attitudes.back()
+        }
+        .map(|s| s.time_boot_ms);
+        if let Some(newest) = newest {
+            if sample.time_boot_ms < newest {
+                if newest - sample.time_boot_ms > HISTORY_RESTART_MS {
+                    bump(&mut self.counters.restarts);
+                    self.clear();
+                } else {
+                    bump(&mut self.counters.out_of_order);
+                    return false;
+                }
+            }
+        }
+        let stream = if position {
+            &mut self.positions
+        } else {
+            &mut self.attitudes
+        };
+        // The same instant again (ODOMETRY beside LOCAL_POSITION_NED): the newer message wins.
+        if stream
+            .back()
+            .is_some_and(|s| s.time_boot_ms == sample.time_boot_ms)
+        {
+            let _ = stream.pop_back();
+        }
+        if stream.is_full() {
+            let _ = stream.pop_front();
+        }
+        let stored = stream.push_back(sample).is_ok();
+        if stored {
+            bump(&mut self.counters.samples);
+        }
+        stored
+    }
+
+    /// The latest instant both streams cover: the older of the newest position and the newest
+    /// attitude sample's time. `None` before there is one of each.
+    pub fn newest_ms(&self) -> Option<u32> {
+        let p = self.positions.back()?.time_boot_ms;
+        let a = self.attitudes.back()?.time_boot_ms;
+        Some(p.min(a))
+    }
+
+    /// The vehicle pose at `time_boot_ms` (autopilot clock), map frame; see the
+    /// [type documentation](Self).
+    pub fn pose_at(&self, time_boot_ms: u32) -> Result<TimedPose, PoseAtError> {
+        let newest_ms = self.newest_ms().ok_or(PoseAtError::NoPose)?;
+        if time_boot_ms > newest_ms {
+            return Err(PoseAtError::NotYet { newest_ms });
+        }
+        let (ned, p_arrived) = interpolate(&self.positions, time_boot_ms, false)?;
+        let ([roll, pitch, yaw_ned], a_arrived) = interpolate(&self.attitudes, time_boot_ms, true)?;
+        let (position, yaw) = ned_to_map(ned, yaw_ned);
+        // body FLU → FRD → NED → map, as in the bridge.
+        let rotation =
+            enu_from_ned() * UnitQuaternion::from_euler_angles(roll, pitch, yaw_ned) * frd_from_flu();
+        Ok(TimedPose {
+            position,
+            yaw,
+            attitude: Isometry3::from_parts(Translation3::from(position.coords), rotation),
+            time_boot_ms,
+            // Map yaw turns the other way from NED yaw.
+            yaw_rate: yaw_rate_ned(&self.attitudes, time_boot_ms).map(|r| -r),
+            arrived_ms: p_arrived.max(a_arrived),
+        })
+    }
+}
+
+/// `stream` at `t`: linear between the bracketing samples (angles along the shorter arc), and
+/// the arrival time of the later one.
+fn interpolate<const N: usize>(
+    stream: &heapless::Deque<TimedSample, N>,
+    t: u32,
+    angles: bool,
+) -> Result<([f32; 3], u64), PoseAtError> {
+    let mut previous: Option<&TimedSample> = None;
+    for s in stream.iter() {
+        if s.time_boot_ms == t {
+            return Ok((s.value, s.arrived_ms));
+        }
+        if s.time_boot_ms > t {
+            let Some(a) = previous else {
+                return Err(PoseAtError::Forgotten);
+            };
+            let span = (s.time_boot_ms - a.time_boot_ms) as f32;
+            let f = (t - a.time_boot_ms) as f32 / span;
+            let mut out = [0.0f32; 3];
+            for ((o, x0), x1) in out.iter_mut().zip(a.value.iter()).zip(s.value.iter()) {
+                *o = if angles {
+                    wrap_angle(x0 + f * wrap_angle(x1 - x0))
+                } else {
+                    x0 + f * (x1 - x0)
+                };
+            }
+            return Ok((out, s.arrived_ms));
+        }
+        previous = Some(s);
+    }
+    // After the newest sample: pose_at checked against newest_ms first.
+    Err(PoseAtError::NoPose)
+}
+
+/// NED yaw rate at `t`, rad/s: over the attitude samples bracketing it, or at a sample's own
+/// instant the faster of the intervals on either side. `None` with fewer than two samples.
+fn yaw_rate_ned<const N: usize>(stream: &heapless::Deque<TimedSample, N>, t: u32) -> Option<f32> {
+    let mut rate: Option<f32> = None;
+    let mut previous: Option<&TimedSample> = None;
+    for s in stream.iter() {
+        if let Some(a) = previous {
+            // Intervals touching t: [a, s] with a ≤ t ≤ s.
+            if a.time_boot_ms <= t && t <= s.time_boot_ms && s.time_boot_ms > a.time_boot_ms {
+                let dt = (s.time_boot_ms - a.time_boot_ms) as f32 * 1e-3;
+                let ([_, _, y0], [_, _, y1]) = (a.value, s.value);
+                let r = wrap_angle(y1 - y0) / dt;
+                if rate.is_none_or(|old| r.abs() > old.abs()) {
+                    rate = Some(r);
+                }
+            }
+        }
+        previous = Some(s);
+    }
+    rate
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -2281,6 +2574,100 @@ mod tests {
         assert_eq!(got, [messages[0].clone()]);
         // Some of the noise passed as pose messages with wild values and was rejected.
         assert!(bridge.counters().rejected() + bridge.counters().foreign_system > 0);
+    }
+
+    fn timed_local(t: u32, ned: [f32; 3]) -> MavMessage {
+        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            time_boot_ms: t,
+            x: ned[0],
+            y: ned[1],
+            z: ned[2],
+            ..LOCAL_POSITION_NED_DATA::DEFAULT
+        })
+    }
+
+    fn timed_attitude(t: u32, yaw_ned: f32) -> MavMessage {
+        MavMessage::ATTITUDE(ATTITUDE_DATA {
+            time_boot_ms: t,
+            yaw: yaw_ned,
+            ..ATTITUDE_DATA::DEFAULT
+        })
+    }
+
+    #[test]
+    fn pose_history_interpolates_by_the_autopilots_clock_not_arrival() {
+        let mut h = PoseHistory::<8>::new();
+        assert_eq!(h.pose_at(0), Err(PoseAtError::NoPose));
+        // Samples 50 ms apart by the autopilot's clock, arriving with jitter (arrival times
+        // must not matter). Heading East (NED yaw π/2) turning clockwise at 90°/s, flying
+        // North at 1 m/s.
+        for (k, arrived) in [(0u32, 1000u64), (1, 1093), (2, 1101), (3, 1180)] {
+            let t = 5000 + 50 * k;
+            let s = k as f32 * 0.05;
+            assert!(h.record(arrived, &timed_local(t, [s, 0.0, -1.0])));
+            assert!(h.record(arrived, &timed_attitude(t, PI / 2.0 + s * PI / 2.0)));
+        }
+        assert_eq!(h.newest_ms(), Some(5150));
+        // Halfway between the second and third samples: t = 5075 ms, 0.075 s after the first.
+        let p = h.pose_at(5075).unwrap();
+        assert!((p.position - Point3::new(0.0, 0.075, 1.0)).norm() < 1e-5, "{p:?}");
+        // NED yaw π/2 + 0.075·π/2 → map yaw −0.075·π/2; turning clockwise in the map (−).
+        assert!(angle_close(p.yaw, -0.075 * PI / 2.0), "{}", p.yaw);
+        let rate = p.yaw_rate.unwrap();
+        assert!((rate + PI / 2.0).abs() < 1e-3, "{rate}");
+        assert_eq!((p.time_boot_ms, p.arrived_ms), (5075, 1101));
+        // Exactly at a sample: that sample.
+        let q = h.pose_at(5150).unwrap();
+        assert!((q.position - Point3::new(0.0, 0.15, 1.0)).norm() < 1e-6);
+        assert_eq!(h.pose_at(5151), Err(PoseAtError::NotYet { newest_ms: 5150 }));
+        assert_eq!(h.pose_at(4999), Err(PoseAtError::Forgotten));
+        // The attitude at the instant is the same as the bridge's for the same sample.
+        let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
+        let mut seq = 0u8;
+        feed_pose(
+            &mut bridge,
+            1180,
+            &mut seq,
+            [0.15, 0.0, -1.0],
+            PI / 2.0 + 0.15 * PI / 2.0,
+        );
+        let b = bridge.pose(1180).unwrap();
+        assert!(angle_close(b.yaw, q.yaw) && (b.position - q.position).norm() < 1e-6);
+        assert!((b.attitude.rotation.angle_to(&q.attitude.rotation)).abs() < 1e-5);
+    }
+
+    #[test]
+    fn pose_history_pairs_streams_wraps_yaw_and_survives_restarts() {
+        let mut h = PoseHistory::<4>::new();
+        // Attitude ahead of position: the newest instant both cover is the position's.
+        h.record(0, &timed_local(100, [0.0, 0.0, -1.0]));
+        h.record(0, &timed_attitude(100, 3.0));
+        h.record(0, &timed_attitude(200, -3.0));
+        h.record(0, &timed_local(300, [1.0, 0.0, -1.0]));
+        assert_eq!(h.newest_ms(), Some(200));
+        // Yaw 3.0 → −3.0 is 0.283 rad clockwise through ±π, not 6 rad back.
+        let p = h.pose_at(150).unwrap();
+        let (_, yaw_ned) = map_to_ned(p.position, p.yaw);
+        assert!(angle_close(yaw_ned, PI), "{yaw_ned}");
+        let rate_ned = -p.yaw_rate.unwrap();
+        assert!((rate_ned - (2.0 * PI - 6.0) / 0.1).abs() < 1e-2, "{rate_ned}");
+        // Reordered: dropped and counted. Capacity: the oldest goes.
+        assert!(!h.record(0, &timed_local(250, [0.5, 0.0, -1.0])));
+        assert_eq!(h.counters().out_of_order, 1);
+        for t in [1400u32, 1500, 1600, 1700] {
+            h.record(0, &timed_local(t, [0.0, 0.0, -1.0]));
+        }
+        assert!(matches!(h.pose_at(150), Err(PoseAtError::Forgotten)));
+        // The autopilot restarted: its clock went back by more than a second.
+        assert!(h.record(0, &timed_local(20, [0.0, 0.0, -1.0])));
+        assert_eq!(h.counters().restarts, 1);
+        assert_eq!(h.newest_ms(), None);
+        // Not finite: not stored. Other messages: ignored.
+        assert!(!h.record(0, &timed_attitude(30, f32::NAN)));
+        assert!(!h.record(0, &MavMessage::HEARTBEAT(HEARTBEAT_DATA::DEFAULT)));
+        // A single attitude sample gives no rate.
+        h.record(0, &timed_attitude(20, 0.0));
+        assert_eq!(h.pose_at(20).unwrap().yaw_rate, None);
     }
 
     #[test]

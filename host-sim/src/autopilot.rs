@@ -9,9 +9,11 @@
 //! | `udpout:HOST:PORT` | send to `HOST:PORT`, take answers on the local port (MAVProxy's `udpout`); wall-clock time |
 //!
 //! Every MAVLink frame each way is decoded, counted by message name in [`TrafficReport`], and
-//! written to the `.tlog` if one is open (see [`crate::tlog`]). Against a remote autopilot the
-//! vehicle is wherever it says (LOCAL_POSITION_NED + ATTITUDE or ODOMETRY, through the bridge);
-//! the simulator renders depth there.
+//! written to the `.tlog` if one is open (see [`crate::tlog`]). Every pose sample the bridge
+//! accepts also goes into a [`PoseHistory`] by the autopilot's `time_boot_ms`, from which the
+//! simulator takes the pose of the instant each depth frame is captured at
+//! ([`MavlinkLink::history`]). Against a remote autopilot the vehicle is wherever it says
+//! (LOCAL_POSITION_NED + ATTITUDE or ODOMETRY); the simulator renders depth there.
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -22,12 +24,12 @@ use std::time::Duration;
 
 use harmonic_core::mavlink::{
     encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavMessage, MavlinkDecoder,
-    MavlinkMessage, MAX_FRAME_LEN,
+    MavlinkMessage, PoseHistory, PoseHistoryCounters, Received, MAX_FRAME_LEN,
 };
 use nalgebra::Point3;
 use serde::Serialize;
 
-use crate::flight::{FlightCounters, FlightEmulator, FlightSetpoint};
+use crate::flight::{EmulatorTiming, FlightCounters, FlightEmulator, FlightSetpoint};
 use crate::tlog::{TlogWriter, SIM_EPOCH_US};
 
 /// Which autopilot the bridge talks to (`--mavlink`).
@@ -99,9 +101,14 @@ pub struct MavlinkConfig {
     pub bridge: BridgeConfig,
     /// The emulator also streams ODOMETRY.
     pub odometry: bool,
+    /// The emulator's pose stream: rate, latency, clock, velocities.
+    pub emulator: EmulatorTiming,
     /// Record every frame both ways in this `.tlog`.
     pub tlog: Option<PathBuf>,
 }
+
+/// Pose samples kept per stream: 3.2 s at 20 Hz, 1.3 s at 50 Hz.
+pub const POSE_HISTORY_LEN: usize = 64;
 
 impl Default for MavlinkConfig {
     fn default() -> Self {
@@ -109,6 +116,7 @@ impl Default for MavlinkConfig {
             spec: MavlinkSpec::Emulator,
             bridge: BridgeConfig::default(),
             odometry: false,
+            emulator: EmulatorTiming::default(),
             tlog: None,
         }
     }
@@ -217,6 +225,8 @@ pub struct MavlinkReport {
     pub bridge: BridgeCounters,
     /// The bridge's decoder of the autopilot's bytes.
     pub bridge_decoder: DecoderCounters,
+    /// Pose samples kept by the autopilot's clock: stored, reordered, restarts.
+    pub pose_history: PoseHistoryCounters,
     /// The flight-stack emulator: setpoints taken and rejected, setpoint gaps, poses sent.
     pub emulator: Option<FlightCounters>,
     /// The emulator's decoder of the bridge's bytes.
@@ -264,6 +274,7 @@ pub struct MavlinkLink {
     epoch_us: u64,
     frames_out: Vec<(Vec<u8>, MavMessage)>,
     io_error: Option<String>,
+    history: PoseHistory<POSE_HISTORY_LEN>,
 }
 
 impl MavlinkLink {
@@ -273,9 +284,11 @@ impl MavlinkLink {
         let label = config.spec.to_string();
         let err = |e: std::io::Error| format!("--mavlink {label}: {e}");
         let endpoint = match &config.spec {
-            MavlinkSpec::Emulator => {
-                Endpoint::Emulator(Box::new(FlightEmulator::new().with_odometry(config.odometry)))
-            }
+            MavlinkSpec::Emulator => Endpoint::Emulator(Box::new(
+                FlightEmulator::new()
+                    .with_odometry(config.odometry)
+                    .with_timing(config.emulator),
+            )),
             MavlinkSpec::UdpIn(addr) => {
                 let socket = UdpSocket::bind(addr).map_err(err)?;
                 socket.set_nonblocking(true).map_err(err)?;
@@ -319,6 +332,7 @@ impl MavlinkLink {
             epoch_us,
             frames_out: Vec::new(),
             io_error: None,
+            history: PoseHistory::new(),
         })
     }
 
@@ -387,7 +401,11 @@ impl MavlinkLink {
             self.log(now_ms, &raw);
             if let Some((header, message)) = decoded {
                 self.traffic.received(now_ms, &message);
-                let _ = self.bridge.handle(now_ms, &header, &message);
+                if let Ok(Received::LocalPosition | Received::Attitude | Received::Odometry) =
+                    self.bridge.handle(now_ms, &header, &message)
+                {
+                    self.history.record(now_ms, &message);
+                }
             }
         }
         self.take_io_error()
@@ -451,6 +469,20 @@ impl MavlinkLink {
             .map_err(|e| format!("no vehicle pose from {} at {now_ms} ms: {e:?}", self.label))
     }
 
+    /// The pose samples the bridge accepted, by the autopilot's clock.
+    pub fn history(&self) -> &PoseHistory<POSE_HISTORY_LEN> {
+        &self.history
+    }
+
+    /// The in-process emulator's clock (`time_boot_ms`) at simulated time 0; `None` against a
+    /// remote autopilot, whose clock only its messages tell.
+    pub fn emulator_boot_ms(&self) -> Option<u64> {
+        match &self.endpoint {
+            Endpoint::Emulator(emulator) => Some(emulator.timing().boot_ms),
+            Endpoint::Udp { .. } => None,
+        }
+    }
+
     /// The emulator's current setpoint (what the emulated vehicle flies to); `None` against a
     /// remote autopilot, or before the first setpoint.
     pub fn emulator_setpoint(&self) -> Option<FlightSetpoint> {
@@ -479,6 +511,7 @@ impl MavlinkLink {
             traffic: self.traffic.report(),
             bridge: *self.bridge.counters(),
             bridge_decoder: *self.decoder.counters(),
+            pose_history: *self.history.counters(),
             emulator,
             emulator_decoder,
             status_texts: self.traffic.status_texts.clone(),

@@ -12,11 +12,19 @@
 //!   2 Hz, so every gap longer than [`OFFBOARD_TIMEOUT_MS`] is counted;
 //! - collects the STATUSTEXTs it receives;
 //! - streams LOCAL_POSITION_NED and ATTITUDE of the simulated vehicle's true pose every
-//!   [`POSE_PERIOD_MS`] of simulated time (20 Hz), and with [`FlightEmulator::with_odometry`]
-//!   ODOMETRY as well (PX4 streams all three), as system [`DEFAULT_SYSTEM_ID`], component
-//!   [`AUTOPILOT_COMPONENT_ID`] — the autopilot the bridge listens to by default — encoded with
-//!   [`encode_v2`]. Velocities (and the yaw rate) are the change of the pose since the last
-//!   report, as an estimator would give them; roll and pitch are level.
+//!   [`EmulatorTiming::pose_period_ms`] of simulated time (default [`POSE_PERIOD_MS`], 20 Hz),
+//!   and with [`FlightEmulator::with_odometry`] ODOMETRY as well (PX4 streams all three), as
+//!   system [`DEFAULT_SYSTEM_ID`], component [`AUTOPILOT_COMPONENT_ID`] — the autopilot the
+//!   bridge listens to by default — encoded with [`encode_v2`]. Velocities (and the yaw rate)
+//!   are the change of the pose since the last report, as an estimator would give them, or zero
+//!   ([`EmulatorTiming::zero_velocities`]); roll and pitch are level.
+//!
+//! Its timing follows a real autopilot's ([`EmulatorTiming`]): `time_boot_ms` counts from the
+//! emulator's own boot ([`EmulatorTiming::boot_ms`] before the run started), is the instant the
+//! pose was *sampled*, and a report leaves [`EmulatorTiming::latency_ms`] after that instant.
+//! Yaw is NED (0 = North, clockwise positive, (−π, π]), as in the MAVLink spec. A companion
+//! that stamps camera frames with "the last pose received" instead of the pose of the frame's
+//! instant smears its map against it, as it would against PX4.
 //!
 //! The emulator does not fly: the simulator moves the vehicle towards [`FlightEmulator::setpoint`]
 //! and hands the resulting pose to [`FlightEmulator::poll`].
@@ -38,6 +46,33 @@ pub const POSE_PERIOD_MS: u64 = 50;
 pub const OFFBOARD_TIMEOUT_MS: u64 = 500;
 /// Milliseconds between the emulator's HEARTBEATs (1 Hz).
 pub const HEARTBEAT_PERIOD_MS: u64 = 1000;
+
+/// When and how the emulator reports the pose. [`Default`]: 20 Hz, no latency, booted at the
+/// start of the run, velocities reported.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EmulatorTiming {
+    /// Milliseconds between pose reports (≥ 1). The emulator samples the vehicle when it is
+    /// polled, so a period shorter than the caller's time step runs at the step's rate.
+    pub pose_period_ms: u64,
+    /// Milliseconds from sampling a pose to sending its report (estimator and link delay).
+    pub latency_ms: u64,
+    /// The emulator's `time_boot_ms` at simulated time 0: the autopilot was switched on this
+    /// long before the run.
+    pub boot_ms: u64,
+    /// Report velocities and the yaw rate as zero, as autopilots that do not fill them in do.
+    pub zero_velocities: bool,
+}
+
+impl Default for EmulatorTiming {
+    fn default() -> Self {
+        Self {
+            pose_period_ms: POSE_PERIOD_MS,
+            latency_ms: 0,
+            boot_ms: 0,
+            zero_velocities: false,
+        }
+    }
+}
 
 /// Type-mask bits that must be set for a position + yaw setpoint: velocity and acceleration
 /// ignored.
@@ -108,6 +143,9 @@ pub struct FlightEmulator {
     odometry: bool,
     /// The last reported pose (NED position, NED yaw, ms), for velocities.
     last_report: Option<([f32; 3], f32, u64)>,
+    timing: EmulatorTiming,
+    /// Encoded pose reports waiting out their latency: (when they leave, ms; bytes).
+    in_flight: std::collections::VecDeque<(u64, Vec<u8>)>,
 }
 
 impl Default for FlightEmulator {
@@ -129,7 +167,24 @@ impl FlightEmulator {
             status_texts: Vec::new(),
             odometry: false,
             last_report: None,
+            timing: EmulatorTiming::default(),
+            in_flight: std::collections::VecDeque::new(),
         }
+    }
+
+    /// Reports the pose with `timing` (rate, latency, clock, velocities); a zero period is
+    /// taken as 1 ms.
+    pub fn with_timing(mut self, timing: EmulatorTiming) -> Self {
+        self.timing = EmulatorTiming {
+            pose_period_ms: timing.pose_period_ms.max(1),
+            ..timing
+        };
+        self
+    }
+
+    /// How the pose is reported.
+    pub fn timing(&self) -> &EmulatorTiming {
+        &self.timing
     }
 
     /// Also streams ODOMETRY (position, attitude quaternion, body-frame velocities) with every
@@ -200,9 +255,10 @@ impl FlightEmulator {
     }
 
     /// Appends to `out` whatever is due at `now_ms`: a HEARTBEAT every
-    /// [`HEARTBEAT_PERIOD_MS`] and LOCAL_POSITION_NED + ATTITUDE of the vehicle at `position`
-    /// with `yaw` (map frame, level attitude) every [`POSE_PERIOD_MS`]. The first call sends
-    /// both at once.
+    /// [`HEARTBEAT_PERIOD_MS`], and every [`EmulatorTiming::pose_period_ms`] a sample of the
+    /// vehicle at `position` with `yaw` (map frame, level attitude) as LOCAL_POSITION_NED +
+    /// ATTITUDE stamped with the sampling instant, which leave [`EmulatorTiming::latency_ms`]
+    /// later (in a later call's `out`). The first call sends a HEARTBEAT and samples at once.
     pub fn poll(&mut self, now_ms: u64, position: &Point3<f32>, yaw: f32, out: &mut Vec<u8>) {
         if self.next_heartbeat_ms.is_none_or(|due| now_ms >= due) {
             self.next_heartbeat_ms = Some(now_ms + HEARTBEAT_PERIOD_MS);
@@ -218,67 +274,88 @@ impl FlightEmulator {
             self.counters.heartbeats_sent += 1;
         }
         if self.next_pose_ms.is_none_or(|due| now_ms >= due) {
-            // Keep the 20 Hz grid unless the caller fell behind by more than a period.
+            // Keep the grid of periods unless the caller fell behind by more than a period.
+            let period = self.timing.pose_period_ms;
             self.next_pose_ms = Some(match self.next_pose_ms {
-                Some(due) if now_ms - due < POSE_PERIOD_MS => due + POSE_PERIOD_MS,
-                _ => now_ms + POSE_PERIOD_MS,
+                Some(due) if now_ms - due < period => due + period,
+                _ => now_ms + period,
             });
-            let ([x, y, z], yaw_ned) = map_to_ned(*position, yaw);
-            // Velocities: the change since the last report (zero for the first).
-            let (velocity, yaw_rate) = match self.last_report {
-                Some((p, y0, t)) if now_ms > t => {
-                    let dt = (now_ms - t) as f32 * 1e-3;
-                    let v = [(x - p[0]) / dt, (y - p[1]) / dt, (z - p[2]) / dt];
-                    (v, harmonic_core::mavlink::wrap_angle(yaw_ned - y0) / dt)
-                }
-                _ => ([0.0; 3], 0.0),
-            };
-            self.last_report = Some(([x, y, z], yaw_ned, now_ms));
-            let time_boot_ms = now_ms as u32;
-            let local = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-                time_boot_ms,
+            let mut report = Vec::new();
+            self.sample(now_ms, position, yaw, &mut report);
+            self.in_flight
+                .push_back((now_ms + self.timing.latency_ms, report));
+        }
+        while self.in_flight.front().is_some_and(|(at, _)| *at <= now_ms) {
+            if let Some((_, bytes)) = self.in_flight.pop_front() {
+                out.extend_from_slice(&bytes);
+            }
+        }
+    }
+
+    /// Encodes the pose reports of one sample at `now_ms` into `out`.
+    fn sample(&mut self, now_ms: u64, position: &Point3<f32>, yaw: f32, out: &mut Vec<u8>) {
+        let ([x, y, z], yaw_ned) = map_to_ned(*position, yaw);
+        // Velocities: the change since the last report (zero for the first).
+        let (velocity, yaw_rate) = match self.last_report {
+            Some((p, y0, t)) if now_ms > t => {
+                let dt = (now_ms - t) as f32 * 1e-3;
+                let v = [(x - p[0]) / dt, (y - p[1]) / dt, (z - p[2]) / dt];
+                (v, harmonic_core::mavlink::wrap_angle(yaw_ned - y0) / dt)
+            }
+            _ => ([0.0; 3], 0.0),
+        };
+        self.last_report = Some(([x, y, z], yaw_ned, now_ms));
+        let (velocity, yaw_rate) = if self.timing.zero_velocities {
+            ([0.0; 3], 0.0)
+        } else {
+            (velocity, yaw_rate)
+        };
+        // The autopilot's clock: since its boot, at the instant of the sample.
+        let boot_now_ms = now_ms + self.timing.boot_ms;
+        let time_boot_ms = boot_now_ms as u32;
+        let local = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            time_boot_ms,
+            x,
+            y,
+            z,
+            vx: velocity[0],
+            vy: velocity[1],
+            vz: velocity[2],
+        });
+        self.send(&local, out);
+        self.counters.local_positions_sent += 1;
+        let attitude = MavMessage::ATTITUDE(ATTITUDE_DATA {
+            time_boot_ms,
+            roll: 0.0,
+            pitch: 0.0,
+            yaw: yaw_ned,
+            rollspeed: 0.0,
+            pitchspeed: 0.0,
+            yawspeed: yaw_rate,
+        });
+        self.send(&attitude, out);
+        self.counters.attitudes_sent += 1;
+        if self.odometry {
+            // Body FRD → NED is a pure yaw: q = (cos ψ/2, 0, 0, sin ψ/2). ODOMETRY's
+            // velocities are in the child (body) frame.
+            let (s, c) = (yaw_ned * 0.5).sin_cos();
+            let (sy, cy) = yaw_ned.sin_cos();
+            let odometry = MavMessage::ODOMETRY(ODOMETRY_DATA {
+                time_usec: boot_now_ms * 1000,
                 x,
                 y,
                 z,
-                vx: velocity[0],
-                vy: velocity[1],
+                q: [c, 0.0, 0.0, s],
+                vx: cy * velocity[0] + sy * velocity[1],
+                vy: -sy * velocity[0] + cy * velocity[1],
                 vz: velocity[2],
-            });
-            self.send(&local, out);
-            self.counters.local_positions_sent += 1;
-            let attitude = MavMessage::ATTITUDE(ATTITUDE_DATA {
-                time_boot_ms,
-                roll: 0.0,
-                pitch: 0.0,
-                yaw: yaw_ned,
-                rollspeed: 0.0,
-                pitchspeed: 0.0,
                 yawspeed: yaw_rate,
+                frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
+                child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+                ..ODOMETRY_DATA::DEFAULT
             });
-            self.send(&attitude, out);
-            self.counters.attitudes_sent += 1;
-            if self.odometry {
-                // Body FRD → NED is a pure yaw: q = (cos ψ/2, 0, 0, sin ψ/2). ODOMETRY's
-                // velocities are in the child (body) frame.
-                let (s, c) = (yaw_ned * 0.5).sin_cos();
-                let (sy, cy) = yaw_ned.sin_cos();
-                let odometry = MavMessage::ODOMETRY(ODOMETRY_DATA {
-                    time_usec: now_ms * 1000,
-                    x,
-                    y,
-                    z,
-                    q: [c, 0.0, 0.0, s],
-                    vx: cy * velocity[0] + sy * velocity[1],
-                    vy: -sy * velocity[0] + cy * velocity[1],
-                    vz: velocity[2],
-                    yawspeed: yaw_rate,
-                    frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
-                    child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
-                    ..ODOMETRY_DATA::DEFAULT
-                });
-                self.send(&odometry, out);
-                self.counters.odometries_sent += 1;
-            }
+            self.send(&odometry, out);
+            self.counters.odometries_sent += 1;
         }
     }
 
@@ -428,6 +505,38 @@ mod tests {
         emulator.receive(800, &encode(&MavMessage::SET_POSITION_TARGET_LOCAL_NED(good), 4));
         assert_eq!(emulator.counters().setpoint_gaps, 1);
         assert_eq!(emulator.counters().max_setpoint_gap_ms, 600);
+    }
+
+    #[test]
+    fn reports_leave_late_stamped_with_the_sampling_instant_on_the_autopilots_clock() {
+        let timing = EmulatorTiming {
+            pose_period_ms: 100,
+            latency_ms: 50,
+            boot_ms: 7000,
+            zero_velocities: true,
+        };
+        let mut emulator = FlightEmulator::new().with_timing(timing);
+        let mut decoder = MavlinkDecoder::new();
+        // (poll time, time_boot_ms, NED east, NED east velocity) of every LOCAL_POSITION_NED out.
+        let mut out: Vec<(u64, u32, f32, f32)> = Vec::new();
+        for now in (0u64..=300).step_by(25) {
+            // Flying map +x (East) at 1 m/s: NED east = now / 1000.
+            let mut bytes = Vec::new();
+            emulator.poll(now, &Point3::new(now as f32 * 1e-3, 0.0, 1.0), 0.0, &mut bytes);
+            decoder.push(&bytes, |_, m| {
+                if let MavMessage::LOCAL_POSITION_NED(d) = m {
+                    out.push((now, d.time_boot_ms, d.y, d.vy));
+                }
+            });
+        }
+        // Sampled at 0, 100, 200, 300 ms; each leaves 50 ms later (300's is still in flight),
+        // stamped with its sampling instant on a clock that started 7 s earlier.
+        let expected = [(50u64, 7000u32, 0.0f32), (150, 7100, 0.1), (250, 7200, 0.2)];
+        assert_eq!(out.len(), expected.len(), "{out:?}");
+        for ((now, t, east, v), (want_now, want_t, want_east)) in out.iter().zip(expected) {
+            assert_eq!((*now, *t), (want_now, want_t));
+            assert!((east - want_east).abs() < 1e-6 && *v == 0.0, "{out:?}");
+        }
     }
 
     #[test]

@@ -17,6 +17,7 @@ use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::depth_link::{LinkConfig, DEFAULT_BAUD};
 use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
 use harmonic_sim::figures::{self, SliceSnapshot};
+use harmonic_sim::flight::EmulatorTiming;
 use harmonic_sim::npy;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::problem::{self, SolverChoice};
@@ -972,6 +973,27 @@ struct ExploreArgs {
     /// The emulator also streams ODOMETRY (the bridge then prefers it).
     #[arg(long, requires = "mavlink")]
     odometry: bool,
+    /// The emulator's pose stream rate (LOCAL_POSITION_NED + ATTITUDE), Hz; it samples the
+    /// vehicle at the simulator's time step, so rates above 1 / --dt run at 1 / --dt.
+    #[arg(long, default_value_t = 20.0, requires = "mavlink")]
+    emulator_rate: f64,
+    /// Milliseconds from the emulator sampling a pose to sending its report.
+    #[arg(long, default_value_t = 0, requires = "mavlink")]
+    emulator_latency_ms: u64,
+    /// The emulator's time_boot_ms when the run starts (it booted this long before).
+    #[arg(long, default_value_t = 0, requires = "mavlink")]
+    emulator_boot_ms: u64,
+    /// The emulator reports velocities and yaw rate as zero.
+    #[arg(long, requires = "mavlink")]
+    emulator_zero_velocities: bool,
+    /// Frames taken while the vehicle yaws faster than this (deg/s, measured from the pose
+    /// stream) are refused by the core; 0: no check.
+    #[arg(long, default_value_t = 30.0)]
+    max_frame_yaw_rate: f32,
+    /// Frames whose newest pose sample is older than this (ms) are refused by the core; 0: no
+    /// check.
+    #[arg(long, default_value_t = 150)]
+    max_frame_pose_lag_ms: u32,
     /// Record every MAVLink frame both ways in this .tlog file (QGroundControl/MAVProxy format).
     #[arg(long, requires = "mavlink")]
     tlog: Option<PathBuf>,
@@ -1145,6 +1167,8 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
     cfg.max_yaw_rate = args.max_yaw_rate.to_radians();
     cfg.max_scans = args.max_scans;
     cfg.look_around = args.look_around;
+    cfg.explorer.max_frame_yaw_rate = args.max_frame_yaw_rate.to_radians();
+    cfg.explorer.max_frame_pose_lag_ms = args.max_frame_pose_lag_ms;
     cfg.dump_problem = args.dump_problem.clone();
     let (burst_rate, burst_len) = args.link_burst.unwrap_or((0.0, DEFAULT_BURST_LEN));
     cfg.link = LinkConfig {
@@ -1160,9 +1184,21 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
             burst_len,
         },
     };
+    if !(args.emulator_rate.is_finite() && args.emulator_rate > 0.0) {
+        return Err(format!(
+            "--emulator-rate {}: must be a positive number of Hz",
+            args.emulator_rate
+        ));
+    }
     cfg.mavlink = args.mavlink.clone().map(|spec| MavlinkConfig {
         spec,
         odometry: args.odometry,
+        emulator: EmulatorTiming {
+            pose_period_ms: ((1000.0 / args.emulator_rate).round() as u64).max(1),
+            latency_ms: args.emulator_latency_ms,
+            boot_ms: args.emulator_boot_ms,
+            zero_velocities: args.emulator_zero_velocities,
+        },
         tlog: args.tlog.clone(),
         ..MavlinkConfig::default()
     });

@@ -725,6 +725,8 @@ pub fn run(
             endpoint: "emulator (qemu uart1)".into(),
             traffic: TrafficReport::default(),
             tlog: None,
+            // The firmware keeps no pose history: its frames come stamped over the depth link.
+            pose_history: Default::default(),
             // The firmware's bridge keeps its counters on the board; these are its traffic as
             // the flight stack saw it arrive (the link is loss-free).
             bridge: harmonic_core::mavlink::BridgeCounters {

@@ -3,9 +3,10 @@
 //!
 //! The simulator never plans for the core. Each step it
 //!
-//! 1. renders the depth camera at the vehicle's true pose and sends the frame, stamped with the
-//!    pose the core believes, over the depth link ([`crate::depth_link`]: the link's wire
-//!    format at its baud rate, through the configured transport and fault injector);
+//! 1. renders the depth camera at the vehicle's true pose at the frame's instant and sends the
+//!    frame, stamped with the pose the core believes for that instant, over the depth link
+//!    ([`crate::depth_link`]: the link's wire format at its baud rate, through the configured
+//!    transport and fault injector);
 //! 2. keeps time running while the frame is on the wire (about 0.22 s at 921600 baud): the
 //!    vehicle hovers, and over MAVLink the bridge keeps streaming its setpoint;
 //! 3. hands every image that arrived whole to [`Explorer::integrate`] and asks
@@ -28,14 +29,34 @@
 //! itself (time is then the wall clock, and the vehicle is wherever the autopilot says). The
 //! explorer plans from, and the depth frames are stamped with, the pose the bridge reports —
 //! not the simulator's ground truth.
+//!
+//! # A frame's instant over MAVLink
+//!
+//! Pose reports describe the past: each carries the autopilot's `time_boot_ms` of the instant
+//! it was sampled, arrives some latency later, and the next one is a stream period away. So a
+//! frame is captured at an instant of the *autopilot's* clock — the newest one for which both
+//! position and attitude have arrived
+//! ([`PoseHistory::newest_ms`](harmonic_core::mavlink::PoseHistory::newest_ms)) — and its camera
+//! pose is the pose of that instant from the bridge's history
+//! ([`PoseHistory::pose_at`](harmonic_core::mavlink::PoseHistory::pose_at), interpolated by
+//! `time_boot_ms` when position and attitude were not sampled together). Against a remote
+//! autopilot the camera renders at that same pose: it is the only truth there is. Against the
+//! emulator it renders at the simulator's true pose of that instant (the emulator's clock is
+//! the simulator's plus [`EmulatorTiming::boot_ms`](crate::flight::EmulatorTiming::boot_ms)),
+//! so a stamp from the wrong instant shows as a smeared map. Each frame also carries its
+//! [`FrameTiming`] — the yaw rate measured from the samples' timestamps, and how long before
+//! the capture the newest sample arrived — and the core refuses frames taken while turning
+//! faster than [`ExplorerConfig::max_frame_yaw_rate`] or on a pose stream older than
+//! [`ExplorerConfig::max_frame_pose_lag_ms`]; the vehicle holds and the next step captures
+//! again.
 
 use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{
-    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
-    SolverKind,
+    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, FrameTiming, Goal,
+    PlanOutcome, SolverKind,
 };
 use harmonic_core::map::{self, Dims, MapGeometry};
 use harmonic_core::solve::multigrid;
@@ -579,6 +600,25 @@ struct Rig<'b> {
     wall: Option<Instant>,
     /// Injected pose faults.
     faults: SimFaults,
+    /// With the emulator: the true vehicle at each of the last pose samples it was handed
+    /// (simulated ms, vehicle), for the truth at a frame's instant.
+    truth: std::collections::VecDeque<(u64, Vehicle)>,
+}
+
+/// Over MAVLink, how long a capture waits for a turning vehicle to stop, s.
+const SETTLE_S: f64 = 0.5;
+
+/// Pose samples of the true vehicle the simulator keeps (5 s at its 50 ms step).
+const TRUTH_HISTORY_LEN: usize = 100;
+
+/// The poses of one captured frame.
+struct Capture {
+    /// What the frame is stamped with: the pose the core believes (map frame position, yaw).
+    believed: (Point3<f32>, f32),
+    /// Where the camera renders from: the vehicle's true pose at the frame's instant.
+    truth: (Point3<f32>, f32),
+    /// The frame's timing, over MAVLink.
+    timing: Option<FrameTiming>,
 }
 
 impl Rig<'_> {
@@ -623,10 +663,101 @@ impl Rig<'_> {
             return Ok(());
         }
         let reported = vehicle.position + self.drift();
-        match self.mav.as_mut() {
-            Some(mav) => mav.pull(now, &reported, vehicle.yaw).map_err(SimError::Mavlink),
-            None => Ok(()),
+        let Some(mav) = self.mav.as_mut() else {
+            return Ok(());
+        };
+        if !mav.is_remote() {
+            // What the emulator is handed now is the truth of this instant.
+            if self.truth.back().is_none_or(|(t, _)| *t < now) {
+                if self.truth.len() >= TRUTH_HISTORY_LEN {
+                    self.truth.pop_front();
+                }
+                self.truth.push_back((now, *vehicle));
+            }
         }
+        mav.pull(now, &reported, vehicle.yaw).map_err(SimError::Mavlink)
+    }
+
+    /// Captures a frame's poses (see the [module documentation](self)): without MAVLink the
+    /// truth, and the truth plus the injected drift as the belief; over MAVLink the instant is
+    /// the newest pose sample's (autopilot clock), the belief the bridge's pose of that instant
+    /// and the truth the vehicle's at that instant (against a remote autopilot, the same pose,
+    /// which the vehicle takes).
+    fn capture(
+        &mut self,
+        vehicle: &mut Vehicle,
+        scene: &Scene<'_>,
+        track: &mut Track,
+    ) -> Result<Capture, SimError> {
+        if self.mav.is_none() {
+            return Ok(Capture {
+                believed: (vehicle.position + self.drift(), vehicle.yaw),
+                truth: (vehicle.position, vehicle.yaw),
+                timing: None,
+            });
+        }
+        // The newest samples, and a fresh pose at all (waits, streaming, while it is stale).
+        // A vehicle still turning is given up to SETTLE_S to stop (a goal turn that just ended
+        // shows in the last sample interval); the core refuses what is still turning then.
+        let start = self.t_s;
+        let pose = loop {
+            self.pull(vehicle)?;
+            let believed = self.believed_pose(vehicle, scene, track)?;
+            let Some(mav) = self.mav.as_ref() else {
+                return Err(SimError::Mavlink("no MAVLink link".into()));
+            };
+            let history = mav.history();
+            let Some(Ok(pose)) = history.newest_ms().map(|t| history.pose_at(t)) else {
+                // No timestamped sample (cannot happen once the bridge has a pose): the
+                // bridge's pose, untimed.
+                return Ok(Capture {
+                    believed,
+                    truth: (vehicle.position, vehicle.yaw),
+                    timing: None,
+                });
+            };
+            let limit = scene.cfg.explorer.max_frame_yaw_rate;
+            let turning = pose.yaw_rate.is_some_and(|r| r.abs() > limit);
+            if !turning || self.t_s - start >= SETTLE_S {
+                break pose;
+            }
+            let moved = self.exchange(vehicle, 0.0, 0.0)?;
+            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+            self.advance()?;
+        };
+        let now = self.now_ms();
+        let Some(mav) = self.mav.as_ref() else {
+            return Err(SimError::Mavlink("no MAVLink link".into()));
+        };
+        let timing = FrameTiming {
+            yaw_rate: pose.yaw_rate,
+            pose_lag_ms: u32::try_from(now.saturating_sub(pose.arrived_ms)).unwrap_or(u32::MAX),
+        };
+        let believed = (pose.position, pose.yaw);
+        let truth = match mav.emulator_boot_ms() {
+            // The emulator's clock runs `boot_ms` ahead of simulated time.
+            Some(boot_ms) => {
+                let at = u64::from(pose.time_boot_ms).saturating_sub(boot_ms);
+                let v = self
+                    .truth
+                    .iter()
+                    .rev()
+                    .find(|(t, _)| *t <= at)
+                    .map(|(_, v)| *v)
+                    .unwrap_or(*vehicle);
+                (v.position, v.yaw)
+            }
+            None => {
+                vehicle.position = pose.position;
+                vehicle.yaw = pose.yaw;
+                believed
+            }
+        };
+        Ok(Capture {
+            believed,
+            truth,
+            timing: Some(timing),
+        })
     }
 
     /// Bridge → autopilot at the current time, then the vehicle follows the autopilot:
@@ -1026,6 +1157,7 @@ pub fn run_observed(
         dt: f64::from(cfg.dt),
         wall: remote.then(Instant::now),
         faults: cfg.faults,
+        truth: std::collections::VecDeque::new(),
     };
     let mut sensor_rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x5e45_0f17);
     let mut clock = HostClock::new();
@@ -1055,16 +1187,21 @@ pub fn run_observed(
 
     let mut taken = 0u32;
     let mut looked = 0u32;
+    // Each frame's timing, by frame id (= step), until it arrives.
+    let mut timings: std::collections::BTreeMap<u32, FrameTiming> = std::collections::BTreeMap::new();
     for step in 1..=cfg.max_scans {
         taken = step;
-        // The camera sees the world from where the vehicle truly is; the frame is stamped with
-        // the pose the core believes.
-        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        // The camera sees the world from where the vehicle truly is at the frame's instant; the
+        // frame is stamped with the pose the core believes for that instant.
+        let capture = rig.capture(&mut vehicle, &scene, &mut track)?;
         let (position, yaw) = match &drift {
-            Some(d) => d.believed(&position, yaw),
-            None => (position, yaw),
+            Some(d) => d.believed(&capture.believed.0, capture.believed.1),
+            None => capture.believed,
         };
-        let true_pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
+        let true_pose = forward_camera_pose(&capture.truth.0, capture.truth.1);
+        if let Some(timing) = capture.timing {
+            timings.insert(step, timing);
+        }
         match stereo.as_mut() {
             Some(stereo) => {
                 stereo
@@ -1087,7 +1224,8 @@ pub fn run_observed(
         let mut frames = Vec::new();
         for arrived in rig.link.take_arrived() {
             if let Some(frame) = arrived.frame() {
-                match planner.integrate(&frame, &arrived.camera_pose) {
+                let timing = timings.remove(&arrived.frame_id);
+                match planner.integrate(&frame, &arrived.camera_pose, timing.as_ref()) {
                     Ok(()) => {
                         integrated += 1;
                         rig.link.note_integrated();

@@ -39,7 +39,8 @@ use harmonic_core::camera::{DepthFrame, Intrinsics};
 use harmonic_core::domain::{self, DomainError, InflationStencil, Label};
 use harmonic_core::explore::Clock;
 use harmonic_core::explore::{
-    ConfigError, ExplorerConfig, ExplorerStorage, Fault, Goal, PlanOutcome, Status, Termination,
+    check_frame_timing, ConfigError, ExplorerConfig, ExplorerStorage, Fault, FrameTiming, Goal, PlanOutcome,
+    Status, Termination,
 };
 use harmonic_core::integrate::{self, traverse};
 use harmonic_core::map::{MapGeometry, VoxelIndex, VoxelMap};
@@ -668,7 +669,15 @@ impl Planner for Baseline<'_> {
         self.kind
     }
 
-    fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> Result<(), Fault> {
+    fn integrate(
+        &mut self,
+        frame: &DepthFrame<'_>,
+        camera_pose: &Isometry3<f32>,
+        timing: Option<&FrameTiming>,
+    ) -> Result<(), Fault> {
+        if let Some(timing) = timing {
+            check_frame_timing(&self.config, timing, &mut self.status.errors).map_err(Fault::Integrate)?;
+        }
         match integrate::integrate(&mut self.map, frame, camera_pose, &self.config.integration) {
             Ok(stats) => {
                 self.intrinsics = Some(*frame.intrinsics());

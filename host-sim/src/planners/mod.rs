@@ -31,7 +31,7 @@ use std::time::Instant;
 
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
-use harmonic_core::explore::{Clock, Explorer, Fault, PlanOutcome, SolverKind, Status};
+use harmonic_core::explore::{Clock, Explorer, Fault, FrameTiming, PlanOutcome, SolverKind, Status};
 use harmonic_core::field::PlanningField;
 use harmonic_core::map::VoxelMap;
 use nalgebra::{Isometry3, Point3};
@@ -150,9 +150,16 @@ impl Clock for HostClock {
 pub trait Planner {
     /// The planner's kind.
     fn kind(&self) -> PlannerKind;
-    /// Integrates one depth frame taken from `camera_pose` (camera → map). The fault if the core
-    /// rejected it (counted in the status).
-    fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> Result<(), Fault>;
+    /// Integrates one depth frame taken from `camera_pose` (camera → map); with `timing`, the
+    /// core first refuses a frame taken while turning too fast or on a lagging pose
+    /// ([`harmonic_core::explore::check_frame_timing`]). The fault if the core rejected it
+    /// (counted in the status).
+    fn integrate(
+        &mut self,
+        frame: &DepthFrame<'_>,
+        camera_pose: &Isometry3<f32>,
+        timing: Option<&FrameTiming>,
+    ) -> Result<(), Fault>;
     /// Plans from the vehicle at `position` with heading `yaw`.
     fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome;
     /// Waypoints from the vehicle to the last goal, map frame.
@@ -192,8 +199,17 @@ impl Planner for HarmonicPlanner<'_> {
     fn kind(&self) -> PlannerKind {
         self.kind
     }
-    fn integrate(&mut self, frame: &DepthFrame<'_>, camera_pose: &Isometry3<f32>) -> Result<(), Fault> {
-        self.explorer.integrate(frame, camera_pose).map(|_| ())
+    fn integrate(
+        &mut self,
+        frame: &DepthFrame<'_>,
+        camera_pose: &Isometry3<f32>,
+        timing: Option<&FrameTiming>,
+    ) -> Result<(), Fault> {
+        match timing {
+            Some(timing) => self.explorer.integrate_timed(frame, camera_pose, timing),
+            None => self.explorer.integrate(frame, camera_pose),
+        }
+        .map(|_| ())
     }
     fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
         self.explorer.plan_timed(position, yaw, clock)
