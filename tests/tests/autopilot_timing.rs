@@ -53,11 +53,14 @@ fn emulator_with_latency_slow_stream_and_a_late_boot_keeps_the_map_true() {
         ..SimConfig::default()
     };
     let r = sim::run(&apartment(), &cfg, |_| {}).expect("run");
+    // The planner looks at near frontiers before it flies (the view rule): 30 scans from the
+    // apartment's start turn the vehicle many times and move it about a metre.
     assert!(
-        r.scans >= 20 && r.path_length_m > 5.0,
-        "it explored: {} scans, {:.1} m",
+        r.scans >= 20 && r.path_length_m > 0.5 && r.coverage_free > 0.45,
+        "it explored: {} scans, {:.1} m, {:.1} % free coverage",
         r.scans,
-        r.path_length_m
+        r.path_length_m,
+        100.0 * r.coverage_free
     );
     // A few voxels can be wrong with perfect poses too (rays grazing a corner; a transient
     // the next views clear): the bound, not zero. A frame stamped with another instant's pose
@@ -167,7 +170,7 @@ fn peer_flights_with_latency_and_odd_stream_rates_keep_the_map_true() {
     ] {
         let (r, peer) = against_peer(args, 14);
         assert!(
-            r.scans >= 8 && r.path_length_m > 1.0,
+            r.scans >= 8 && r.path_length_m > 0.2,
             "{what}: it explored: {} scans, {:.1} m",
             r.scans,
             r.path_length_m

@@ -64,10 +64,11 @@ fn tiny_bench_of_every_planner_shards_and_merges() {
     };
     let a = batch::run(&cfg((1, 2)), &dir.join("a"), true).unwrap();
     let b = batch::run(&cfg((2, 2)), &dir.join("b"), true).unwrap();
-    assert_eq!(a.len() + b.len(), 2 * 6 * 2);
+    let runs = 2 * PlannerKind::ALL.len() * 2;
+    assert_eq!(a.len() + b.len(), runs);
     assert!(dir.join("a/runs-shard-1-of-2.csv").exists());
     let rows = batch::merge(&[dir.join("a"), dir.join("b")], &dir.join("all")).unwrap();
-    assert_eq!(rows.len(), 24);
+    assert_eq!(rows.len(), runs);
     for kind in PlannerKind::ALL {
         let mine: Vec<_> = rows.iter().filter(|r| r.planner == kind.name()).collect();
         assert_eq!(mine.len(), 4, "{kind}");
