@@ -246,9 +246,9 @@ impl<'a> Baseline<'a> {
             };
             let path = self.search.path(target.voxel);
             self.waypoints = smooth(&geometry, self.labels, position, &path, &mut steps);
-            let revisit = self.core_views && self.revisits(target.frontier, position, learned_nothing);
-            let retry_near = revisit && last_from_afar;
-            self.go_near = revisit && (last_from_afar || self.go_near);
+            let revisit = self.is_fruitless_revisit(target.frontier, position, learned_nothing);
+            let retry_near = self.core_views && revisit && last_from_afar;
+            self.go_near = self.core_views && revisit && (last_from_afar || self.go_near);
             let goal = self.choose_goal(&target, yaw);
             self.status.planning_ops += self.search.expansions - expansions0 + steps;
             self.status.streamline = Some(StreamlineEnd {
@@ -262,7 +262,7 @@ impl<'a> Baseline<'a> {
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
             if retry_near {
                 // A look from afar that taught nothing: go near before calling it fruitless.
-            } else if self.is_fruitless_revisit(&goal, position, learned_nothing) {
+            } else if revisit {
                 self.fruitless_visits = self.fruitless_visits.saturating_add(1);
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
@@ -559,23 +559,19 @@ impl<'a> Baseline<'a> {
         None
     }
 
-    /// The vehicle stands at its last goal and targets (about) the same frontier, or its last
-    /// visit taught nothing.
-    fn revisits(&self, frontier: VoxelIndex, position: &Point3<f32>, learned_nothing: bool) -> bool {
+    /// The vehicle stands at its last goal and targets (about) the same `frontier` again, or its
+    /// last visit taught nothing.
+    fn is_fruitless_revisit(
+        &self,
+        frontier: VoxelIndex,
+        position: &Point3<f32>,
+        learned_nothing: bool,
+    ) -> bool {
         let res = self.map.geometry().resolution();
         self.commitment.as_ref().is_some_and(|c| {
             !c.goal.escape
                 && (c.goal.position - position).norm() <= 1.5 * res
                 && (learned_nothing || c.goal.frontier.distance_sq(&frontier) <= 2)
-        })
-    }
-
-    fn is_fruitless_revisit(&self, goal: &Goal, position: &Point3<f32>, learned_nothing: bool) -> bool {
-        let res = self.map.geometry().resolution();
-        self.commitment.as_ref().is_some_and(|c| {
-            !c.goal.escape
-                && (c.goal.position - position).norm() <= 1.5 * res
-                && (learned_nothing || c.goal.frontier.distance_sq(&goal.frontier) <= 2)
         })
     }
 
