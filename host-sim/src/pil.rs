@@ -627,6 +627,8 @@ pub fn run(
             frames_integrated: 1,
             streamline_m: report.streamline_length,
             path_length_m: path,
+            goal: None,
+            seals: report.errors.seals,
         };
         progress(&record);
         steps.push(record);

@@ -254,6 +254,12 @@ pub struct StepRecord {
     pub streamline_m: f32,
     /// Path flown so far, metres.
     pub path_length_m: f64,
+    /// The goal this step flies to (a new or kept plan), map frame; `None` without a goal
+    /// (and in processor-in-the-loop runs, whose downlink report carries no goal).
+    pub goal: Option<[f32; 3]>,
+    /// Frontier regions sealed so far (visits that kept teaching nothing; see
+    /// `harmonic_core::explore::ExplorerConfig::stall_visits`).
+    pub seals: u32,
 }
 
 /// Mean and maximum of a per-step time.
@@ -1337,6 +1343,11 @@ pub fn run_observed(
             solver_updates: status.solve.cell_updates,
             streamline_m: status.streamline.map(|s| s.length).unwrap_or(0.0),
             path_length_m: track.distance,
+            goal: match outcome {
+                Some(PlanOutcome::Goal(g)) => Some(g.position.coords.into()),
+                _ => None,
+            },
+            seals: status.errors.seals,
         };
         progress(&record);
         observe(&StepView {
