@@ -799,6 +799,12 @@ struct FieldArgs {
     /// large: the largest frontier region wins).
     #[arg(long, value_parser = parse_positive)]
     decay_length: Option<f32>,
+    /// The value of the screened field at the vehicle that a lowered κ aims for when the
+    /// nearest frontier is far (it accepts down to a tenth of it): the smaller, the longer
+    /// the field stays local and visits remnants nearest first (default 1e-4; 1e-2 was the
+    /// first setting, see docs/RESULTS.md).
+    #[arg(long, value_parser = parse_positive)]
+    vehicle_value: Option<f32>,
     /// Look from a distance: the core's goal is the first point of its streamline from which
     /// the frontier is in plain sight within this range (metres); 0 flies up to it.
     #[arg(long)]
@@ -814,6 +820,10 @@ impl FieldArgs {
     fn apply(&self, cfg: &mut SimConfig) {
         if let (Some(d), PlanningField::Screened(p)) = (self.decay_length, &mut cfg.explorer.field) {
             p.decay_length_m = d;
+        }
+        if let (Some(u), PlanningField::Screened(p)) = (self.vehicle_value, &mut cfg.explorer.field) {
+            p.target_vehicle_value = u.min(0.5);
+            p.min_vehicle_value = 0.1 * p.target_vehicle_value;
         }
         if let Some(r) = self.view_range {
             cfg.explorer.view_range_m = r.max(0.0);
