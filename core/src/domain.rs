@@ -376,7 +376,12 @@ fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label])
             }
         }
     }
-    // The grid edge is a wall: the space beyond it is not the vehicle's to fly in.
+    clear_grid_edges(&dims, stencil, labels);
+}
+
+/// The grid edge is a wall: the space beyond it is not the vehicle's to fly in, so candidates
+/// and fringe voxels nearer an edge than the vehicle radius leave the domain.
+fn clear_grid_edges(dims: &Dims, stencil: &InflationStencil, labels: &mut [Label]) {
     let r2 = stencil.radius_voxels * stencil.radius_voxels;
     let edge_clear = |c: u16, n: usize| {
         let near = f32::from(c) + 0.5;
@@ -808,7 +813,8 @@ pub(crate) mod tests {
     }
 
     /// The straightforward inflation (two passes, every neighbour bounds-checked) that
-    /// [`inflate`]'s one pass with index arithmetic replaced.
+    /// [`inflate`]'s one pass with index arithmetic replaced, without the grid-edge rule
+    /// both share ([`clear_grid_edges`]).
     fn inflate_reference(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) {
         let dims = map.dims();
         let observed_near = |v: VoxelIndex| {
@@ -894,22 +900,7 @@ pub(crate) mod tests {
             let (fast, reference) = (&mut fast[..n], &mut reference[..n]);
             inflate(&map, &stencil, fast);
             inflate_reference(&map, &stencil, reference);
-            // The edge rule runs in both (inflate's tail); compare before it matters by
-            // applying it to the reference too.
-            let r2 = stencil.radius_voxels * stencil.radius_voxels;
-            let edge_clear = |c: u16, n: usize| {
-                let near = f32::from(c) + 0.5;
-                let far = n as f32 - f32::from(c) - 0.5;
-                near * near >= r2 && far * far >= r2
-            };
-            for (i, l) in reference.iter_mut().enumerate() {
-                let v = dims.voxel(i);
-                if matches!(*l, Label::Candidate | Label::Fringe)
-                    && !(edge_clear(v.x, nx) && edge_clear(v.y, ny) && edge_clear(v.z, nz))
-                {
-                    *l = Label::Outside;
-                }
-            }
+            clear_grid_edges(&dims, &stencil, reference);
             assert_eq!(fast, reference, "case {case}: {nx}x{ny}x{nz}, radius {radius}");
         }
     }
