@@ -96,8 +96,8 @@ impl Default for ScreenedParams {
             // accepts down to it; a streamline that still stalls retries on half the κ.
             // Late in an exploration only scattered remnants are left, and the deeper the
             // field stays local, the more it visits them nearest first rather than by their
-            // mass: 1e-3 / 1e-2 (the first setting) flew 8 % farther on s2 (starts 1–4) and
-            // about the same elsewhere (docs/RESULTS.md, "Remnants").
+            // mass. Measured against 1e-3 / 1e-2 (the first setting): 1 % shorter on s2 over
+            // 30 starts, the same on s4, no worse elsewhere (docs/RESULTS.md, "Remnants").
             min_vehicle_value: 1e-5,
             target_vehicle_value: 1e-4,
             raise_above: 0.1,
