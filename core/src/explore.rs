@@ -55,6 +55,12 @@ pub enum SolverKind {
     Multigrid,
     /// Lexicographic Gauss-Seidel, the seed paper's solver (reference and baseline).
     GaussSeidel,
+    /// The seed thesis's own solve ([`crate::solve::thesis`]): Jacobi sweeps from φ = 0 at every
+    /// plan, stopped when the largest per-voxel relative change falls below 1e-4 (or after
+    /// 20 000 sweeps, counted as not converged). An ablation of the thesis's truncated field.
+    /// Needs [`ExplorerStorage::jacobi`] (one entry per voxel) and the seed's field
+    /// ([`PlanningField::Harmonic`]); other fields are refused at construction.
+    ThesisJacobi,
 }
 
 /// Everything an explorer is configured with.
@@ -153,7 +159,8 @@ impl Default for ExplorerConfig {
 /// ([`map::touched_words`](crate::map::touched_words): one bit per voxel) and `queue` (any
 /// length ≥ 1; a few thousand entries keep the flood fill to one pass). The multigrid buffers
 /// are sized by [`crate::solve::multigrid::scratch_size`]; they may be empty when the solver is
-/// Gauss-Seidel, and `krylov` may be empty to run plain V-cycles in less memory.
+/// Gauss-Seidel or the thesis's Jacobi, and `krylov` may be empty to run plain V-cycles in less
+/// memory. `jacobi` may be empty unless the solver is [`SolverKind::ThesisJacobi`].
 ///
 /// [`ExplorerStorage::bytes`] adds it up: 1.125 bytes of map, 1 byte of labels and 4 bytes of ψ
 /// per voxel, plus the multigrid levels (about 1.3 bytes per voxel) and the queue — 64 × 64 × 32
@@ -177,6 +184,9 @@ pub struct ExplorerStorage<'a> {
     pub coarse_faces: &'a mut [[u8; 4]],
     /// MGPCG vectors (optional).
     pub krylov: &'a mut [f32],
+    /// The other sweep of the thesis's Jacobi solve ([`SolverKind::ThesisJacobi`] only: one
+    /// entry per voxel then; otherwise it may be empty).
+    pub jacobi: &'a mut [f32],
 }
 
 impl ExplorerStorage<'_> {
@@ -191,6 +201,7 @@ impl ExplorerStorage<'_> {
             + size_of_val(self.coarse_values)
             + size_of_val(self.coarse_labels)
             + size_of_val(self.krylov)
+            + size_of_val(self.jacobi)
     }
 }
 
@@ -402,6 +413,8 @@ pub struct Explorer<'a> {
     phi: &'a mut [f32],
     queue: &'a mut [u32],
     multigrid: Option<Multigrid<'a>>,
+    /// The thesis's Jacobi scratch (empty unless [`SolverKind::ThesisJacobi`]).
+    jacobi: &'a mut [f32],
     waypoints: Waypoints,
     intrinsics: Option<Intrinsics>,
     last_goal: Option<Goal>,
@@ -441,6 +454,7 @@ impl<'a> Explorer<'a> {
             coarse_labels,
             coarse_faces,
             krylov,
+            jacobi,
         } = storage;
         if labels.len() < n || phi.len() < n || queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
@@ -459,6 +473,20 @@ impl<'a> Explorer<'a> {
                 .map_err(ConfigError::Solver)?,
             ),
             SolverKind::GaussSeidel => None,
+            SolverKind::ThesisJacobi => {
+                if jacobi.len() < n {
+                    return Err(ConfigError::StorageTooSmall);
+                }
+                if config.field != PlanningField::Harmonic {
+                    // The thesis solves Laplace's equation only.
+                    return Err(ConfigError::Solver(SolveError::BadScreening));
+                }
+                None
+            }
+        };
+        let jacobi = match config.solver {
+            SolverKind::ThesisJacobi => jacobi.get_mut(..n).unwrap_or_default(),
+            _ => &mut [],
         };
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
@@ -476,6 +504,7 @@ impl<'a> Explorer<'a> {
             phi,
             queue,
             multigrid,
+            jacobi,
             waypoints: Waypoints::new(),
             intrinsics: None,
             last_goal: None,
@@ -864,16 +893,25 @@ impl<'a> Explorer<'a> {
         }
     }
 
-    /// One solve of the current domain with `screening` (κ²h², 0 for Laplace) to `tolerance`.
+    /// One solve of the current domain with `screening` (κ²h², 0 for Laplace) to `tolerance`
+    /// (the thesis's Jacobi stops by its own rule instead, [`solve::thesis`]).
     fn solve_once(&mut self, screening: f32, tolerance: f32) -> Result<SolveStats, SolveError> {
         let params = SolveParams {
             screening,
             tolerance,
             ..self.config.solve
         };
-        match self.multigrid.as_mut() {
-            Some(mg) => mg.solve(self.labels, self.phi, &params, Method::Auto),
-            None => solve::gauss_seidel(&self.map.geometry().dims(), self.labels, self.phi, &params),
+        let dims = self.map.geometry().dims();
+        match (self.multigrid.as_mut(), self.config.solver) {
+            (Some(mg), _) => mg.solve(self.labels, self.phi, &params, Method::Auto),
+            (None, SolverKind::ThesisJacobi) => solve::thesis::solve(
+                &dims,
+                self.labels,
+                self.phi,
+                self.jacobi,
+                &solve::thesis::ThesisParams::default(),
+            ),
+            (None, _) => solve::gauss_seidel(&dims, self.labels, self.phi, &params),
         }
     }
 

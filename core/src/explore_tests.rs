@@ -23,6 +23,7 @@ struct Buffers {
     coarse_labels: Vec<Label>,
     faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
+    jacobi: Vec<f32>,
 }
 
 impl Buffers {
@@ -39,9 +40,13 @@ impl Buffers {
             coarse_labels: vec![Label::Outside; s.labels],
             faces: vec![[0; 4]; s.faces],
             krylov: vec![0.0; s.krylov],
+            jacobi: Vec::new(),
         }
     }
     fn explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Explorer<'_> {
+        self.try_explorer(dims, config).unwrap()
+    }
+    fn try_explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Result<Explorer<'_>, ConfigError> {
         let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
         Explorer::new(
             geometry,
@@ -56,9 +61,9 @@ impl Buffers {
                 coarse_labels: &mut self.coarse_labels,
                 coarse_faces: &mut self.faces,
                 krylov: &mut self.krylov,
+                jacobi: &mut self.jacobi,
             },
         )
-        .unwrap()
     }
 }
 
@@ -318,6 +323,38 @@ fn solver_cycle_cap_is_counted_and_the_goal_is_still_safe() {
         PlanOutcome::Hold(_) => {}
         PlanOutcome::Complete => panic!("unexplored space left, yet complete"),
     }
+}
+
+#[test]
+fn thesis_jacobi_plans_the_seed_field_and_needs_its_scratch() {
+    let dims = Dims::new(30, 12, 6).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig {
+        field: PlanningField::Harmonic,
+        solver: SolverKind::ThesisJacobi,
+        ..ExplorerConfig::default()
+    };
+    assert!(matches!(
+        b.try_explorer(dims, config),
+        Err(ConfigError::StorageTooSmall)
+    ));
+    b.jacobi = vec![0.0; dims.len()];
+    let screened = ExplorerConfig {
+        field: PlanningField::default(),
+        ..config
+    };
+    assert!(matches!(
+        b.try_explorer(dims, screened),
+        Err(ConfigError::Solver(SolveError::BadScreening))
+    ));
+    let mut e = b.explorer(dims, config);
+    let p = Point3::new(0.3, 0.6, 0.3);
+    look(&mut e, &looking(p, Vector3::x()), 0);
+    let outcome = e.plan(&p, 0.0);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
+    let s = e.status().solve;
+    assert!(s.converged && s.iterations > 2, "{s:?}");
+    assert_eq!(e.status().errors.solver_not_converged, 0);
 }
 
 /// A 4.0 × 2.4 × 1.2 m corridor seen free up to x = 2.5 m, unknown beyond; the vehicle at

@@ -263,6 +263,8 @@ pub fn build_explorer<'a>(
             // `MultigridStorage::faces`); coarse levels use the label-only operator.
             coarse_faces: &mut [],
             krylov: &mut [],
+            // The thesis's Jacobi solve is a host-side ablation.
+            jacobi: &mut [],
         },
     )?;
     Ok((slot.write(explorer), depth))

@@ -91,6 +91,7 @@ pub fn run(data: &[u8]) {
         coarse_labels: &mut coarse_labels,
         coarse_faces: &mut coarse_faces,
         krylov: &mut krylov,
+        jacobi: &mut [],
     };
     let Ok(mut explorer) = Explorer::new(geometry, config, storage) else {
         return;

@@ -11,7 +11,8 @@
 //! sweep can be split across machines, and `bench merge` joins the shards' CSVs into one table.
 //!
 //! Outputs in the output directory: `runs.csv` (or `runs-shard-I-of-N.csv`), one row per run
-//! ([`RunRow`]); `curves.csv`, coverage against distance flown for every run; `results.md`, one
+//! ([`RunRow`]); `curves.csv`, coverage against distance flown for every run; `solves.csv`,
+//! the solver's work per run ([`SolveSummary`]); `results.md`, one
 //! table per scenario ([`markdown`]); `coverage_<scenario>.png`, the coverage curves of every
 //! planner ([`crate::figures::coverage_curves`]).
 
@@ -195,6 +196,52 @@ pub struct Curve {
     pub points: Vec<(f64, f64)>,
 }
 
+/// The solver's work over one run: the steps that solved a new plan (outcome `goal`).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct SolveSummary {
+    /// Steps that solved a new plan.
+    pub solves: u32,
+    /// Mean solver iterations (sweeps or cycles) of those steps' last solve.
+    pub iterations_mean: f64,
+    /// Fewest of them.
+    pub iterations_min: u32,
+    /// Most of them.
+    pub iterations_max: u32,
+    /// Solves that stopped at the iteration cap over the run (the core's counter).
+    pub not_converged: u32,
+    /// Mean solve time of those steps, ms.
+    pub solve_ms_mean: f64,
+}
+
+/// The header of `solves.csv`.
+pub const SOLVES_HEADER: &str =
+    "scenario,planner,seed,solves,iterations_mean,iterations_min,iterations_max,not_converged,solve_ms_mean";
+
+impl SolveSummary {
+    /// The summary of a finished run.
+    pub fn of(report: &Report) -> Self {
+        let solved: Vec<_> = report.steps.iter().filter(|s| s.outcome == "goal").collect();
+        let n = solved.len();
+        let sum = |f: &dyn Fn(&crate::sim::StepRecord) -> f64| solved.iter().map(|s| f(s)).sum::<f64>();
+        Self {
+            solves: n as u32,
+            iterations_mean: if n == 0 {
+                0.0
+            } else {
+                sum(&|s| f64::from(s.solver_iterations)) / n as f64
+            },
+            iterations_min: solved.iter().map(|s| s.solver_iterations).min().unwrap_or(0),
+            iterations_max: solved.iter().map(|s| s.solver_iterations).max().unwrap_or(0),
+            not_converged: report.errors.solver_not_converged,
+            solve_ms_mean: if n == 0 {
+                0.0
+            } else {
+                sum(&|s| s.solve_ms) / n as f64
+            },
+        }
+    }
+}
+
 /// A batch of runs.
 #[derive(Debug, Clone)]
 pub struct BenchConfig {
@@ -291,7 +338,7 @@ impl BenchConfig {
 }
 
 /// Runs one job.
-pub fn run_job(job: &Job, base: &SimConfig) -> Result<(RunRow, Curve), String> {
+pub fn run_job(job: &Job, base: &SimConfig) -> Result<(RunRow, Curve, SolveSummary), String> {
     let scenario = Scenario::by_name_or_path(&job.scenario)
         .map_err(|e| e.to_string())?
         .with_random_start(job.seed);
@@ -310,7 +357,7 @@ pub fn run_job(job: &Job, base: &SimConfig) -> Result<(RunRow, Curve), String> {
             .map(|s| (s.path_length_m, s.coverage_free))
             .collect(),
     };
-    Ok((row, curve))
+    Ok((row, curve, SolveSummary::of(&report)))
 }
 
 /// Runs a batch, writing the CSVs and the tables into `out` as runs finish; progress on stderr.
@@ -320,15 +367,15 @@ pub fn run(cfg: &BenchConfig, out: &Path, quiet: bool) -> Result<Vec<RunRow>, St
     let total = jobs.len();
     let csv_path = out.join(cfg.csv_name());
     let curves_path = out.join(cfg.csv_name().replace("runs", "curves"));
-    let files = Mutex::new((
-        std::fs::File::create(&csv_path).map_err(|e| format!("{}: {e}", csv_path.display()))?,
-        std::fs::File::create(&curves_path).map_err(|e| format!("{}: {e}", curves_path.display()))?,
-    ));
+    let solves_path = out.join(cfg.csv_name().replace("runs", "solves"));
+    let create = |p: &Path| std::fs::File::create(p).map_err(|e| format!("{}: {e}", p.display()));
+    let files = Mutex::new((create(&csv_path)?, create(&curves_path)?, create(&solves_path)?));
     {
         use std::io::Write;
         let mut f = files.lock().map_err(|_| "lock")?;
         writeln!(f.0, "{CSV_HEADER}").map_err(|e| e.to_string())?;
         writeln!(f.1, "scenario,planner,seed,path_length_m,coverage_free").map_err(|e| e.to_string())?;
+        writeln!(f.2, "{SOLVES_HEADER}").map_err(|e| e.to_string())?;
     }
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(cfg.jobs)
@@ -354,7 +401,7 @@ pub fn run(cfg: &BenchConfig, out: &Path, quiet: bool) -> Result<Vec<RunRow>, St
     let results: Vec<Result<RunRow, String>> = pool.install(|| {
         jobs.par_iter()
             .map(|job| {
-                let (row, curve) = run_job(job, &cfg.sim)
+                let (row, curve, solves) = run_job(job, &cfg.sim)
                     .map_err(|e| format!("{} {} seed {}: {e}", job.scenario, job.planner, job.seed))?;
                 use std::io::Write;
                 {
@@ -364,6 +411,21 @@ pub fn run(cfg: &BenchConfig, out: &Path, quiet: bool) -> Result<Vec<RunRow>, St
                         writeln!(f.1, "{},{},{},{d:.3},{c:.5}", clean(&curve.scenario), curve.planner, curve.seed)
                             .map_err(|e| e.to_string())?;
                     }
+                    let s = solves;
+                    writeln!(
+                        f.2,
+                        "{},{},{},{},{:.1},{},{},{},{:.3}",
+                        clean(&row.scenario),
+                        row.planner,
+                        row.seed,
+                        s.solves,
+                        s.iterations_mean,
+                        s.iterations_min,
+                        s.iterations_max,
+                        s.not_converged,
+                        s.solve_ms_mean
+                    )
+                    .map_err(|e| e.to_string())?;
                 }
                 let k = done.fetch_add(1, Ordering::SeqCst) + 1;
                 let cpu_s = {
@@ -564,7 +626,7 @@ pub fn thesis_path(scenario: &str, planner: &str) -> Option<(f64, f64)> {
         "closest-frontier" => 1,
         "info-gain" => 2,
         "weighted-info-gain" => 3,
-        "harmonic" | "harmonic-gs" => 4,
+        "harmonic" | "harmonic-gs" | "harmonic-thesis" => 4,
         _ => return None,
     };
     let table: [(&str, [(f64, f64); 5]); 6] = [

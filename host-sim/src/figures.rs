@@ -451,6 +451,7 @@ fn planner_colour(name: &str) -> RGBColor {
         "info-gain" => RGBColor(44, 160, 44),
         "weighted-info-gain" => RGBColor(148, 103, 189),
         "harmonic-gs" => RGBColor(255, 127, 14),
+        "harmonic-thesis" => RGBColor(140, 86, 75),
         "harmonic" => RGBColor(214, 39, 40),
         _ => BLACK,
     }

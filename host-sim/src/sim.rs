@@ -91,9 +91,10 @@ pub const REMOTE_STALL_S: f64 = 20.0;
 #[derive(Debug, Clone)]
 pub struct SimConfig {
     /// Which planner flies: the core's harmonic explorer (default) or a baseline.
-    /// [`PlannerKind::HarmonicLaplace`] and [`PlannerKind::HarmonicGs`] override
-    /// `explorer.field` with the seed's Laplace field; `HarmonicGs` also overrides
-    /// `explorer.solver` with Gauss-Seidel.
+    /// [`PlannerKind::HarmonicLaplace`], [`PlannerKind::HarmonicGs`] and
+    /// [`PlannerKind::HarmonicThesis`] override `explorer.field` with the seed's Laplace field;
+    /// `HarmonicGs` also overrides `explorer.solver` with Gauss-Seidel, `HarmonicThesis` with
+    /// the thesis's Jacobi solve.
     pub planner: PlannerKind,
     /// Closest and random frontier choose their goal by the core's view rule (an ablation; see
     /// [`Baseline::with_core_views`]).
@@ -447,6 +448,8 @@ pub struct HostStorage {
     coarse_labels: Vec<Label>,
     coarse_faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
+    /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
+    jacobi: Vec<f32>,
 }
 
 impl HostStorage {
@@ -464,7 +467,14 @@ impl HostStorage {
             labels: vec![Label::Outside; n],
             phi: vec![0.0; n],
             queue: vec![0; 16 * 1024],
+            jacobi: Vec::new(),
         }
+    }
+    /// Adds the one-per-voxel scratch the thesis's Jacobi solve needs
+    /// ([`SolverKind::ThesisJacobi`]); a no-op if it is there.
+    pub fn with_jacobi(&mut self) -> &mut Self {
+        self.jacobi.resize(self.phi.len(), 0.0);
+        self
     }
     /// Lends the buffers to an explorer.
     pub fn lend(&mut self) -> ExplorerStorage<'_> {
@@ -478,6 +488,7 @@ impl HostStorage {
             coarse_labels: &mut self.coarse_labels,
             coarse_faces: &mut self.coarse_faces,
             krylov: &mut self.krylov,
+            jacobi: &mut self.jacobi,
         }
     }
 }
@@ -1044,13 +1055,20 @@ fn make_planner<'s>(
 ) -> Result<Box<dyn Planner + 's>, SimError> {
     let config_err = |e| SimError::Config(format!("{e:?}"));
     Ok(match cfg.planner {
-        PlannerKind::Harmonic | PlannerKind::HarmonicLaplace | PlannerKind::HarmonicGs => {
+        PlannerKind::Harmonic
+        | PlannerKind::HarmonicLaplace
+        | PlannerKind::HarmonicGs
+        | PlannerKind::HarmonicThesis => {
             let mut explorer = cfg.explorer;
             if cfg.planner != PlannerKind::Harmonic {
                 explorer.field = harmonic_core::field::PlanningField::Harmonic;
             }
             if cfg.planner == PlannerKind::HarmonicGs {
                 explorer.solver = SolverKind::GaussSeidel;
+            }
+            if cfg.planner == PlannerKind::HarmonicThesis {
+                explorer.solver = SolverKind::ThesisJacobi;
+                storage.with_jacobi();
             }
             Box::new(HarmonicPlanner::new(
                 Explorer::new(geometry, explorer, storage.lend()).map_err(config_err)?,
@@ -1456,9 +1474,11 @@ pub fn run_observed(
         solver: match planner.kind() {
             k if !k.is_harmonic() => "none".into(),
             PlannerKind::HarmonicGs => "gs".into(),
+            PlannerKind::HarmonicThesis => "thesis-jacobi".into(),
             _ => match cfg.explorer.solver {
                 SolverKind::Multigrid => "mg".into(),
                 SolverKind::GaussSeidel => "gs".into(),
+                SolverKind::ThesisJacobi => "thesis-jacobi".into(),
             },
         },
         termination,

@@ -21,7 +21,9 @@
 //! without double-precision work in the inner loop.
 //!
 //! [`gauss_seidel`] is the seed paper's solver, kept as the reference: correct, not fast.
-//! [`multigrid`] is the production solver: O(cells) per solve.
+//! [`multigrid`] is the production solver: O(cells) per solve. [`thesis`] is the seed thesis's
+//! own solve as written (Jacobi from φ = 0, stopped by its relative-change rule), kept as an
+//! ablation of what its truncated field plans like.
 
 use core::cell::Cell;
 
@@ -29,6 +31,7 @@ use crate::domain::Label;
 use crate::map::Dims;
 
 pub mod multigrid;
+pub mod thesis;
 
 /// When a solve stops.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -7,6 +7,7 @@
 //! | `harmonic` | the core's explorer with its default field (frontier-sourced, screened; [`harmonic_core::field`]) on multigrid |
 //! | `harmonic-laplace` | the core's explorer with the seed's field (vehicle φ = 1, frontiers φ = 0, Laplace) on multigrid |
 //! | `harmonic-gs` | the seed's field with the seed paper's Gauss-Seidel solver |
+//! | `harmonic-thesis` | the seed's field solved the thesis's way: Jacobi from φ = 0 at every plan, stopped at a relative change below 1e-4 ([`harmonic_core::solve::thesis`]); an ablation, not in [`PlannerKind::ALL`] |
 //! | `closest-frontier` | A* to the frontier with the shortest path (Yamauchi 1997) |
 //! | `random-frontier` | A* to a frontier drawn uniformly at random |
 //! | `info-gain` | the candidate pose that sees the most frontier voxels (Thrun's binary gain) |
@@ -45,6 +46,10 @@ pub enum PlannerKind {
     HarmonicLaplace,
     /// The core's explorer with the seed's Laplace field and the seed paper's Gauss-Seidel.
     HarmonicGs,
+    /// The core's explorer with the seed's Laplace field, solved the seed thesis's way
+    /// ([`SolverKind::ThesisJacobi`]). Selectable by name; not in [`PlannerKind::ALL`], so `all`
+    /// and the default sweeps do not include it.
+    HarmonicThesis,
     /// Closest frontier + A*.
     ClosestFrontier,
     /// Random frontier + A*.
@@ -56,7 +61,9 @@ pub enum PlannerKind {
 }
 
 impl PlannerKind {
-    /// Every planner, in the order tables list them.
+    /// Every planner of the comparison, in the order tables list them (`all`). The
+    /// thesis-faithful ablation [`PlannerKind::HarmonicThesis`] is left out: see
+    /// [`PlannerKind::NAMED`].
     pub const ALL: [PlannerKind; 7] = [
         PlannerKind::RandomFrontier,
         PlannerKind::ClosestFrontier,
@@ -67,12 +74,25 @@ impl PlannerKind {
         PlannerKind::Harmonic,
     ];
 
+    /// Every planner `--planner` accepts by name: [`PlannerKind::ALL`] and the ablation.
+    pub const NAMED: [PlannerKind; 8] = [
+        PlannerKind::RandomFrontier,
+        PlannerKind::ClosestFrontier,
+        PlannerKind::InfoGain,
+        PlannerKind::WeightedInfoGain,
+        PlannerKind::HarmonicGs,
+        PlannerKind::HarmonicLaplace,
+        PlannerKind::Harmonic,
+        PlannerKind::HarmonicThesis,
+    ];
+
     /// The name `--planner` takes.
     pub fn name(self) -> &'static str {
         match self {
             PlannerKind::Harmonic => "harmonic",
             PlannerKind::HarmonicLaplace => "harmonic-laplace",
             PlannerKind::HarmonicGs => "harmonic-gs",
+            PlannerKind::HarmonicThesis => "harmonic-thesis",
             PlannerKind::ClosestFrontier => "closest-frontier",
             PlannerKind::RandomFrontier => "random-frontier",
             PlannerKind::InfoGain => "info-gain",
@@ -84,7 +104,10 @@ impl PlannerKind {
     pub fn is_harmonic(self) -> bool {
         matches!(
             self,
-            PlannerKind::Harmonic | PlannerKind::HarmonicLaplace | PlannerKind::HarmonicGs
+            PlannerKind::Harmonic
+                | PlannerKind::HarmonicLaplace
+                | PlannerKind::HarmonicGs
+                | PlannerKind::HarmonicThesis
         )
     }
 
@@ -113,8 +136,8 @@ impl fmt::Display for PlannerKind {
 impl FromStr for PlannerKind {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        Self::ALL.into_iter().find(|k| k.name() == s).ok_or_else(|| {
-            let names: Vec<&str> = Self::ALL.iter().map(|k| k.name()).collect();
+        Self::NAMED.into_iter().find(|k| k.name() == s).ok_or_else(|| {
+            let names: Vec<&str> = Self::NAMED.iter().map(|k| k.name()).collect();
             format!("unknown planner `{s}` (expected one of {})", names.join(", "))
         })
     }
@@ -189,6 +212,7 @@ impl<'a> HarmonicPlanner<'a> {
         let kind = match (config.field, config.solver) {
             (PlanningField::Harmonic, SolverKind::GaussSeidel) => PlannerKind::HarmonicGs,
             (PlanningField::Harmonic, SolverKind::Multigrid) => PlannerKind::HarmonicLaplace,
+            (PlanningField::Harmonic, SolverKind::ThesisJacobi) => PlannerKind::HarmonicThesis,
             (PlanningField::Screened(_), _) => PlannerKind::Harmonic,
         };
         Self { explorer, kind }
@@ -228,5 +252,24 @@ impl Planner for HarmonicPlanner<'_> {
     }
     fn potential(&self) -> Option<&[f32]> {
         Some(self.explorer.psi())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_thesis_ablation_is_named_but_not_in_all() {
+        assert_eq!(
+            "harmonic-thesis".parse::<PlannerKind>(),
+            Ok(PlannerKind::HarmonicThesis)
+        );
+        assert!(!PlannerKind::ALL.contains(&PlannerKind::HarmonicThesis));
+        assert!(PlannerKind::HarmonicThesis.is_harmonic());
+        assert_eq!(PlannerKind::parse_list("all").unwrap(), PlannerKind::ALL.to_vec());
+        for k in PlannerKind::NAMED {
+            assert_eq!(k.name().parse::<PlannerKind>(), Ok(k));
+        }
     }
 }
