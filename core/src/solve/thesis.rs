@@ -356,32 +356,12 @@ mod tests {
 
     /// Smallest and largest ψ among the in-domain face neighbours of voxel `i`.
     fn neighbour_range(dims: &Dims, labels: &[Label], psi: &[f32], i: usize) -> (f32, f32) {
-        let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
-        let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
         let mut r = (f32::INFINITY, f32::NEG_INFINITY);
-        let mut visit = |j: usize| {
+        dims.for_each_face_neighbour(dims.voxel(i), |j| {
             if labels[j].in_domain() {
                 r = (r.0.min(psi[j]), r.1.max(psi[j]));
             }
-        };
-        if x > 0 {
-            visit(i - 1);
-        }
-        if x + 1 < nx {
-            visit(i + 1);
-        }
-        if y > 0 {
-            visit(i - nx);
-        }
-        if y + 1 < ny {
-            visit(i + nx);
-        }
-        if z > 0 {
-            visit(i - nx * ny);
-        }
-        if z + 1 < nz {
-            visit(i + nx * ny);
-        }
+        });
         r
     }
 

@@ -63,7 +63,7 @@ pub enum PlannerKind {
 impl PlannerKind {
     /// Every planner of the comparison, in the order tables list them (`all`). The
     /// thesis-faithful ablation [`PlannerKind::HarmonicThesis`] is left out: see
-    /// [`PlannerKind::NAMED`].
+    /// [`PlannerKind::ABLATIONS`].
     pub const ALL: [PlannerKind; 7] = [
         PlannerKind::RandomFrontier,
         PlannerKind::ClosestFrontier,
@@ -74,17 +74,13 @@ impl PlannerKind {
         PlannerKind::Harmonic,
     ];
 
-    /// Every planner `--planner` accepts by name: [`PlannerKind::ALL`] and the ablation.
-    pub const NAMED: [PlannerKind; 8] = [
-        PlannerKind::RandomFrontier,
-        PlannerKind::ClosestFrontier,
-        PlannerKind::InfoGain,
-        PlannerKind::WeightedInfoGain,
-        PlannerKind::HarmonicGs,
-        PlannerKind::HarmonicLaplace,
-        PlannerKind::Harmonic,
-        PlannerKind::HarmonicThesis,
-    ];
+    /// Ablations `--planner` accepts by name but `all` leaves out.
+    pub const ABLATIONS: [PlannerKind; 1] = [PlannerKind::HarmonicThesis];
+
+    /// Every planner `--planner` accepts by name: [`PlannerKind::ALL`], then the ablations.
+    pub fn named() -> impl Iterator<Item = PlannerKind> {
+        Self::ALL.into_iter().chain(Self::ABLATIONS)
+    }
 
     /// The name `--planner` takes.
     pub fn name(self) -> &'static str {
@@ -136,8 +132,8 @@ impl fmt::Display for PlannerKind {
 impl FromStr for PlannerKind {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        Self::NAMED.into_iter().find(|k| k.name() == s).ok_or_else(|| {
-            let names: Vec<&str> = Self::NAMED.iter().map(|k| k.name()).collect();
+        Self::named().find(|k| k.name() == s).ok_or_else(|| {
+            let names: Vec<&str> = Self::named().map(|k| k.name()).collect();
             format!("unknown planner `{s}` (expected one of {})", names.join(", "))
         })
     }
@@ -268,7 +264,7 @@ mod tests {
         assert!(!PlannerKind::ALL.contains(&PlannerKind::HarmonicThesis));
         assert!(PlannerKind::HarmonicThesis.is_harmonic());
         assert_eq!(PlannerKind::parse_list("all").unwrap(), PlannerKind::ALL.to_vec());
-        for k in PlannerKind::NAMED {
+        for k in PlannerKind::named() {
             assert_eq!(k.name().parse::<PlannerKind>(), Ok(k));
         }
     }
