@@ -222,22 +222,16 @@ impl SolveSummary {
     pub fn of(report: &Report) -> Self {
         let solved: Vec<_> = report.steps.iter().filter(|s| s.outcome == "goal").collect();
         let n = solved.len();
-        let sum = |f: &dyn Fn(&crate::sim::StepRecord) -> f64| solved.iter().map(|s| f(s)).sum::<f64>();
+        let mean = |f: &dyn Fn(&crate::sim::StepRecord) -> f64| {
+            solved.iter().map(|s| f(s)).sum::<f64>() / n.max(1) as f64
+        };
         Self {
             solves: n as u32,
-            iterations_mean: if n == 0 {
-                0.0
-            } else {
-                sum(&|s| f64::from(s.solver_iterations)) / n as f64
-            },
+            iterations_mean: mean(&|s| f64::from(s.solver_iterations)),
             iterations_min: solved.iter().map(|s| s.solver_iterations).min().unwrap_or(0),
             iterations_max: solved.iter().map(|s| s.solver_iterations).max().unwrap_or(0),
             not_converged: report.errors.solver_not_converged,
-            solve_ms_mean: if n == 0 {
-                0.0
-            } else {
-                sum(&|s| s.solve_ms) / n as f64
-            },
+            solve_ms_mean: mean(&|s| s.solve_ms),
         }
     }
 }
@@ -411,19 +405,18 @@ pub fn run(cfg: &BenchConfig, out: &Path, quiet: bool) -> Result<Vec<RunRow>, St
                         writeln!(f.1, "{},{},{},{d:.3},{c:.5}", clean(&curve.scenario), curve.planner, curve.seed)
                             .map_err(|e| e.to_string())?;
                     }
-                    let s = solves;
                     writeln!(
                         f.2,
                         "{},{},{},{},{:.1},{},{},{},{:.3}",
                         clean(&row.scenario),
                         row.planner,
                         row.seed,
-                        s.solves,
-                        s.iterations_mean,
-                        s.iterations_min,
-                        s.iterations_max,
-                        s.not_converged,
-                        s.solve_ms_mean
+                        solves.solves,
+                        solves.iterations_mean,
+                        solves.iterations_min,
+                        solves.iterations_max,
+                        solves.not_converged,
+                        solves.solve_ms_mean
                     )
                     .map_err(|e| e.to_string())?;
                 }
