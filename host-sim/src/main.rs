@@ -677,12 +677,17 @@ struct SolveArgs {
     /// Source (vehicle) voxel as X,Y,Z indices.
     #[arg(long, value_parser = parse_voxel)]
     source: [usize; 3],
-    /// Solver: `mg` (multigrid-preconditioned CG) or `gs` (Gauss-Seidel reference).
-    #[arg(long, default_value = "mg", value_parser = ["mg", "gs"])]
+    /// Solver: `mg` (multigrid-preconditioned CG, the host's), `vc` (plain V-cycles, the
+    /// firmware's) or `gs` (Gauss-Seidel reference).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "vc", "gs"])]
     solver: String,
     /// Relative-residual tolerance.
     #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
     tol: f32,
+    /// Most cycles (sweeps for `gs`). A solve stopped here before its own rule says "done"
+    /// prints `"converged": false` (and still exits 0).
+    #[arg(long, default_value_t = 1_000_000)]
+    max_cycles: u32,
     /// Vehicle radius in metres (obstacles and unknown space are inflated by it).
     #[arg(long, default_value_t = 0.0, value_parser = parse_radius)]
     radius: f32,
@@ -706,12 +711,13 @@ fn solve_problem(args: &SolveArgs) -> Result<(), String> {
     let grid = npy::read_u8_file(&args.labels).map_err(|e| format!("{}: {e}", args.labels.display()))?;
     let request = problem::SolveRequest {
         source: args.source,
-        solver: if args.solver == "gs" {
-            SolverChoice::GaussSeidel
-        } else {
-            SolverChoice::Multigrid
+        solver: match args.solver.as_str() {
+            "gs" => SolverChoice::GaussSeidel,
+            "vc" => SolverChoice::VCycle,
+            _ => SolverChoice::Multigrid,
         },
         tolerance: args.tol,
+        max_cycles: args.max_cycles,
         radius: args.radius,
         resolution: args.resolution,
     };

@@ -30,8 +30,10 @@ pub mod labels {
 /// Which solver [`solve`] uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SolverChoice {
-    /// Multigrid-preconditioned CG.
+    /// Multigrid-preconditioned CG (the host's solver).
     Multigrid,
+    /// Plain multigrid V-cycles (the firmware's solver).
+    VCycle,
     /// The reference Gauss-Seidel.
     GaussSeidel,
 }
@@ -45,6 +47,9 @@ pub struct SolveRequest {
     pub solver: SolverChoice,
     /// Relative-residual tolerance.
     pub tolerance: f32,
+    /// Most cycles (multigrid) or sweeps (Gauss-Seidel); a solve stopped here before its own
+    /// rule says "done" reports `converged: false`.
+    pub max_cycles: u32,
     /// Vehicle radius, metres.
     pub radius: f32,
     /// Voxel edge, metres (only scales the radius).
@@ -185,12 +190,12 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     let mut psi = vec![0.0f32; n];
     let params = SolveParams {
         tolerance: req.tolerance,
-        max_iterations: 1_000_000,
+        max_iterations: req.max_cycles,
         warm_start: false,
         screening: 0.0,
     };
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
-        SolverChoice::Multigrid => {
+        SolverChoice::Multigrid | SolverChoice::VCycle => {
             let size = scratch_size(&dims);
             let (mut values, mut clabels, mut faces, mut krylov) = (
                 vec![0.0f32; size.values],
@@ -208,8 +213,13 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
                 Multigrid::new(dims, storage).map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
             let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
             let t1 = Instant::now();
-            let s = mg.solve(&domain_labels, &mut psi, &params, Method::Pcg);
-            (s, setup_ms, t1.elapsed().as_secs_f64() * 1e3, "mg")
+            let (method, name) = if req.solver == SolverChoice::VCycle {
+                (Method::VCycle, "vc")
+            } else {
+                (Method::Pcg, "mg")
+            };
+            let s = mg.solve(&domain_labels, &mut psi, &params, method);
+            (s, setup_ms, t1.elapsed().as_secs_f64() * 1e3, name)
         }
         SolverChoice::GaussSeidel => {
             let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
@@ -258,14 +268,44 @@ mod tests {
             source: [0, 1, 1],
             solver,
             tolerance: 1e-6,
+            max_cycles: 1_000_000,
             radius: 0.0,
             resolution: 0.1,
         }
     }
 
     #[test]
+    fn a_solve_stopped_at_the_cycle_cap_reports_not_converged() {
+        // A corridor 60 voxels long: one cycle or sweep cannot carry the frontier's value to
+        // the source's end.
+        let long = Array3::from_fn(
+            [60, 3, 3],
+            |x, _, _| if x < 59 { labels::FREE } else { labels::UNKNOWN },
+        );
+        for solver in [
+            SolverChoice::Multigrid,
+            SolverChoice::VCycle,
+            SolverChoice::GaussSeidel,
+        ] {
+            let capped = SolveRequest {
+                max_cycles: 1,
+                ..request(solver)
+            };
+            let (_, s) = solve(&long, &capped).unwrap();
+            assert_eq!(s.cycles, 1, "{solver:?}: {s:?}");
+            assert!(!s.converged, "{solver:?} stopped at the cap: {s:?}");
+            let (_, s) = solve(&long, &request(solver)).unwrap();
+            assert!(s.converged, "{solver:?} without the cap: {s:?}");
+        }
+    }
+
+    #[test]
     fn corridor_potential_falls_linearly_to_the_frontier() {
-        for solver in [SolverChoice::Multigrid, SolverChoice::GaussSeidel] {
+        for solver in [
+            SolverChoice::Multigrid,
+            SolverChoice::VCycle,
+            SolverChoice::GaussSeidel,
+        ] {
             let (phi, s) = solve(&corridor(), &request(solver)).unwrap();
             assert!(s.converged, "{s:?}");
             assert_eq!(s.frontier, 9, "the 3×3 face next to the unknown slab");

@@ -75,8 +75,10 @@ pub struct SolveStats {
     /// Relative residual the rounding of the current f32 solution alone can produce: below
     /// this, nothing better is representable (see [`Residual`]).
     pub floor: f32,
-    /// True if the tolerance — or, where the tolerance lies below it, the f32 floor — was
-    /// reached.
+    /// True if the solve stopped by its own rule: the tolerance reached or, where the tolerance
+    /// lies below it, the f32 floor (plain multigrid V-cycles: the floor *and* a residual that
+    /// has stopped falling, see [`multigrid`]). False whenever it stopped at
+    /// [`SolveParams::max_iterations`] first, whatever the residual.
     pub converged: bool,
 }
 

@@ -1,0 +1,193 @@
+//! Late in an exploration the frontier is a small patch far away behind doors, and the walls
+//! are long: the kind of world on which the solver issue found a solve reporting `converged`
+//! while φ was 1.8e-4 off. Rooms, doors and furniture (64 × 64 × 32 voxels, three layouts,
+//! 82–87k unknowns, 110 frontier voxels) solved by the core's multigrid in f32 and compared
+//! with an f64 conjugate-gradient solve of the same discrete system.
+
+use harmonic_core::domain::Label;
+use harmonic_core::map::{Dims, VoxelIndex};
+use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
+use harmonic_core::solve::{SolveParams, SolveStats, PSI_FRONTIER};
+
+const NX: usize = 64;
+const NY: usize = 64;
+const NZ: usize = 32;
+
+/// Rooms `room` voxels across, off each other through doors, boxes for furniture, a frontier
+/// window in the far room. `variant` moves the doors and furniture.
+fn rooms_of(variant: usize, room: usize) -> (Dims, Vec<Label>, VoxelIndex) {
+    let dims = Dims::new(NX, NY, NZ).unwrap();
+    let mut labels = vec![Label::Outside; dims.len()];
+    let walls: Vec<usize> = (1..).map(|k| k * room).take_while(|w| *w < NX - 2).collect();
+    let ceiling = 26;
+    for (i, l) in labels.iter_mut().enumerate() {
+        let v = dims.voxel(i);
+        let (x, y, z) = (usize::from(v.x), usize::from(v.y), usize::from(v.z));
+        let shell = x == 0 || y == 0 || z == 0 || x == NX - 1 || y == NY - 1 || z >= ceiling;
+        let mut wall = walls.contains(&x) || walls.contains(&y);
+        // Doors: 3 wide, 9 high, placed per room side by the variant.
+        let door = |along: usize, across: usize| {
+            let room_i = across / (room + 1);
+            let centre = 2 + (room_i * 7 + variant * 5) % (room - 6);
+            (centre..centre + 3).contains(&(along % room)) && (1..=9).contains(&z)
+        };
+        if walls.contains(&x) && door(y, x) || walls.contains(&y) && door(x, y) {
+            wall = false;
+        }
+        // Furniture: a table (slab on the floor's side) and a cabinet per room.
+        let (rx, ry) = (x % room, y % room);
+        let table = (4..14).contains(&rx) && (5..11).contains(&ry) && (7..9).contains(&z);
+        let legs = [4usize, 13].contains(&rx) && [5usize, 10].contains(&ry) && z < 7;
+        let cabinet = (15 + variant % 3..19 + variant % 3).contains(&rx) && (2..6).contains(&ry) && z < 18;
+        if !(shell || wall || table || legs || cabinet) {
+            *l = Label::Interior;
+        }
+    }
+    // The frontier: a window in the far room's outer wall, 10 × 11 voxels.
+    for y in 50..60 {
+        for z in 8..19 {
+            labels[dims.linear(VoxelIndex::new((NX - 1) as u16, y, z))] = Label::Frontier;
+        }
+    }
+    let source = VoxelIndex::new(10, 12, 12);
+    labels[dims.linear(source)] = Label::Source;
+    (dims, labels, source)
+}
+
+/// The discrete system in f64 by conjugate gradients to a relative residual of 1e-13.
+fn exact(dims: &Dims, labels: &[Label]) -> Vec<f64> {
+    let n = dims.len();
+    let interior = |i: usize| labels[i] == Label::Interior;
+    let apply = |x: &[f64], out: &mut [f64]| {
+        for i in 0..n {
+            let mut acc = 0.0;
+            if interior(i) {
+                dims.for_each_face_neighbour(dims.voxel(i), |j| {
+                    if labels[j].in_domain() {
+                        acc += x[i] - if interior(j) { x[j] } else { 0.0 };
+                    }
+                });
+            }
+            out[i] = acc;
+        }
+    };
+    let dot = |a: &[f64], c: &[f64]| a.iter().zip(c).map(|(p, q)| p * q).sum::<f64>();
+    let mut rhs = vec![0.0f64; n];
+    for (i, r) in rhs.iter_mut().enumerate() {
+        if interior(i) {
+            dims.for_each_face_neighbour(dims.voxel(i), |j| {
+                if labels[j] == Label::Frontier {
+                    *r += f64::from(PSI_FRONTIER);
+                }
+            });
+        }
+    }
+    let mut x = vec![0.0f64; n];
+    let mut r = rhs.clone();
+    let mut p = r.clone();
+    let mut ap = vec![0.0f64; n];
+    let target = 1e-13 * dot(&rhs, &rhs).sqrt();
+    let mut rr = dot(&r, &r);
+    for _ in 0..20 * n {
+        if rr.sqrt() <= target {
+            break;
+        }
+        apply(&p, &mut ap);
+        let alpha = rr / dot(&p, &ap);
+        for i in 0..n {
+            x[i] += alpha * p[i];
+            r[i] -= alpha * ap[i];
+        }
+        let rr_new = dot(&r, &r);
+        for i in 0..n {
+            p[i] = r[i] + rr_new / rr * p[i];
+        }
+        rr = rr_new;
+    }
+    (0..n)
+        .map(|i| match labels[i] {
+            Label::Interior => x[i],
+            Label::Frontier => f64::from(PSI_FRONTIER),
+            _ => 0.0,
+        })
+        .collect()
+}
+
+fn solve(dims: Dims, labels: &[Label], method: Method, max_iterations: u32) -> (Vec<f32>, SolveStats) {
+    let s = scratch_size(&dims);
+    let (mut values, mut clabels, mut faces, mut krylov) = (
+        vec![0.0f32; s.values],
+        vec![Label::Outside; s.labels],
+        vec![[0u8; 4]; s.faces],
+        vec![0.0f32; s.krylov],
+    );
+    let storage = MultigridStorage {
+        values: &mut values,
+        labels: &mut clabels,
+        faces: &mut faces,
+        krylov: &mut krylov,
+    };
+    let mut mg = Multigrid::new(dims, storage).unwrap();
+    let mut psi = vec![0.0f32; dims.len()];
+    let params = SolveParams {
+        tolerance: 1e-6,
+        max_iterations,
+        warm_start: false,
+        screening: 0.0,
+    };
+    let stats = mg.solve(labels, &mut psi, &params, method).unwrap();
+    (psi, stats)
+}
+
+fn max_error(psi: &[f32], exact: &[f64]) -> f64 {
+    psi.iter()
+        .zip(exact)
+        .map(|(&p, &e)| (f64::from(p) - e).abs())
+        .fold(0.0, f64::max)
+}
+
+/// The layouts: rooms 21, 16 and 13 voxels across, each with its own doors and furniture.
+const LAYOUTS: [(usize, usize); 3] = [(0, 21), (1, 16), (2, 13)];
+
+/// Both of the core's multigrid solvers — MGPCG (the host's) and plain V-cycles (the
+/// firmware's) — report `converged` and are then within 2e-5 of the f64 solution everywhere
+/// (the solver issue's bar is 1e-4). V-cycles that stopped at the f32 rounding floor were
+/// 5.6e-5 to 1.1e-4 off on these layouts before they learned to go on while the residual falls.
+#[test]
+fn converged_solves_match_the_f64_solution_on_rooms_with_a_small_far_frontier() {
+    for (variant, room) in LAYOUTS {
+        let (dims, labels, _) = rooms_of(variant, room);
+        let frontier = labels.iter().filter(|l| **l == Label::Frontier).count();
+        assert!(
+            frontier <= 120,
+            "{frontier} frontier voxels: not a late-exploration problem"
+        );
+        let ex = exact(&dims, &labels);
+        for method in [Method::Pcg, Method::VCycle] {
+            let (psi, stats) = solve(dims, &labels, method, 1_000_000);
+            let err = max_error(&psi, &ex);
+            assert!(stats.converged, "rooms {room}, {method:?}: {stats:?}");
+            assert!(
+                err <= 2e-5,
+                "rooms {room}, {method:?}: max error {err:.3e}, {stats:?}"
+            );
+        }
+    }
+}
+
+/// A solve stopped by its iteration cap before its own rule says "done" reports
+/// `converged: false`, even where the residual already lies below the rounding floor.
+#[test]
+fn a_solve_stopped_at_the_cap_is_not_converged() {
+    let (dims, labels, _) = rooms_of(0, 21);
+    let ex = exact(&dims, &labels);
+    for (method, cap) in [(Method::VCycle, 5), (Method::VCycle, 150), (Method::Pcg, 5)] {
+        let (psi, stats) = solve(dims, &labels, method, cap);
+        assert_eq!(stats.iterations, cap, "{method:?}: {stats:?}");
+        assert!(
+            !stats.converged,
+            "{method:?} at cap {cap}: {stats:?}, error {:.3e}",
+            max_error(&psi, &ex)
+        );
+    }
+}
