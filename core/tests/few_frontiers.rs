@@ -4,10 +4,12 @@
 //! 82–87k unknowns, 110 frontier voxels) solved by the core's multigrid in f32 and compared
 //! with an f64 conjugate-gradient solve of the same discrete system.
 
+mod common;
+
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
-use harmonic_core::solve::{SolveParams, SolveStats, PSI_FRONTIER};
+use harmonic_core::solve::{SolveParams, SolveStats};
 
 const NX: usize = 64;
 const NY: usize = 64;
@@ -56,61 +58,7 @@ fn rooms_of(variant: usize, room: usize) -> (Dims, Vec<Label>, VoxelIndex) {
 
 /// The discrete system in f64 by conjugate gradients to a relative residual of 1e-13.
 fn exact(dims: &Dims, labels: &[Label]) -> Vec<f64> {
-    let n = dims.len();
-    let interior = |i: usize| labels[i] == Label::Interior;
-    let apply = |x: &[f64], out: &mut [f64]| {
-        for i in 0..n {
-            let mut acc = 0.0;
-            if interior(i) {
-                dims.for_each_face_neighbour(dims.voxel(i), |j| {
-                    if labels[j].in_domain() {
-                        acc += x[i] - if interior(j) { x[j] } else { 0.0 };
-                    }
-                });
-            }
-            out[i] = acc;
-        }
-    };
-    let dot = |a: &[f64], c: &[f64]| a.iter().zip(c).map(|(p, q)| p * q).sum::<f64>();
-    let mut rhs = vec![0.0f64; n];
-    for (i, r) in rhs.iter_mut().enumerate() {
-        if interior(i) {
-            dims.for_each_face_neighbour(dims.voxel(i), |j| {
-                if labels[j] == Label::Frontier {
-                    *r += f64::from(PSI_FRONTIER);
-                }
-            });
-        }
-    }
-    let mut x = vec![0.0f64; n];
-    let mut r = rhs.clone();
-    let mut p = r.clone();
-    let mut ap = vec![0.0f64; n];
-    let target = 1e-13 * dot(&rhs, &rhs).sqrt();
-    let mut rr = dot(&r, &r);
-    for _ in 0..20 * n {
-        if rr.sqrt() <= target {
-            break;
-        }
-        apply(&p, &mut ap);
-        let alpha = rr / dot(&p, &ap);
-        for i in 0..n {
-            x[i] += alpha * p[i];
-            r[i] -= alpha * ap[i];
-        }
-        let rr_new = dot(&r, &r);
-        for i in 0..n {
-            p[i] = r[i] + rr_new / rr * p[i];
-        }
-        rr = rr_new;
-    }
-    (0..n)
-        .map(|i| match labels[i] {
-            Label::Interior => x[i],
-            Label::Frontier => f64::from(PSI_FRONTIER),
-            _ => 0.0,
-        })
-        .collect()
+    common::exact_solution(dims, labels, 0.0)
 }
 
 fn solve(dims: Dims, labels: &[Label], method: Method, max_iterations: u32) -> (Vec<f32>, SolveStats) {

@@ -13,6 +13,8 @@
 //! `properties.proptest-regressions` file next to this one. Known counterexamples are pinned as
 //! explicit tests below instead.
 
+mod common;
+
 use std::fmt;
 
 use harmonic_core::domain::{self, DomainError, DomainStats, InflationStencil, Label};
@@ -305,76 +307,16 @@ fn solve_mg_screened(b: &Built, method: Method, tolerance: f32, screening: f32) 
     (psi, s)
 }
 
-/// The exact discrete solution, independently: the documented discretisation (every interior ψ
-/// is the mean of its in-domain face neighbours; source 0, frontier 1) solved by conjugate
-/// gradients in f64 to a relative residual of 1e-13 — some seven orders below the f32 solvers.
+/// The exact discrete solution, independently (see [`common::exact_solution`]).
 fn solve_exact(b: &Built) -> Vec<f64> {
     solve_exact_screened(b, 0.0)
 }
 
 /// [`solve_exact`] for the screened system: every interior row gains `screening · x_i`.
 fn solve_exact_screened(b: &Built, screening: f64) -> Vec<f64> {
-    let dims = b.dims();
-    let n = dims.len();
-    let interior = |i: usize| b.labels[i] == Label::Interior;
-    // A x = Σ_{in-domain j} (x_i − x_j), with x = 0 off the interior; b = Σ frontier neighbours.
-    let apply = |x: &[f64], out: &mut [f64]| {
-        for i in 0..n {
-            let mut acc = 0.0;
-            if interior(i) {
-                acc += screening * x[i];
-                dims.for_each_face_neighbour(dims.voxel(i), |j| {
-                    if b.labels[j].in_domain() {
-                        acc += x[i] - if interior(j) { x[j] } else { 0.0 };
-                    }
-                });
-            }
-            out[i] = acc;
-        }
-    };
-    let dot = |a: &[f64], c: &[f64]| a.iter().zip(c).map(|(p, q)| p * q).sum::<f64>();
-    let mut rhs = vec![0.0f64; n];
-    for (i, r) in rhs.iter_mut().enumerate() {
-        if interior(i) {
-            dims.for_each_face_neighbour(dims.voxel(i), |j| {
-                if b.labels[j] == Label::Frontier {
-                    *r += f64::from(PSI_FRONTIER);
-                }
-            });
-        }
-    }
-    let mut x = vec![0.0f64; n];
-    let mut r = rhs.clone();
-    let mut p = r.clone();
-    let mut ap = vec![0.0f64; n];
-    let target = 1e-13 * dot(&rhs, &rhs).sqrt();
-    let mut rr = dot(&r, &r);
-    for _ in 0..20 * n {
-        if rr.sqrt() <= target {
-            break;
-        }
-        apply(&p, &mut ap);
-        let alpha = rr / dot(&p, &ap);
-        for i in 0..n {
-            x[i] += alpha * p[i];
-            r[i] -= alpha * ap[i];
-        }
-        let rr_new = dot(&r, &r);
-        for i in 0..n {
-            p[i] = r[i] + rr_new / rr * p[i];
-        }
-        rr = rr_new;
-    }
-    (0..n)
-        .map(|i| match b.labels[i] {
-            Label::Interior => x[i],
-            Label::Frontier => f64::from(PSI_FRONTIER),
-            _ => f64::from(PSI_SOURCE),
-        })
-        .collect()
+    common::exact_solution(&b.dims(), &b.labels, screening)
 }
 
-/// ψ of the in-domain face neighbours of `i`: (min, max, count).
 fn neighbour_range(dims: &Dims, labels: &[Label], psi: &[f32], i: usize) -> (f32, f32, u32) {
     let (mut lo, mut hi, mut count) = (f32::INFINITY, f32::NEG_INFINITY, 0);
     dims.for_each_face_neighbour(dims.voxel(i), |j| {
