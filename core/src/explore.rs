@@ -370,6 +370,11 @@ pub struct Status {
     pub planning_ops: u64,
     /// Exploration state.
     pub termination: Termination,
+    /// At a [`Termination::Complete`] end: the map's frontier voxels (observed free, next to
+    /// unexplored space, [`VoxelMap::is_frontier`]) that the vehicle cannot reach — in a gap
+    /// too narrow for its radius, in another component, or behind one. "Complete" means no
+    /// *reachable* frontier is left; these are what was seen but left. 0 while running.
+    pub unreachable_frontier: u32,
     /// Time per phase of the last plan, in the caller's clock ticks.
     pub phase_ticks: PhaseTicks,
     /// Fault counters.
@@ -658,9 +663,13 @@ impl<'a> Explorer<'a> {
         let outcome = self.plan_inner(position, yaw, clock);
         self.status.map = self.map.counts();
         match outcome {
-            PlanOutcome::Complete => self.status.termination = Termination::Complete,
+            PlanOutcome::Complete => {
+                self.status.termination = Termination::Complete;
+                self.status.unreachable_frontier = self.map.frontier_voxels();
+            }
             PlanOutcome::Goal(g) => {
                 self.status.termination = Termination::Running;
+                self.status.unreachable_frontier = 0;
                 self.last_goal = Some(g);
             }
             PlanOutcome::Hold(_) => self.last_goal = None,

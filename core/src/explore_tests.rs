@@ -199,6 +199,7 @@ fn no_frontier_from_the_start_is_complete() {
     assert_eq!(e.map().counts().unknown, 0);
     assert_eq!(e.plan(&p, 0.0), PlanOutcome::Complete);
     assert_eq!(e.status().termination, Termination::Complete);
+    assert_eq!(e.status().unreachable_frontier, 0);
 }
 
 #[test]
@@ -252,6 +253,14 @@ fn every_frontier_unreachable_is_complete() {
         "the far pocket is excluded: {:?}",
         e.status().domain
     );
+    // Seen but left: the pocket's frontier voxels are reported, not hidden in "complete".
+    let unreachable = e.status().unreachable_frontier;
+    assert!(unreachable > 0, "{:?}", e.status());
+    assert_eq!(unreachable, e.map().frontier_voxels());
+    let mut frontier = (0..dims.len())
+        .map(|i| dims.voxel(i))
+        .filter(|&v| e.map().is_frontier(v));
+    assert!(frontier.all(|v| v.x >= 10), "all beyond the wall");
 }
 
 #[test]

@@ -478,6 +478,15 @@ impl<'a> VoxelMap<'a> {
         frontier
     }
 
+    /// Counts the [frontier](Self::is_frontier) voxels (one pass over the grid, six neighbour
+    /// reads per free voxel).
+    pub fn frontier_voxels(&self) -> u32 {
+        let dims = self.dims();
+        (0..self.log_odds.len())
+            .filter(|&i| self.is_free(i) && self.is_frontier(dims.voxel(i)))
+            .fold(0u32, |n, _| n.saturating_add(1))
+    }
+
     /// Counts voxels by state (one pass over the grid).
     pub fn counts(&self) -> MapCounts {
         let mut c = MapCounts::default();

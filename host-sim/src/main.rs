@@ -1781,6 +1781,18 @@ fn print_summary(r: &Report) {
         ("wall time", format!("{:.1} s", r.wall_time_s)),
     ];
     let mut rows = rows.to_vec();
+    if let Some(n) = r.unreachable_frontier_voxels {
+        rows.insert(
+            3,
+            (
+                "left unreachable",
+                format!(
+                    "{n} frontier voxels seen but out of reach (too narrow for the vehicle, behind a gap); {} unknown voxels sealed as unobservable",
+                    r.sealed_voxels
+                ),
+            ),
+        );
+    }
     if let Some(a) = &r.map_accuracy {
         rows.push((
             "map accuracy",

@@ -714,6 +714,8 @@ pub fn run(
         resolution: geometry.resolution(),
         reachable_free_voxels: truth.reachable_free(),
         sealed_voxels: last.sealed,
+        // The firmware's plan report does not carry the count yet.
+        unreachable_frontier_voxels: None,
         timing,
         errors,
         link,

@@ -349,6 +349,9 @@ pub struct Report {
     pub reachable_free_voxels: usize,
     /// Unknown voxels sealed as unobservable at the end.
     pub sealed_voxels: u32,
+    /// At a `complete` end, the map's frontier voxels the vehicle could not reach (too narrow
+    /// for its radius, behind a gap): seen, but left. `None` for other ends.
+    pub unreachable_frontier_voxels: Option<u32>,
     /// Per-phase timing.
     pub timing: Timing,
     /// Fault counters.
@@ -1500,6 +1503,8 @@ pub fn run_observed(
         grid_origin: geometry.origin().coords.into(),
         reachable_free_voxels: truth.reachable_free(),
         sealed_voxels: status.map.sealed,
+        unreachable_frontier_voxels: (status.termination == harmonic_core::explore::Termination::Complete)
+            .then_some(status.unreachable_frontier),
         timing,
         errors: status.errors,
         link: rig.link.report(),

@@ -707,8 +707,14 @@ impl Planner for Baseline<'_> {
         let outcome = self.plan_inner(position, yaw, clock);
         self.status.map = self.map.counts();
         match outcome {
-            PlanOutcome::Complete => self.status.termination = Termination::Complete,
-            PlanOutcome::Goal(_) => self.status.termination = Termination::Running,
+            PlanOutcome::Complete => {
+                self.status.termination = Termination::Complete;
+                self.status.unreachable_frontier = self.map.frontier_voxels();
+            }
+            PlanOutcome::Goal(_) => {
+                self.status.termination = Termination::Running;
+                self.status.unreachable_frontier = 0;
+            }
             PlanOutcome::Hold(_) => self.commitment = None,
         }
         outcome
