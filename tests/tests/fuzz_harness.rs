@@ -14,6 +14,8 @@ mod integrate;
 mod link;
 #[path = "../../fuzz/harness/mavlink.rs"]
 mod mavlink;
+#[path = "../../fuzz/harness/stereo.rs"]
+mod stereo;
 
 use std::fs;
 use std::path::PathBuf;
@@ -90,6 +92,11 @@ fn depth_integration_harness() {
     exercise("depth_integration", integrate::run, 1000, 512);
 }
 
+#[test]
+fn stereo_matcher_harness() {
+    exercise("stereo_matcher", stereo::run, 1500, 256);
+}
+
 /// Writes the seed corpus: a few well-formed inputs per target that reach deep into the
 /// code under test (the fuzzers mutate from there).
 #[test]
@@ -150,6 +157,26 @@ fn write_seed_corpus() {
             255, 255, 7,
         ],
     );
+    // Stereo: width, height, disparities, window, uniqueness, left-right, texture, speckle
+    // size and range (u16 each), prefilter, image kind and seed, then the call script.
+    write(
+        "stereo_matcher",
+        "shifted-dog",
+        &[
+            35, 19, 15, 9, 10, 2, 2, 20, 0, 16, 0, 1, 1, 7, 0, 0, 0, 3, 0, 1, 2,
+        ],
+    );
+    write(
+        "stereo_matcher",
+        "noise-raw-filter",
+        &[
+            59, 25, 31, 8, 15, 0, 0, 0, 0, 0, 0, 0, 0, 99, 1, 0, 0, 0, 1, 2, 3, 0, 0,
+        ],
+    );
+    let mut pixels = vec![26u8, 7, 7, 3, 0, 1, 0, 0, 0, 0, 0, 2, 30, 42, 3, 9, 9, 9, 9];
+    pixels.extend((0..31 * 12).map(|i| (i * 37 % 251) as u8));
+    write("stereo_matcher", "own-pixels", &pixels);
+    write("stereo_matcher", "bad-window", &[20, 20, 8, 4]);
     // Integration: a 10×10×4 grid, a frame, a plan, a frame with a bad quaternion, a plan.
     let mut frame = vec![1u8];
     frame.extend_from_slice(&[
