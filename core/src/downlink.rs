@@ -17,7 +17,7 @@
 //! them by mistake drops them as an unknown type, and the other way round.
 //!
 //! ```text
-//! 0x81 PlanReport, 244 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
+//! 0x81 PlanReport, 248 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
 //!   0  u32 frame_id   of the frame just planned from     0  u32 first   voxel index
 //!   4  u8  outcome    0 goal 1 kept 2 escape             4  u16 count   1 ..= MAP_SLICE_VOXELS
 //!                     3 complete 4 hold                  6  u8[]  two bits per voxel, voxel
@@ -35,6 +35,7 @@
 //! 116  u32 sealed voxels
 //! 120  u32 × 14 ErrorCounters, in declaration order
 //! 176  u64 bytes, u32 × 15  LinkCounters, in declaration order
+//! 244  u32 unreachable frontier voxels   at a complete end, else 0
 //! ```
 //!
 //! Fault codes: 1 BadPose, 2 VehicleOutsideGrid, 3 VehicleNotFree, 4 Streamline (detail:
@@ -55,7 +56,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 244;
+pub const PLAN_REPORT_LEN: usize = 248;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -149,6 +150,9 @@ pub struct PlanReport {
     pub errors: ErrorCounters,
     /// The depth link's counters on the core's side.
     pub link: LinkCounters,
+    /// At a complete end, frontier voxels seen but out of the vehicle's reach
+    /// ([`Status::unreachable_frontier`]); 0 otherwise.
+    pub unreachable_frontier: u32,
 }
 
 impl PlanReport {
@@ -198,6 +202,7 @@ impl PlanReport {
             sealed: status.map.sealed,
             errors: status.errors,
             link,
+            unreachable_frontier: status.unreachable_frontier,
         }
     }
 
@@ -275,6 +280,7 @@ impl PlanReport {
         ] {
             w.u32(v);
         }
+        w.u32(self.unreachable_frontier);
     }
 
     fn read_body(body: &[u8]) -> Result<Self, DownlinkError> {
@@ -332,6 +338,7 @@ impl PlanReport {
             depth_frames_dropped: r.u32(),
             ..LinkCounters::default()
         };
+        let unreachable_frontier = r.u32();
         Ok(Self {
             frame_id,
             outcome,
@@ -356,6 +363,7 @@ impl PlanReport {
             sealed,
             errors,
             link,
+            unreachable_frontier,
         })
     }
 }
@@ -734,6 +742,7 @@ mod tests {
             report.outcome = outcome;
             report.solver_updates = u64::MAX - k as u64;
             report.errors.seals = 3;
+            report.unreachable_frontier = 241 + k as u32;
             let mut out = [0u8; max_frame_len(PLAN_REPORT_LEN)];
             let n = encode_report(k as u16, &report, &mut out).unwrap();
             let mut dec = DownlinkDecoder::<512>::new();
@@ -806,7 +815,7 @@ mod tests {
             &mut heartbeat,
         )
         .unwrap();
-        let mut dec = DownlinkDecoder::<256>::new();
+        let mut dec = DownlinkDecoder::<{ max_frame_len(PLAN_REPORT_LEN) }>::new();
         let mut results = 0;
         for bytes in [&damaged[..n], &heartbeat[..hb], &out[..n]] {
             for &b in bytes {

@@ -673,6 +673,7 @@ pub fn run(
     decode_log(&elf, &pil.out);
 
     let last = last.ok_or_else(|| SimError::Config("the firmware planned nothing".into()))?;
+    let unreachable_frontier_voxels = (termination == "complete").then_some(last.unreachable_frontier);
     let coverage = truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown));
     let timing = Timing {
         integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
@@ -714,8 +715,7 @@ pub fn run(
         resolution: geometry.resolution(),
         reachable_free_voxels: truth.reachable_free(),
         sealed_voxels: last.sealed,
-        // The firmware's plan report does not carry the count yet.
-        unreachable_frontier_voxels: None,
+        unreachable_frontier_voxels,
         timing,
         errors,
         link,
