@@ -123,6 +123,29 @@ fn solve_round_trips_a_numpy_label_grid() {
 }
 
 #[test]
+fn solve_stopped_at_the_cycle_cap_prints_not_converged_and_exits_0() {
+    let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/labels_4x3x2.npy");
+    for solver in ["mg", "vc", "gs"] {
+        let run = |cap: &str| {
+            let out = sim()
+                .args([
+                    "solve", "--labels", fixture, "--source", "0,0,0", "--solver", solver,
+                ])
+                .args(["--max-cycles", cap])
+                .output()
+                .unwrap();
+            assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+            serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+        };
+        let capped = run("1");
+        assert_eq!(capped["cycles"], 1, "{solver}: {capped}");
+        assert_eq!(capped["converged"], false, "{solver}: {capped}");
+        let free = run("1000000");
+        assert_eq!(free["converged"], true, "{solver}: {free}");
+    }
+}
+
+#[test]
 fn solve_rejects_fortran_order_and_bad_source_with_exit_code_2() {
     let fortran = concat!(
         env!("CARGO_MANIFEST_DIR"),
