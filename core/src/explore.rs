@@ -381,6 +381,26 @@ pub struct Status {
     pub errors: ErrorCounters,
 }
 
+impl Status {
+    /// Records what a full plan left: the map's voxel counts, the exploration state, and at a
+    /// complete end the frontier voxels out of reach ([`Status::unreachable_frontier`], one
+    /// pass over the grid, only then). Every planner on the core's map calls it after planning.
+    pub fn record_plan(&mut self, outcome: &PlanOutcome, map: &VoxelMap<'_>) {
+        self.map = map.counts();
+        match outcome {
+            PlanOutcome::Complete => {
+                self.termination = Termination::Complete;
+                self.unreachable_frontier = map.frontier_voxels();
+            }
+            PlanOutcome::Goal(_) => {
+                self.termination = Termination::Running;
+                self.unreachable_frontier = 0;
+            }
+            PlanOutcome::Hold(_) => {}
+        }
+    }
+}
+
 /// Checks a frame's [`FrameTiming`] against `config`'s limits
 /// ([`ExplorerConfig::max_frame_yaw_rate`], [`ExplorerConfig::max_frame_pose_lag_ms`]); a
 /// refusal is counted in `errors` (and in [`ErrorCounters::frames_rejected`]). Planners other
@@ -661,18 +681,11 @@ impl<'a> Explorer<'a> {
         }
         self.waypoints.clear();
         let outcome = self.plan_inner(position, yaw, clock);
-        self.status.map = self.map.counts();
+        self.status.record_plan(&outcome, &self.map);
         match outcome {
-            PlanOutcome::Complete => {
-                self.status.termination = Termination::Complete;
-                self.status.unreachable_frontier = self.map.frontier_voxels();
-            }
-            PlanOutcome::Goal(g) => {
-                self.status.termination = Termination::Running;
-                self.status.unreachable_frontier = 0;
-                self.last_goal = Some(g);
-            }
+            PlanOutcome::Goal(g) => self.last_goal = Some(g),
             PlanOutcome::Hold(_) => self.last_goal = None,
+            PlanOutcome::Complete => {}
         }
         outcome
     }

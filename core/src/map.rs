@@ -483,7 +483,7 @@ impl<'a> VoxelMap<'a> {
     pub fn frontier_voxels(&self) -> u32 {
         let dims = self.dims();
         (0..self.log_odds.len())
-            .filter(|&i| self.is_free(i) && self.is_frontier(dims.voxel(i)))
+            .filter(|&i| self.is_frontier(dims.voxel(i)))
             .fold(0u32, |n, _| n.saturating_add(1))
     }
 

@@ -40,7 +40,7 @@ use harmonic_core::domain::{self, DomainError, InflationStencil, Label};
 use harmonic_core::explore::Clock;
 use harmonic_core::explore::{
     check_frame_timing, ConfigError, ExplorerConfig, ExplorerStorage, Fault, FrameTiming, Goal, PlanOutcome,
-    Status, Termination,
+    Status,
 };
 use harmonic_core::integrate::{self, traverse};
 use harmonic_core::map::{MapGeometry, VoxelIndex, VoxelMap};
@@ -705,17 +705,9 @@ impl Planner for Baseline<'_> {
         }
         self.waypoints.clear();
         let outcome = self.plan_inner(position, yaw, clock);
-        self.status.map = self.map.counts();
-        match outcome {
-            PlanOutcome::Complete => {
-                self.status.termination = Termination::Complete;
-                self.status.unreachable_frontier = self.map.frontier_voxels();
-            }
-            PlanOutcome::Goal(_) => {
-                self.status.termination = Termination::Running;
-                self.status.unreachable_frontier = 0;
-            }
-            PlanOutcome::Hold(_) => self.commitment = None,
+        self.status.record_plan(&outcome, &self.map);
+        if let PlanOutcome::Hold(_) = outcome {
+            self.commitment = None;
         }
         outcome
     }
