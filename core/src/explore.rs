@@ -23,7 +23,9 @@
 //!    turns to look; if that view taught nothing, the point *closest to the end* that sees it
 //!    beyond the minimum range; if no point of the streamline sees it (a frontier inside the
 //!    minimum range, or straight above or below), a point backed off from it, level with it,
-//!    that does. The goal yaw faces the frontier.
+//!    that does. The goal yaw faces the frontier. The way to the goal is the streamline up to
+//!    it pulled taut through the safe space ([`streamline::pull_taut`],
+//!    [`ExplorerConfig::taut_path`]): straight wherever the inflated free space allows.
 //!
 //! Frontiers the camera cannot resolve from any reachable pose (for example unknown voxels
 //! inside the minimum range under the vehicle) would make the loop revisit the same place
@@ -95,6 +97,11 @@ pub struct ExplorerConfig {
     /// receding-horizon caller can oscillate between two frontiers whose pull swaps as the
     /// source moves.
     pub commit_to_goal: bool,
+    /// Fly to the goal along the streamline pulled taut ([`streamline::pull_taut`]): the goal
+    /// is still chosen on the streamline itself (which arrives along the frontier's normal, so
+    /// the look is head-on), but the way there is straight wherever the inflated safe space
+    /// allows. False flies the streamline's own curve (an ablation).
+    pub taut_path: bool,
     /// A frame whose camera is farther than this (metres) from the previous integrated frame's
     /// is refused ([`IntegrateError::PoseJump`], counted in [`ErrorCounters::pose_jumps`]): a
     /// pose that jumps would write the frame's walls into the wrong place. If
@@ -148,6 +155,7 @@ impl Default for ExplorerConfig {
             view_range_m: 1.5,
             stall_visits: 2,
             commit_to_goal: true,
+            taut_path: true,
             max_frame_jump_m: 2.0,
             max_frame_yaw_rate: 30.0 * core::f32::consts::PI / 180.0,
             max_frame_pose_lag_ms: 150,
@@ -848,6 +856,11 @@ impl<'a> Explorer<'a> {
             let retry_near = revisit && last_from_afar;
             self.go_near = revisit && (last_from_afar || self.go_near);
             let goal = self.choose_goal(&end, yaw);
+            if self.config.taut_path {
+                // The streamline chose where to look from (it arrives along the frontier's
+                // normal); the flight there need not follow its curve.
+                self.status.planning_ops += streamline::pull_taut(&geometry, self.labels, &mut self.waypoints);
+            }
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
             if retry_near {
                 // Not fruitless yet, and not a fresh start either.

@@ -320,6 +320,59 @@ pub fn trace(
     Ok(end)
 }
 
+/// Pulls a traced path taut: from each kept waypoint, the path goes straight to the farthest
+/// later waypoint it reaches in a straight line through domain voxels (greedy string pulling,
+/// stopping at the first waypoint it cannot reach), and the waypoints in between are moved onto
+/// that straight segment, evenly spaced. The first and last waypoints stay where they are, so a
+/// path that ended on a frontier still does, and no waypoint is added or removed: the spacing
+/// only shrinks, and a caller that tracks the vehicle by its nearest waypoint keeps working.
+///
+/// A gradient path bends wherever the field does — towards frontier mass in an open hall,
+/// around the rim of a wall's zero-flux boundary — while the vehicle only has to stay in the
+/// inflated safe space that the domain voxels are. Returns the voxels the line-of-sight checks
+/// visited (planning work). Waypoints outside the grid or a short `labels` leave the path as
+/// it is.
+pub fn pull_taut(geometry: &MapGeometry, labels: &[Label], waypoints: &mut [Point3<f32>]) -> u64 {
+    let dims = geometry.dims();
+    if labels.len() < dims.len() {
+        return 0;
+    }
+    let mut visited = 0u64;
+    let mut reaches = |a: &Point3<f32>, b: &Point3<f32>| {
+        let mut clear = true;
+        let n = crate::integrate::traverse(geometry, a, b, |v| {
+            clear &= labels.get(dims.linear(v)).is_some_and(|l| l.in_domain());
+            clear
+        });
+        visited += u64::from(n);
+        clear && n > 0
+    };
+    let n = waypoints.len();
+    let mut anchor = 0;
+    while anchor + 2 < n {
+        let Some(&a) = waypoints.get(anchor) else {
+            break;
+        };
+        let mut reach = anchor + 1;
+        while let Some(b) = waypoints.get(reach + 1) {
+            if !reaches(&a, b) {
+                break;
+            }
+            reach += 1;
+        }
+        if let Some(&b) = waypoints.get(reach) {
+            let span = (reach - anchor) as f32;
+            for k in anchor + 1..reach {
+                if let Some(w) = waypoints.get_mut(k) {
+                    *w = a + (b - a) * ((k - anchor) as f32 / span);
+                }
+            }
+        }
+        anchor = reach;
+    }
+    visited
+}
+
 /// True if ψ rises from `a` to `b` by more than rounding: a few ulps of `a`. A dead-end pocket
 /// carries no flux, so its ψ equals its entrance's up to rounding; stepping into it on a
 /// one-ulp "rise" would strand the tracer on a plateau with no way up.
@@ -421,6 +474,79 @@ mod tests {
         }
         // Path at least the Manhattan-free distance, not absurdly longer.
         assert!(end.length > 1.4 && end.length < 2.6, "{}", end.length);
+
+        // Pulled taut it still ends on the frontier, turns the corner inside the corridor, and
+        // is no longer.
+        let traced = wps.clone();
+        pull_taut(&g, &labels, &mut wps);
+        assert_eq!(wps.len(), traced.len());
+        assert_eq!(wps.first(), traced.first());
+        assert_eq!(wps.last(), traced.last());
+        assert!(path_length(&wps) <= path_length(&traced) + 1e-5);
+        assert_segments_in_domain(&g, &labels, &wps);
+    }
+
+    fn path_length(w: &[Point3<f32>]) -> f32 {
+        w.windows(2).map(|p| (p[1] - p[0]).norm()).sum()
+    }
+
+    fn assert_segments_in_domain(g: &MapGeometry, labels: &[Label], w: &[Point3<f32>]) {
+        for p in w.windows(2) {
+            crate::integrate::traverse(g, &p[0], &p[1], |v| {
+                assert!(
+                    labels[g.dims().linear(v)].in_domain(),
+                    "segment {:?} → {:?} crosses {v:?}",
+                    p[0],
+                    p[1]
+                );
+                true
+            });
+        }
+    }
+
+    #[test]
+    fn a_path_pulled_taut_goes_straight_where_it_can_and_around_what_it_must() {
+        // A 30 × 30 room with a 10 × 10 block in the middle; a staircase path from (2, 2) to
+        // (27, 27) around the block's lower-right side.
+        let dims = Dims::new(30, 30, 1).unwrap();
+        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let mut labels = [Label::Interior; 900];
+        for y in 10..20 {
+            for x in 10..20 {
+                labels[dims.linear(VoxelIndex::new(x, y, 0))] = Label::Outside;
+            }
+        }
+        let at = |x: u16, y: u16| g.center(VoxelIndex::new(x, y, 0));
+        let mut wps = Waypoints::new();
+        // Right along y = 2 to x = 24, up along x = 24, then left-up to (27, 27) in steps.
+        for x in 2..=24 {
+            wps.push(at(x, 2)).unwrap();
+        }
+        for y in 3..=27 {
+            wps.push(at(24 + (y - 3) / 8, y)).unwrap();
+        }
+        let before = wps.clone();
+        pull_taut(&g, &labels, &mut wps);
+        assert_eq!(wps.len(), before.len());
+        assert_eq!(wps.first(), before.first());
+        assert_eq!(wps.last(), before.last());
+        assert_segments_in_domain(&g, &labels, &wps);
+        let (l0, l1) = (path_length(&before), path_length(&wps));
+        // The straight line is blocked; around the block's corner (19.5, 9.5) it is
+        // |(2.5, 2.5) → (20.5, 9.5)| + |(20.5, 9.5) → (27.5, 27.5)| ≈ 3.90 m.
+        assert!(l1 < l0 - 0.3, "{l0} → {l1}");
+        assert!(l1 > 3.8 && l1 < 4.3, "{l1}");
+        // Waypoints stay ordered along the path and no farther apart than before.
+        let gap = |w: &[Point3<f32>]| w.windows(2).map(|p| (p[1] - p[0]).norm()).fold(0.0, f32::max);
+        assert!(gap(&wps) <= gap(&before) + 1e-5);
+
+        // No domain around: nothing moves.
+        let mut short = Waypoints::new();
+        short.push(at(1, 1)).unwrap();
+        short.push(at(5, 5)).unwrap();
+        let kept = short.clone();
+        pull_taut(&g, &labels[..10], &mut short);
+        assert_eq!(short, kept);
     }
 
     #[test]

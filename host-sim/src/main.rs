@@ -821,6 +821,10 @@ struct FieldArgs {
     /// range) instead of the thesis's (fly up to it).
     #[arg(long)]
     baseline_views: bool,
+    /// Ablation: the core flies its streamline's own curve instead of pulling it taut through
+    /// the safe space (same goal, same frontier).
+    #[arg(long)]
+    raw_streamline: bool,
 }
 
 impl FieldArgs {
@@ -836,6 +840,9 @@ impl FieldArgs {
             cfg.explorer.view_range_m = r.max(0.0);
         }
         cfg.baseline_views = self.baseline_views;
+        if self.raw_streamline {
+            cfg.explorer.taut_path = false;
+        }
     }
 }
 
