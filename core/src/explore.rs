@@ -859,7 +859,8 @@ impl<'a> Explorer<'a> {
             if self.config.taut_path {
                 // The streamline chose where to look from (it arrives along the frontier's
                 // normal); the flight there need not follow its curve.
-                self.status.planning_ops += streamline::pull_taut(&geometry, self.labels, &mut self.waypoints);
+                self.status.planning_ops +=
+                    streamline::pull_taut(&geometry, self.labels, &mut self.waypoints);
             }
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
             if retry_near {

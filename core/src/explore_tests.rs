@@ -482,3 +482,62 @@ fn frames_taken_while_turning_fast_or_on_a_stale_pose_are_refused_and_counted() 
     );
     assert_eq!(errors, ErrorCounters::default());
 }
+
+/// Plans once from behind a wall whose far end the vehicle must round to reach the frontier
+/// (unknown space beyond x = 3 m, south of y = 1 m);
+/// returns the goal, the waypoints, the labels and the vehicle's position.
+fn plan_around_a_wall(taut_path: bool) -> (Goal, Vec<Point3<f32>>, Vec<Label>, Point3<f32>) {
+    let dims = Dims::new(40, 30, 12).unwrap();
+    let mut b = Buffers::new(&dims);
+    // Flying up to the frontier (view range 0): the streamline's bend towards the frontier's
+    // normal is then part of the way.
+    let config = ExplorerConfig {
+        taut_path,
+        view_range_m: 0.0,
+        ..ExplorerConfig::default()
+    };
+    let mut e = b.explorer(dims, config);
+    e.intrinsics = Some(Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap());
+    e.map.begin_frame();
+    for i in 0..dims.len() {
+        let v = dims.voxel(i);
+        if (10..16).contains(&v.x) && v.y < 20 {
+            e.map.apply_hit(i);
+        } else if v.x < 30 || v.y >= 10 {
+            e.map.apply_miss(i);
+        }
+    }
+    let p = Point3::new(0.55, 0.55, 0.65);
+    let PlanOutcome::Goal(goal) = e.plan(&p, 0.0) else {
+        panic!("no goal: {:?}", e.status());
+    };
+    (goal, e.waypoints().to_vec(), e.labels().to_vec(), p)
+}
+
+#[test]
+fn the_way_to_a_goal_is_pulled_taut_through_the_safe_space_and_keeps_the_goal() {
+    let (raw_goal, raw, _, _) = plan_around_a_wall(false);
+    let (goal, taut, labels, vehicle) = plan_around_a_wall(true);
+    // The same view of the same frontier: the streamline chose it, the pull only straightens
+    // the way there.
+    assert_eq!(goal, raw_goal);
+    let length = |w: &[Point3<f32>]| w.windows(2).map(|s| (s[1] - s[0]).norm()).sum::<f32>();
+    assert!(
+        length(&taut) < length(&raw) - 0.05,
+        "taut {} m, streamline {} m",
+        length(&taut),
+        length(&raw)
+    );
+    assert!((taut[0] - vehicle).norm() < 1e-4);
+    assert!((taut[taut.len() - 1] - goal.position).norm() < 1e-4);
+    // The vehicle rounds the wall's end (y ≥ 2.0 m), and no segment leaves the domain (the
+    // free space eroded by the vehicle's radius).
+    assert!(taut.iter().any(|w| w.y > 2.0), "{taut:?}");
+    let g = MapGeometry::new(Dims::new(40, 30, 12).unwrap(), Point3::origin(), 0.1).unwrap();
+    for s in taut.windows(2) {
+        integrate::traverse(&g, &s[0], &s[1], |v| {
+            assert!(labels[g.dims().linear(v)].in_domain(), "{s:?} crosses {v:?}");
+            true
+        });
+    }
+}
