@@ -320,6 +320,26 @@ pub fn trace(
     Ok(end)
 }
 
+/// True if the segment `a → b` passes only through domain voxels (the inflated safe space);
+/// `steps` counts the voxels looked at. The core's taut paths and the host's baseline planners
+/// share it.
+pub fn line_of_sight(
+    geometry: &MapGeometry,
+    labels: &[Label],
+    a: &Point3<f32>,
+    b: &Point3<f32>,
+    steps: &mut u64,
+) -> bool {
+    let dims = geometry.dims();
+    let mut clear = true;
+    let n = crate::integrate::traverse(geometry, a, b, |v| {
+        clear &= labels.get(dims.linear(v)).is_some_and(|l| l.in_domain());
+        clear
+    });
+    *steps += u64::from(n);
+    clear && n > 0
+}
+
 /// Pulls a traced path taut: from each kept waypoint, the path goes straight to the farthest
 /// later waypoint it reaches in a straight line through domain voxels (greedy string pulling,
 /// stopping at the first waypoint it cannot reach), and the waypoints in between are moved onto
@@ -333,20 +353,11 @@ pub fn trace(
 /// visited (planning work). Waypoints outside the grid or a short `labels` leave the path as
 /// it is.
 pub fn pull_taut(geometry: &MapGeometry, labels: &[Label], waypoints: &mut [Point3<f32>]) -> u64 {
-    let dims = geometry.dims();
-    if labels.len() < dims.len() {
+    if labels.len() < geometry.dims().len() {
         return 0;
     }
     let mut visited = 0u64;
-    let mut reaches = |a: &Point3<f32>, b: &Point3<f32>| {
-        let mut clear = true;
-        let n = crate::integrate::traverse(geometry, a, b, |v| {
-            clear &= labels.get(dims.linear(v)).is_some_and(|l| l.in_domain());
-            clear
-        });
-        visited += u64::from(n);
-        clear && n > 0
-    };
+    let mut reaches = |a: &Point3<f32>, b: &Point3<f32>| line_of_sight(geometry, labels, a, b, &mut visited);
     let n = waypoints.len();
     let mut anchor = 0;
     while anchor + 2 < n {

@@ -9,7 +9,6 @@ use std::cmp::Ordering;
 use std::collections::BinaryHeap;
 
 use harmonic_core::domain::Label;
-use harmonic_core::integrate::traverse;
 use harmonic_core::map::{Dims, MapGeometry};
 use nalgebra::Point3;
 
@@ -227,24 +226,7 @@ impl Search {
     }
 }
 
-/// True if the segment `a → b` passes only through passable voxels; `steps` counts the voxels
-/// looked at.
-pub fn line_of_sight(
-    geometry: &MapGeometry,
-    labels: &[Label],
-    a: &Point3<f32>,
-    b: &Point3<f32>,
-    steps: &mut u64,
-) -> bool {
-    let dims = geometry.dims();
-    let mut clear = true;
-    let n = traverse(geometry, a, b, |v| {
-        clear &= labels.get(dims.linear(v)).is_some_and(|l| l.in_domain());
-        clear
-    });
-    *steps += u64::from(n);
-    clear && n > 0
-}
+pub use harmonic_core::streamline::line_of_sight;
 
 /// Waypoints for a voxel path: starts at `start` (the vehicle, inside the path's first voxel),
 /// ends at the centre of its last voxel, and keeps only the corners that line of sight through
