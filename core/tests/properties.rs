@@ -300,6 +300,7 @@ fn solve_mg_screened(b: &Built, method: Method, tolerance: f32, screening: f32) 
         max_iterations: 2000,
         warm_start: false,
         screening,
+        max_error: f32::INFINITY,
     };
     let s = mg
         .solve(&b.labels, &mut psi, &params, method)

@@ -148,6 +148,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
             max_iterations: 1_000_000,
             warm_start,
             screening: 0.0,
+            max_error: f32::INFINITY,
         };
         match solver {
             BenchSolver::Multigrid(method) => {

@@ -688,6 +688,11 @@ struct SolveArgs {
     /// prints `"converged": false` (and still exits 0).
     #[arg(long, default_value_t = 1_000_000)]
     max_cycles: u32,
+    /// Error target: go on until the solve's estimate of its largest error of φ (printed as
+    /// `error_estimate`) is at or below this as well as the tolerance; `converged` then means
+    /// both were met. Default: the residual alone decides.
+    #[arg(long, value_parser = parse_positive)]
+    max_error: Option<f32>,
     /// Vehicle radius in metres (obstacles and unknown space are inflated by it).
     #[arg(long, default_value_t = 0.0, value_parser = parse_radius)]
     radius: f32,
@@ -718,6 +723,7 @@ fn solve_problem(args: &SolveArgs) -> Result<(), String> {
         },
         tolerance: args.tol,
         max_cycles: args.max_cycles,
+        max_error: args.max_error.unwrap_or(f32::INFINITY),
         radius: args.radius,
         resolution: args.resolution,
     };

@@ -50,6 +50,10 @@ pub struct SolveRequest {
     /// Most cycles (multigrid) or sweeps (Gauss-Seidel); a solve stopped here before its own
     /// rule says "done" reports `converged: false`.
     pub max_cycles: u32,
+    /// Error target: the solve also goes on until its estimated largest error of φ
+    /// ([`harmonic_core::solve::SolveStats::error_estimate`]) is at or below this (infinite: the
+    /// residual alone decides).
+    pub max_error: f32,
     /// Vehicle radius, metres.
     pub radius: f32,
     /// Voxel edge, metres (only scales the radius).
@@ -71,8 +75,12 @@ pub struct SolveSummary {
     pub cycles: u32,
     /// Final relative residual.
     pub residual: f32,
-    /// Whether the tolerance (or the f32 floor) was reached.
+    /// Whether the solve stopped by its own rule: the tolerance (or the f32 floor) reached,
+    /// and the error target if one was set. False at the cycle cap.
     pub converged: bool,
+    /// Estimated largest error of φ against the exact solution of the same discrete system
+    /// (`null` where the solve had too few steps to estimate it).
+    pub error_estimate: Option<f32>,
     /// Solve time, ms.
     pub solve_ms: f64,
     /// Domain build and solver set-up time, ms.
@@ -193,6 +201,7 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
         max_iterations: req.max_cycles,
         warm_start: false,
         screening: 0.0,
+        max_error: req.max_error,
     };
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
         SolverChoice::Multigrid | SolverChoice::VCycle => {
@@ -245,6 +254,7 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
         cycles: s.iterations,
         residual: s.residual,
         converged: s.converged,
+        error_estimate: s.error_estimate,
         solve_ms,
         setup_ms,
     };
@@ -269,6 +279,7 @@ mod tests {
             solver,
             tolerance: 1e-6,
             max_cycles: 1_000_000,
+            max_error: f32::INFINITY,
             radius: 0.0,
             resolution: 0.1,
         }
@@ -296,6 +307,40 @@ mod tests {
             assert!(!s.converged, "{solver:?} stopped at the cap: {s:?}");
             let (_, s) = solve(&long, &request(solver)).unwrap();
             assert!(s.converged, "{solver:?} without the cap: {s:?}");
+        }
+    }
+
+    /// `--max-error`: every solver goes on until its error estimate meets the target, and the
+    /// potential it prints is then that close to the exact one (in a one-voxel corridor φ is
+    /// linear from the source to the frontier voxel). With one step there is nothing to estimate from:
+    /// `error_estimate` is null and the solve is not converged.
+    #[test]
+    fn an_error_target_is_met_and_reported() {
+        // One voxel wide inside occupied rock, so φ is exactly linear.
+        let long = Array3::from_fn([60, 3, 3], |x, y, z| match (x, y, z) {
+            (59, 1, 1) => labels::UNKNOWN,
+            (_, 1, 1) => labels::FREE,
+            _ => labels::OCCUPIED,
+        });
+        for solver in [
+            SolverChoice::Multigrid,
+            SolverChoice::VCycle,
+            SolverChoice::GaussSeidel,
+        ] {
+            let req = SolveRequest {
+                max_error: 1e-4,
+                ..request(solver)
+            };
+            let (phi, s) = solve(&long, &req).unwrap();
+            assert!(s.converged, "{solver:?}: {s:?}");
+            assert!(s.error_estimate.is_some_and(|e| e <= 1e-4), "{solver:?}: {s:?}");
+            let worst = (0..58)
+                .map(|x| (phi.get(x, 1, 1).unwrap() - (1.0 - x as f32 / 58.0)).abs())
+                .fold(0.0f32, f32::max);
+            assert!(worst <= 2e-4, "{solver:?}: φ off the line by {worst:.2e}, {s:?}");
+            let one = SolveRequest { max_cycles: 1, ..req };
+            let (_, s) = solve(&long, &one).unwrap();
+            assert!(!s.converged && s.error_estimate.is_none(), "{solver:?}: {s:?}");
         }
     }
 
