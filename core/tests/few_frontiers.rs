@@ -194,7 +194,7 @@ fn a_solve_stopped_at_the_cap_is_not_converged() {
 /// explorer lowers it late in an exploration, s = κ²h² = 1e-4, and the default 0.33 m decay
 /// length at 0.1 m voxels, s = 0.09), for both multigrid solvers stopped after 6, 20 and 80
 /// steps and at their own stop. A user relies on it not being optimistic: it is never below
-/// half the true error (measured 0.65× at worst, a V-cycle solve three cycles in). Nor is it
+/// half the true error (measured 0.74× at worst; 0.65×, a V-cycle solve three cycles in). Nor is it
 /// uselessly pessimistic while the error is above the rounding noise: at most 12× (measured
 /// 11×, MGPCG on the screened field).
 #[test]
