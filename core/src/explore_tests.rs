@@ -57,7 +57,7 @@ impl Buffers {
                 labels: &mut self.labels,
                 phi: &mut self.phi,
                 queue: &mut self.queue,
-                coarse_values: &mut self.values,
+                coarse_values: self.values.as_mut_slice().into(),
                 coarse_labels: &mut self.coarse_labels,
                 coarse_faces: &mut self.faces,
                 krylov: &mut self.krylov,

@@ -58,7 +58,7 @@ impl Solver {
     }
     fn solve(&mut self, dims: Dims, labels: &[Label], method: Method) -> Vec<f32> {
         let storage = MultigridStorage {
-            values: &mut self.values,
+            values: self.values.as_mut_slice().into(),
             labels: &mut self.labels,
             faces: &mut self.faces,
             krylov: &mut self.krylov,

@@ -287,7 +287,7 @@ fn solve_mg_screened(b: &Built, method: Method, tolerance: f32, screening: f32) 
     let mut mg = Multigrid::new(
         dims,
         MultigridStorage {
-            values: &mut values,
+            values: values.as_mut_slice().into(),
             labels: &mut clabels,
             faces: &mut faces,
             krylov: &mut krylov,

@@ -34,6 +34,7 @@ use harmonic_core::mavlink::{
     write_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, AUTOPILOT_COMPONENT_ID,
     DEFAULT_SYSTEM_ID, ONBOARD_COMPUTER_COMPONENT_ID,
 };
+use harmonic_core::solve::Bf16;
 use harmonic_core::streamline::Waypoints;
 use nalgebra::Point3;
 
@@ -69,7 +70,8 @@ pub struct Storage {
     labels: [Label; VOXELS],
     phi: [f32; VOXELS],
     queue: [u32; QUEUE_LEN],
-    coarse_values: [f32; 2 * COARSE_CELLS],
+    /// bfloat16: 73 KiB instead of 146 KiB (see `harmonic_core::solve::multigrid::CoarseValues`).
+    coarse_values: [Bf16; 2 * COARSE_CELLS],
     coarse_labels: [Label; COARSE_CELLS],
     depth: [u16; MAX_DEPTH_PIXELS],
 }
@@ -83,7 +85,7 @@ impl Storage {
             labels: [Label::Outside; VOXELS],
             phi: [0.0; VOXELS],
             queue: [0; QUEUE_LEN],
-            coarse_values: [0.0; 2 * COARSE_CELLS],
+            coarse_values: [Bf16::ZERO; 2 * COARSE_CELLS],
             coarse_labels: [Label::Outside; COARSE_CELLS],
             depth: [0; MAX_DEPTH_PIXELS],
         }
@@ -257,7 +259,7 @@ pub fn build_explorer<'a>(
             labels,
             phi,
             queue,
-            coarse_values,
+            coarse_values: coarse_values.as_mut_slice().into(),
             coarse_labels,
             // No face conductances: 73 KiB the 1 MiB budget does not have (see
             // `MultigridStorage::faces`); coarse levels use the label-only operator.

@@ -87,7 +87,7 @@ pub fn run(data: &[u8]) {
         labels: &mut labels,
         phi: &mut phi,
         queue: &mut queue,
-        coarse_values: &mut coarse_values,
+        coarse_values: coarse_values.as_mut_slice().into(),
         coarse_labels: &mut coarse_labels,
         coarse_faces: &mut coarse_faces,
         krylov: &mut krylov,

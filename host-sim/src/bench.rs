@@ -153,7 +153,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
         match solver {
             BenchSolver::Multigrid(method) => {
                 let storage = MultigridStorage {
-                    values: &mut values,
+                    values: values.as_mut_slice().into(),
                     labels: &mut clabels,
                     faces: &mut faces,
                     krylov: &mut krylov,

@@ -1479,6 +1479,21 @@ fn fw_budget(args: &FwBudgetArgs) -> Result<(), String> {
     let Some(p) = &report.pil else {
         return Err("no processor-in-the-loop data in the report".into());
     };
+    match pil::stack_high_water(&args.out) {
+        Some(deepest) => {
+            println!(
+                "stack high-water (stack painting, the firmware's log): {deepest} bytes of the {} reserved",
+                size.stack_reserve
+            );
+            if deepest > size.stack_reserve {
+                eprintln!(
+                    "warning: the firmware's stack went {} bytes deeper than memory.x reserves for it",
+                    deepest - size.stack_reserve
+                );
+            }
+        }
+        None => println!("stack high-water: not in the firmware's log (install defmt-print to decode it)"),
+    }
     // Full replans (outcome "goal") solved; the first is the cold solve.
     let full: Vec<(usize, [u64; 4])> = report
         .steps

@@ -856,6 +856,18 @@ fn check_fits(scenario: &Scenario, geometry: &MapGeometry) -> Result<(), SimErro
     Ok(())
 }
 
+/// The deepest stack the firmware used in a run, in bytes: the largest "stack high-water N of
+/// M bytes" its decoded log (`firmware.log` in `out`) reports (it measures by stack painting,
+/// `firmware/src/board/stack.rs`, after every plan). `None` if the log is missing or was not
+/// decoded (defmt-print not installed).
+pub fn stack_high_water(out: &Path) -> Option<u64> {
+    let log = std::fs::read_to_string(out.join("firmware.log")).ok()?;
+    log.lines()
+        .filter_map(|l| l.split("stack high-water ").nth(1))
+        .filter_map(|rest| rest.split_whitespace().next()?.parse::<u64>().ok())
+        .max()
+}
+
 /// Decodes `firmware.defmt` into `firmware.log` with defmt-print, if it is installed.
 fn decode_log(elf: &Path, out: &Path) {
     let Ok(input) = std::fs::File::open(out.join("firmware.defmt")) else {
@@ -882,6 +894,21 @@ fn decode_log(elf: &Path, out: &Path) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_stack_high_water_is_the_deepest_the_log_reports() {
+        let dir = std::env::temp_dir().join(format!("hx-stack-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        assert_eq!(stack_high_water(&dir), None, "no log");
+        std::fs::write(
+            dir.join("firmware.log"),
+            "INFO  boot\nINFO  stack high-water 30972 of 36380 bytes\n\
+             INFO  plan 3\nINFO  stack high-water 34548 of 36380 bytes\n",
+        )
+        .unwrap();
+        assert_eq!(stack_high_water(&dir), Some(34548));
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn pil_small_fits_the_firmware_grid_and_apartment_does_not() {

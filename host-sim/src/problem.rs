@@ -213,7 +213,7 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
                 vec![0.0f32; size.krylov],
             );
             let storage = MultigridStorage {
-                values: &mut values,
+                values: values.as_mut_slice().into(),
                 labels: &mut clabels,
                 faces: &mut faces,
                 krylov: &mut krylov,

@@ -487,7 +487,7 @@ impl HostStorage {
             labels: &mut self.labels,
             phi: &mut self.phi,
             queue: &mut self.queue,
-            coarse_values: &mut self.coarse_values,
+            coarse_values: self.coarse_values.as_mut_slice().into(),
             coarse_labels: &mut self.coarse_labels,
             coarse_faces: &mut self.coarse_faces,
             krylov: &mut self.krylov,

@@ -99,6 +99,16 @@ fn firmware_explores_pil_small_under_qemu() {
         "{:?}",
         r.link
     );
+    // The deepest stack the firmware measured (stack painting, in its log) fits the reserve the
+    // linker keeps for it; without defmt-print the log is not decoded and there is no number.
+    match pil::stack_high_water(&out) {
+        Some(deepest) => assert!(
+            deepest <= size.stack_reserve,
+            "the stack went {deepest} bytes deep, past the {} memory.x reserves",
+            size.stack_reserve
+        ),
+        None => eprintln!("stack high-water not checked: firmware.log not decoded (defmt-print missing)"),
+    }
     let pil = r.pil.as_ref().expect("PIL details");
     assert_eq!(pil.downlink_dropped, 0, "damaged downlink frames");
     assert!(pil.plan_cycle.max > 0 && pil.integrate.mean > 0.0, "{pil:?}");

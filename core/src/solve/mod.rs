@@ -429,6 +429,70 @@ pub(crate) fn residual_with(
     }
 }
 
+/// A bfloat16 number: the upper half of an `f32` (sign, the full 8-bit exponent, 7 bits of
+/// mantissa), rounded to nearest even. Multigrid coarse levels can be stored in it
+/// ([`multigrid::CoarseValues::Bf16`]) to halve their memory: they only carry corrections,
+/// which a V-cycle recomputes from the fine residual every cycle, so their ~0.4 % relative
+/// rounding limits a cycle's reduction to about that and no further (the fine level, whose
+/// residual decides convergence, stays `f32`). Unlike IEEE half precision it keeps `f32`'s
+/// range: late residuals of 1e-7 and below do not underflow.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[repr(transparent)]
+pub struct Bf16(pub u16);
+
+impl Bf16 {
+    /// Zero.
+    pub const ZERO: Bf16 = Bf16(0);
+
+    /// `v` rounded to the nearest bfloat16 (ties to even). NaN stays NaN.
+    #[inline(always)]
+    pub fn from_f32(v: f32) -> Self {
+        let bits = v.to_bits();
+        if v.is_nan() {
+            return Bf16((bits >> 16) as u16 | 0x40);
+        }
+        let round = 0x7FFF + ((bits >> 16) & 1);
+        Bf16((bits.wrapping_add(round) >> 16) as u16)
+    }
+
+    /// The exact `f32` of this value.
+    #[inline(always)]
+    pub fn to_f32(self) -> f32 {
+        f32::from_bits(u32::from(self.0) << 16)
+    }
+}
+
+/// How the solvers store a value: `f32` everywhere, or [`Bf16`] on multigrid coarse levels.
+/// Arithmetic is always `f32`.
+pub(crate) trait Stored: Copy + Default + 'static {
+    /// The value as `f32`.
+    fn load(self) -> f32;
+    /// `v` in this format.
+    fn store(v: f32) -> Self;
+}
+
+impl Stored for f32 {
+    #[inline(always)]
+    fn load(self) -> f32 {
+        self
+    }
+    #[inline(always)]
+    fn store(v: f32) -> Self {
+        v
+    }
+}
+
+impl Stored for Bf16 {
+    #[inline(always)]
+    fn load(self) -> f32 {
+        self.to_f32()
+    }
+    #[inline(always)]
+    fn store(v: f32) -> Self {
+        Bf16::from_f32(v)
+    }
+}
+
 /// Read access to one x-row of values, either plain or in place (`Cell`), so the same stencil
 /// code serves residuals and the in-place smoother. Out-of-range reads give 0.
 pub(crate) trait RowValues {
@@ -436,17 +500,17 @@ pub(crate) trait RowValues {
     fn at(&self, x: usize) -> f32;
 }
 
-impl RowValues for [f32] {
+impl<T: Stored> RowValues for [T] {
     #[inline(always)]
     fn at(&self, x: usize) -> f32 {
-        self.get(x).copied().unwrap_or(0.0)
+        self.get(x).map_or(0.0, |v| v.load())
     }
 }
 
-impl RowValues for [Cell<f32>] {
+impl<T: Stored> RowValues for [Cell<T>] {
     #[inline(always)]
     fn at(&self, x: usize) -> f32 {
-        self.get(x).map_or(0.0, Cell::get)
+        self.get(x).map_or(0.0, |c| c.get().load())
     }
 }
 
@@ -456,7 +520,7 @@ impl RowValues for [Cell<f32>] {
 /// The hot loops read neighbours with `get` on these slices: an absent row or a position past
 /// the row's end simply reads as "outside the domain", so edges need no separate code path, and
 /// the in-domain test becomes a 0/1 weight instead of a branch per face.
-pub(crate) struct Stencil<'r> {
+pub(crate) struct Stencil<'r, T = f32> {
     /// The level's screening.
     pub(crate) screen: Screen,
     /// Row coordinates.
@@ -468,7 +532,7 @@ pub(crate) struct Stencil<'r> {
     /// The row's labels.
     pub(crate) labels: &'r [Label],
     nl: [&'r [Label]; 4],
-    nv: [&'r [f32]; 4],
+    nv: [&'r [T]; 4],
 }
 
 /// 1 / n for the neighbour counts a cell can have (0 for none: no update).
@@ -479,7 +543,7 @@ fn in_domain(l: Option<&Label>) -> bool {
     l.is_some_and(|l| l.in_domain())
 }
 
-impl<'r> Stencil<'r> {
+impl<'r, T: Stored> Stencil<'r, T> {
     /// The stencil of row `(y, z)`, whose values are `before = values[..start]` and
     /// `after = values[start + nx..]` around it.
     pub(crate) fn new(
@@ -488,8 +552,8 @@ impl<'r> Stencil<'r> {
         y: usize,
         z: usize,
         labels: &'r [Label],
-        before: &'r [f32],
-        after: &'r [f32],
+        before: &'r [T],
+        after: &'r [T],
     ) -> Self {
         let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
         let nxy = nx * ny;
@@ -502,10 +566,9 @@ impl<'r> Stencil<'r> {
             Some(start + nx).filter(|_| y + 1 < ny),
             Some(start + nxy).filter(|_| z + 1 < nz),
         );
-        let vbefore =
-            |s: Option<usize>| -> &'r [f32] { s.and_then(|s| before.get(s..s + nx)).unwrap_or(&[]) };
+        let vbefore = |s: Option<usize>| -> &'r [T] { s.and_then(|s| before.get(s..s + nx)).unwrap_or(&[]) };
         // `after` starts at start + nx.
-        let vafter = |s: Option<usize>| -> &'r [f32] {
+        let vafter = |s: Option<usize>| -> &'r [T] {
             s.and_then(|s| after.get(s - start - nx..s - start))
                 .unwrap_or(&[])
         };
@@ -542,16 +605,16 @@ impl<'r> Stencil<'r> {
 /// The part of a [`Stencil`] away from the grid's y and z edges: all four neighbour rows
 /// exist and every slice has the row's length, so the loops over `1..nx − 1` read neighbours
 /// without branches (the compiler sees the lengths and drops the bounds checks).
-pub(crate) struct Inner<'r> {
+pub(crate) struct Inner<'r, T = f32> {
     pub(crate) l: &'r [Label],
     pub(crate) nl: [&'r [Label]; 4],
-    pub(crate) nv: [&'r [f32]; 4],
+    pub(crate) nv: [&'r [T]; 4],
 }
 
-impl<'r> Stencil<'r> {
+impl<'r, T: Stored> Stencil<'r, T> {
     /// The branch-free view of this row, if all four neighbour rows exist.
     #[inline(always)]
-    pub(crate) fn inner(&self) -> Option<Inner<'r>> {
+    pub(crate) fn inner(&self) -> Option<Inner<'r, T>> {
         let n = self.labels.len();
         let ok = self.nl.iter().all(|l| l.len() == n) && self.nv.iter().all(|v| v.len() == n);
         ok.then_some(Inner {
@@ -562,11 +625,11 @@ impl<'r> Stencil<'r> {
     }
 }
 
-impl<'r> Inner<'r> {
+impl<'r, T: Stored> Inner<'r, T> {
     /// Every slice cut to exactly `nx` entries (the row length), or `None` if one is shorter.
     /// Cutting here, in the caller's inlined code, is what lets the compiler see the lengths.
     #[inline(always)]
-    pub(crate) fn cut(&self, nx: usize) -> Option<Cut<'r>> {
+    pub(crate) fn cut(&self, nx: usize) -> Option<Cut<'r, T>> {
         let [l0, l1, l2, l3] = self.nl;
         let [v0, v1, v2, v3] = self.nv;
         Some(Cut {
@@ -578,13 +641,13 @@ impl<'r> Inner<'r> {
 }
 
 /// An [`Inner`] row whose slices all have the row's length.
-pub(crate) struct Cut<'r> {
+pub(crate) struct Cut<'r, T = f32> {
     pub(crate) l: &'r [Label],
     nl: [&'r [Label]; 4],
-    nv: [&'r [f32]; 4],
+    nv: [&'r [T]; 4],
 }
 
-impl Cut<'_> {
+impl<T: Stored> Cut<'_, T> {
     /// Net flux into cell `x` (value `c`, `0 < x < nx − 1`) of `row` and the number of
     /// in-domain neighbours; the in-domain tests are 0/1 weights, not branches.
     #[inline(always)]
@@ -614,10 +677,10 @@ pub(crate) fn weight(l: Label) -> bool {
 /// Calls `f(x, r)` with the residual `r = b + Σ (v_j − v_x)` of every interior cell `x` of a
 /// read-only row (`b` = 0 where absent). Rows away from the y/z edges take a branch-free path.
 #[inline(always)]
-pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
-    st: &Stencil<'_>,
-    row: &[f32],
-    b: Option<&[f32]>,
+pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
+    st: &Stencil<'_, T>,
+    row: &[T],
+    b: Option<&[T]>,
     mut f: F,
 ) {
     let nx = row.len();
@@ -625,6 +688,7 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
     let edge = |x: usize, f: &mut F| {
         if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
+            let c = c.load();
             let (flux, n) = st.flux(row, x, c);
             f(x, bx(x) + flux - shift * c, n);
         }
@@ -644,6 +708,7 @@ pub(crate) fn row_residuals<F: FnMut(usize, f32, u32)>(
             break;
         };
         if lc == Label::Interior {
+            let c = c.load();
             let (flux, n) = cut.flux(row, x, c);
             f(x, bx(x) + flux - shift * c, n);
         }
@@ -723,13 +788,13 @@ impl Active {
 }
 
 /// Calls `f(stencil, row)` for every x-row of `values` (read-only).
-pub(crate) fn for_each_row(
+pub(crate) fn for_each_row<T: Stored>(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
     labels: &[Label],
-    values: &[f32],
-    mut f: impl FnMut(&Stencil<'_>, &[f32]),
+    values: &[T],
+    mut f: impl FnMut(&Stencil<'_, T>, &[T]),
 ) {
     let (nx, ny) = (dims.nx(), dims.ny());
     active.rows(|y, z| {
@@ -746,13 +811,13 @@ pub(crate) fn for_each_row(
 
 /// Calls `f(stencil, row)` for every x-row of `values`, with the row itself writable in place
 /// (as `Cell`s, so a cell's update can read its row neighbours).
-pub(crate) fn for_each_row_mut(
+pub(crate) fn for_each_row_mut<T: Stored>(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
     labels: &[Label],
-    values: &mut [f32],
-    mut f: impl FnMut(&Stencil<'_>, &[Cell<f32>]),
+    values: &mut [T],
+    mut f: impl FnMut(&Stencil<'_, T>, &[Cell<T>]),
 ) {
     let (nx, ny) = (dims.nx(), dims.ny());
     active.rows(|y, z| {
@@ -856,6 +921,28 @@ mod tests {
         labels[0] = Label::Source;
         labels[N - 1] = Label::Frontier;
         (Dims::new(N, 1, 1).unwrap(), labels)
+    }
+
+    #[test]
+    fn bfloat16_rounds_to_nearest_even_and_keeps_f32_range() {
+        for v in [0.0f32, 1.0, -2.0, 0.5, 3.0, f32::INFINITY, f32::NEG_INFINITY] {
+            assert_eq!(Bf16::from_f32(v).to_f32(), v, "{v} is exact in bf16");
+        }
+        // 1 + 2⁻⁸ lies halfway between 1 and 1 + 2⁻⁷: ties go to the even mantissa (1).
+        assert_eq!(Bf16::from_f32(1.0 + 1.0 / 256.0).to_f32(), 1.0);
+        // 1 + 3·2⁻⁸ lies halfway between 1 + 2⁻⁷ and 1 + 2⁻⁶: the even one is 1 + 2⁻⁶.
+        assert_eq!(Bf16::from_f32(1.0 + 3.0 / 256.0).to_f32(), 1.0 + 1.0 / 64.0);
+        assert!(Bf16::from_f32(f32::NAN).to_f32().is_nan());
+        // Relative error at most half a unit in the 8th bit, across f32's range (no underflow
+        // at the tiny residuals late in a solve).
+        let mut v = 1.234_567e-30f32;
+        while v < 1e30 {
+            for x in [v, -v] {
+                let back = Bf16::from_f32(x).to_f32();
+                assert!(((back - x) / x).abs() <= 1.0 / 256.0, "{x} -> {back}");
+            }
+            v *= 3.7;
+        }
     }
 
     #[test]

@@ -58,8 +58,8 @@ use core::cell::Cell;
 use heapless::Vec as HVec;
 
 use super::{
-    error_estimate, error_met, for_each_row, for_each_row_mut, residual_with, Active, Contraction, Residual,
-    RowValues, Screen, SolveError, SolveParams, SolveStats,
+    error_estimate, error_met, for_each_row, for_each_row_mut, residual_with, Active, Bf16, Contraction,
+    Residual, RowValues, Screen, SolveError, SolveParams, SolveStats, Stored,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -118,7 +118,8 @@ struct Level {
 /// Scratch sizes a hierarchy over `fine` needs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ScratchSize {
-    /// `f32` values for all coarse levels (unknowns and right-hand sides).
+    /// Values for all coarse levels (unknowns and right-hand sides), `f32` or [`Bf16`]
+    /// ([`CoarseValues`]).
     pub values: usize,
     /// Labels for all coarse levels.
     pub labels: usize,
@@ -156,10 +157,57 @@ pub fn scratch_size(fine: &Dims) -> ScratchSize {
     }
 }
 
+/// The coarse levels' values, in the precision the caller chose to lend.
+#[derive(Debug)]
+pub enum CoarseValues<'a> {
+    /// Full precision (the host's).
+    F32(&'a mut [f32]),
+    /// bfloat16 ([`Bf16`]): half the memory (73 KiB instead of 146 KiB at 64 × 64 × 32, the
+    /// firmware's choice). Coarse levels only carry corrections that each V-cycle recomputes
+    /// from the `f32` fine residual, so the solve still converges to the same tolerance and
+    /// error; `core/tests/few_frontiers.rs` checks both against f64 solves.
+    Bf16(&'a mut [Bf16]),
+}
+
+impl CoarseValues<'_> {
+    /// Entries lent.
+    pub fn len(&self) -> usize {
+        match self {
+            CoarseValues::F32(v) => v.len(),
+            CoarseValues::Bf16(v) => v.len(),
+        }
+    }
+
+    /// True if nothing was lent.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Bytes lent.
+    pub fn bytes(&self) -> usize {
+        match self {
+            CoarseValues::F32(v) => core::mem::size_of_val(*v),
+            CoarseValues::Bf16(v) => core::mem::size_of_val(*v),
+        }
+    }
+}
+
+impl<'a> From<&'a mut [f32]> for CoarseValues<'a> {
+    fn from(v: &'a mut [f32]) -> Self {
+        CoarseValues::F32(v)
+    }
+}
+
+impl<'a> From<&'a mut [Bf16]> for CoarseValues<'a> {
+    fn from(v: &'a mut [Bf16]) -> Self {
+        CoarseValues::Bf16(v)
+    }
+}
+
 /// Storage lent to a [`Multigrid`].
 pub struct MultigridStorage<'a> {
     /// At least [`ScratchSize::values`] entries.
-    pub values: &'a mut [f32],
+    pub values: CoarseValues<'a>,
     /// At least [`ScratchSize::labels`] entries.
     pub labels: &'a mut [Label],
     /// Either empty or at least [`ScratchSize::faces`] entries. Empty: coarse levels use the
@@ -175,7 +223,7 @@ pub struct MultigridStorage<'a> {
 pub struct Multigrid<'a> {
     fine: Dims,
     levels: HVec<Level, MAX_LEVELS>,
-    values: &'a mut [f32],
+    values: CoarseValues<'a>,
     labels: &'a mut [Label],
     faces: &'a mut [[u8; 4]],
     krylov: &'a mut [f32],
@@ -190,8 +238,8 @@ pub struct Multigrid<'a> {
 }
 
 /// One level's view: its labels, unknowns and right-hand side (`None` = 0, with Dirichlet
-/// values held in `x` itself — the fine level's φ).
-struct View<'v> {
+/// values held in `x` itself — the fine level's φ), stored as `T` (`f32` on the fine level).
+struct View<'v, T = f32> {
     dims: Dims,
     /// Rows with interior cells: the loops skip the others.
     active: Active,
@@ -199,8 +247,8 @@ struct View<'v> {
     /// Coarse levels: face conductances (see [`FACE_ONE`]); `None` on the fine level, whose
     /// faces are all 1 between in-domain cells.
     faces: Option<&'v [[u8; 4]]>,
-    x: &'v mut [f32],
-    b: Option<&'v [f32]>,
+    x: &'v mut [T],
+    b: Option<&'v [T]>,
     /// This level's screening (its diagonal shift in units of a fine face).
     screen: Screen,
 }
@@ -341,14 +389,14 @@ impl<'a> Multigrid<'a> {
                     b: None,
                     screen,
                 };
-                let (work, correction) = fine_cycle(
-                    fine,
-                    &self.levels,
-                    self.values,
-                    self.labels,
-                    self.faces,
-                    &self.pins,
-                );
+                let (work, correction) = match &mut self.values {
+                    CoarseValues::F32(v) => {
+                        fine_cycle(fine, &self.levels, v, self.labels, self.faces, &self.pins)
+                    }
+                    CoarseValues::Bf16(v) => {
+                        fine_cycle(fine, &self.levels, v, self.labels, self.faces, &self.pins)
+                    }
+                };
                 stats.cell_updates += work;
                 steps.push(correction);
                 stats.iterations += 1;
@@ -379,114 +427,25 @@ impl<'a> Multigrid<'a> {
         Ok(stats)
     }
 
-    /// Full multigrid start for a cold solve: solves the problem itself (not an error
-    /// equation) on the coarsest level, then on each finer level interpolates that solution
-    /// and improves it with one V-cycle, and finally interpolates onto the fine grid. Coarse
-    /// levels absorb the source into interior cells (see `coarsen`), so the coarse cells holding
-    /// a source voxel are pinned at ψ = 0 after every step instead. Returns cell updates.
+    /// Full multigrid start for a cold solve (see [`full_multigrid`]). Returns cell updates.
     fn full_multigrid(&mut self, labels: &[Label], phi: &mut [f32]) -> u64 {
-        let mut work = 0u64;
-        let levels = self.levels.clone();
-        let Some(coarsest) = levels.len().checked_sub(1) else {
-            return 0;
+        let fine = View {
+            dims: self.fine,
+            active: self.fine_active,
+            labels,
+            faces: None,
+            x: phi,
+            b: None,
+            screen: self.screen,
         };
-        for k in (0..=coarsest).rev() {
-            let Some(level) = levels.get(k).copied() else {
-                continue;
-            };
-            let n = level.dims.len();
-            let lo = level.label_offset;
-            let Some(clabels) = self.labels.get(lo..lo + n) else {
-                return work;
-            };
-            let cfaces = self.faces.get(lo..lo + n);
-            let (head, rest) = self
-                .values
-                .split_at_mut((level.offset + 2 * n).min(self.values.len()));
-            let Some(mine) = head.get_mut(level.offset..) else {
-                return work;
-            };
-            let (x, b) = mine.split_at_mut(n.min(mine.len()));
-            // The problem itself: sinks lead to frontier values (the source is pinned below).
-            b.fill(0.0);
-            for (bi, f) in b.iter_mut().zip(cfaces.unwrap_or(&[])) {
-                *bi = f32::from(f[3]) * SINK_UNIT as f32 / f32::from(FACE_ONE) * super::PSI_FRONTIER;
+        match &mut self.values {
+            CoarseValues::F32(v) => {
+                full_multigrid(fine, &self.levels, v, self.labels, self.faces, &self.pins)
             }
-            for (v, l) in x.iter_mut().zip(clabels) {
-                *v = if *l == Label::Frontier {
-                    super::PSI_FRONTIER
-                } else {
-                    0.0
-                };
-            }
-            let rest_levels: HVec<Level, MAX_LEVELS> = levels
-                .iter()
-                .skip(k + 1)
-                .map(|l| Level {
-                    offset: l.offset - (level.offset + 2 * n),
-                    ..*l
-                })
-                .collect();
-            if let Some(coarser) = rest_levels.first() {
-                // Interpolate the coarser solution (it sits at the start of `rest`).
-                let cn = coarser.dims.len();
-                let cl = self
-                    .labels
-                    .get(coarser.label_offset..coarser.label_offset + cn)
-                    .unwrap_or(&[]);
-                let cx = rest.get(coarser.offset..coarser.offset + cn).unwrap_or(&[]);
-                let mut view = View {
-                    dims: level.dims,
-                    active: level.active,
-                    labels: clabels,
-                    faces: cfaces,
-                    x: &mut *x,
-                    b: None,
-                    screen: self.screen.coarser(k + 1),
-                };
-                let _ = interpolate_into(&mut view, &coarser.dims, cl, cx, true);
-            }
-            pin_sources(&self.pins, k + 1, &level.dims, x);
-            let mut view = View {
-                dims: level.dims,
-                active: level.active,
-                labels: clabels,
-                faces: cfaces,
-                x: &mut *x,
-                b: Some(&*b),
-                screen: self.screen.coarser(k + 1),
-            };
-            if rest_levels.is_empty() {
-                for _ in 0..COARSEST_SWEEPS {
-                    work += relax(&mut view, 0) + relax(&mut view, 1);
-                    pin_sources(&self.pins, k + 1, &level.dims, view.x);
-                }
-            } else {
-                work += vcycle(view, &rest_levels, rest, self.labels, self.faces).0;
-                pin_sources(&self.pins, k + 1, &level.dims, x);
+            CoarseValues::Bf16(v) => {
+                full_multigrid(fine, &self.levels, v, self.labels, self.faces, &self.pins)
             }
         }
-        // The fine grid: interpolate the first coarse level's solution onto the interior.
-        if let Some(level) = levels.first() {
-            let n = level.dims.len();
-            let cl = self
-                .labels
-                .get(level.label_offset..level.label_offset + n)
-                .unwrap_or(&[]);
-            let cx = self.values.get(level.offset..level.offset + n).unwrap_or(&[]);
-            let mut view = View {
-                dims: self.fine,
-                active: self.fine_active,
-                labels,
-                faces: None,
-                x: phi,
-                b: None,
-                screen: self.screen,
-            };
-            let _ = interpolate_into(&mut view, &level.dims, cl, cx, true);
-            work += self.fine.len() as u64;
-        }
-        work
     }
 
     /// Coarse labels and face conductances from the fine labels. Returns cells touched.
@@ -575,7 +534,10 @@ impl<'a> Multigrid<'a> {
                 b: Some(r),
                 screen,
             };
-            fine_cycle(fine, levels, values, coarse_labels, faces, pins).0
+            match values {
+                CoarseValues::F32(v) => fine_cycle(fine, levels, v, coarse_labels, faces, pins).0,
+                CoarseValues::Bf16(v) => fine_cycle(fine, levels, v, coarse_labels, faces, pins).0,
+            }
         };
         // `new` lends MGPCG at least 3n values or none (and then this is never called).
         let Some((r, rest)) = krylov.split_at_mut_checked(n) else {
@@ -656,6 +618,110 @@ impl<'a> Multigrid<'a> {
             steps,
         )
     }
+}
+
+/// Full multigrid start for a cold solve: solves the problem itself (not an error
+/// equation) on the coarsest level, then on each finer level interpolates that solution
+/// and improves it with one V-cycle, and finally interpolates onto the fine grid. Coarse
+/// levels absorb the source into interior cells (see `coarsen`), so the coarse cells holding
+/// a source voxel are pinned at ψ = 0 after every step instead. `fine` is the fine level
+/// (its φ is overwritten on the interior). Returns cell updates.
+fn full_multigrid<U: Stored>(
+    mut fine: View<'_>,
+    levels: &[Level],
+    values: &mut [U],
+    coarse_labels: &[Label],
+    coarse_faces: &[[u8; 4]],
+    pins: &[[usize; 3]],
+) -> u64 {
+    let mut work = 0u64;
+    let Some(coarsest) = levels.len().checked_sub(1) else {
+        return 0;
+    };
+    for k in (0..=coarsest).rev() {
+        let Some(level) = levels.get(k).copied() else {
+            continue;
+        };
+        let n = level.dims.len();
+        let lo = level.label_offset;
+        let Some(clabels) = coarse_labels.get(lo..lo + n) else {
+            return work;
+        };
+        let cfaces = coarse_faces.get(lo..lo + n);
+        let (head, rest) = values.split_at_mut((level.offset + 2 * n).min(values.len()));
+        let Some(mine) = head.get_mut(level.offset..) else {
+            return work;
+        };
+        let (x, b) = mine.split_at_mut(n.min(mine.len()));
+        // The problem itself: sinks lead to frontier values (the source is pinned below).
+        b.fill(U::default());
+        for (bi, f) in b.iter_mut().zip(cfaces.unwrap_or(&[])) {
+            *bi = U::store(f32::from(f[3]) * SINK_UNIT as f32 / f32::from(FACE_ONE) * super::PSI_FRONTIER);
+        }
+        for (v, l) in x.iter_mut().zip(clabels) {
+            *v = U::store(if *l == Label::Frontier {
+                super::PSI_FRONTIER
+            } else {
+                0.0
+            });
+        }
+        let rest_levels: HVec<Level, MAX_LEVELS> = levels
+            .iter()
+            .skip(k + 1)
+            .map(|l| Level {
+                offset: l.offset - (level.offset + 2 * n),
+                ..*l
+            })
+            .collect();
+        if let Some(coarser) = rest_levels.first() {
+            // Interpolate the coarser solution (it sits at the start of `rest`).
+            let cn = coarser.dims.len();
+            let cl = coarse_labels
+                .get(coarser.label_offset..coarser.label_offset + cn)
+                .unwrap_or(&[]);
+            let cx = rest.get(coarser.offset..coarser.offset + cn).unwrap_or(&[]);
+            let mut view = View {
+                dims: level.dims,
+                active: level.active,
+                labels: clabels,
+                faces: cfaces,
+                x: &mut *x,
+                b: None,
+                screen: fine.screen.coarser(k + 1),
+            };
+            let _ = interpolate_into(&mut view, &coarser.dims, cl, cx, true);
+        }
+        pin_sources(pins, k + 1, &level.dims, x);
+        let mut view = View {
+            dims: level.dims,
+            active: level.active,
+            labels: clabels,
+            faces: cfaces,
+            x: &mut *x,
+            b: Some(&*b),
+            screen: fine.screen.coarser(k + 1),
+        };
+        if rest_levels.is_empty() {
+            for _ in 0..COARSEST_SWEEPS {
+                work += relax(&mut view, 0) + relax(&mut view, 1);
+                pin_sources(pins, k + 1, &level.dims, view.x);
+            }
+        } else {
+            work += vcycle(view, &rest_levels, rest, coarse_labels, coarse_faces).0;
+            pin_sources(pins, k + 1, &level.dims, x);
+        }
+    }
+    // The fine grid: interpolate the first coarse level's solution onto the interior.
+    if let Some(level) = levels.first() {
+        let n = level.dims.len();
+        let cl = coarse_labels
+            .get(level.label_offset..level.label_offset + n)
+            .unwrap_or(&[]);
+        let cx = values.get(level.offset..level.offset + n).unwrap_or(&[]);
+        let _ = interpolate_into(&mut fine, &level.dims, cl, cx, true);
+        work += fine.dims.len() as u64;
+    }
+    work
 }
 
 /// Face conductance of a fully open coarse face. A coarse face covers four faces of the level
@@ -835,7 +901,7 @@ fn weighted_flux<V: RowValues + ?Sized>(
 }
 
 /// Red-black half sweep on a coarse level with face conductances.
-fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 4]], colour: usize) -> u64 {
+fn relax_weighted<T: Stored>(v: &mut View<'_, T>, faces: &[[u8; 4]], colour: usize) -> u64 {
     let (nx, ny) = (v.dims.nx(), v.dims.ny());
     let nxy = nx * ny;
     let cells = Cell::from_mut(&mut *v.x).as_slice_of_cells();
@@ -852,8 +918,10 @@ fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 4]], colour: usize) -> u64 {
                     let (flux, sum) = weighted_flux(faces, cells, i, nx, nxy);
                     if sum > 0.0 {
                         let b = v.b.map_or(0.0, |b| b.at(i));
-                        let c = cell.get();
-                        cell.set(c + (flux - shift * c + f32::from(FACE_ONE) * b) / (sum + shift));
+                        let c = cell.get().load();
+                        cell.set(T::store(
+                            c + (flux - shift * c + f32::from(FACE_ONE) * b) / (sum + shift),
+                        ));
                         updates += 1;
                     }
                 }
@@ -866,12 +934,12 @@ fn relax_weighted(v: &mut View<'_>, faces: &[[u8; 4]], colour: usize) -> u64 {
 
 /// Sets ψ = 0 at the cells of a level `depth` halvings below the fine grid that hold a
 /// source voxel.
-fn pin_sources(pins: &[[usize; 3]], depth: usize, dims: &Dims, x: &mut [f32]) {
+fn pin_sources<T: Stored>(pins: &[[usize; 3]], depth: usize, dims: &Dims, x: &mut [T]) {
     for &[px, py, pz] in pins {
         let (cx, cy, cz) = (px >> depth, py >> depth, pz >> depth);
         if cx < dims.nx() && cy < dims.ny() && cz < dims.nz() {
             if let Some(v) = x.get_mut(cx + dims.nx() * (cy + dims.ny() * cz)) {
-                *v = super::PSI_SOURCE;
+                *v = T::store(super::PSI_SOURCE);
             }
         }
     }
@@ -923,7 +991,7 @@ fn residual_into(
 
 /// One red-black half sweep: relaxes interior cells with `(x + y + z) % 2 == colour`, in place,
 /// row by row. Rows away from the y/z edges take the branch-free path of [`relax_inner`].
-fn relax(v: &mut View<'_>, colour: usize) -> u64 {
+fn relax<T: Stored>(v: &mut View<'_, T>, colour: usize) -> u64 {
     if let Some(faces) = v.faces {
         return relax_weighted(v, faces, colour);
     }
@@ -936,10 +1004,10 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
         let first = (colour + st.y + st.z) & 1;
         let mut one = |x: usize| {
             if let (Some(Label::Interior), Some(cell)) = (st.labels.get(x), row.get(x)) {
-                let c = cell.get();
+                let c = cell.get().load();
                 let (flux, n) = st.flux(row, x, c);
                 let bx = b_row.map_or(0.0, |b| b.at(x));
-                cell.set(c + (flux - screen.shift * c + bx) * screen.inv(n));
+                cell.set(T::store(c + (flux - screen.shift * c + bx) * screen.inv(n)));
                 updates += u64::from(n > 0);
             }
         };
@@ -969,11 +1037,11 @@ fn relax(v: &mut View<'_>, colour: usize) -> u64 {
 /// exist. Every slice is cut to the row length first, so the neighbour reads compile without
 /// bounds checks and the in-domain tests become selects.
 #[inline(always)]
-fn relax_inner(
-    inner: &super::Inner<'_>,
+fn relax_inner<T: Stored>(
+    inner: &super::Inner<'_, T>,
     screen: &Screen,
-    row: &[Cell<f32>],
-    b: Option<&[f32]>,
+    row: &[Cell<T>],
+    b: Option<&[T]>,
     start: usize,
 ) -> u64 {
     let nx = row.len();
@@ -988,10 +1056,10 @@ fn relax_inner(
             break;
         };
         if lc == Label::Interior {
-            let c = cell.get();
+            let c = cell.get().load();
             let (flux, n) = cut.flux(row, x, c);
             let bx = b.map_or(0.0, |b| b.at(x));
-            cell.set(c + (flux - screen.shift * c + bx) * screen.inv(n));
+            cell.set(T::store(c + (flux - screen.shift * c + bx) * screen.inv(n)));
             updates += u64::from(n > 0);
         }
         x += 2;
@@ -1030,16 +1098,16 @@ fn parent_rows(y: usize, z: usize, coarse: &Dims) -> ([(usize, f32); 4], usize) 
 
 /// The coarse rows under one fine row: each row's labels, its values and the weight `w_y·w_z`;
 /// unused entries are empty.
-struct Parents<'c> {
-    rows: [(&'c [Label], &'c [f32], f32); 4],
+struct Parents<'c, U> {
+    rows: [(&'c [Label], &'c [U], f32); 4],
 }
 
-impl<'c> Parents<'c> {
+impl<'c, U: Stored> Parents<'c, U> {
     /// The parent rows of fine row `(y, z)` in a coarse grid with `labels` and `values`.
-    fn of(y: usize, z: usize, coarse: &Dims, labels: &'c [Label], values: &'c [f32]) -> Self {
+    fn of(y: usize, z: usize, coarse: &Dims, labels: &'c [Label], values: &'c [U]) -> Self {
         let (starts, n) = parent_rows(y, z, coarse);
         let cnx = coarse.nx();
-        let mut rows: [(&'c [Label], &'c [f32], f32); 4] = [(&[], &[], 0.0); 4];
+        let mut rows: [(&'c [Label], &'c [U], f32); 4] = [(&[], &[], 0.0); 4];
         for (slot, &(start, w)) in rows.iter_mut().zip(starts.iter().take(n)) {
             *slot = (
                 labels.get(start..start + cnx).unwrap_or(&[]),
@@ -1072,7 +1140,7 @@ impl<'c> Parents<'c> {
     }
 }
 
-impl Parents<'_> {
+impl<U: Stored> Parents<'_, U> {
     /// Collapses the parent rows along y and z: `cv[c] = Σ w·v[c]` and `cm[c] = Σ w·m[c]`
     /// (`m` = 1 where the coarse cell is not outside). Interpolating at a fine `x` then reads
     /// two entries of each instead of eight labels and values. `cv` may be empty (mask only).
@@ -1083,8 +1151,8 @@ impl Parents<'_> {
             for (m, l) in cm.iter_mut().zip(l) {
                 *m += if *l != Label::Outside { w } else { 0.0 };
             }
-            for (c, v) in cv.iter_mut().zip(v) {
-                *c += w * v;
+            for (c, v) in cv.iter_mut().zip(v.iter()) {
+                *c += w * v.load();
             }
         }
     }
@@ -1123,12 +1191,12 @@ fn fine_to_coarse_x(x: usize) -> (usize, usize) {
 /// so that the coarse operator matches `R A P` in open space.
 // Not inlined: its stack rows must not sit in every frame of the recursive `vcycle`.
 #[inline(never)]
-fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
+fn restrict<T: Stored, U: Stored>(fine: &View<'_, T>, coarse: &Dims, clabels: &[Label], cb: &mut [U]) {
     let cnx = coarse.nx();
-    let zeros: [f32; 0] = [];
+    let zeros: [U; 0] = [];
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
     let nxy = fnx * fny;
-    let x_all: &[f32] = fine.x;
+    let x_all: &[T] = fine.x;
     let (mut cm_buf, mut acc_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
     let collapsed = cnx <= ROW_BUF;
     for z in fine.active.zs() {
@@ -1169,7 +1237,7 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
                     for (c, wx) in [(c0, 0.75), (c1, 0.25)] {
                         if c < cnx && l.get(c) == Some(&Label::Interior) {
                             if let Some(b) = cb.get_mut(row_start + c) {
-                                *b += wyz * wx * s;
+                                *b = U::store(b.load() + wyz * wx * s);
                             }
                         }
                     }
@@ -1194,7 +1262,7 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
                         if fine.labels.get(i) == Some(&Label::Interior) {
                             let (flux, _) = weighted_flux(faces, x_all, i, fnx, nxy);
                             let b = fine.b.map_or(0.0, |b| b.at(i));
-                            let c = x_all.get(i).copied().unwrap_or(0.0);
+                            let c = x_all.at(i);
                             let screened = fine.screen.shift * c;
                             scatter(x, b + flux * (1.0 / f32::from(FACE_ONE)) - screened, 0);
                         }
@@ -1209,7 +1277,7 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
                     };
                     for ((b, a), l) in b_row.iter_mut().zip(acc).zip(l) {
                         if *l == Label::Interior {
-                            *b += wyz * a;
+                            *b = U::store(b.load() + wyz * a);
                         }
                     }
                 }
@@ -1221,7 +1289,12 @@ fn restrict(fine: &View<'_>, coarse: &Dims, clabels: &[Label], cb: &mut [f32]) {
 /// `x_f += P x_c` on interior fine cells: trilinear interpolation renormalised over the coarse
 /// cells that are not outside (Dirichlet ones count with their value).
 /// Returns the largest correction added to any cell.
-fn prolongate(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32]) -> f32 {
+fn prolongate<T: Stored, U: Stored>(
+    fine: &mut View<'_, T>,
+    coarse: &Dims,
+    clabels: &[Label],
+    cx: &[U],
+) -> f32 {
     interpolate_into(fine, coarse, clabels, cx, false)
 }
 
@@ -1229,7 +1302,13 @@ fn prolongate(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32])
 /// interpolated value's magnitude (with `set` false: the largest correction).
 // Not inlined: its stack rows must not sit in every frame of the recursive `vcycle`.
 #[inline(never)]
-fn interpolate_into(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &[f32], set: bool) -> f32 {
+fn interpolate_into<T: Stored, U: Stored>(
+    fine: &mut View<'_, T>,
+    coarse: &Dims,
+    clabels: &[Label],
+    cx: &[U],
+    set: bool,
+) -> f32 {
     let mut largest = 0.0f32;
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
     let cnx = coarse.nx();
@@ -1252,7 +1331,7 @@ fn interpolate_into(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &
                         if den > 0.0 {
                             let add = num / den;
                             largest = largest.max(add.abs());
-                            *v = add + if set { 0.0 } else { *v };
+                            *v = T::store(add + if set { 0.0 } else { v.load() });
                         }
                     }
                 }
@@ -1265,7 +1344,7 @@ fn interpolate_into(fine: &mut View<'_>, coarse: &Dims, clabels: &[Label], cx: &
                     if den > 0.0 {
                         let add = num / den;
                         largest = largest.max(add.abs());
-                        *v = add + if set { 0.0 } else { *v };
+                        *v = T::store(add + if set { 0.0 } else { v.load() });
                     }
                 }
             }
@@ -1350,10 +1429,10 @@ fn local_smooth(v: &mut View<'_>, pins: &[[usize; 3]]) -> u64 {
 
 /// One fine-level cycle: [`local_smooth`] at the source, a V-cycle, [`local_smooth`] again.
 /// Returns the cell updates and the largest coarse-grid correction (see [`vcycle`]).
-fn fine_cycle(
+fn fine_cycle<U: Stored>(
     mut fine: View<'_>,
     levels: &[Level],
-    values: &mut [f32],
+    values: &mut [U],
     labels: &[Label],
     faces: &[[u8; 4]],
     pins: &[[usize; 3]],
@@ -1398,10 +1477,10 @@ fn fine_cycle(
 /// One V-cycle ([`PRE_SWEEPS`], [`POST_SWEEPS`]) on `fine` with the coarse `levels`. Returns
 /// cell updates and the largest coarse-grid correction added to `fine` (+∞ where there was no
 /// coarse level to correct from: the error estimate then has nothing to go on).
-fn vcycle(
-    mut fine: View<'_>,
+fn vcycle<T: Stored, U: Stored>(
+    mut fine: View<'_, T>,
     levels: &[Level],
-    values: &mut [f32],
+    values: &mut [U],
     labels: &[Label],
     faces: &[[u8; 4]],
 ) -> (u64, f32) {
@@ -1432,8 +1511,8 @@ fn vcycle(
     let clabels = labels
         .get(level.label_offset..level.label_offset + n)
         .unwrap_or(&[]);
-    cx.fill(0.0);
-    cb.fill(0.0);
+    cx.fill(U::default());
+    cb.fill(U::default());
     // Restrict the residual.
     let fdims = fine.dims;
     restrict(&fine, &level.dims, clabels, cb);
@@ -1510,7 +1589,7 @@ mod tests {
         let mut mg = Multigrid::new(
             dims,
             MultigridStorage {
-                values: &mut values,
+                values: values.as_mut_slice().into(),
                 labels: &mut clabels,
                 faces: &mut faces,
                 krylov: &mut krylov,
@@ -1595,7 +1674,7 @@ mod tests {
         let mut mg = Multigrid::new(
             dims,
             MultigridStorage {
-                values: &mut values,
+                values: values.as_mut_slice().into(),
                 labels: &mut clabels,
                 faces: &mut [],
                 krylov: &mut [],
@@ -1631,7 +1710,7 @@ mod tests {
         let r = Multigrid::new(
             dims,
             MultigridStorage {
-                values: &mut values,
+                values: values.as_mut_slice().into(),
                 labels: &mut labels,
                 faces: &mut faces,
                 krylov: &mut [],
