@@ -531,6 +531,10 @@ pub(crate) struct Stencil<'r, T = f32> {
     pub(crate) start: usize,
     /// The row's labels.
     pub(crate) labels: &'r [Label],
+    /// The cells `x0..x1` of the row that can hold interior cells (the active box's width).
+    pub(crate) x0: usize,
+    /// End of that range (exclusive).
+    pub(crate) x1: usize,
     nl: [&'r [Label]; 4],
     nv: [&'r [T]; 4],
 }
@@ -577,6 +581,8 @@ impl<'r, T: Stored> Stencil<'r, T> {
             y,
             z,
             start,
+            x0: 0,
+            x1: nx,
             labels: lrow(Some(start)),
             nl: [lrow(ym), lrow(yp), lrow(zm), lrow(zp)],
             nv: [vbefore(ym), vafter(yp), vbefore(zm), vafter(zp)],
@@ -612,6 +618,15 @@ pub(crate) struct Inner<'r, T = f32> {
 }
 
 impl<'r, T: Stored> Stencil<'r, T> {
+    /// The same stencil with its cells limited to `xs` (within the row).
+    #[inline(always)]
+    pub(crate) fn within(mut self, xs: core::ops::Range<usize>) -> Self {
+        let nx = self.labels.len();
+        self.x0 = xs.start.min(nx);
+        self.x1 = xs.end.clamp(self.x0, nx);
+        self
+    }
+
     /// The branch-free view of this row, if all four neighbour rows exist.
     #[inline(always)]
     pub(crate) fn inner(&self) -> Option<Inner<'r, T>> {
@@ -694,7 +709,7 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
         }
     };
     let Some(inner) = st.inner().filter(|_| nx >= 3) else {
-        for x in 0..nx {
+        for x in st.x0..st.x1.min(nx) {
             edge(x, &mut f);
         }
         return;
@@ -703,7 +718,7 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
     let Some(cut) = inner.cut(nx) else {
         return;
     };
-    for x in 1..nx - 1 {
+    for x in st.x0.max(1)..st.x1.min(nx - 1) {
         let (Some(&lc), Some(&c)) = (cut.l.get(x), row.get(x)) else {
             break;
         };
@@ -716,11 +731,14 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
     edge(nx - 1, &mut f);
 }
 
-/// The rows (`y`, `z` ranges) that hold interior cells: the only rows a sweep, residual or
-/// transfer has work in. A young map's domain fills a small part of the grid, so limiting the
-/// loops to this box saves most of their cost early in an exploration.
+/// The box (`x`, `y`, `z` ranges) that holds the interior cells: the only cells a sweep,
+/// residual or transfer has work in. A young map's domain fills a small part of the grid, and
+/// even a late one rarely spans the grid's whole width, so limiting the loops to this box saves
+/// much of their cost. The loops still read neighbours outside it (Dirichlet cells).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub(crate) struct Active {
+    x0: usize,
+    x1: usize,
     y0: usize,
     y1: usize,
     z0: usize,
@@ -731,6 +749,8 @@ impl Active {
     /// Every row of the grid.
     pub(crate) fn all(dims: &Dims) -> Self {
         Self {
+            x0: 0,
+            x1: dims.nx(),
             y0: 0,
             y1: dims.ny(),
             z0: 0,
@@ -742,6 +762,8 @@ impl Active {
     pub(crate) fn of(dims: &Dims, labels: &[Label]) -> Self {
         let (nx, ny) = (dims.nx(), dims.ny());
         let mut a = Self {
+            x0: usize::MAX,
+            x1: 0,
             y0: usize::MAX,
             y1: 0,
             z0: usize::MAX,
@@ -751,12 +773,20 @@ impl Active {
             for y in 0..ny {
                 let start = nx * (y + ny * z);
                 let row = labels.get(start..start + nx).unwrap_or(&[]);
-                if row.contains(&Label::Interior) {
-                    a.y0 = a.y0.min(y);
-                    a.y1 = a.y1.max(y + 1);
-                    a.z0 = a.z0.min(z);
-                    a.z1 = a.z1.max(z + 1);
-                }
+                let Some(first) = row.iter().position(|l| *l == Label::Interior) else {
+                    continue;
+                };
+                // Only the cells beyond the box found so far need looking at from the end.
+                let last = row
+                    .get(first.max(a.x1)..)
+                    .and_then(|tail| tail.iter().rposition(|l| *l == Label::Interior))
+                    .map_or(first, |k| first.max(a.x1) + k);
+                a.x0 = a.x0.min(first);
+                a.x1 = a.x1.max(last + 1);
+                a.y0 = a.y0.min(y);
+                a.y1 = a.y1.max(y + 1);
+                a.z0 = a.z0.min(z);
+                a.z1 = a.z1.max(z + 1);
             }
         }
         if a.y1 == 0 {
@@ -764,6 +794,11 @@ impl Active {
         } else {
             a
         }
+    }
+
+    /// The active `x` range.
+    pub(crate) fn xs(&self) -> core::ops::Range<usize> {
+        self.x0..self.x1
     }
 
     /// The active `y` range.
@@ -804,7 +839,10 @@ pub(crate) fn for_each_row<T: Stored>(
             values.get(start..start + nx),
             values.get(start + nx..),
         ) {
-            f(&Stencil::new(dims, screen, y, z, labels, before, after), row);
+            f(
+                &Stencil::new(dims, screen, y, z, labels, before, after).within(active.xs()),
+                row,
+            );
         }
     });
 }
@@ -826,7 +864,10 @@ pub(crate) fn for_each_row_mut<T: Stored>(
         if rest.len() >= nx {
             let (row, after) = rest.split_at_mut(nx);
             let row = Cell::from_mut(row).as_slice_of_cells();
-            f(&Stencil::new(dims, screen, y, z, labels, before, after), row);
+            f(
+                &Stencil::new(dims, screen, y, z, labels, before, after).within(active.xs()),
+                row,
+            );
         }
     });
 }
@@ -921,6 +962,22 @@ mod tests {
         labels[0] = Label::Source;
         labels[N - 1] = Label::Frontier;
         (Dims::new(N, 1, 1).unwrap(), labels)
+    }
+
+    #[test]
+    fn the_active_box_is_the_smallest_that_holds_every_interior_cell() {
+        let dims = Dims::new(10, 4, 3).unwrap();
+        let mut labels = [Label::Outside; 120];
+        for (x, y, z) in [(6, 1, 1), (3, 2, 1), (7, 2, 2)] {
+            labels[dims.linear(crate::map::VoxelIndex::new(x, y, z))] = Label::Interior;
+        }
+        // Dirichlet cells outside the box are read as neighbours but never updated.
+        labels[dims.linear(crate::map::VoxelIndex::new(9, 2, 2))] = Label::Frontier;
+        let a = Active::of(&dims, &labels);
+        assert_eq!((a.xs(), a.ys(), a.zs()), (3..8, 1..3, 1..3));
+        assert_eq!(Active::of(&dims, &[Label::Outside; 120]), Active::default());
+        let all = Active::all(&dims);
+        assert_eq!((all.xs(), all.ys(), all.zs()), (0..10, 0..4, 0..3));
     }
 
     #[test]

@@ -908,11 +908,12 @@ fn relax_weighted<T: Stored>(v: &mut View<'_, T>, faces: &[[u8; 4]], colour: usi
     // The screening in face-conductance units.
     let shift = v.screen.shift * f32::from(FACE_ONE);
     let mut updates = 0u64;
+    let xs = v.active.xs();
     for z in v.active.zs() {
         for y in v.active.ys() {
             let start = nx * (y + ny * z);
-            let mut x = (colour + y + z) & 1;
-            while x < nx {
+            let mut x = first_of_colour(xs.start, (colour + y + z) & 1);
+            while x < xs.end.min(nx) {
                 let i = start + x;
                 if let (Some(Label::Interior), Some(cell)) = (v.labels.get(i), cells.get(i)) {
                     let (flux, sum) = weighted_flux(faces, cells, i, nx, nxy);
@@ -1002,6 +1003,7 @@ fn relax<T: Stored>(v: &mut View<'_, T>, colour: usize) -> u64 {
         let nx = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + nx));
         let first = (colour + st.y + st.z) & 1;
+        let end = st.x1.min(nx);
         let mut one = |x: usize| {
             if let (Some(Label::Interior), Some(cell)) = (st.labels.get(x), row.get(x)) {
                 let c = cell.get().load();
@@ -1013,17 +1015,18 @@ fn relax<T: Stored>(v: &mut View<'_, T>, colour: usize) -> u64 {
         };
         match st.inner() {
             Some(inner) if nx >= 3 => {
-                if first == 0 {
+                if first == 0 && st.x0 == 0 {
                     one(0);
                 }
-                if (nx - 1) & 1 == first {
+                if (nx - 1) & 1 == first && end == nx {
                     one(nx - 1);
                 }
-                updates += relax_inner(&inner, &screen, row, b_row, 2 - first);
+                let start = first_of_colour(st.x0.max(1), first);
+                updates += relax_inner(&inner, &screen, row, b_row, start, end);
             }
             _ => {
-                let mut x = first;
-                while x < nx {
+                let mut x = first_of_colour(st.x0, first);
+                while x < end {
                     one(x);
                     x += 2;
                 }
@@ -1033,9 +1036,16 @@ fn relax<T: Stored>(v: &mut View<'_, T>, colour: usize) -> u64 {
     updates
 }
 
-/// Relaxes cells `start, start + 2, …` below `nx − 1` of a row whose four neighbour rows
-/// exist. Every slice is cut to the row length first, so the neighbour reads compile without
-/// bounds checks and the in-domain tests become selects.
+/// The first `x ≥ from` of the colour whose first cell is `first` (0 or 1): red-black sweeps
+/// visit `first, first + 2, …`.
+#[inline(always)]
+fn first_of_colour(from: usize, first: usize) -> usize {
+    from + ((from ^ first) & 1)
+}
+
+/// Relaxes cells `start, start + 2, …` below `end` and `nx − 1` of a row whose four neighbour
+/// rows exist. Every slice is cut to the row length first, so the neighbour reads compile
+/// without bounds checks and the in-domain tests become selects.
 #[inline(always)]
 fn relax_inner<T: Stored>(
     inner: &super::Inner<'_, T>,
@@ -1043,6 +1053,7 @@ fn relax_inner<T: Stored>(
     row: &[Cell<T>],
     b: Option<&[T]>,
     start: usize,
+    end: usize,
 ) -> u64 {
     let nx = row.len();
     let Some(cut) = inner.cut(nx) else {
@@ -1051,7 +1062,8 @@ fn relax_inner<T: Stored>(
     let b = b.and_then(|b| b.get(..nx));
     let mut updates = 0u64;
     let mut x = start;
-    while x + 1 < nx {
+    let end = end.min(nx - 1);
+    while x < end {
         let (Some(&lc), Some(cell)) = (cut.l.get(x), row.get(x)) else {
             break;
         };
@@ -1252,12 +1264,13 @@ fn restrict<T: Stored, U: Stored>(fine: &View<'_, T>, coarse: &Dims, clabels: &[
                     ) else {
                         return;
                     };
-                    let st = super::Stencil::new(&fine.dims, &fine.screen, y, z, fine.labels, before, after);
+                    let st = super::Stencil::new(&fine.dims, &fine.screen, y, z, fine.labels, before, after)
+                        .within(fine.active.xs());
                     let b_row = fine.b.and_then(|b| b.get(start..start + fnx));
                     super::row_residuals(&st, row, b_row, scatter);
                 }
                 Some(faces) => {
-                    for x in 0..fnx {
+                    for x in fine.active.xs() {
                         let i = start + x;
                         if fine.labels.get(i) == Some(&Label::Interior) {
                             let (flux, _) = weighted_flux(faces, x_all, i, fnx, nxy);
@@ -1310,6 +1323,7 @@ fn interpolate_into<T: Stored, U: Stored>(
     set: bool,
 ) -> f32 {
     let mut largest = 0.0f32;
+    let xs = fine.active.xs();
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
     let cnx = coarse.nx();
     let (mut cv_buf, mut cm_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
@@ -1325,7 +1339,13 @@ fn interpolate_into<T: Stored, U: Stored>(
             let parents = Parents::of(y, z, coarse, clabels, cx);
             let (Some(cv), Some(cm)) = (cv_buf.get_mut(..cnx), cm_buf.get_mut(..cnx)) else {
                 // Longer rows than the stack buffers: interpolate cell by cell.
-                for (x, (l, v)) in l_row.iter().zip(row.iter_mut()).enumerate() {
+                for (x, (l, v)) in l_row
+                    .iter()
+                    .zip(row.iter_mut())
+                    .enumerate()
+                    .take(xs.end)
+                    .skip(xs.start)
+                {
                     if *l == Label::Interior {
                         let (num, den) = parents.interpolate(x);
                         if den > 0.0 {
@@ -1338,7 +1358,13 @@ fn interpolate_into<T: Stored, U: Stored>(
                 continue;
             };
             parents.collapse(cv, cm);
-            for (x, (l, v)) in l_row.iter().zip(row.iter_mut()).enumerate() {
+            for (x, (l, v)) in l_row
+                .iter()
+                .zip(row.iter_mut())
+                .enumerate()
+                .take(xs.end)
+                .skip(xs.start)
+            {
                 if *l == Label::Interior {
                     let (num, den) = interpolate_collapsed(cv, cm, x);
                     if den > 0.0 {
