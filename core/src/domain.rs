@@ -25,7 +25,7 @@
 use heapless::Vec as HVec;
 use nalgebra::Point3;
 
-use crate::map::{Dims, Occupancy, VoxelIndex, VoxelMap};
+use crate::map::{Dims, Occupancy, VoxelIndex, VoxelMap, SEALED, UNKNOWN};
 
 /// Role of a voxel in the Laplace problem. After [`build`] only `Outside`, `Interior`,
 /// `Frontier` and `Source` remain; the other variants are transient states of the build.
@@ -66,6 +66,11 @@ pub const MAX_INFLATION_VOXELS: usize = 6;
 /// Capacity of the inflation stencil: the offsets within [`MAX_INFLATION_VOXELS`] (1284 of
 /// them; the explorer carries the stencil, and on the MCU every byte of it is stack at start-up).
 const STENCIL_CAPACITY: usize = 1284;
+/// Most rows (dy, dz) the inflation stencil reaches: (2 · 7 + 1)² at the largest radius.
+const STENCIL_ROWS: usize = 225;
+/// Words of the "row holds an observed voxel" bitset [`inflate`] keeps on the stack: 8192 rows
+/// (1 KiB). Grids with more rows (ny · nz) test every unknown voxel.
+const OBSERVED_ROW_WORDS: usize = 256;
 
 /// The set of voxel offsets within the vehicle radius, precomputed once.
 #[derive(Debug, Clone)]
@@ -303,36 +308,6 @@ fn on_unknown_boundary(map: &VoxelMap<'_>, v: VoxelIndex, i: usize, inner: bool)
     false
 }
 
-/// Calls `f` on the label of every voxel the stencil reaches from voxel `v` (linear index
-/// `i`) inside the grid. Away from the grid faces (`clear`: at least the stencil's reach from
-/// each) the neighbours are found by index arithmetic alone; near them each is checked.
-#[inline(always)]
-fn stamp(
-    dims: &Dims,
-    stencil: &InflationStencil,
-    v: VoxelIndex,
-    i: usize,
-    clear: bool,
-    labels: &mut [Label],
-    mut f: impl FnMut(&mut Label),
-) {
-    if clear {
-        let (nx, ny) = (dims.nx() as isize, dims.ny() as isize);
-        for d in stencil.offsets.iter() {
-            let j = i as isize + isize::from(d[0]) + nx * (isize::from(d[1]) + ny * isize::from(d[2]));
-            if let Some(l) = labels.get_mut(j as usize) {
-                f(l);
-            }
-        }
-        return;
-    }
-    for d in stencil.offsets() {
-        if let Some(l) = dims.offset(v, d).and_then(|nb| labels.get_mut(dims.linear(nb))) {
-            f(l);
-        }
-    }
-}
-
 /// Removes candidates within the stencil of any occupied/uncertain/sealed voxel or of the grid
 /// edge, and marks those within the stencil of unexplored space as fringe.
 ///
@@ -342,37 +317,111 @@ fn stamp(
 fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) {
     let dims = map.dims();
     let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
-    let reach = stencil
-        .offsets
-        .iter()
-        .flat_map(|d| d.iter().map(|c| usize::from(c.unsigned_abs())))
-        .max()
-        .unwrap_or(0);
-    let within = |c: usize, n: usize, r: usize| c >= r && c + r < n;
-    let mut i = 0usize;
+    let stored = map.stored();
+    // The stencil as rows: for each (dy, dz) it reaches, the half-width w of its x interval
+    // [−w, w] (a ball's rows are intervals). The offsets come in dz, dy, dx order, so each row's
+    // offsets are consecutive. The centre (0, 0, 0) is not an offset; covering it too changes
+    // nothing, because the voxel that stamps is itself unknown, sealed or occupied (outside).
+    let mut rows: HVec<(isize, isize, usize), STENCIL_ROWS> = HVec::new();
+    for d in stencil.offsets.iter() {
+        let (dy, dz, w) = (
+            isize::from(d[1]),
+            isize::from(d[2]),
+            usize::from(d[0].unsigned_abs()),
+        );
+        match rows.last_mut() {
+            Some(last) if (last.0, last.1) == (dy, dz) => last.2 = last.2.max(w),
+            // At most (2·7 + 1)² rows for the largest radius: `STENCIL_ROWS`.
+            _ => {
+                let _ = rows.push((dy, dz, w));
+            }
+        }
+    }
+    // Rows holding an observed voxel: an unknown voxel can border observed space only if one
+    // of the nine rows around its own does, so whole rows of the unobserved grid are skipped.
+    let mut observed = [0u32; OBSERVED_ROW_WORDS];
+    let track = ny * nz <= 32 * OBSERVED_ROW_WORDS;
+    if track {
+        for (r, row) in stored.chunks(nx).enumerate().take(ny * nz) {
+            if row.iter().any(|&lo| lo > SEALED) {
+                if let Some(w) = observed.get_mut(r >> 5) {
+                    *w |= 1 << (r & 31);
+                }
+            }
+        }
+    }
+    let row_observed = |y: usize, z: usize| {
+        let r = y + ny * z;
+        observed.get(r >> 5).is_some_and(|w| w & (1 << (r & 31)) != 0)
+    };
+    // What a voxel stamps: nothing, fringe (unexplored, bordering observed space) or outside
+    // (occupied, uncertain or sealed).
+    const NONE: u8 = 0;
+    const FRINGE: u8 = 1;
+    const OUTSIDE: u8 = 2;
     for z in 0..nz {
         for y in 0..ny {
-            let (inner_yz, clear_yz) = (
-                within(y, ny, 1) && within(z, nz, 1),
-                within(y, ny, reach) && within(z, nz, reach),
-            );
-            for x in 0..nx {
-                let v = VoxelIndex::new(x as u16, y as u16, z as u16);
-                let clear = clear_yz && within(x, nx, reach);
-                if map.is_unexplored(i) {
-                    if on_unknown_boundary(map, v, i, inner_yz && within(x, nx, 1)) {
-                        stamp(&dims, stencil, v, i, clear, labels, |l| {
-                            if *l == Label::Candidate {
+            let start = nx * (y + ny * z);
+            let Some(row) = stored.get(start..start + nx) else {
+                continue;
+            };
+            let near_observed = !track
+                || (z.saturating_sub(1)..(z + 2).min(nz))
+                    .any(|zz| (y.saturating_sub(1)..(y + 2).min(ny)).any(|yy| row_observed(yy, zz)));
+            let inner_yz = y >= 1 && y + 1 < ny && z >= 1 && z + 1 < nz;
+            let kind = |x: usize, lo: i8| -> u8 {
+                if lo == UNKNOWN {
+                    let v = VoxelIndex::new(x as u16, y as u16, z as u16);
+                    if near_observed
+                        && on_unknown_boundary(map, v, start + x, inner_yz && x >= 1 && x + 1 < nx)
+                    {
+                        FRINGE
+                    } else {
+                        NONE
+                    }
+                } else if lo == SEALED || lo >= 0 {
+                    OUTSIDE
+                } else {
+                    NONE
+                }
+            };
+            // Runs of voxels of one kind stamp the union of their stencils: each stencil row
+            // widened by the run's length.
+            let at = |x: usize| kind(x, row.get(x).copied().unwrap_or(UNKNOWN));
+            let mut x = 0;
+            let mut k = at(0);
+            while x < nx {
+                let mut end = x + 1;
+                let mut next = NONE;
+                while end < nx {
+                    next = at(end);
+                    if next != k {
+                        break;
+                    }
+                    end += 1;
+                }
+                if k != NONE {
+                    for &(dy, dz, w) in &rows {
+                        let (ty, tz) = (y as isize + dy, z as isize + dz);
+                        if ty < 0 || tz < 0 || ty >= ny as isize || tz >= nz as isize {
+                            continue;
+                        }
+                        let base = nx * (ty as usize + ny * tz as usize);
+                        let (from, to) = (base + x.saturating_sub(w), base + (end - 1 + w).min(nx - 1));
+                        let Some(span) = labels.get_mut(from..=to) else {
+                            continue;
+                        };
+                        if k == OUTSIDE {
+                            span.fill(Label::Outside);
+                        } else {
+                            for l in span.iter_mut().filter(|l| **l == Label::Candidate) {
                                 *l = Label::Fringe;
                             }
-                        });
+                        }
                     }
-                } else if map.is_sealed(i)
-                    || matches!(map.occupancy(i), Occupancy::Occupied | Occupancy::Uncertain)
-                {
-                    stamp(&dims, stencil, v, i, clear, labels, |l| *l = Label::Outside);
                 }
-                i += 1;
+                x = end;
+                k = next;
             }
         }
     }
@@ -847,6 +896,70 @@ pub(crate) mod tests {
                         *l = Label::Outside;
                     }
                 }
+            }
+        }
+    }
+
+    /// Run-wise inflation on building-like maps (long runs of wall, free space and unknown) and
+    /// on a grid with more rows than the observed-row bitset holds (every unknown voxel tested
+    /// then) gives the reference's labels.
+    #[test]
+    fn run_wise_inflation_matches_the_reference_on_rooms_and_tall_grids() {
+        extern crate std;
+        use std::vec;
+        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for (case, (nx, ny, nz)) in [(40, 30, 20), (33, 41, 17), (3, 100, 90)].into_iter().enumerate() {
+            let dims = Dims::new(nx, ny, nz).unwrap();
+            let g = MapGeometry::new(dims, Point3::origin(), 1.0).unwrap();
+            let n = dims.len();
+            let (mut lo, mut st) = (vec![0i8; n], vec![0u32; crate::map::touched_words(&dims)]);
+            let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
+            // Observed boxes of free space with occupied shells, some sealed pockets; the
+            // rest unknown.
+            for _ in 0..12 {
+                let lo_c = [next() as usize % nx, next() as usize % ny, next() as usize % nz];
+                let size = [
+                    1 + next() as usize % 20,
+                    1 + next() as usize % 15,
+                    1 + next() as usize % 10,
+                ];
+                let kind = next() % 10;
+                for i in 0..n {
+                    let v = dims.voxel(i);
+                    let c = [usize::from(v.x), usize::from(v.y), usize::from(v.z)];
+                    let inside = (0..3).all(|a| c[a] >= lo_c[a] && c[a] < lo_c[a] + size[a]);
+                    let shell = inside && (0..3).any(|a| c[a] == lo_c[a] || c[a] + 1 == lo_c[a] + size[a]);
+                    if !inside {
+                        continue;
+                    }
+                    if kind == 0 {
+                        map.seal(i);
+                    } else if shell && kind < 6 {
+                        map.apply_hit(i);
+                    } else {
+                        map.apply_miss(i);
+                    }
+                }
+            }
+            for radius in [0.9f32, 2.7] {
+                let stencil = InflationStencil::new(radius, 1.0).unwrap();
+                let mut fast = vec![Label::Outside; n];
+                for (i, l) in fast.iter_mut().enumerate() {
+                    if map.is_free(i) {
+                        *l = Label::Candidate;
+                    }
+                }
+                let mut reference = fast.clone();
+                inflate(&map, &stencil, &mut fast);
+                inflate_reference(&map, &stencil, &mut reference);
+                clear_grid_edges(&dims, &stencil, &mut reference);
+                assert!(fast == reference, "case {case}: {nx}x{ny}x{nz}, radius {radius}");
             }
         }
     }

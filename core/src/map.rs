@@ -426,6 +426,14 @@ impl<'a> VoxelMap<'a> {
         }
     }
 
+    /// The stored values, one per voxel in linear order: [`UNKNOWN`], [`SEALED`], or an
+    /// observed log-odds (negative free, positive occupied, 0 uncertain). For passes over the
+    /// whole grid that classify voxels row by row.
+    #[inline]
+    pub(crate) fn stored(&self) -> &[i8] {
+        self.log_odds
+    }
+
     /// State of voxel `i` (out-of-range indices read as unknown).
     #[inline]
     pub fn occupancy(&self, i: usize) -> Occupancy {
