@@ -224,9 +224,9 @@ fn a_solve_stopped_at_the_cap_is_not_converged() {
 /// length at 0.1 m voxels, s = 0.09), for the host's two multigrid solvers and the firmware's
 /// (V-cycles, label-only coarse operator, bfloat16 coarse levels), each stopped after 6, 20
 /// and 80 steps and at its own stop. A user relies on it not being optimistic: it is never
-/// below half the true error (measured 0.73× at worst; 0.65×, a V-cycle solve three cycles
-/// in). Nor is it uselessly pessimistic while the error is above the rounding noise: at most
-/// 12× (measured 11×, MGPCG on the screened field; the firmware's 0.73–3.2×).
+/// below half the true error (measured 0.73× at worst). Nor is it uselessly pessimistic while
+/// the error is above the rounding noise: at most 12× (measured 9.8×, MGPCG on the screened
+/// field).
 #[test]
 fn the_error_estimate_follows_the_true_error() {
     for &(variant, room) in &LAYOUTS {

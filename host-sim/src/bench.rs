@@ -103,6 +103,8 @@ pub struct SolveRow {
     pub ms: f64,
     /// Cell updates.
     pub cell_updates: u64,
+    /// The solve's estimate of its largest error ([`SolveStats::error_estimate`]).
+    pub error_estimate: Option<f32>,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -133,9 +135,21 @@ impl BenchSolver {
 /// (median reported). `start` is `cold` (multigrid: full multigrid from the labels; Gauss-Seidel:
 /// ψ = 0) and `warm` (from the previous solution after one scan); multigrid adds `zero`, a cold
 /// solve from ψ = 0 without full multigrid, to show what each start is worth.
-pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -> Vec<SolveRow> {
-    let cold = rooms_with_doors(dims, 0);
-    let warm = rooms_with_doors(dims, 1);
+///
+/// `screening` 0 solves the seed's Laplace problem; above 0 (κ²h²) the explorer's default
+/// field: the frontier-sourced screened field, the vehicle an ordinary interior voxel.
+pub fn measure(
+    dims: Dims,
+    solver: BenchSolver,
+    tolerance: f32,
+    repeat: usize,
+    screening: f32,
+) -> Vec<SolveRow> {
+    let (mut cold, mut warm) = (rooms_with_doors(dims, 0), rooms_with_doors(dims, 1));
+    if screening > 0.0 {
+        harmonic_core::field::release_source(&mut cold.labels);
+        harmonic_core::field::release_source(&mut warm.labels);
+    }
     let size = scratch_size(&dims);
     let mut values = vec![0.0f32; size.values];
     let mut clabels = vec![Label::Outside; size.labels];
@@ -147,7 +161,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
             tolerance,
             max_iterations: 1_000_000,
             warm_start,
-            screening: 0.0,
+            screening,
             max_error: f32::INFINITY,
         };
         match solver {
@@ -177,6 +191,7 @@ pub fn measure(dims: Dims, solver: BenchSolver, tolerance: f32, repeat: usize) -
         converged: stats.converged,
         ms,
         cell_updates: stats.cell_updates,
+        error_estimate: stats.error_estimate,
     };
     let is_mg = matches!(solver, BenchSolver::Multigrid(_));
     let (mut cold_times, mut zero_times, mut warm_times) = (Vec::new(), Vec::new(), Vec::new());
@@ -226,7 +241,7 @@ mod tests {
     fn warm_and_full_multigrid_starts_beat_a_zero_start() {
         let dims = Dims::new(32, 32, 16).unwrap();
         for method in [Method::Pcg, Method::VCycle] {
-            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-6, 1);
+            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-6, 1, 0.0);
             let get = |start: &str| rows.iter().find(|r| r.start == start).unwrap();
             let (cold, zero, warm) = (get("cold"), get("zero"), get("warm"));
             assert!(cold.converged && zero.converged && warm.converged, "{rows:?}");

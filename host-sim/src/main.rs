@@ -748,9 +748,14 @@ struct BenchSolveArgs {
     /// Repetitions per measurement (the median is reported).
     #[arg(long, default_value_t = 3)]
     repeat: usize,
-    /// Relative-residual tolerance.
+    /// Relative-residual tolerance (the explorer solves the screened field to 1e-5).
     #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
     tol: f32,
+    /// The field: `laplace` (the seed's, vehicle φ = 1, frontiers φ = 0) or `screened` (the
+    /// explorer's default: frontiers u = 1, ∇²u = κ²u with the default 0.33 m decay length at
+    /// 0.1 m voxels, the vehicle an ordinary voxel).
+    #[arg(long, default_value = "laplace", value_parser = ["laplace", "screened"])]
+    field: String,
 }
 
 fn parse_dims(s: &str) -> Result<Dims, String> {
@@ -1706,8 +1711,14 @@ fn write_run_figures(
 }
 
 fn bench_solve(args: &BenchSolveArgs) {
-    println!("| grid | unknowns | frontier | solver | start | iterations | residual | ms | cell updates |");
-    println!("|---|---|---|---|---|---|---|---|---|");
+    let screening = if args.field == "screened" {
+        let k = harmonic_core::field::ScreenedParams::default().kappa_voxel(0.1);
+        k * k
+    } else {
+        0.0
+    };
+    println!("| grid | unknowns | frontier | solver | start | iterations | residual | error estimate | ms | cell updates |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     let mut mg_cold_ms = Vec::new();
     for dims in &args.sizes {
         let mut solvers = vec![
@@ -1726,9 +1737,9 @@ fn bench_solve(args: &BenchSolveArgs) {
                 dims.ny(),
                 dims.nz()
             );
-            for row in bench::measure(*dims, solver, args.tol, args.repeat) {
+            for row in bench::measure(*dims, solver, args.tol, args.repeat, screening) {
                 println!(
-                    "| {} | {} | {} | {} | {} | {} | {:.1e} | {:.2} | {} |",
+                    "| {} | {} | {} | {} | {} | {} | {:.1e} | {} | {:.2} | {} |",
                     row.grid,
                     row.unknowns,
                     row.frontier,
@@ -1736,6 +1747,7 @@ fn bench_solve(args: &BenchSolveArgs) {
                     row.start,
                     row.iterations,
                     row.residual,
+                    row.error_estimate.map_or("–".to_string(), |e| format!("{e:.1e}")),
                     row.ms,
                     row.cell_updates
                 );

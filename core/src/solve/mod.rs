@@ -123,6 +123,9 @@ pub(crate) struct Contraction {
     residual_steps: u32,
     /// Multiplies the estimate: the share of a step's change the recorded change misses.
     scale: f32,
+    /// The least estimate so far carried forward: an earlier step's estimate plus every
+    /// change made since (the error cannot have grown by more), or `None` before the first.
+    carried: Option<f32>,
 }
 
 impl Contraction {
@@ -140,13 +143,23 @@ impl Contraction {
     /// not fall steadily; their contraction is read from the residuals instead (over two
     /// steps) and the last change is the larger of the last two.
     pub(crate) fn push_with_residual(&mut self, change: f32, residual: f32) {
-        self.push(change);
         self.residuals = [residual, self.residuals[0], self.residuals[1]];
         self.residual_steps = self.residual_steps.saturating_add(1);
+        self.push(change);
     }
 
     /// Records a step whose largest change of any value was `change`.
     pub(crate) fn push(&mut self, change: f32) {
+        self.record(change);
+        let scale = if self.scale > 0.0 { self.scale } else { 1.0 };
+        let now = self.current();
+        self.carried = match (self.carried.map(|c| c + scale * self.last), now) {
+            (Some(c), Some(e)) => Some(c.min(e)),
+            (c, e) => e.or(c),
+        };
+    }
+
+    fn record(&mut self, change: f32) {
         let change = if change.is_finite() {
             change.abs()
         } else {
@@ -167,9 +180,18 @@ impl Contraction {
         self.steps = self.steps.saturating_add(1);
     }
 
+    /// The error estimate: the least of this step's contraction estimate ([`Self::current`])
+    /// and every earlier step's plus the changes made since (by the triangle inequality the
+    /// error cannot have grown by more). Once a solve reaches the rounding floor its last
+    /// changes stop shrinking and the contraction reads ρ ≥ 1; the error it had when they still
+    /// shrank, plus the noise since, is then the better figure.
+    pub(crate) fn estimate(&self) -> Option<f32> {
+        self.carried
+    }
+
     /// `ρ / (1 − ρ)` times the last change, ρ the larger of the last two ratios; `None` before
     /// three steps (two ratios) were recorded, +∞ when the steps stopped shrinking.
-    pub(crate) fn estimate(&self) -> Option<f32> {
+    fn current(&self) -> Option<f32> {
         if self.steps < 3 {
             return None;
         }
