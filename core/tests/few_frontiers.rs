@@ -218,6 +218,23 @@ fn a_solve_stopped_at_the_cap_is_not_converged() {
     }
 }
 
+/// Calls `f(room, dims, labels, s, exact)` for each 64 × 64 × 32 layout and field: Laplace's
+/// equation, and the screened field (the vehicle an ordinary voxel) with s = κ²h² = 1e-4 and
+/// 0.09; `exact` is the f64 solution.
+fn for_each_field(mut f: impl FnMut(usize, Dims, &[Label], f32, &[f64])) {
+    for &(variant, room) in &LAYOUTS {
+        let (dims, laplace, _) = rooms_of(SMALL, variant, room);
+        let mut screened = laplace.clone();
+        for l in screened.iter_mut().filter(|l| **l == Label::Source) {
+            *l = Label::Interior;
+        }
+        for (labels, s) in [(&laplace, 0.0f32), (&screened, 1e-4), (&screened, 0.09)] {
+            let ex = common::exact_solution(&dims, labels, f64::from(s));
+            f(room, dims, labels, s, &ex);
+        }
+    }
+}
+
 /// The error estimate a solve reports ([`SolveStats::error_estimate`]) against the true error,
 /// on the three 64 × 64 × 32 layouts, for Laplace's equation and two screened fields (κ as the
 /// explorer lowers it late in an exploration, s = κ²h² = 1e-4, and the default 0.33 m decay
@@ -229,35 +246,27 @@ fn a_solve_stopped_at_the_cap_is_not_converged() {
 /// field).
 #[test]
 fn the_error_estimate_follows_the_true_error() {
-    for &(variant, room) in &LAYOUTS {
-        let (dims, laplace, _) = rooms_of(SMALL, variant, room);
-        let mut screened = laplace.clone();
-        for l in screened.iter_mut().filter(|l| **l == Label::Source) {
-            *l = Label::Interior;
-        }
-        for (labels, s) in [(&laplace, 0.0f32), (&screened, 1e-4), (&screened, 0.09)] {
-            let ex = common::exact_solution(&dims, labels, f64::from(s));
-            for setup in [
-                Setup::Host(Method::VCycle),
-                Setup::Host(Method::Pcg),
-                Setup::Firmware,
-            ] {
-                for cap in [6u32, 20, 80, 1_000_000] {
-                    let (psi, st) = solve_with(dims, labels, setup, cap, s, f32::INFINITY);
-                    let err = max_error(&psi, &ex);
-                    let est = f64::from(st.error_estimate.expect("estimated"));
-                    let case = format!("rooms {room}, s {s}, {setup:?}, cap {cap}: error {err:.3e}, {st:?}");
-                    assert!(est >= 0.5 * err, "optimistic: {case}");
-                    if err >= 1e-5 {
-                        assert!(est <= 12.0 * err, "pessimistic: {case}");
-                    }
-                    if st.iterations < cap {
-                        break;
-                    }
+    for_each_field(|room, dims, labels, s, ex| {
+        for setup in [
+            Setup::Host(Method::VCycle),
+            Setup::Host(Method::Pcg),
+            Setup::Firmware,
+        ] {
+            for cap in [6u32, 20, 80, 1_000_000] {
+                let (psi, st) = solve_with(dims, labels, setup, cap, s, f32::INFINITY);
+                let err = max_error(&psi, ex);
+                let est = f64::from(st.error_estimate.expect("estimated"));
+                let case = format!("rooms {room}, s {s}, {setup:?}, cap {cap}: error {err:.3e}, {st:?}");
+                assert!(est >= 0.5 * err, "optimistic: {case}");
+                if err >= 1e-5 {
+                    assert!(est <= 12.0 * err, "pessimistic: {case}");
+                }
+                if st.iterations < cap {
+                    break;
                 }
             }
         }
-    }
+    });
 }
 
 /// With an error target (`SolveParams::max_error`) a solve goes on until its estimate meets
@@ -290,24 +299,16 @@ fn an_error_target_is_met_or_reported_missed() {
 /// residual, so their rounding cannot accumulate.
 #[test]
 fn bfloat16_coarse_levels_converge_like_f32_ones() {
-    for &(variant, room) in &LAYOUTS {
-        let (dims, laplace, _) = rooms_of(SMALL, variant, room);
-        let mut screened = laplace.clone();
-        for l in screened.iter_mut().filter(|l| **l == Label::Source) {
-            *l = Label::Interior;
-        }
-        for (labels, s) in [(&laplace, 0.0f32), (&screened, 1e-4), (&screened, 0.09)] {
-            let ex = common::exact_solution(&dims, labels, f64::from(s));
-            let (_, full) = solve_with(dims, labels, Setup::FirmwareF32, 100_000, s, f32::INFINITY);
-            let (psi, half) = solve_with(dims, labels, Setup::Firmware, 100_000, s, f32::INFINITY);
-            let err = max_error(&psi, &ex);
-            let case = format!("rooms {room}, s {s}: error {err:.3e}, bf16 {half:?}, f32 {full:?}");
-            assert!(half.converged && full.converged, "{case}");
-            assert!(
-                f64::from(half.iterations) <= 1.1 * f64::from(full.iterations) + 2.0,
-                "{case}"
-            );
-            assert!(err <= 2e-5, "{case}");
-        }
-    }
+    for_each_field(|room, dims, labels, s, ex| {
+        let (_, full) = solve_with(dims, labels, Setup::FirmwareF32, 100_000, s, f32::INFINITY);
+        let (psi, half) = solve_with(dims, labels, Setup::Firmware, 100_000, s, f32::INFINITY);
+        let err = max_error(&psi, ex);
+        let case = format!("rooms {room}, s {s}: error {err:.3e}, bf16 {half:?}, f32 {full:?}");
+        assert!(half.converged && full.converged, "{case}");
+        assert!(
+            f64::from(half.iterations) <= 1.1 * f64::from(full.iterations) + 2.0,
+            "{case}"
+        );
+        assert!(err <= 2e-5, "{case}");
+    });
 }

@@ -115,6 +115,14 @@ struct Level {
     active: Active,
 }
 
+impl Level {
+    /// This level's share of the labels of all coarse levels (empty if `all` is short).
+    fn labels<'l>(&self, all: &'l [Label]) -> &'l [Label] {
+        all.get(self.label_offset..self.label_offset + self.dims.len())
+            .unwrap_or(&[])
+    }
+}
+
 /// Scratch sizes a hierarchy over `fine` needs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ScratchSize {
@@ -204,6 +212,27 @@ impl<'a> From<&'a mut [Bf16]> for CoarseValues<'a> {
     }
 }
 
+/// Runs `$body` with `$h` bound to a [`Hierarchy`] over the coarse values as a slice of their
+/// own type: one instantiation of the generic solver code per storage type.
+macro_rules! with_hierarchy {
+    (@one $v:ident, $levels:expr, $labels:expr, $faces:expr, $pins:expr, |$h:ident| $body:expr) => {{
+        let $h = Hierarchy {
+            levels: $levels,
+            values: $v,
+            labels: $labels,
+            faces: $faces,
+            pins: $pins,
+        };
+        $body
+    }};
+    ($values:expr, $levels:expr, $labels:expr, $faces:expr, $pins:expr, |$h:ident| $body:expr) => {
+        match $values {
+            CoarseValues::F32(v) => with_hierarchy!(@one v, $levels, $labels, $faces, $pins, |$h| $body),
+            CoarseValues::Bf16(v) => with_hierarchy!(@one v, $levels, $labels, $faces, $pins, |$h| $body),
+        }
+    };
+}
+
 /// Storage lent to a [`Multigrid`].
 pub struct MultigridStorage<'a> {
     /// At least [`ScratchSize::values`] entries.
@@ -235,6 +264,16 @@ pub struct Multigrid<'a> {
     fine_active: Active,
     /// Screening of the current problem on the fine level.
     screen: Screen,
+}
+
+/// The coarse levels of a solve, lent to the cycles: their layout, values (stored as `U`),
+/// labels and face conductances, and the source voxels full multigrid pins.
+struct Hierarchy<'h, U> {
+    levels: &'h [Level],
+    values: &'h mut [U],
+    labels: &'h [Label],
+    faces: &'h [[u8; 4]],
+    pins: &'h [[usize; 3]],
 }
 
 /// One level's view: its labels, unknowns and right-hand side (`None` = 0, with Dirichlet
@@ -389,14 +428,14 @@ impl<'a> Multigrid<'a> {
                     b: None,
                     screen,
                 };
-                let (work, correction) = match &mut self.values {
-                    CoarseValues::F32(v) => {
-                        fine_cycle(fine, &self.levels, v, self.labels, self.faces, &self.pins)
-                    }
-                    CoarseValues::Bf16(v) => {
-                        fine_cycle(fine, &self.levels, v, self.labels, self.faces, &self.pins)
-                    }
-                };
+                let (work, correction) = with_hierarchy!(
+                    &mut self.values,
+                    &self.levels,
+                    self.labels,
+                    self.faces,
+                    &self.pins,
+                    |h| fine_cycle(fine, h)
+                );
                 stats.cell_updates += work;
                 steps.push(correction);
                 stats.iterations += 1;
@@ -438,14 +477,14 @@ impl<'a> Multigrid<'a> {
             b: None,
             screen: self.screen,
         };
-        match &mut self.values {
-            CoarseValues::F32(v) => {
-                full_multigrid(fine, &self.levels, v, self.labels, self.faces, &self.pins)
-            }
-            CoarseValues::Bf16(v) => {
-                full_multigrid(fine, &self.levels, v, self.labels, self.faces, &self.pins)
-            }
-        }
+        with_hierarchy!(
+            &mut self.values,
+            &self.levels,
+            self.labels,
+            self.faces,
+            &self.pins,
+            |h| full_multigrid(fine, h)
+        )
     }
 
     /// Coarse labels and face conductances from the fine labels. Returns cells touched.
@@ -534,10 +573,10 @@ impl<'a> Multigrid<'a> {
                 b: Some(r),
                 screen,
             };
-            match values {
-                CoarseValues::F32(v) => fine_cycle(fine, levels, v, coarse_labels, faces, pins).0,
-                CoarseValues::Bf16(v) => fine_cycle(fine, levels, v, coarse_labels, faces, pins).0,
-            }
+            with_hierarchy!(values, levels, coarse_labels, faces, pins, |h| fine_cycle(
+                fine, h
+            )
+            .0)
         };
         // `new` lends MGPCG at least 3n values or none (and then this is never called).
         let Some((r, rest)) = krylov.split_at_mut_checked(n) else {
@@ -626,14 +665,14 @@ impl<'a> Multigrid<'a> {
 /// levels absorb the source into interior cells (see `coarsen`), so the coarse cells holding
 /// a source voxel are pinned at ψ = 0 after every step instead. `fine` is the fine level
 /// (its φ is overwritten on the interior). Returns cell updates.
-fn full_multigrid<U: Stored>(
-    mut fine: View<'_>,
-    levels: &[Level],
-    values: &mut [U],
-    coarse_labels: &[Label],
-    coarse_faces: &[[u8; 4]],
-    pins: &[[usize; 3]],
-) -> u64 {
+fn full_multigrid<U: Stored>(mut fine: View<'_>, coarse: Hierarchy<'_, U>) -> u64 {
+    let Hierarchy {
+        levels,
+        values,
+        labels: coarse_labels,
+        faces: coarse_faces,
+        pins,
+    } = coarse;
     let mut work = 0u64;
     let Some(coarsest) = levels.len().checked_sub(1) else {
         return 0;
@@ -676,9 +715,7 @@ fn full_multigrid<U: Stored>(
         if let Some(coarser) = rest_levels.first() {
             // Interpolate the coarser solution (it sits at the start of `rest`).
             let cn = coarser.dims.len();
-            let cl = coarse_labels
-                .get(coarser.label_offset..coarser.label_offset + cn)
-                .unwrap_or(&[]);
+            let cl = coarser.labels(coarse_labels);
             let cx = rest.get(coarser.offset..coarser.offset + cn).unwrap_or(&[]);
             let mut view = View {
                 dims: level.dims,
@@ -714,9 +751,7 @@ fn full_multigrid<U: Stored>(
     // The fine grid: interpolate the first coarse level's solution onto the interior.
     if let Some(level) = levels.first() {
         let n = level.dims.len();
-        let cl = coarse_labels
-            .get(level.label_offset..level.label_offset + n)
-            .unwrap_or(&[]);
+        let cl = level.labels(coarse_labels);
         let cx = values.get(level.offset..level.offset + n).unwrap_or(&[]);
         let _ = interpolate_into(&mut fine, &level.dims, cl, cx, true);
         work += fine.dims.len() as u64;
@@ -1455,14 +1490,14 @@ fn local_smooth(v: &mut View<'_>, pins: &[[usize; 3]]) -> u64 {
 
 /// One fine-level cycle: [`local_smooth`] at the source, a V-cycle, [`local_smooth`] again.
 /// Returns the cell updates and the largest coarse-grid correction (see [`vcycle`]).
-fn fine_cycle<U: Stored>(
-    mut fine: View<'_>,
-    levels: &[Level],
-    values: &mut [U],
-    labels: &[Label],
-    faces: &[[u8; 4]],
-    pins: &[[usize; 3]],
-) -> (u64, f32) {
+fn fine_cycle<U: Stored>(mut fine: View<'_>, coarse: Hierarchy<'_, U>) -> (u64, f32) {
+    let Hierarchy {
+        levels,
+        values,
+        labels,
+        faces,
+        pins,
+    } = coarse;
     let work = local_smooth(&mut fine, pins);
     let View {
         dims,
@@ -1534,9 +1569,7 @@ fn vcycle<T: Stored, U: Stored>(
     else {
         return (work, f32::INFINITY);
     };
-    let clabels = labels
-        .get(level.label_offset..level.label_offset + n)
-        .unwrap_or(&[]);
+    let clabels = level.labels(labels);
     cx.fill(U::default());
     cb.fill(U::default());
     // Restrict the residual.
