@@ -431,7 +431,9 @@ pub(crate) fn residual_with(
             let n = n as f32;
             row_r += r * r;
             row_e += (n + n * n) * c * c;
-            max = max.max(r.abs());
+            if r.abs() > max {
+                max = r.abs();
+            }
         });
         r2 += f64::from(row_r);
         e2 += f64::from(row_e) * f64::from(f32::EPSILON * f32::EPSILON) / 12.0;

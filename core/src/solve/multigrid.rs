@@ -1362,50 +1362,39 @@ fn interpolate_into<T: Stored, U: Stored>(
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
     let cnx = coarse.nx();
     let (mut cv_buf, mut cm_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
+    let mut apply = |v: &mut T, add: f32| {
+        // A plain comparison: `f32::max` also orders NaNs, which costs a blend per cell.
+        if add.abs() > largest {
+            largest = add.abs();
+        }
+        *v = T::store(add + if set { 0.0 } else { v.load() });
+    };
     for z in fine.active.zs() {
         for y in fine.active.ys() {
-            let start = fnx * (y + fny * z);
-            let (Some(l_row), Some(row)) = (
-                fine.labels.get(start..start + fnx),
-                fine.x.get_mut(start..start + fnx),
-            ) else {
+            // Only the active columns: interior cells lie nowhere else.
+            let (from, to) = (fnx * (y + fny * z) + xs.start, fnx * (y + fny * z) + xs.end);
+            let (Some(l_row), Some(row)) = (fine.labels.get(from..to), fine.x.get_mut(from..to)) else {
                 continue;
             };
             let parents = Parents::of(y, z, coarse, clabels, cx);
             let (Some(cv), Some(cm)) = (cv_buf.get_mut(..cnx), cm_buf.get_mut(..cnx)) else {
                 // Longer rows than the stack buffers: interpolate cell by cell.
-                for (x, (l, v)) in l_row
-                    .iter()
-                    .zip(row.iter_mut())
-                    .enumerate()
-                    .take(xs.end)
-                    .skip(xs.start)
-                {
+                for (k, (l, v)) in l_row.iter().zip(row.iter_mut()).enumerate() {
                     if *l == Label::Interior {
-                        let (num, den) = parents.interpolate(x);
+                        let (num, den) = parents.interpolate(xs.start + k);
                         if den > 0.0 {
-                            let add = num / den;
-                            largest = largest.max(add.abs());
-                            *v = T::store(add + if set { 0.0 } else { v.load() });
+                            apply(v, num / den);
                         }
                     }
                 }
                 continue;
             };
             parents.collapse(cv, cm);
-            for (x, (l, v)) in l_row
-                .iter()
-                .zip(row.iter_mut())
-                .enumerate()
-                .take(xs.end)
-                .skip(xs.start)
-            {
+            for (k, (l, v)) in l_row.iter().zip(row.iter_mut()).enumerate() {
                 if *l == Label::Interior {
-                    let (num, den) = interpolate_collapsed(cv, cm, x);
+                    let (num, den) = interpolate_collapsed(cv, cm, xs.start + k);
                     if den > 0.0 {
-                        let add = num / den;
-                        largest = largest.max(add.abs());
-                        *v = T::store(add + if set { 0.0 } else { v.load() });
+                        apply(v, num / den);
                     }
                 }
             }
