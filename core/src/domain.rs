@@ -25,7 +25,7 @@
 use heapless::Vec as HVec;
 use nalgebra::Point3;
 
-use crate::map::{Dims, Occupancy, VoxelIndex, VoxelMap, SEALED, UNKNOWN};
+use crate::map::{stored_blocks, stored_observed, Dims, Occupancy, VoxelIndex, VoxelMap, UNKNOWN};
 
 /// Role of a voxel in the Laplace problem. After [`build`] only `Outside`, `Interior`,
 /// `Frontier` and `Source` remain; the other variants are transient states of the build.
@@ -343,7 +343,7 @@ fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label])
     let track = ny * nz <= 32 * OBSERVED_ROW_WORDS;
     if track {
         for (r, row) in stored.chunks(nx).enumerate().take(ny * nz) {
-            if row.iter().any(|&lo| lo > SEALED) {
+            if row.iter().any(|&lo| stored_observed(lo)) {
                 if let Some(w) = observed.get_mut(r >> 5) {
                     *w |= 1 << (r & 31);
                 }
@@ -379,7 +379,7 @@ fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label])
                     } else {
                         NONE
                     }
-                } else if lo == SEALED || lo >= 0 {
+                } else if stored_blocks(lo) {
                     OUTSIDE
                 } else {
                     NONE
@@ -900,6 +900,39 @@ pub(crate) mod tests {
         }
     }
 
+    /// A xorshift64 generator: the randomised tests' maps, the same on every run.
+    fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
+        move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        }
+    }
+
+    /// Marks `map`'s free voxels as candidates, inflates them with [`inflate`] and with the
+    /// voxel-by-voxel reference, and asserts the labels agree.
+    fn assert_inflates_like_the_reference(map: &VoxelMap<'_>, stencil: &InflationStencil, case: &str) {
+        extern crate std;
+        let dims = map.dims();
+        let fresh = || -> std::vec::Vec<Label> {
+            (0..dims.len())
+                .map(|i| {
+                    if map.is_free(i) {
+                        Label::Candidate
+                    } else {
+                        Label::Outside
+                    }
+                })
+                .collect()
+        };
+        let (mut fast, mut reference) = (fresh(), fresh());
+        inflate(map, stencil, &mut fast);
+        inflate_reference(map, stencil, &mut reference);
+        clear_grid_edges(&dims, stencil, &mut reference);
+        assert!(fast == reference, "{case}");
+    }
+
     /// Run-wise inflation on building-like maps (long runs of wall, free space and unknown) and
     /// on a grid with more rows than the observed-row bitset holds (every unknown voxel tested
     /// then) gives the reference's labels.
@@ -907,13 +940,7 @@ pub(crate) mod tests {
     fn run_wise_inflation_matches_the_reference_on_rooms_and_tall_grids() {
         extern crate std;
         use std::vec;
-        let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut next = xorshift(0x9e37_79b9_7f4a_7c15);
         for (case, (nx, ny, nz)) in [(40, 30, 20), (33, 41, 17), (3, 100, 90)].into_iter().enumerate() {
             let dims = Dims::new(nx, ny, nz).unwrap();
             let g = MapGeometry::new(dims, Point3::origin(), 1.0).unwrap();
@@ -949,17 +976,8 @@ pub(crate) mod tests {
             }
             for radius in [0.9f32, 2.7] {
                 let stencil = InflationStencil::new(radius, 1.0).unwrap();
-                let mut fast = vec![Label::Outside; n];
-                for (i, l) in fast.iter_mut().enumerate() {
-                    if map.is_free(i) {
-                        *l = Label::Candidate;
-                    }
-                }
-                let mut reference = fast.clone();
-                inflate(&map, &stencil, &mut fast);
-                inflate_reference(&map, &stencil, &mut reference);
-                clear_grid_edges(&dims, &stencil, &mut reference);
-                assert!(fast == reference, "case {case}: {nx}x{ny}x{nz}, radius {radius}");
+                let case = std::format!("case {case}: {nx}x{ny}x{nz}, radius {radius}");
+                assert_inflates_like_the_reference(&map, &stencil, &case);
             }
         }
     }
@@ -968,13 +986,8 @@ pub(crate) mod tests {
     fn one_pass_inflation_matches_the_reference_on_random_maps() {
         // Small grids (every voxel near an edge) and larger ones, radii 0 to 3 voxels, maps
         // with unknown, free, occupied and sealed voxels in random proportions.
-        let mut seed = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        extern crate std;
+        let mut next = xorshift(0x2545_f491_4f6c_dd1d);
         for case in 0..60 {
             let (nx, ny, nz) = (
                 3 + (next() % 12) as usize,
@@ -992,7 +1005,7 @@ pub(crate) mod tests {
             for i in 0..n {
                 let r = next() % 100;
                 if r < p_unknown {
-                    if r % 7 == 0 {
+                    if r.is_multiple_of(7) {
                         map.seal(i);
                     }
                 } else if r < p_unknown + p_occupied {
@@ -1003,18 +1016,8 @@ pub(crate) mod tests {
             }
             let radius = (case % 4) as f32 * 0.9;
             let stencil = InflationStencil::new(radius, 1.0).unwrap();
-            let mut fast = [Label::Outside; 1680];
-            for (i, l) in fast.iter_mut().enumerate().take(n) {
-                if map.is_free(i) {
-                    *l = Label::Candidate;
-                }
-            }
-            let mut reference = fast;
-            let (fast, reference) = (&mut fast[..n], &mut reference[..n]);
-            inflate(&map, &stencil, fast);
-            inflate_reference(&map, &stencil, reference);
-            clear_grid_edges(&dims, &stencil, reference);
-            assert_eq!(fast, reference, "case {case}: {nx}x{ny}x{nz}, radius {radius}");
+            let case = std::format!("case {case}: {nx}x{ny}x{nz}, radius {radius}");
+            assert_inflates_like_the_reference(&map, &stencil, &case);
         }
     }
 }

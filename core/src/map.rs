@@ -305,6 +305,18 @@ pub const SEALED: i8 = i8::MIN + 1;
 /// Most negative stored value of an observed voxel (the clamp never goes below it).
 const OBSERVED_MIN: i8 = i8::MIN + 2;
 
+/// True for the stored value of an observed voxel (free, occupied or uncertain).
+#[inline(always)]
+pub(crate) const fn stored_observed(lo: i8) -> bool {
+    lo > SEALED
+}
+
+/// True for a stored value the vehicle keeps its radius from: occupied, uncertain or sealed.
+#[inline(always)]
+pub(crate) const fn stored_blocks(lo: i8) -> bool {
+    lo == SEALED || lo >= 0
+}
+
 /// `u32` words of the per-frame "touched" bitset a grid of `dims` needs: one bit per voxel.
 pub const fn touched_words(dims: &Dims) -> usize {
     (dims.nx.get() * dims.ny.get() * dims.nz.get()).div_ceil(32)
@@ -427,8 +439,9 @@ impl<'a> VoxelMap<'a> {
     }
 
     /// The stored values, one per voxel in linear order: [`UNKNOWN`], [`SEALED`], or an
-    /// observed log-odds (negative free, positive occupied, 0 uncertain). For passes over the
-    /// whole grid that classify voxels row by row.
+    /// observed log-odds (negative free, positive occupied, 0 uncertain; see
+    /// [`stored_observed`], [`stored_blocks`]). For passes over the whole grid that classify
+    /// voxels row by row.
     #[inline]
     pub(crate) fn stored(&self) -> &[i8] {
         self.log_odds
@@ -454,7 +467,7 @@ impl<'a> VoxelMap<'a> {
     /// True if voxel `i` was never observed.
     #[inline]
     pub fn is_unknown(&self, i: usize) -> bool {
-        self.log_odds.get(i).is_none_or(|&lo| lo <= SEALED)
+        self.log_odds.get(i).is_none_or(|&lo| !stored_observed(lo))
     }
     /// True if voxel `i` is unknown and sealed by the planner.
     #[inline]

@@ -47,7 +47,9 @@
 //! each finer level interpolates it and runs one V-cycle, and the fine grid starts from the
 //! interpolated field. It saves about a fifth of the iterations of a start from ψ = 0.
 //!
-//! **Precision.** Storage and inner loops are `f32` (the Cortex-M4F has no double FPU). Every
+//! **Precision.** Arithmetic is `f32` (the Cortex-M4F has no double FPU); the fine level is
+//! stored in `f32`, the coarse levels in `f32` or, to halve their memory, bfloat16
+//! ([`CoarseValues`]). Every
 //! cycle works on the residual of the current φ, so the correction is computed relative to what
 //! is already there (defect correction): rounding errors do not accumulate across cycles, and
 //! the final accuracy is set by how precisely the fine residual is evaluated, not by the
@@ -274,6 +276,30 @@ struct Hierarchy<'h, U> {
     labels: &'h [Label],
     faces: &'h [[u8; 4]],
     pins: &'h [[usize; 3]],
+}
+
+impl<'v, T> View<'v, T> {
+    /// The view of coarse level `level` (`depth` halvings below the fine grid, whose screening
+    /// is `fine_screen`) over its labels, face conductances and values.
+    fn coarse(
+        level: &Level,
+        depth: usize,
+        fine_screen: &Screen,
+        labels: &'v [Label],
+        faces: Option<&'v [[u8; 4]]>,
+        x: &'v mut [T],
+        b: Option<&'v [T]>,
+    ) -> Self {
+        View {
+            dims: level.dims,
+            active: level.active,
+            labels,
+            faces,
+            x,
+            b,
+            screen: fine_screen.coarser(depth),
+        }
+    }
 }
 
 /// One level's view: its labels, unknowns and right-hand side (`None` = 0, with Dirichlet
@@ -628,7 +654,9 @@ impl<'a> Multigrid<'a> {
                         if *l == Label::Interior {
                             *x += alpha * pi;
                             *ri -= alpha * qi;
-                            change = change.max((alpha * pi).abs());
+                            if (alpha * pi).abs() > change {
+                                change = (alpha * pi).abs();
+                            }
                         }
                     }
                 }
@@ -717,27 +745,11 @@ fn full_multigrid<U: Stored>(mut fine: View<'_>, coarse: Hierarchy<'_, U>) -> u6
             let cn = coarser.dims.len();
             let cl = coarser.labels(coarse_labels);
             let cx = rest.get(coarser.offset..coarser.offset + cn).unwrap_or(&[]);
-            let mut view = View {
-                dims: level.dims,
-                active: level.active,
-                labels: clabels,
-                faces: cfaces,
-                x: &mut *x,
-                b: None,
-                screen: fine.screen.coarser(k + 1),
-            };
+            let mut view = View::coarse(&level, k + 1, &fine.screen, clabels, cfaces, &mut *x, None);
             let _ = interpolate_into(&mut view, &coarser.dims, cl, cx, true);
         }
         pin_sources(pins, k + 1, &level.dims, x);
-        let mut view = View {
-            dims: level.dims,
-            active: level.active,
-            labels: clabels,
-            faces: cfaces,
-            x: &mut *x,
-            b: Some(&*b),
-            screen: fine.screen.coarser(k + 1),
-        };
+        let mut view = View::coarse(&level, k + 1, &fine.screen, clabels, cfaces, &mut *x, Some(&*b));
         if rest_levels.is_empty() {
             for _ in 0..COARSEST_SWEEPS {
                 work += relax(&mut view, 0) + relax(&mut view, 1);
@@ -1574,15 +1586,15 @@ fn vcycle<T: Stored, U: Stored>(
                 ..*l
             })
             .collect();
-        let coarse = View {
-            dims: level.dims,
-            active: level.active,
-            labels: clabels,
-            faces: faces.get(level.label_offset..level.label_offset + n),
-            x: cx,
-            b: Some(cb),
-            screen: fine.screen.coarser(1),
-        };
+        let coarse = View::coarse(
+            level,
+            1,
+            &fine.screen,
+            clabels,
+            faces.get(level.label_offset..level.label_offset + n),
+            cx,
+            Some(cb),
+        );
         work += vcycle(coarse, &rest_levels, rest, labels, faces).0;
     }
     // Prolongate and correct.
