@@ -590,7 +590,9 @@ proptest! {
     /// **The screened field is what the module doc says it is:** multigrid (MGPCG and plain
     /// V-cycles, whose coarse levels carry the screening scaled by 4 per level) converges to
     /// the exact discrete solution of `(n + s)·u − Σ u_j = Σ frontier values`, computed
-    /// independently in f64.
+    /// independently in f64, within 5e-5 (the solver issue asks 1e-4). Stopped at a residual of
+    /// 1e-6, V-cycles were up to 1.46e-5 off and MGPCG up to 1.02e-5 on rare small domains:
+    /// held to 1e-5, this test failed in about one run in twenty (18 of 300 before 2026-12-02).
     #[test]
     fn screened_multigrid_matches_the_exact_discrete_solution(w in world()) {
         let b = build_with_frontier(&w)?;
@@ -601,7 +603,7 @@ proptest! {
             let (u, stats) = solve_mg_screened(&s, method, 1e-6, SCREENING);
             prop_assert!(stats.converged, "{method:?} did not converge: {stats:?}");
             let worst = exact.iter().zip(&u).map(|(e, m)| (e - f64::from(*m)).abs()).fold(0.0, f64::max);
-            prop_assert!(worst <= 1e-5, "{method:?}: max |u − u_exact| = {worst:e}; {stats:?}");
+            prop_assert!(worst <= 5e-5, "{method:?}: max |u − u_exact| = {worst:e}; {stats:?}");
         }
     }
 
