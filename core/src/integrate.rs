@@ -19,6 +19,31 @@
 //! A voxel is updated at most once per frame. Endpoints are applied in a first pass and rays in a
 //! second, so a voxel that one pixel hits and another passes through counts as a hit (OctoMap's
 //! rule: occupied wins within a scan).
+//!
+//! ## Noisy depth: the stereo sensor model
+//!
+//! A stereo camera measures disparity `d = f·b/z` with an error `σ_d`, so depth has the error
+//! `σ_z = z²·σ_d/(f·b)`: 3 cm at 1 m, 50 cm at 4 m for a small rig. Integrated with the rules
+//! above, such depth grows every surface by about a voxel (half the returns from a wall land in
+//! the free voxel in front of it, and the hit wins) and lets far returns place walls where there
+//! are none. With [`IntegrationParams::depth_noise_per_m`] = `σ_d/(f·b)` set, a return at depth
+//! `z` whose ray has range `r` has the range uncertainty `σ = depth_noise_per_m · z · r`, and:
+//!
+//! - **misses stop short of the surface**: a ray clears only the voxels it leaves before
+//!   `r − 2σ + h` (`h` the voxel size), never the endpoint's voxel. As `σ → 0` this is the exact
+//!   rule; for a far return it keeps the free space honest to within 2σ.
+//! - **hits only where the depth places them**: a return marks its endpoint only when `σ ≤ h`;
+//!   a farther one only clears free space. Returns beyond the maximum range clear by the same
+//!   rule (no hit), not all the way to the maximum range.
+//! - **a vote per voxel per frame**: each voxel the frame hits counts its hits `H` and the rays
+//!   that passed through it `M`, and becomes a hit only if `H > M`, a miss otherwise — instead
+//!   of "the hit wins", which let a minority of short returns in front of a wall grow it.
+//!   The counts live in caller scratch ([`integrate_with_scratch`], two `u32` per voxel the frame
+//!   hits); voxels that do not fit fall back to "the hit wins", counted in
+//!   [`IntegrationStats::vote_overflow`].
+//!
+//! A surface's position is then known to within a voxel, which the explorer adds to the vehicle
+//! radius (see [`ExplorerConfig::planning_radius`](crate::explore::ExplorerConfig::planning_radius)).
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
@@ -49,6 +74,10 @@ pub struct IntegrationParams {
     pub pixel_stride: u16,
     /// What depth 0 means.
     pub no_return: NoReturn,
+    /// The sensor's depth noise, `σ_d / (f·b)` in 1/m (disparity error over focal length ×
+    /// baseline): a return at depth `z` has the depth error `σ_z = depth_noise_per_m · z²`.
+    /// 0 (the default) treats depth as exact; see the module doc for what changes otherwise.
+    pub depth_noise_per_m: f32,
 }
 
 impl Default for IntegrationParams {
@@ -59,9 +88,13 @@ impl Default for IntegrationParams {
             max_range: 10.0,
             pixel_stride: 1,
             no_return: NoReturn::ClearToMaxRange,
+            depth_noise_per_m: 0.0,
         }
     }
 }
+
+/// Misses stop this many standard deviations of the range before a noisy return.
+const FREE_MARGIN_SIGMAS: f32 = 2.0;
 
 /// What one frame's integration did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -85,6 +118,13 @@ pub struct IntegrationStats {
     pub voxels_traversed: u32,
     /// Log-odds updates applied (at most one per voxel).
     pub voxel_updates: u32,
+    /// With depth noise: returns too uncertain to mark their endpoint (`σ` above a voxel).
+    pub uncertain_returns: u32,
+    /// With depth noise: voxels the frame hit whose update the hit/miss vote decided.
+    pub voted: u32,
+    /// With depth noise: voxels the frame hit that did not fit in the vote's scratch and were
+    /// updated by "the hit wins" instead.
+    pub vote_overflow: u32,
 }
 
 /// Why a frame was not integrated.
@@ -111,12 +151,28 @@ pub enum IntegrateError {
     StalePose,
 }
 
-/// Integrates one depth frame taken from `camera_pose` (camera frame → map frame).
+/// Integrates one depth frame taken from `camera_pose` (camera frame → map frame), with no
+/// scratch for the noisy-depth vote (every voxel a noisy frame hits then falls back to "the hit
+/// wins"; see [`integrate_with_scratch`]).
 pub fn integrate(
     map: &mut VoxelMap<'_>,
     frame: &DepthFrame<'_>,
     camera_pose: &Isometry3<f32>,
     params: &IntegrationParams,
+) -> Result<IntegrationStats, IntegrateError> {
+    integrate_with_scratch(map, frame, camera_pose, params, &mut [])
+}
+
+/// Integrates one depth frame taken from `camera_pose` (camera frame → map frame). With depth
+/// noise ([`IntegrationParams::depth_noise_per_m`] > 0), `scratch` holds the per-voxel vote of
+/// the frame: two words per voxel the frame hits, at most half of it in use (the explorer lends
+/// its flood-fill queue). Exact depth does not use it.
+pub fn integrate_with_scratch(
+    map: &mut VoxelMap<'_>,
+    frame: &DepthFrame<'_>,
+    camera_pose: &Isometry3<f32>,
+    params: &IntegrationParams,
+    scratch: &mut [u32],
 ) -> Result<IntegrationStats, IntegrateError> {
     let q = camera_pose.rotation.quaternion();
     let finite = camera_pose
@@ -131,7 +187,9 @@ pub fn integrate(
     if !(params.min_range.is_finite()
         && params.max_range.is_finite()
         && params.min_range >= 0.0
-        && params.min_range < params.max_range)
+        && params.min_range < params.max_range
+        && params.depth_noise_per_m.is_finite()
+        && params.depth_noise_per_m >= 0.0)
     {
         return Err(IntegrateError::BadRange);
     }
@@ -139,20 +197,34 @@ pub fn integrate(
     let origin = Point3::from(camera_pose.translation.vector);
     let mut stats = IntegrationStats::default();
     map.begin_frame();
+    let mut votes = Votes::new(if params.depth_noise_per_m > 0.0 {
+        scratch
+    } else {
+        &mut []
+    });
 
-    // Pass 1: endpoints.
-    for_each_pixel_ray(frame, camera_pose, params, |ray| {
-        if let PixelRay::Return { end } = ray {
-            if let Some(v) = geometry.voxel_at(&end) {
-                if map.apply_hit(geometry.dims().linear(v)) {
-                    stats.voxel_updates += 1;
+    // Pass 1: endpoints (with depth noise, the confident ones: a vote each).
+    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), |ray| {
+        let end = match ray {
+            PixelRay::Return { end } | PixelRay::Noisy { end, hit: true, .. } => end,
+            _ => return,
+        };
+        if let Some(v) = geometry.voxel_at(&end) {
+            let i = geometry.dims().linear(v);
+            if matches!(ray, PixelRay::Noisy { .. }) && votes.hit(i, map) {
+                return;
+            }
+            if map.apply_hit(i) {
+                stats.voxel_updates += 1;
+                if matches!(ray, PixelRay::Noisy { .. }) {
+                    stats.vote_overflow += 1;
                 }
             }
         }
     });
 
     // Pass 2: free space along every usable ray, classifying pixels as we go.
-    for_each_pixel_ray(frame, camera_pose, params, |ray| {
+    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), |ray| {
         stats.pixels += 1;
         let mut weak = false;
         let (end, endpoint) = match ray {
@@ -180,6 +252,39 @@ pub fn integrate(
                 }
                 (end, v)
             }
+            PixelRay::Noisy {
+                end,
+                free_to,
+                hit,
+                beyond,
+            } => {
+                let v = geometry.voxel_at(&end);
+                if beyond {
+                    stats.beyond_range += 1;
+                } else {
+                    stats.returns += 1;
+                    stats.uncertain_returns += u32::from(!hit);
+                    stats.endpoint_outside += u32::from(v.is_none());
+                }
+                // Only the voxels the ray leaves before `free_to` are known free: the one
+                // `free_to` lies in (the last visited) and the endpoint's are left alone.
+                let dims = geometry.dims();
+                let mut previous: Option<VoxelIndex> = None;
+                traverse(&geometry, &origin, &free_to, |voxel| {
+                    stats.voxels_traversed += 1;
+                    if let Some(p) = previous.filter(|p| Some(*p) != v) {
+                        let i = dims.linear(p);
+                        if map.apply_miss(i) {
+                            stats.voxel_updates += 1;
+                        } else {
+                            votes.pass(i);
+                        }
+                    }
+                    previous = Some(voxel);
+                    true
+                });
+                return;
+            }
         };
         let dims = geometry.dims();
         traverse(&geometry, &origin, &end, |v| {
@@ -198,10 +303,97 @@ pub fn integrate(
             true
         });
     });
+
+    // Pass 3: the votes.
+    for (i, hits, passes) in votes.decided() {
+        map.apply_reserved(i, hits > passes);
+        stats.voxel_updates += 1;
+        stats.voted += 1;
+    }
     Ok(stats)
 }
 
+/// The per-frame hit/miss vote of the voxels a noisy frame hits: an open-addressing table in
+/// caller scratch, two words per slot (voxel index + 1, or 0 for an empty slot; hits in the high
+/// half and passes in the low half of the second, saturating). Filled to at most half, so
+/// probes stay short; a voxel that finds no room is not voted on.
+struct Votes<'s> {
+    slots: &'s mut [[u32; 2]],
+    used: usize,
+}
+
+impl<'s> Votes<'s> {
+    fn new(scratch: &'s mut [u32]) -> Self {
+        let (slots, _) = scratch.as_chunks_mut::<2>();
+        slots.fill([0, 0]);
+        Self { slots, used: 0 }
+    }
+
+    /// The slot of voxel `i`, or the empty slot where it would go (`None`: no table, a full
+    /// one, or an `i` that does not fit a key).
+    fn slot(&self, i: usize) -> Option<usize> {
+        let n = self.slots.len();
+        let key = u32::try_from(i).ok()?.checked_add(1)?;
+        // Fibonacci hashing, reduced to the capacity by a multiply-shift.
+        let h = key.wrapping_mul(0x9E37_79B9);
+        let mut s = ((u64::from(h) * n as u64) >> 32) as usize;
+        for _ in 0..n {
+            let k = self.slots.get(s)?[0];
+            if k == key || k == 0 {
+                return Some(s);
+            }
+            s = if s + 1 == n { 0 } else { s + 1 };
+        }
+        None
+    }
+
+    /// Counts a hit on voxel `i`, reserving the voxel's update for the vote. False if the table
+    /// has no room for it (the caller applies the hit directly).
+    fn hit(&mut self, i: usize, map: &mut VoxelMap<'_>) -> bool {
+        let Some(s) = self.slot(i) else {
+            return false;
+        };
+        let half_full = 2 * (self.used + 1) > self.slots.len();
+        let Some(slot) = self.slots.get_mut(s) else {
+            return false;
+        };
+        if slot[0] == 0 {
+            if half_full || !map.reserve(i) {
+                return false;
+            }
+            // `slot` found a key for `i`, so `i + 1` fits a u32.
+            slot[0] = i as u32 + 1;
+            self.used += 1;
+        }
+        if slot[1] >> 16 < 0xffff {
+            slot[1] += 1 << 16;
+        }
+        true
+    }
+
+    /// Counts a ray that passed through voxel `i`, if the frame hit it.
+    fn pass(&mut self, i: usize) {
+        if self.used == 0 {
+            return;
+        }
+        if let Some(slot) = self.slot(i).and_then(|s| self.slots.get_mut(s)) {
+            if slot[0] != 0 && slot[1] & 0xffff < 0xffff {
+                slot[1] += 1;
+            }
+        }
+    }
+
+    /// The voted voxels: (index, hits, passes).
+    fn decided(&self) -> impl Iterator<Item = (usize, u32, u32)> + '_ {
+        self.slots
+            .iter()
+            .filter(|e| e[0] != 0)
+            .map(|e| ((e[0] - 1) as usize, e[1] >> 16, e[1] & 0xffff))
+    }
+}
+
 /// One pixel's measurement, in map coordinates.
+#[derive(Clone, Copy)]
 enum PixelRay {
     /// Closer than the minimum range.
     Invalid,
@@ -209,14 +401,23 @@ enum PixelRay {
     NoReturn { end: Point3<f32> },
     /// Return beyond the maximum range: clear to `end`.
     BeyondRange { end: Point3<f32> },
-    /// A valid return at `end`.
+    /// A valid return at `end` (exact depth).
     Return { end: Point3<f32> },
+    /// With depth noise, a return at `end`: clear the voxels left before `free_to`; `hit`: mark
+    /// the endpoint (`σ` at most a voxel); `beyond`: the return lies beyond the maximum range.
+    Noisy {
+        end: Point3<f32>,
+        free_to: Point3<f32>,
+        hit: bool,
+        beyond: bool,
+    },
 }
 
 fn for_each_pixel_ray(
     frame: &DepthFrame<'_>,
     pose: &Isometry3<f32>,
     params: &IntegrationParams,
+    resolution: f32,
     mut f: impl FnMut(PixelRay),
 ) {
     let k = usize::from(params.pixel_stride.max(1));
@@ -236,6 +437,19 @@ fn for_each_pixel_ray(
                 let range = f32::from(d) * 1e-3 * ray_len;
                 if range < params.min_range {
                     PixelRay::Invalid
+                } else if params.depth_noise_per_m > 0.0 {
+                    let sigma = params.depth_noise_per_m * f32::from(d) * 1e-3 * range;
+                    let free = (range - FREE_MARGIN_SIGMAS * sigma + resolution)
+                        .min(range)
+                        .min(params.max_range)
+                        .max(0.0);
+                    let beyond = range > params.max_range;
+                    PixelRay::Noisy {
+                        end: origin + dir * range,
+                        free_to: origin + dir * free,
+                        hit: sigma <= resolution && !beyond,
+                        beyond,
+                    }
                 } else if range > params.max_range {
                     PixelRay::BeyondRange { end: clear_to }
                 } else {
@@ -572,6 +786,7 @@ mod tests {
             max_range: 1.2,
             pixel_stride: 1,
             no_return: NoReturn::ClearToMaxRange,
+            depth_noise_per_m: 0.0,
         };
         let d = g.dims();
         let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
@@ -668,5 +883,153 @@ mod tests {
             integrate(&mut map, &frame, &pose, &IntegrationParams::default()),
             Err(IntegrateError::BadPose)
         );
+    }
+
+    /// Stereo-like depth noise: σ_z = 0.032·z² (σ_d = 0.25 px, f = 65 px, b = 0.12 m).
+    const NOISE: f32 = 0.032;
+
+    fn noisy() -> IntegrationParams {
+        IntegrationParams {
+            depth_noise_per_m: NOISE,
+            ..IntegrationParams::default()
+        }
+    }
+
+    #[test]
+    fn a_far_noisy_return_clears_to_two_sigma_short_of_it_and_marks_nothing() {
+        // 64 × 16 × 16 voxels of 0.1 m: 6.4 m along x.
+        let g = MapGeometry::new(Dims::new(64, 16, 16).unwrap(), Point3::origin(), 0.1).unwrap();
+        let (mut lo, mut st) = ([0i8; 64 * 16 * 16], [0u32; 64 * 16 * 16 / 32]);
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
+        let depth = [4000u16]; // 4 m ahead: σ = 0.032 · 16 = 0.512 m.
+        let frame = DepthFrame::new(one_pixel(), &depth).unwrap();
+        let mut scratch = [0u32; 64];
+        let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        assert_eq!((s.returns, s.uncertain_returns, s.voted), (1, 1, 0));
+        // From x = 0.05 the ray clears up to 4 − 2σ + 0.1 = 3.076 m, x = 3.126: voxels 0–30
+        // are left before it; voxel 31 holds that point and stays unknown, like all beyond.
+        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
+        for x in 0..=30 {
+            assert_eq!(map.occupancy(at(x)), Occupancy::Free, "x = {x}");
+        }
+        for x in 31..64 {
+            assert_eq!(map.occupancy(at(x)), Occupancy::Unknown, "x = {x}");
+        }
+        // With exact depth the same return clears to the wall and marks it.
+        let (mut lo, mut st) = ([0i8; 64 * 16 * 16], [0u32; 64 * 16 * 16 / 32]);
+        let mut exact = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
+        integrate(
+            &mut exact,
+            &frame,
+            &looking_along_x(),
+            &IntegrationParams::default(),
+        )
+        .unwrap();
+        assert_eq!(exact.occupancy(at(39)), Occupancy::Free);
+        assert_eq!(exact.occupancy(at(40)), Occupancy::Occupied);
+    }
+
+    #[test]
+    fn a_near_noisy_return_is_integrated_as_an_exact_one() {
+        // At 1.02 m σ = 3.3 cm, under a voxel: the endpoint is marked, and the misses reach the
+        // voxel before it (1.02 − 2σ + 0.1 is past the endpoint, so the endpoint caps them).
+        let depth = [1020u16];
+        let frame = DepthFrame::new(one_pixel(), &depth).unwrap();
+        let (mut f, mut g) = (Fixture::new(), Fixture::new());
+        let (mut a, mut b) = (f.map(), g.map());
+        let mut scratch = [0u32; 64];
+        let s = integrate_with_scratch(&mut a, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        integrate(&mut b, &frame, &looking_along_x(), &IntegrationParams::default()).unwrap();
+        assert_eq!(
+            (s.returns, s.uncertain_returns, s.voted, s.vote_overflow),
+            (1, 0, 1, 0)
+        );
+        for i in 0..cube16().dims().len() {
+            assert_eq!(a.occupancy(i), b.occupancy(i), "voxel {i}");
+        }
+        assert_eq!(
+            a.occupancy(cube16().dims().linear(VoxelIndex::new(10, 8, 8))),
+            Occupancy::Occupied
+        );
+    }
+
+    /// Five pixels in a narrow field of view, all along the voxel row y = z = 8: three return
+    /// from 1.12 m (voxel 11), two from 1.02 m (voxel 10, in front of it).
+    fn wall_with_short_returns() -> ([u16; 5], Intrinsics) {
+        (
+            [1120, 1020, 1120, 1020, 1120],
+            Intrinsics::new(1000.0, 1000.0, 2.0, 0.0, 5, 1).unwrap(),
+        )
+    }
+
+    #[test]
+    fn the_vote_clears_a_voxel_that_more_rays_passed_than_hit() {
+        let (depth, intr) = wall_with_short_returns();
+        let frame = DepthFrame::new(intr, &depth).unwrap();
+        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
+        let mut f = Fixture::new();
+        let mut map = f.map();
+        let mut scratch = [0u32; 64];
+        let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        assert_eq!((s.returns, s.voted, s.vote_overflow), (5, 2, 0));
+        // Voxel 10: two hits, three rays through it — a miss. Voxel 11: three hits — occupied.
+        assert_eq!(map.occupancy(at(10)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(9)), Occupancy::Free);
+
+        // The rules of exact depth let the two short returns win: the wall grows a voxel.
+        let mut g = Fixture::new();
+        let mut exact = g.map();
+        integrate(
+            &mut exact,
+            &frame,
+            &looking_along_x(),
+            &IntegrationParams::default(),
+        )
+        .unwrap();
+        assert_eq!(exact.occupancy(at(10)), Occupancy::Occupied);
+        assert_eq!(exact.occupancy(at(11)), Occupancy::Occupied);
+    }
+
+    #[test]
+    fn voxels_the_vote_has_no_room_for_fall_back_to_the_hit_winning() {
+        let (depth, intr) = wall_with_short_returns();
+        let frame = DepthFrame::new(intr, &depth).unwrap();
+        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
+        // Four words: two slots, filled to at most half — room for one voxel (the first hit,
+        // voxel 11); voxel 10 is updated by "the hit wins".
+        let mut f = Fixture::new();
+        let mut map = f.map();
+        let mut scratch = [0u32; 4];
+        let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        assert_eq!((s.voted, s.vote_overflow), (1, 1));
+        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+        // No scratch at all: every hit voxel falls back, and nothing is lost.
+        let mut g = Fixture::new();
+        let mut map = g.map();
+        let s = integrate(&mut map, &frame, &looking_along_x(), &noisy()).unwrap();
+        assert_eq!((s.voted, s.vote_overflow), (0, 2));
+        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+    }
+
+    #[test]
+    fn a_bad_depth_noise_is_rejected() {
+        let mut f = Fixture::new();
+        let mut map = f.map();
+        let depth = [1000u16];
+        let frame = DepthFrame::new(one_pixel(), &depth).unwrap();
+        for bad in [f32::NAN, -0.1, f32::INFINITY] {
+            let params = IntegrationParams {
+                depth_noise_per_m: bad,
+                ..IntegrationParams::default()
+            };
+            assert_eq!(
+                integrate(&mut map, &frame, &looking_along_x(), &params),
+                Err(IntegrateError::BadRange),
+                "{bad}"
+            );
+        }
     }
 }

@@ -403,19 +403,41 @@ impl<'a> VoxelMap<'a> {
     }
 
     fn apply(&mut self, i: usize, delta: i8) -> bool {
-        let bit = 1u32 << (i & 31);
-        let (Some(word), Some(lo)) = (self.touched.get_mut(i >> 5), self.log_odds.get_mut(i)) else {
-            return false;
-        };
-        if *word & bit != 0 {
+        if i >= self.log_odds.len() || !self.reserve(i) {
             return false;
         }
-        let before = if *lo <= SEALED { 0 } else { *lo };
-        *lo = before
-            .saturating_add(delta)
-            .clamp(self.params.min, self.params.max);
-        *word |= bit;
+        self.add(i, delta);
         true
+    }
+
+    /// Adds `delta` to voxel `i`'s log-odds (unknown and sealed count as 0), clamped.
+    fn add(&mut self, i: usize, delta: i8) {
+        if let Some(lo) = self.log_odds.get_mut(i) {
+            let before = if *lo <= SEALED { 0 } else { *lo };
+            *lo = before
+                .saturating_add(delta)
+                .clamp(self.params.min, self.params.max);
+        }
+    }
+
+    /// Reserves voxel `i`'s one update of this frame without changing it, so that
+    /// [`apply_hit`](Self::apply_hit) and [`apply_miss`](Self::apply_miss) refuse it until
+    /// [`apply_reserved`](Self::apply_reserved) decides. Returns whether it was still free to
+    /// update.
+    pub(crate) fn reserve(&mut self, i: usize) -> bool {
+        let bit = 1u32 << (i & 31);
+        match self.touched.get_mut(i >> 5) {
+            Some(word) if *word & bit == 0 => {
+                *word |= bit;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// Applies a hit (`true`) or a miss to a voxel [`reserve`](Self::reserve)d this frame.
+    pub(crate) fn apply_reserved(&mut self, i: usize, hit: bool) {
+        self.add(i, if hit { self.params.hit } else { self.params.miss });
     }
 
     /// Marks an unknown voxel free (space the vehicle's own body occupies). Observed voxels are

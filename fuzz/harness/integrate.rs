@@ -66,6 +66,11 @@ pub fn run(data: &[u8]) {
             } else {
                 NoReturn::Unknown
             },
+            depth_noise_per_m: if input.u8() % 2 == 0 {
+                0.0
+            } else {
+                input.float(FLOATS)
+            },
         };
     }
     config.solve.max_iterations = u32::from(input.u8() % 64) + 1;

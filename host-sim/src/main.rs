@@ -776,14 +776,21 @@ fn parse_dims(s: &str) -> Result<Dims, String> {
 struct SensingArgs {
     /// Sensor noise model: `stereo` (σ = 1 px disparity noise per pixel, then the stereo
     /// pipeline's 5 × 5 median), `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd median
-    /// window, 1 = unfiltered). The core then integrates depth only up to the range where the
-    /// depth error stays small (see `--trusted-range`).
+    /// window, 1 = unfiltered). The core integrates it with its stereo sensor model (depth error
+    /// σ_z = z²σ_d/(f·b): misses stop 2σ short of a return, a return marks a surface only where
+    /// σ is at most a voxel, a hit/miss vote per voxel per frame, and one voxel more clearance);
+    /// see `--hit-wins` for the rules of exact depth.
     #[arg(long, value_parser = parse_noise)]
     noise: Option<StereoNoise>,
-    /// Range (m) up to which stereo depth is integrated; farther returns only clear free space
-    /// up to it. Default with `--noise`: where a 1σ (filtered) disparity error moves the depth
-    /// by 0.1 m (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered.
-    /// Without noise: the camera's 10 m.
+    /// With `--noise` or `--depth-from stereo`: integrate with the rules of exact depth instead
+    /// of the stereo sensor model — a hit wins over the misses of its frame, and depth is used
+    /// only up to `--trusted-range` (the behaviour before the model, kept for comparison).
+    #[arg(long)]
+    hit_wins: bool,
+    /// Range (m) up to which depth is integrated; farther returns only clear free space. Default:
+    /// the camera's 10 m; with `--hit-wins`, where a 1σ (filtered) disparity error moves the
+    /// depth by 0.1 m (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered
+    /// (2.8 m with `--depth-from stereo`).
     #[arg(long, value_parser = parse_positive)]
     trusted_range: Option<f32>,
     /// Fraction of pixels (0-1) that return half their true depth (gross matching errors).
@@ -857,11 +864,18 @@ impl FieldArgs {
     }
 }
 
-/// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera.
+/// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera integrated
+/// with `--hit-wins`.
 const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
 
 impl SensingArgs {
     fn check(&self) -> Result<(), String> {
+        if self.hit_wins && self.noise.is_none() && self.depth_from != "stereo" {
+            return Err(
+                "--hit-wins chooses how noisy depth is integrated: give --noise or --depth-from stereo"
+                    .into(),
+            );
+        }
         if self.depth_from == "stereo" && (self.noise.is_some() || self.outliers > 0.0 || self.textureless) {
             return Err(
                 "--noise, --outliers and --textureless model the depth camera; with --depth-from stereo the matcher makes its own errors (textureless boxes render flat)".into(),
@@ -878,9 +892,12 @@ impl SensingArgs {
         let fx = cfg.camera.intrinsics.fx();
         let range = match (self.trusted_range, self.noise) {
             (Some(r), _) => r,
-            (None, Some(n)) => n.trusted_range(fx, TRUSTED_DEPTH_ERROR_M),
-            (None, None) => cfg.camera.max_range,
+            (None, Some(n)) if self.hit_wins => n.trusted_range(fx, TRUSTED_DEPTH_ERROR_M),
+            _ => cfg.camera.max_range,
         };
+        if let Some(n) = self.noise.filter(|_| !self.hit_wins) {
+            cfg.explorer.integration.depth_noise_per_m = n.filtered_sigma_px() / (fx * n.baseline_m);
+        }
         cfg.explorer.integration.max_range = range
             .min(cfg.camera.max_range)
             .max(cfg.explorer.integration.min_range + 0.1);
@@ -890,7 +907,7 @@ impl SensingArgs {
                 window: self.stereo_window,
                 ..harmonic_sim::stereo::StereoRig::default()
             };
-            sim::use_stereo_depth(cfg, rig, self.trusted_range);
+            sim::use_stereo_depth(cfg, rig, self.trusted_range, !self.hit_wins);
         }
     }
 }

@@ -156,23 +156,34 @@ pub enum DepthSource {
 
 /// Depth error (m) at the range up to which stereo depth is integrated by default.
 pub const STEREO_TRUSTED_ERROR_M: f32 = 0.1;
-/// Disparity error (render pixels) assumed for the default stereo range: the matcher's
-/// sub-pixel error on rendered pairs (BENCHMARKS.md) with a margin.
+/// Disparity error (render pixels) of the core's matcher on rendered pairs: its sub-pixel error
+/// (BENCHMARKS.md) with a margin. The stereo sensor model's `σ_d`.
 pub const STEREO_TRUSTED_SIGMA_PX: f32 = 0.2;
 
 /// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than
-/// free space, and returns are integrated up to `trusted_range` metres (default: where a
-/// [`STEREO_TRUSTED_SIGMA_PX`] disparity error moves the depth by [`STEREO_TRUSTED_ERROR_M`];
-/// 2.8 m for the default rig), farther ones only clearing free space up to it.
-pub fn use_stereo_depth(cfg: &mut SimConfig, rig: StereoRig, trusted_range: Option<f32>) {
+/// free space. With `sensor_model`, the core integrates it with its stereo sensor model
+/// ([`harmonic_core::integrate`]: disparity error [`STEREO_TRUSTED_SIGMA_PX`]) up to
+/// `trusted_range` metres (default: the camera's maximum range); without, with the rules of
+/// exact depth up to `trusted_range` (default: where a [`STEREO_TRUSTED_SIGMA_PX`] disparity
+/// error moves the depth by [`STEREO_TRUSTED_ERROR_M`]; 2.8 m for the default rig), farther
+/// returns only clearing free space up to it.
+pub fn use_stereo_depth(cfg: &mut SimConfig, rig: StereoRig, trusted_range: Option<f32>, sensor_model: bool) {
     cfg.depth_source = DepthSource::Stereo(rig);
     cfg.explorer.integration.no_return = harmonic_core::integrate::NoReturn::Unknown;
     let fx = cfg.camera.intrinsics.fx() * f32::from(rig.scale.max(1));
-    let range = trusted_range
-        .unwrap_or_else(|| rig.trusted_range(fx, STEREO_TRUSTED_SIGMA_PX, STEREO_TRUSTED_ERROR_M));
+    let range = match trusted_range {
+        Some(r) => r,
+        None if sensor_model => cfg.camera.max_range,
+        None => rig.trusted_range(fx, STEREO_TRUSTED_SIGMA_PX, STEREO_TRUSTED_ERROR_M),
+    };
     cfg.explorer.integration.max_range = range
         .min(cfg.camera.max_range)
         .max(cfg.explorer.integration.min_range + 0.1);
+    cfg.explorer.integration.depth_noise_per_m = if sensor_model {
+        STEREO_TRUSTED_SIGMA_PX / (fx * rig.baseline_m)
+    } else {
+        0.0
+    };
 }
 
 /// Faults the simulator injects besides the depth link's: what `harmonic-sim faults` varies.
@@ -1140,6 +1151,7 @@ pub fn run_observed(
     };
     let reference_integration = harmonic_core::integrate::IntegrationParams {
         max_range: cfg.camera.max_range,
+        depth_noise_per_m: 0.0,
         ..cfg.explorer.integration
     };
     let stencil =

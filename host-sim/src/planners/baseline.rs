@@ -2,7 +2,7 @@
 //! choose a target, then fly an A* path to it.
 //!
 //! Each owns a [`VoxelMap`] and integrates frames with the core's
-//! [`integrate`](harmonic_core::integrate::integrate), exactly as the harmonic explorer does,
+//! [`integrate_with_scratch`](harmonic_core::integrate::integrate_with_scratch), exactly as the harmonic explorer does,
 //! and plans over the labels of [`harmonic_core::domain::build`] — the same inflated safe space
 //! and the same frontier voxels (free voxels next to unexplored space, eroded by the vehicle
 //! radius) the harmonic planner uses as sinks. Exploration is complete when that space has no
@@ -159,8 +159,11 @@ impl<'a> Baseline<'a> {
             return Err(ConfigError::StorageTooSmall);
         }
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
-        let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
-            .map_err(ConfigError::Domain)?;
+        let stencil = InflationStencil::new(
+            config.planning_radius(geometry.resolution()),
+            geometry.resolution(),
+        )
+        .map_err(ConfigError::Domain)?;
         let labels = &mut labels[..n];
         labels.fill(Label::Outside);
         Ok(Self {
@@ -674,7 +677,13 @@ impl Planner for Baseline<'_> {
         if let Some(timing) = timing {
             check_frame_timing(&self.config, timing, &mut self.status.errors).map_err(Fault::Integrate)?;
         }
-        match integrate::integrate(&mut self.map, frame, camera_pose, &self.config.integration) {
+        match integrate::integrate_with_scratch(
+            &mut self.map,
+            frame,
+            camera_pose,
+            &self.config.integration,
+            self.queue,
+        ) {
             Ok(stats) => {
                 self.intrinsics = Some(*frame.intrinsics());
                 self.status.frames += 1;
