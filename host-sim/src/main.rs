@@ -776,21 +776,21 @@ fn parse_dims(s: &str) -> Result<Dims, String> {
 struct SensingArgs {
     /// Sensor noise model: `stereo` (σ = 1 px disparity noise per pixel, then the stereo
     /// pipeline's 5 × 5 median), `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd median
-    /// window, 1 = unfiltered). The core integrates it with its stereo sensor model (depth error
-    /// σ_z = z²σ_d/(f·b): misses stop 2σ short of a return, a return marks a surface only where
-    /// σ is at most a voxel, a hit/miss vote per voxel per frame, and one voxel more clearance);
-    /// see `--hit-wins` for the rules of exact depth.
+    /// window, 1 = unfiltered). The core integrates it with the rules of exact depth, up to the
+    /// range where the depth error stays small (see `--trusted-range`), or with `--stereo-model`.
     #[arg(long, value_parser = parse_noise)]
     noise: Option<StereoNoise>,
-    /// With `--noise` or `--depth-from stereo`: integrate with the rules of exact depth instead
-    /// of the stereo sensor model — a hit wins over the misses of its frame, and depth is used
-    /// only up to `--trusted-range` (the behaviour before the model, kept for comparison).
+    /// With `--noise` or `--depth-from stereo`: integrate with the core's stereo sensor model
+    /// (experimental, see docs/RESULTS.md) — depth error σ_z = z²σ_d/(f·b), misses stop 2σ short
+    /// of a return, a return marks a surface only where σ is at most a voxel, a hit/miss vote
+    /// per voxel per frame instead of "the hit wins", one voxel more clearance, and depth used
+    /// to the camera's range.
     #[arg(long)]
-    hit_wins: bool,
-    /// Range (m) up to which depth is integrated; farther returns only clear free space. Default:
-    /// the camera's 10 m; with `--hit-wins`, where a 1σ (filtered) disparity error moves the
-    /// depth by 0.1 m (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered
-    /// (2.8 m with `--depth-from stereo`).
+    stereo_model: bool,
+    /// Range (m) up to which depth is integrated; farther returns only clear free space.
+    /// Default with `--noise`: where a 1σ (filtered) disparity error moves the depth by 0.1 m
+    /// (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered; 2.8 m with
+    /// `--depth-from stereo`. Otherwise, and with `--stereo-model`, the camera's 10 m.
     #[arg(long, value_parser = parse_positive)]
     trusted_range: Option<f32>,
     /// Fraction of pixels (0-1) that return half their true depth (gross matching errors).
@@ -864,15 +864,14 @@ impl FieldArgs {
     }
 }
 
-/// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera integrated
-/// with `--hit-wins`.
+/// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera.
 const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
 
 impl SensingArgs {
     fn check(&self) -> Result<(), String> {
-        if self.hit_wins && self.noise.is_none() && self.depth_from != "stereo" {
+        if self.stereo_model && self.noise.is_none() && self.depth_from != "stereo" {
             return Err(
-                "--hit-wins chooses how noisy depth is integrated: give --noise or --depth-from stereo"
+                "--stereo-model chooses how noisy depth is integrated: give --noise or --depth-from stereo"
                     .into(),
             );
         }
@@ -892,10 +891,10 @@ impl SensingArgs {
         let fx = cfg.camera.intrinsics.fx();
         let range = match (self.trusted_range, self.noise) {
             (Some(r), _) => r,
-            (None, Some(n)) if self.hit_wins => n.trusted_range(fx, TRUSTED_DEPTH_ERROR_M),
+            (None, Some(n)) if !self.stereo_model => n.trusted_range(fx, TRUSTED_DEPTH_ERROR_M),
             _ => cfg.camera.max_range,
         };
-        if let Some(n) = self.noise.filter(|_| !self.hit_wins) {
+        if let Some(n) = self.noise.filter(|_| self.stereo_model) {
             cfg.explorer.integration.depth_noise_per_m = n.filtered_sigma_px() / (fx * n.baseline_m);
         }
         cfg.explorer.integration.max_range = range
@@ -907,7 +906,7 @@ impl SensingArgs {
                 window: self.stereo_window,
                 ..harmonic_sim::stereo::StereoRig::default()
             };
-            sim::use_stereo_depth(cfg, rig, self.trusted_range, !self.hit_wins);
+            sim::use_stereo_depth(cfg, rig, self.trusted_range, self.stereo_model);
         }
     }
 }

@@ -227,6 +227,16 @@ impl<'a> Baseline<'a> {
             };
             self.status.domain = stats;
             if stats.frontier == 0 {
+                // As the explorer does: a vehicle walled in by unknown voxels around its body
+                // takes the clearance a vehicle that got here must have, and builds again.
+                let clearance = 2.0 * self.config.planning_radius(geometry.resolution());
+                if stats.interior <= 1
+                    && stats.fringe > 0
+                    && domain::mark_clearance(&mut self.map, position, clearance) > 0
+                {
+                    self.status.errors.clearances += 1;
+                    continue;
+                }
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
             }
