@@ -72,8 +72,7 @@ pub struct ExplorerConfig {
     pub log_odds: LogOddsParams,
     /// Depth integration parameters.
     pub integration: IntegrationParams,
-    /// Vehicle radius (planning clearance) in metres; obstacles are inflated by it (and by a
-    /// voxel more with noisy depth, see [`planning_radius`](Self::planning_radius)).
+    /// Vehicle radius (planning clearance) in metres; obstacles are inflated by it.
     pub vehicle_radius: f32,
     /// Which potential plans (the screened frontier-sourced field by default).
     pub field: PlanningField,
@@ -141,20 +140,6 @@ pub struct FrameTiming {
 /// Refused frames in a row, each within [`ExplorerConfig::max_frame_jump_m`] of the one before,
 /// after which a jumped camera pose is accepted as the new reference.
 pub const FRAMES_TO_ACCEPT_JUMP: u8 = 3;
-
-impl ExplorerConfig {
-    /// The clearance the planner keeps from occupied voxels on a grid of `resolution`: the
-    /// vehicle radius, plus one voxel when depth is noisy — the stereo sensor model places a
-    /// surface only to within a voxel (it marks a return only where its depth error is at most
-    /// one, see [`crate::integrate`]), so a wall may sit one voxel nearer than mapped.
-    pub fn planning_radius(&self, resolution: f32) -> f32 {
-        if self.integration.depth_noise_per_m > 0.0 {
-            self.vehicle_radius + resolution
-        } else {
-            self.vehicle_radius
-        }
-    }
-}
 
 impl Default for ExplorerConfig {
     fn default() -> Self {
@@ -539,11 +524,8 @@ impl<'a> Explorer<'a> {
             _ => &mut [],
         };
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
-        let stencil = InflationStencil::new(
-            config.planning_radius(geometry.resolution()),
-            geometry.resolution(),
-        )
-        .map_err(ConfigError::Domain)?;
+        let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
+            .map_err(ConfigError::Domain)?;
         let (Some(labels), Some(phi)) = (labels.get_mut(..n), phi.get_mut(..n)) else {
             return Err(ConfigError::StorageTooSmall);
         };
@@ -662,11 +644,6 @@ impl<'a> Explorer<'a> {
 
     /// True if a frame taken from `origin` must be refused as a pose jump (see
     /// [`ExplorerConfig::max_frame_jump_m`]); tracks the run of agreeing refused frames.
-    /// The clearance the planner keeps ([`ExplorerConfig::planning_radius`]).
-    fn stencil_radius(&self) -> f32 {
-        self.config.planning_radius(self.map.geometry().resolution())
-    }
-
     fn pose_jumped(&mut self, origin: &Point3<f32>) -> bool {
         let max = self.config.max_frame_jump_m;
         let Some(last) = self.last_frame_origin else {
@@ -826,7 +803,7 @@ impl<'a> Explorer<'a> {
                 // above or below the body that a level camera never sees (a vehicle off voxel
                 // centres): not a finished exploration. Take the clearance a vehicle that got
                 // here must have (twice the radius, counted) and build again.
-                let clearance = 2.0 * self.stencil_radius();
+                let clearance = 2.0 * self.config.vehicle_radius;
                 if stats.interior <= 1
                     && stats.fringe > 0
                     && domain::mark_clearance(&mut self.map, position, clearance) > 0

@@ -30,20 +30,24 @@
 //! `z` whose ray has range `r` has the range uncertainty `σ = depth_noise_per_m · z · r`, and:
 //!
 //! - **misses stop short of the surface**: a ray clears only the voxels it leaves before
-//!   `r − 2σ + h` (`h` the voxel size), never the endpoint's voxel. As `σ → 0` this is the exact
-//!   rule; for a far return it keeps the free space honest to within 2σ.
+//!   `r − 2σ`, never the endpoint's voxel. Where the surface faces the camera (the depth image's
+//!   slope over ±2 pixels at most 1, i.e. within 45°) it may clear one voxel further, to
+//!   `r − 2σ + h` (`h` the voxel size): the voxel in front of a wall that lies on a voxel
+//!   boundary is then cleared by the returns that land just behind it. At grazing incidence
+//!   that voxel of leeway would run along the surface and erode it, so it is not given there.
+//!   As `σ → 0` this is the exact rule.
 //! - **hits only where the depth places them**: a return marks its endpoint only when `σ ≤ h`;
 //!   a farther one only clears free space. Returns beyond the maximum range clear by the same
 //!   rule (no hit), not all the way to the maximum range.
-//! - **a vote per voxel per frame**: each voxel the frame hits counts its hits `H` and the rays
-//!   that passed through it `M`, and becomes a hit only if `H > M`, a miss otherwise — instead
-//!   of "the hit wins", which let a minority of short returns in front of a wall grow it.
-//!   The counts live in caller scratch ([`integrate_with_scratch`], two `u32` per voxel the frame
-//!   hits); voxels that do not fit fall back to "the hit wins", counted in
+//! - **a vote per voxel per frame**: each voxel the frame hits counts its hits `H` and the
+//!   rays `M` that passed through it to a return close behind it (within the ray's `2σ` band and
+//!   two voxels), and becomes a hit only if `H > M`, a miss otherwise — instead of "the hit
+//!   wins", which let a minority of short returns in front of a wall grow it by a voxel. A ray
+//!   that passes a voxel and ends far behind it does not vote: it may have grazed the free part
+//!   of a voxel an object's edge or tip only partly fills, which must stay occupied. The counts
+//!   live in caller scratch ([`integrate_with_scratch`], two `u32` per voxel the frame hits);
+//!   voxels that do not fit fall back to "the hit wins", counted in
 //!   [`IntegrationStats::vote_overflow`].
-//!
-//! A surface's position is then known to within a voxel, which the explorer adds to the vehicle
-//! radius (see [`ExplorerConfig::planning_radius`](crate::explore::ExplorerConfig::planning_radius)).
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
@@ -95,6 +99,14 @@ impl Default for IntegrationParams {
 
 /// Misses stop this many standard deviations of the range before a noisy return.
 const FREE_MARGIN_SIGMAS: f32 = 2.0;
+/// Pixels either side over which the depth image's slope is measured.
+const SLOPE_SPAN_PX: usize = 2;
+/// Largest slope (depth change per lateral metre) of a surface that faces the camera enough
+/// for the misses' voxel of leeway: 1, 45° of incidence.
+const MAX_FACING_SLOPE: f32 = 1.0;
+/// A ray votes against a voxel's hits only if the voxel lies within the ray's `2σ` band and
+/// this many voxels of its return.
+const VOTE_REACH_VOXELS: f32 = 2.0;
 
 /// What one frame's integration did.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -257,6 +269,7 @@ pub fn integrate_with_scratch(
                 free_to,
                 hit,
                 beyond,
+                reach,
             } => {
                 let v = geometry.voxel_at(&end);
                 if beyond {
@@ -276,7 +289,7 @@ pub fn integrate_with_scratch(
                         let i = dims.linear(p);
                         if map.apply_miss(i) {
                             stats.voxel_updates += 1;
-                        } else {
+                        } else if (geometry.center(p) - end).norm() <= reach {
                             votes.pass(i);
                         }
                     }
@@ -404,12 +417,14 @@ enum PixelRay {
     /// A valid return at `end` (exact depth).
     Return { end: Point3<f32> },
     /// With depth noise, a return at `end`: clear the voxels left before `free_to`; `hit`: mark
-    /// the endpoint (`σ` at most a voxel); `beyond`: the return lies beyond the maximum range.
+    /// the endpoint (`σ` at most a voxel); `beyond`: the return lies beyond the maximum range;
+    /// `reach`: the ray votes against voxels hit this frame whose centre is this close to `end`.
     Noisy {
         end: Point3<f32>,
         free_to: Point3<f32>,
         hit: bool,
         beyond: bool,
+        reach: f32,
     },
 }
 
@@ -438,8 +453,14 @@ fn for_each_pixel_ray(
                 if range < params.min_range {
                     PixelRay::Invalid
                 } else if params.depth_noise_per_m > 0.0 {
-                    let sigma = params.depth_noise_per_m * f32::from(d) * 1e-3 * range;
-                    let free = (range - FREE_MARGIN_SIGMAS * sigma + resolution)
+                    let z = f32::from(d) * 1e-3;
+                    let sigma = params.depth_noise_per_m * z * range;
+                    let leeway = if faces_camera(frame, u, v, z) {
+                        resolution
+                    } else {
+                        0.0
+                    };
+                    let free = (range - FREE_MARGIN_SIGMAS * sigma + leeway)
                         .min(range)
                         .min(params.max_range)
                         .max(0.0);
@@ -449,6 +470,7 @@ fn for_each_pixel_ray(
                         free_to: origin + dir * free,
                         hit: sigma <= resolution && !beyond,
                         beyond,
+                        reach: range - free + VOTE_REACH_VOXELS * resolution,
                     }
                 } else if range > params.max_range {
                     PixelRay::BeyondRange { end: clear_to }
@@ -461,6 +483,34 @@ fn for_each_pixel_ray(
             f(ray);
         }
     }
+}
+
+/// True if the surface seen at pixel `(u, v)`, depth `z` (m), faces the camera within 45°: the
+/// depth image's slope over [`SLOPE_SPAN_PX`] pixels either way, in depth per lateral metre,
+/// is at most [`MAX_FACING_SLOPE`] along both image axes together. False near the image border
+/// or a pixel without depth (unknown: no leeway).
+fn faces_camera(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32) -> bool {
+    let intr = frame.intrinsics();
+    let width = usize::from(intr.width());
+    let s = SLOPE_SPAN_PX;
+    let depth = |uu: Option<usize>, vv: Option<usize>| -> Option<f32> {
+        let (uu, vv) = (uu.filter(|&x| x < width)?, vv?);
+        let d = *frame.depth_mm().get(vv.checked_mul(width)?.checked_add(uu)?)?;
+        (d > 0).then(|| f32::from(d) * 1e-3)
+    };
+    let (Some(left), Some(right), Some(up), Some(down)) = (
+        depth(u.checked_sub(s), Some(v)),
+        depth(u.checked_add(s), Some(v)),
+        depth(Some(u), v.checked_sub(s)),
+        depth(Some(u), v.checked_add(s)),
+    ) else {
+        return false;
+    };
+    // One pixel spans z / f metres laterally.
+    let span = 2.0 * s as f32 * z;
+    let gu = (right - left) * intr.fx() / span;
+    let gv = (down - up) * intr.fy() / span;
+    gu * gu + gv * gv <= MAX_FACING_SLOPE * MAX_FACING_SLOPE
 }
 
 /// Visits, in order, every voxel the segment `a → b` passes through inside the grid
@@ -906,13 +956,14 @@ mod tests {
         let mut scratch = [0u32; 64];
         let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
         assert_eq!((s.returns, s.uncertain_returns, s.voted), (1, 1, 0));
-        // From x = 0.05 the ray clears up to 4 − 2σ + 0.1 = 3.076 m, x = 3.126: voxels 0–30
-        // are left before it; voxel 31 holds that point and stays unknown, like all beyond.
+        // From x = 0.05 the ray clears up to 4 − 2σ = 2.976 m, x = 3.026 (a one-pixel frame
+        // has no slope to show the surface faces the camera: no voxel of leeway): voxels 0–29
+        // are left before it; voxel 30 holds that point and stays unknown, like all beyond.
         let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
-        for x in 0..=30 {
+        for x in 0..=29 {
             assert_eq!(map.occupancy(at(x)), Occupancy::Free, "x = {x}");
         }
-        for x in 31..64 {
+        for x in 30..64 {
             assert_eq!(map.occupancy(at(x)), Occupancy::Unknown, "x = {x}");
         }
         // With exact depth the same return clears to the wall and marks it.
@@ -932,7 +983,7 @@ mod tests {
     #[test]
     fn a_near_noisy_return_is_integrated_as_an_exact_one() {
         // At 1.02 m σ = 3.3 cm, under a voxel: the endpoint is marked, and the misses reach the
-        // voxel before it (1.02 − 2σ + 0.1 is past the endpoint, so the endpoint caps them).
+        // voxel before it (1.02 − 2σ = 0.953 m, x = 1.003, lies in the endpoint's voxel).
         let depth = [1020u16];
         let frame = DepthFrame::new(one_pixel(), &depth).unwrap();
         let (mut f, mut g) = (Fixture::new(), Fixture::new());
@@ -953,18 +1004,20 @@ mod tests {
         );
     }
 
-    /// Five pixels in a narrow field of view, all along the voxel row y = z = 8: three return
-    /// from 1.12 m (voxel 11), two from 1.02 m (voxel 10, in front of it).
-    fn wall_with_short_returns() -> ([u16; 5], Intrinsics) {
+    /// Five pixels in a narrow field of view, all along the voxel row y = z = 8: returns from
+    /// `far` mm at pixels 0, 2 and 4 and from 1.02 m (voxel 10) at pixels 1 and 3.
+    fn returns_behind_a_voxel(far: u16) -> ([u16; 5], Intrinsics) {
         (
-            [1120, 1020, 1120, 1020, 1120],
+            [far, 1020, far, 1020, far],
             Intrinsics::new(1000.0, 1000.0, 2.0, 0.0, 5, 1).unwrap(),
         )
     }
 
     #[test]
     fn the_vote_clears_a_voxel_that_more_rays_passed_than_hit() {
-        let (depth, intr) = wall_with_short_returns();
+        // The far returns at 1.22 m (voxel 12; σ = 4.8 cm) clear up to x = 1.175, through
+        // voxel 10, and end close behind it.
+        let (depth, intr) = returns_behind_a_voxel(1220);
         let frame = DepthFrame::new(intr, &depth).unwrap();
         let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
         let mut f = Fixture::new();
@@ -972,12 +1025,14 @@ mod tests {
         let mut scratch = [0u32; 64];
         let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
         assert_eq!((s.returns, s.voted, s.vote_overflow), (5, 2, 0));
-        // Voxel 10: two hits, three rays through it — a miss. Voxel 11: three hits — occupied.
-        assert_eq!(map.occupancy(at(10)), Occupancy::Free);
-        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+        // Voxel 10: two hits, three rays through it to a return close behind — a miss. Voxel
+        // 12: three hits — occupied. Voxel 11 holds where the far rays' free space ends.
         assert_eq!(map.occupancy(at(9)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(10)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(11)), Occupancy::Unknown);
+        assert_eq!(map.occupancy(at(12)), Occupancy::Occupied);
 
-        // The rules of exact depth let the two short returns win: the wall grows a voxel.
+        // The rules of exact depth let the two short returns win.
         let mut g = Fixture::new();
         let mut exact = g.map();
         integrate(
@@ -988,29 +1043,101 @@ mod tests {
         )
         .unwrap();
         assert_eq!(exact.occupancy(at(10)), Occupancy::Occupied);
-        assert_eq!(exact.occupancy(at(11)), Occupancy::Occupied);
+        assert_eq!(exact.occupancy(at(12)), Occupancy::Occupied);
+    }
+
+    #[test]
+    fn rays_that_end_far_behind_a_hit_voxel_do_not_vote_against_it() {
+        // The far returns at 1.52 m (voxel 15) pass voxel 10 but may have grazed the free part
+        // of an edge that partly fills it: the two hits stand.
+        let (depth, intr) = returns_behind_a_voxel(1520);
+        let frame = DepthFrame::new(intr, &depth).unwrap();
+        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
+        let mut f = Fixture::new();
+        let mut map = f.map();
+        let mut scratch = [0u32; 64];
+        integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        assert_eq!(map.occupancy(at(9)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(11)), Occupancy::Free);
     }
 
     #[test]
     fn voxels_the_vote_has_no_room_for_fall_back_to_the_hit_winning() {
-        let (depth, intr) = wall_with_short_returns();
+        let (depth, intr) = returns_behind_a_voxel(1220);
         let frame = DepthFrame::new(intr, &depth).unwrap();
         let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
         // Four words: two slots, filled to at most half — room for one voxel (the first hit,
-        // voxel 11); voxel 10 is updated by "the hit wins".
+        // voxel 12); voxel 10 is updated by "the hit wins".
         let mut f = Fixture::new();
         let mut map = f.map();
         let mut scratch = [0u32; 4];
         let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
         assert_eq!((s.voted, s.vote_overflow), (1, 1));
         assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
-        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(12)), Occupancy::Occupied);
         // No scratch at all: every hit voxel falls back, and nothing is lost.
         let mut g = Fixture::new();
         let mut map = g.map();
         let s = integrate(&mut map, &frame, &looking_along_x(), &noisy()).unwrap();
         assert_eq!((s.voted, s.vote_overflow), (0, 2));
         assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+        assert_eq!(map.occupancy(at(12)), Occupancy::Occupied);
+    }
+
+    /// A `side` × `side` frame with depth `depth(u, v)` mm and a narrow field of view.
+    fn square_frame(side: u16, depth: impl Fn(u16, u16) -> u16, out: &mut [u16]) -> Intrinsics {
+        let c = f32::from(side - 1) / 2.0;
+        for v in 0..side {
+            for u in 0..side {
+                out[usize::from(v * side + u)] = depth(u, v);
+            }
+        }
+        Intrinsics::new(1000.0, 1000.0, c, c, side, side).unwrap()
+    }
+
+    #[test]
+    fn only_a_surface_facing_the_camera_gets_the_voxel_of_leeway() {
+        let mut buf = [0u16; 81];
+        // A wall square to the camera at 1.12 m.
+        let intr = square_frame(9, |_, _| 1120, &mut buf);
+        let frame = DepthFrame::new(intr, &buf).unwrap();
+        assert!(faces_camera(&frame, 4, 4, 1.12));
+        assert!(!faces_camera(&frame, 1, 4, 1.12), "too near the border to tell");
+        // Tilted 30° (slope 0.58): facing. Tilted 60° (slope 1.73): grazing. One pixel spans
+        // z / f = 1.12 mm laterally.
+        for (slope, facing) in [(0.577f32, true), (1.732, false)] {
+            let intr = square_frame(
+                9,
+                |u, _| (1120.0 + (f32::from(u) - 4.0) * slope * 1.12) as u16,
+                &mut buf,
+            );
+            let frame = DepthFrame::new(intr, &buf).unwrap();
+            assert_eq!(faces_camera(&frame, 4, 4, 1.12), facing, "slope {slope}");
+        }
+        // A pixel without depth two to the side: unknown, no leeway.
+        let intr = square_frame(9, |u, v| if (u, v) == (6, 4) { 0 } else { 1120 }, &mut buf);
+        let frame = DepthFrame::new(intr, &buf).unwrap();
+        assert!(!faces_camera(&frame, 4, 4, 1.12));
+
+        // Integrated: the centre ray of the square wall (σ = 4 cm) clears up to
+        // 1.12 − 2σ + 0.1 m, capped at its return: past the voxel in front of the wall (10).
+        // A one-pixel frame of the same return has no slope to show and stops inside voxel 10.
+        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
+        let intr = square_frame(9, |_, _| 1120, &mut buf);
+        let frame = DepthFrame::new(intr, &buf).unwrap();
+        let mut f = Fixture::new();
+        let mut map = f.map();
+        let mut scratch = [0u32; 64];
+        integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        assert_eq!(map.occupancy(at(10)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+        let one = [1120u16];
+        let frame = DepthFrame::new(one_pixel(), &one).unwrap();
+        let mut g = Fixture::new();
+        let mut map = g.map();
+        integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        assert_eq!(map.occupancy(at(10)), Occupancy::Unknown);
         assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
     }
 

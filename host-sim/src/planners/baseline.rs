@@ -159,11 +159,8 @@ impl<'a> Baseline<'a> {
             return Err(ConfigError::StorageTooSmall);
         }
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
-        let stencil = InflationStencil::new(
-            config.planning_radius(geometry.resolution()),
-            geometry.resolution(),
-        )
-        .map_err(ConfigError::Domain)?;
+        let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
+            .map_err(ConfigError::Domain)?;
         let labels = &mut labels[..n];
         labels.fill(Label::Outside);
         Ok(Self {
@@ -229,7 +226,7 @@ impl<'a> Baseline<'a> {
             if stats.frontier == 0 {
                 // As the explorer does: a vehicle walled in by unknown voxels around its body
                 // takes the clearance a vehicle that got here must have, and builds again.
-                let clearance = 2.0 * self.config.planning_radius(geometry.resolution());
+                let clearance = 2.0 * self.config.vehicle_radius;
                 if stats.interior <= 1
                     && stats.fringe > 0
                     && domain::mark_clearance(&mut self.map, position, clearance) > 0
