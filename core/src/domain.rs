@@ -532,9 +532,25 @@ pub fn mark_body(map: &mut VoxelMap<'_>, stencil: &InflationStencil, position: &
     }
 }
 
+/// The step a planner takes when a build found no frontier: if the vehicle's component is its
+/// own voxel, walled in by unknown voxels just above or below the body that a level camera
+/// never sees (a vehicle off voxel centres), that is not a finished exploration. Marks the
+/// clearance a vehicle that got here must have (twice `vehicle_radius`, [`mark_clearance`])
+/// and returns true if anything changed — then build again; false means the exploration is
+/// complete.
+pub fn clear_if_walled_in(
+    map: &mut VoxelMap<'_>,
+    built: &DomainStats,
+    position: &Point3<f32>,
+    vehicle_radius: f32,
+) -> bool {
+    built.interior <= 1 && built.fringe > 0 && mark_clearance(map, position, 2.0 * vehicle_radius) > 0
+}
+
 /// Marks every unknown voxel whose centre lies within `radius` metres of `position` free (see
-/// [`mark_body`]); returns how many changed. The explorer uses it, with twice the vehicle
-/// radius, only when the vehicle's safe component would otherwise be its own voxel alone.
+/// [`mark_body`]); returns how many changed. The planners use it, through
+/// [`clear_if_walled_in`], only when the vehicle's safe component would otherwise be its own
+/// voxel alone.
 pub fn mark_clearance(map: &mut VoxelMap<'_>, position: &Point3<f32>, radius: f32) -> u32 {
     let geometry = *map.geometry();
     let dims = geometry.dims();

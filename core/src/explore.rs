@@ -799,15 +799,7 @@ impl<'a> Explorer<'a> {
             };
             self.status.domain = stats;
             if stats.frontier == 0 {
-                // The vehicle's component is its own voxel, walled in by unknown voxels just
-                // above or below the body that a level camera never sees (a vehicle off voxel
-                // centres): not a finished exploration. Take the clearance a vehicle that got
-                // here must have (twice the radius, counted) and build again.
-                let clearance = 2.0 * self.config.vehicle_radius;
-                if stats.interior <= 1
-                    && stats.fringe > 0
-                    && domain::mark_clearance(&mut self.map, position, clearance) > 0
-                {
+                if domain::clear_if_walled_in(&mut self.map, &stats, position, self.config.vehicle_radius) {
                     self.status.errors.clearances += 1;
                     continue;
                 }

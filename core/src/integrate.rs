@@ -945,6 +945,31 @@ mod tests {
         }
     }
 
+    /// Integrates `frame`, seen along +x, into a fresh map in `f` with the noisy model and
+    /// `votes` words of vote scratch.
+    fn integrate_noisy<'f>(
+        f: &'f mut Fixture,
+        frame: &DepthFrame<'_>,
+        votes: usize,
+    ) -> (VoxelMap<'f>, IntegrationStats) {
+        let mut map = f.map();
+        let mut scratch = [0u32; 64];
+        let s = integrate_with_scratch(
+            &mut map,
+            frame,
+            &looking_along_x(),
+            &noisy(),
+            &mut scratch[..votes],
+        )
+        .unwrap();
+        (map, s)
+    }
+
+    /// Voxel `x` of the row y = z = 8 of [`cube16`], the one the narrow cameras look along.
+    fn on_row(x: u16) -> usize {
+        cube16().dims().linear(VoxelIndex::new(x, 8, 8))
+    }
+
     #[test]
     fn a_far_noisy_return_clears_to_two_sigma_short_of_it_and_marks_nothing() {
         // 64 × 16 × 16 voxels of 0.1 m: 6.4 m along x.
@@ -987,9 +1012,8 @@ mod tests {
         let depth = [1020u16];
         let frame = DepthFrame::new(one_pixel(), &depth).unwrap();
         let (mut f, mut g) = (Fixture::new(), Fixture::new());
-        let (mut a, mut b) = (f.map(), g.map());
-        let mut scratch = [0u32; 64];
-        let s = integrate_with_scratch(&mut a, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        let (a, s) = integrate_noisy(&mut f, &frame, 64);
+        let mut b = g.map();
         integrate(&mut b, &frame, &looking_along_x(), &IntegrationParams::default()).unwrap();
         assert_eq!(
             (s.returns, s.uncertain_returns, s.voted, s.vote_overflow),
@@ -998,10 +1022,7 @@ mod tests {
         for i in 0..cube16().dims().len() {
             assert_eq!(a.occupancy(i), b.occupancy(i), "voxel {i}");
         }
-        assert_eq!(
-            a.occupancy(cube16().dims().linear(VoxelIndex::new(10, 8, 8))),
-            Occupancy::Occupied
-        );
+        assert_eq!(a.occupancy(on_row(10)), Occupancy::Occupied);
     }
 
     /// Five pixels in a narrow field of view, all along the voxel row y = z = 8: returns from
@@ -1013,26 +1034,28 @@ mod tests {
         )
     }
 
+    /// [`returns_behind_a_voxel`]`(far)` integrated by [`integrate_noisy`].
+    fn vote_on_row(f: &mut Fixture, far: u16, votes: usize) -> (VoxelMap<'_>, IntegrationStats) {
+        let (depth, intr) = returns_behind_a_voxel(far);
+        integrate_noisy(f, &DepthFrame::new(intr, &depth).unwrap(), votes)
+    }
+
     #[test]
     fn the_vote_clears_a_voxel_that_more_rays_passed_than_hit() {
         // The far returns at 1.22 m (voxel 12; σ = 4.8 cm) clear up to x = 1.175, through
         // voxel 10, and end close behind it.
-        let (depth, intr) = returns_behind_a_voxel(1220);
-        let frame = DepthFrame::new(intr, &depth).unwrap();
-        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
         let mut f = Fixture::new();
-        let mut map = f.map();
-        let mut scratch = [0u32; 64];
-        let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
+        let (map, s) = vote_on_row(&mut f, 1220, 64);
         assert_eq!((s.returns, s.voted, s.vote_overflow), (5, 2, 0));
         // Voxel 10: two hits, three rays through it to a return close behind — a miss. Voxel
         // 12: three hits — occupied. Voxel 11 holds where the far rays' free space ends.
-        assert_eq!(map.occupancy(at(9)), Occupancy::Free);
-        assert_eq!(map.occupancy(at(10)), Occupancy::Free);
-        assert_eq!(map.occupancy(at(11)), Occupancy::Unknown);
-        assert_eq!(map.occupancy(at(12)), Occupancy::Occupied);
+        let states = [9, 10, 11, 12].map(|x| map.occupancy(on_row(x)));
+        use Occupancy::{Free, Occupied, Unknown};
+        assert_eq!(states, [Free, Free, Unknown, Occupied]);
 
         // The rules of exact depth let the two short returns win.
+        let (depth, intr) = returns_behind_a_voxel(1220);
+        let frame = DepthFrame::new(intr, &depth).unwrap();
         let mut g = Fixture::new();
         let mut exact = g.map();
         integrate(
@@ -1042,47 +1065,34 @@ mod tests {
             &IntegrationParams::default(),
         )
         .unwrap();
-        assert_eq!(exact.occupancy(at(10)), Occupancy::Occupied);
-        assert_eq!(exact.occupancy(at(12)), Occupancy::Occupied);
+        assert_eq!([10, 12].map(|x| exact.occupancy(on_row(x))), [Occupied, Occupied]);
     }
 
     #[test]
     fn rays_that_end_far_behind_a_hit_voxel_do_not_vote_against_it() {
         // The far returns at 1.52 m (voxel 15) pass voxel 10 but may have grazed the free part
         // of an edge that partly fills it: the two hits stand.
-        let (depth, intr) = returns_behind_a_voxel(1520);
-        let frame = DepthFrame::new(intr, &depth).unwrap();
-        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
         let mut f = Fixture::new();
-        let mut map = f.map();
-        let mut scratch = [0u32; 64];
-        integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
-        assert_eq!(map.occupancy(at(9)), Occupancy::Free);
-        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
-        assert_eq!(map.occupancy(at(11)), Occupancy::Free);
+        let (map, _) = vote_on_row(&mut f, 1520, 64);
+        use Occupancy::{Free, Occupied};
+        assert_eq!(
+            [9, 10, 11].map(|x| map.occupancy(on_row(x))),
+            [Free, Occupied, Free]
+        );
     }
 
     #[test]
     fn voxels_the_vote_has_no_room_for_fall_back_to_the_hit_winning() {
-        let (depth, intr) = returns_behind_a_voxel(1220);
-        let frame = DepthFrame::new(intr, &depth).unwrap();
-        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
+        use Occupancy::Occupied;
         // Four words: two slots, filled to at most half — room for one voxel (the first hit,
-        // voxel 12); voxel 10 is updated by "the hit wins".
-        let mut f = Fixture::new();
-        let mut map = f.map();
-        let mut scratch = [0u32; 4];
-        let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
-        assert_eq!((s.voted, s.vote_overflow), (1, 1));
-        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
-        assert_eq!(map.occupancy(at(12)), Occupancy::Occupied);
-        // No scratch at all: every hit voxel falls back, and nothing is lost.
-        let mut g = Fixture::new();
-        let mut map = g.map();
-        let s = integrate(&mut map, &frame, &looking_along_x(), &noisy()).unwrap();
-        assert_eq!((s.voted, s.vote_overflow), (0, 2));
-        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
-        assert_eq!(map.occupancy(at(12)), Occupancy::Occupied);
+        // voxel 12); voxel 10 is updated by "the hit wins". No scratch at all: every hit voxel
+        // falls back, and nothing is lost.
+        for (words, voted, overflow) in [(4, 1, 1), (0, 0, 2)] {
+            let mut f = Fixture::new();
+            let (map, s) = vote_on_row(&mut f, 1220, words);
+            assert_eq!((s.voted, s.vote_overflow), (voted, overflow), "{words} words");
+            assert_eq!([10, 12].map(|x| map.occupancy(on_row(x))), [Occupied, Occupied]);
+        }
     }
 
     /// A `side` × `side` frame with depth `depth(u, v)` mm and a narrow field of view.
@@ -1123,22 +1133,17 @@ mod tests {
         // Integrated: the centre ray of the square wall (σ = 4 cm) clears up to
         // 1.12 − 2σ + 0.1 m, capped at its return: past the voxel in front of the wall (10).
         // A one-pixel frame of the same return has no slope to show and stops inside voxel 10.
-        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
+        use Occupancy::{Free, Occupied, Unknown};
         let intr = square_frame(9, |_, _| 1120, &mut buf);
         let frame = DepthFrame::new(intr, &buf).unwrap();
         let mut f = Fixture::new();
-        let mut map = f.map();
-        let mut scratch = [0u32; 64];
-        integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
-        assert_eq!(map.occupancy(at(10)), Occupancy::Free);
-        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+        let (map, _) = integrate_noisy(&mut f, &frame, 64);
+        assert_eq!([10, 11].map(|x| map.occupancy(on_row(x))), [Free, Occupied]);
         let one = [1120u16];
         let frame = DepthFrame::new(one_pixel(), &one).unwrap();
         let mut g = Fixture::new();
-        let mut map = g.map();
-        integrate_with_scratch(&mut map, &frame, &looking_along_x(), &noisy(), &mut scratch).unwrap();
-        assert_eq!(map.occupancy(at(10)), Occupancy::Unknown);
-        assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+        let (map, _) = integrate_noisy(&mut g, &frame, 64);
+        assert_eq!([10, 11].map(|x| map.occupancy(on_row(x))), [Unknown, Occupied]);
     }
 
     #[test]

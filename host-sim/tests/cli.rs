@@ -308,6 +308,10 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
     let err = one_line(&["replay", "/nonexistent-recording"], "intrinsics");
     assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     one_line(&["explore", "--noise", "stereo:1:4"], "odd number");
+    one_line(
+        &["explore", "--stereo-model"],
+        "give --noise or --depth-from stereo",
+    );
     one_line(&["explore", "--drift", "0.1"], "SIGMA_POS_M,SIGMA_YAW_RAD");
     one_line(&["explore", "--planner", "greedy"], "unknown planner");
 }

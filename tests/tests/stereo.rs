@@ -141,9 +141,10 @@ fn a_short_exploration_on_stereo_depth_integrates_frames_without_collision() {
     assert!(r.coverage_observed > 0.2, "{}", r.coverage_observed);
     // Against the noise-free map of the same poses. Depth errors of a voxel either way thicken
     // surfaces (a return in front of a wall) more often than they thin them (a return behind
-    // the wall's first voxel), and the rules of exact depth let every such hit win; the sensor
-    // model's vote takes most of that back. Measured 1584 false occupied, 641 false free here;
-    // 2772 and 273 with the rules of exact depth.
+    // the wall's first voxel), and the rules of exact depth let every such hit win and trust
+    // depth only to 2.8 m; the sensor model's vote takes much of that back and uses depth to
+    // the camera's range, without clearing surfaces. Measured here: 84.3 % of all voxels right,
+    // 2236 false occupied, 381 false free; 73.1 %, 3165 and 322 with the rules of exact depth.
     let a = r.map_accuracy.expect("accuracy against the noise-free map");
     let mut exact_rules = cfg.clone();
     sim::use_stereo_depth(&mut exact_rules, StereoRig::default(), None, false);
@@ -151,7 +152,9 @@ fn a_short_exploration_on_stereo_depth_integrates_frames_without_collision() {
     assert_eq!(old.collisions, 0, "{:?}", old.collision_points);
     let b = old.map_accuracy.expect("accuracy against the noise-free map");
     assert!(
-        a.false_occupied * 3 < b.false_occupied * 2 && a.false_free < 1000,
+        a.all_voxels > b.all_voxels + 0.05
+            && a.false_occupied < b.false_occupied
+            && a.false_free * 2 <= b.false_free * 3,
         "sensor model {a:?}, exact rules {b:?}"
     );
 }

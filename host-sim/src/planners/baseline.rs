@@ -225,12 +225,8 @@ impl<'a> Baseline<'a> {
             self.status.domain = stats;
             if stats.frontier == 0 {
                 // As the explorer does: a vehicle walled in by unknown voxels around its body
-                // takes the clearance a vehicle that got here must have, and builds again.
-                let clearance = 2.0 * self.config.vehicle_radius;
-                if stats.interior <= 1
-                    && stats.fringe > 0
-                    && domain::mark_clearance(&mut self.map, position, clearance) > 0
-                {
+                // is not done.
+                if domain::clear_if_walled_in(&mut self.map, &stats, position, self.config.vehicle_radius) {
                     self.status.errors.clearances += 1;
                     continue;
                 }
