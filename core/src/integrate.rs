@@ -289,8 +289,8 @@ pub fn integrate_with_scratch(
                         let i = dims.linear(p);
                         if map.apply_miss(i) {
                             stats.voxel_updates += 1;
-                        } else if (geometry.center(p) - end).norm() <= reach {
-                            votes.pass(i);
+                        } else {
+                            votes.pass(i, || (geometry.center(p) - end).norm() <= reach);
                         }
                     }
                     previous = Some(voxel);
@@ -384,13 +384,14 @@ impl<'s> Votes<'s> {
         true
     }
 
-    /// Counts a ray that passed through voxel `i`, if the frame hit it.
-    fn pass(&mut self, i: usize) {
+    /// Counts a ray that passed through voxel `i`, if the frame hit it and `close` (asked only
+    /// then) says the ray's return lies close enough behind the voxel to vote.
+    fn pass(&mut self, i: usize, close: impl FnOnce() -> bool) {
         if self.used == 0 {
             return;
         }
         if let Some(slot) = self.slot(i).and_then(|s| self.slots.get_mut(s)) {
-            if slot[0] != 0 && slot[1] & 0xffff < 0xffff {
+            if slot[0] != 0 && slot[1] & 0xffff < 0xffff && close() {
                 slot[1] += 1;
             }
         }
