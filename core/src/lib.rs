@@ -17,7 +17,9 @@
 //! - [`map`] — the voxel occupancy grid: log-odds with OctoMap defaults, an explicit
 //!   never-observed state, world ↔ voxel conversion, frontier test.
 //! - [`integrate`] — Amanatides–Woo traversal of every depth ray; hits and misses, each voxel at
-//!   most once per frame; no-return pixels clear free space to the maximum range.
+//!   most once per frame; no-return pixels clear free space to the maximum range (or nothing,
+//!   for stereo); an opt-in stereo sensor model (depth error σ_z = z²σ_d/(f·b), a hit/miss vote
+//!   per voxel per frame).
 //! - [`domain`] — boundary conditions: free space eroded by the vehicle radius, the vehicle's
 //!   connected component, source (φ = 1) and frontier (φ = 0) voxels; walls are zero-flux.
 //! - [`field`] — which potential plans: the seed's (vehicle φ = 1, frontiers φ = 0, Laplace)
@@ -45,6 +47,9 @@
 //!   ODOMETRY in as the vehicle pose with a staleness fault, the one map ↔ NED conversion,
 //!   MAVLink 2 bytes through the `mavlink` crate, and a history of the poses by the autopilot's
 //!   `time_boot_ms` that gives the pose of a camera frame's instant (`PoseHistory`).
+//! - [`signing`] — MAVLink 2 message signing without `std`: a [`Signer`](signing::Signer) for
+//!   outgoing frames and a [`Verifier`](signing::Verifier) that refuses unsigned, forged,
+//!   replayed and stale ones (checked against pymavlink). Not yet wired into the bridge.
 //!
 //! Frames: the map frame is right-handed, z up, metres; poses are `Isometry3<f32>`. The camera
 //! frame is x right, y down, z forward. Depth is `u16` millimetres, 0 = no return.
@@ -77,6 +82,7 @@ pub mod integrate;
 pub mod link;
 pub mod map;
 pub mod mavlink;
+pub mod signing;
 pub mod solve;
 pub mod stereo;
 pub mod streamline;
