@@ -26,10 +26,11 @@ use harmonic_core::mavlink::{
     encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavMessage, MavlinkDecoder,
     MavlinkMessage, PoseHistory, PoseHistoryCounters, Received, MAX_FRAME_LEN,
 };
+use harmonic_core::signing::{SecretKey, VerifierCounters};
 use nalgebra::Point3;
 use serde::Serialize;
 
-use crate::flight::{EmulatorTiming, FlightCounters, FlightEmulator, FlightSetpoint};
+use crate::flight::{EmulatorTiming, FlightCounters, FlightEmulator, FlightSetpoint, LinkSigning};
 use crate::tlog::{TlogWriter, SIM_EPOCH_US};
 
 /// Which autopilot the bridge talks to (`--mavlink`).
@@ -105,6 +106,9 @@ pub struct MavlinkConfig {
     pub emulator: EmulatorTiming,
     /// Record every frame both ways in this `.tlog`.
     pub tlog: Option<PathBuf>,
+    /// MAVLink 2 signing with this key (`--mavlink-key`): the bridge signs what it sends and
+    /// acts only on frames the key signed; the emulator does the same.
+    pub signing_key: Option<SecretKey>,
 }
 
 /// Pose samples kept per stream: 3.2 s at 20 Hz, 1.3 s at 50 Hz.
@@ -118,6 +122,7 @@ impl Default for MavlinkConfig {
             odometry: false,
             emulator: EmulatorTiming::default(),
             tlog: None,
+            signing_key: None,
         }
     }
 }
@@ -231,6 +236,11 @@ pub struct MavlinkReport {
     pub emulator: Option<FlightCounters>,
     /// The emulator's decoder of the bridge's bytes.
     pub emulator_decoder: Option<DecoderCounters>,
+    /// With `--mavlink-key`: the frames the bridge accepted and refused (unsigned, forged,
+    /// replayed, stale).
+    pub bridge_signing: Option<VerifierCounters>,
+    /// With `--mavlink-key` and the emulator: the frames the emulator accepted and refused.
+    pub emulator_signing: Option<VerifierCounters>,
     /// STATUSTEXTs the bridge sent, in order.
     pub status_texts: Vec<String>,
     /// The `.tlog` written, and its records.
@@ -275,6 +285,7 @@ pub struct MavlinkLink {
     frames_out: Vec<(Vec<u8>, MavMessage)>,
     io_error: Option<String>,
     history: PoseHistory<POSE_HISTORY_LEN>,
+    signing: Option<LinkSigning>,
 }
 
 impl MavlinkLink {
@@ -284,11 +295,15 @@ impl MavlinkLink {
         let label = config.spec.to_string();
         let err = |e: std::io::Error| format!("--mavlink {label}: {e}");
         let endpoint = match &config.spec {
-            MavlinkSpec::Emulator => Endpoint::Emulator(Box::new(
-                FlightEmulator::new()
+            MavlinkSpec::Emulator => {
+                let emulator = FlightEmulator::new()
                     .with_odometry(config.odometry)
-                    .with_timing(config.emulator),
-            )),
+                    .with_timing(config.emulator);
+                Endpoint::Emulator(Box::new(match &config.signing_key {
+                    Some(key) => emulator.with_signing(key.clone()),
+                    None => emulator,
+                }))
+            }
             MavlinkSpec::UdpIn(addr) => {
                 let socket = UdpSocket::bind(addr).map_err(err)?;
                 socket.set_nonblocking(true).map_err(err)?;
@@ -333,6 +348,7 @@ impl MavlinkLink {
             frames_out: Vec::new(),
             io_error: None,
             history: PoseHistory::new(),
+            signing: config.signing_key.clone().map(|key| LinkSigning::new(key, 1)),
         })
     }
 
@@ -399,6 +415,10 @@ impl MavlinkLink {
         }
         for (raw, decoded) in frames {
             self.log(now_ms, &raw);
+            if self.signing.as_mut().is_some_and(|s| !s.admits(&raw)) {
+                // Unsigned, forged, replayed or stale: logged, counted, never acted on.
+                continue;
+            }
             if let Some((header, message)) = decoded {
                 self.traffic.received(now_ms, &message);
                 if let Ok(Received::LocalPosition | Received::Attitude | Received::Odometry) =
@@ -421,9 +441,14 @@ impl MavlinkLink {
         }
         let mut out = std::mem::take(&mut self.frames_out);
         out.clear();
+        let signing = &mut self.signing;
         self.bridge.poll(now_ms, |header, message| {
             let mut frame = [0u8; MAX_FRAME_LEN];
             if let Ok(n) = encode_v2(header, message, &mut frame) {
+                let n = match signing.as_mut() {
+                    Some(s) => s.sign(&mut frame, n, now_ms),
+                    None => n,
+                };
                 out.push((frame.get(..n).unwrap_or(&[]).to_vec(), message.clone()));
             }
         });
@@ -502,9 +527,13 @@ impl MavlinkLink {
 
     /// Everything counted so far.
     pub fn report(&self) -> MavlinkReport {
-        let (emulator, emulator_decoder) = match &self.endpoint {
-            Endpoint::Emulator(e) => (Some(*e.counters()), Some(*e.decoder_counters())),
-            Endpoint::Udp { .. } => (None, None),
+        let (emulator, emulator_decoder, emulator_signing) = match &self.endpoint {
+            Endpoint::Emulator(e) => (
+                Some(*e.counters()),
+                Some(*e.decoder_counters()),
+                e.signing_counters(),
+            ),
+            Endpoint::Udp { .. } => (None, None, None),
         };
         MavlinkReport {
             endpoint: self.label.clone(),
@@ -514,6 +543,8 @@ impl MavlinkLink {
             pose_history: *self.history.counters(),
             emulator,
             emulator_decoder,
+            bridge_signing: self.signing.as_ref().map(LinkSigning::counters),
+            emulator_signing,
             status_texts: self.traffic.status_texts.clone(),
             tlog: self.tlog.as_ref().map(|t| TlogInfo {
                 path: t.path().display().to_string(),

@@ -37,6 +37,7 @@ use harmonic_core::mavlink::{
     encode_v2, map_to_ned, ned_to_map, DecoderCounters, MavHeader, MavMessage, MavlinkDecoder,
     PositionTargetTypemask, AUTOPILOT_COMPONENT_ID, DEFAULT_SYSTEM_ID, MAX_FRAME_LEN,
 };
+use harmonic_core::signing::{SecretKey, Signer, Verifier, VerifierCounters};
 use nalgebra::Point3;
 use serde::Serialize;
 
@@ -130,6 +131,54 @@ pub struct FlightCounters {
     pub bytes_sent: u64,
 }
 
+/// MAVLink 2 signing of one end of a link ([`harmonic_core::signing`]): every frame it sends is
+/// signed with the shared key, and a frame it receives is acted on only if the key signed it,
+/// with a timestamp newer than the last on its stream.
+#[derive(Debug, Clone)]
+pub struct LinkSigning {
+    signer: Signer,
+    verifier: Verifier<16>,
+    /// MAVLink signing time (10 µs since 2015-01-01 UTC) at simulated time 0.
+    base: u64,
+}
+
+/// 2015-01-01 00:00 UTC, seconds since the Unix epoch: MAVLink signing's time origin.
+const SIGNING_EPOCH_UNIX_S: u64 = 1_420_070_400;
+
+impl LinkSigning {
+    /// Signing with `key` on link `link_id`; timestamps count from the wall clock now.
+    pub fn new(key: SecretKey, link_id: u8) -> Self {
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .unwrap_or_default();
+        let since_2015_us = now
+            .as_micros()
+            .saturating_sub(u128::from(SIGNING_EPOCH_UNIX_S) * 1_000_000);
+        Self {
+            signer: Signer::new(key.clone(), link_id),
+            verifier: Verifier::new(key),
+            base: u64::try_from(since_2015_us / 10).unwrap_or(u64::MAX),
+        }
+    }
+
+    /// Signs the unsigned frame in `frame[..len]` at simulated time `now_ms`; returns its new
+    /// length (the frame unchanged if it cannot be signed).
+    pub fn sign(&mut self, frame: &mut [u8], len: usize, now_ms: u64) -> usize {
+        let stamp = self.base.saturating_add(now_ms.saturating_mul(100));
+        self.signer.sign(frame, len, stamp).unwrap_or(len)
+    }
+
+    /// Whether a received frame may be acted on (counted either way).
+    pub fn admits(&mut self, frame: &[u8]) -> bool {
+        self.verifier.check(frame).is_ok()
+    }
+
+    /// What the verifier accepted and refused.
+    pub fn counters(&self) -> VerifierCounters {
+        *self.verifier.counters()
+    }
+}
+
 /// The emulated autopilot. See the [module documentation](self).
 #[derive(Debug)]
 pub struct FlightEmulator {
@@ -146,6 +195,10 @@ pub struct FlightEmulator {
     timing: EmulatorTiming,
     /// Encoded pose reports waiting out their latency: (when they leave, ms; bytes).
     in_flight: std::collections::VecDeque<(u64, Vec<u8>)>,
+    /// MAVLink 2 signing: sign what it sends, act only on what the key signed.
+    signing: Option<LinkSigning>,
+    /// The time of the latest [`poll`](Self::poll), ms: the signing time of what it sends.
+    clock_ms: u64,
 }
 
 impl Default for FlightEmulator {
@@ -169,6 +222,8 @@ impl FlightEmulator {
             last_report: None,
             timing: EmulatorTiming::default(),
             in_flight: std::collections::VecDeque::new(),
+            signing: None,
+            clock_ms: 0,
         }
     }
 
@@ -194,6 +249,18 @@ impl FlightEmulator {
         self
     }
 
+    /// Signs every frame it sends with `key` and ignores (counts) every frame the key did not
+    /// sign, as an autopilot with signing required does.
+    pub fn with_signing(mut self, key: SecretKey) -> Self {
+        self.signing = Some(LinkSigning::new(key, 0));
+        self
+    }
+
+    /// What its signing accepted and refused (`None` without signing).
+    pub fn signing_counters(&self) -> Option<VerifierCounters> {
+        self.signing.as_ref().map(LinkSigning::counters)
+    }
+
     /// The latest accepted setpoint, map frame; `None` before the first.
     pub fn setpoint(&self) -> Option<FlightSetpoint> {
         self.setpoint
@@ -217,9 +284,14 @@ impl FlightEmulator {
     /// Takes in bytes from the companion computer that arrived at `now_ms`.
     pub fn receive(&mut self, now_ms: u64, bytes: &[u8]) {
         let mut messages = Vec::new();
-        self.decoder
-            .push(bytes, |header, message| messages.push((*header, message.clone())));
-        for (_, message) in messages {
+        let signing = &mut self.signing;
+        self.decoder.push_frames(bytes, |raw, decoded| {
+            let admitted = signing.as_mut().is_none_or(|s| s.admits(raw));
+            if let (true, Some((_, message))) = (admitted, decoded) {
+                messages.push(message.clone());
+            }
+        });
+        for message in messages {
             self.take(now_ms, &message);
         }
     }
@@ -260,6 +332,7 @@ impl FlightEmulator {
     /// ATTITUDE stamped with the sampling instant, which leave [`EmulatorTiming::latency_ms`]
     /// later (in a later call's `out`). The first call sends a HEARTBEAT and samples at once.
     pub fn poll(&mut self, now_ms: u64, position: &Point3<f32>, yaw: f32, out: &mut Vec<u8>) {
+        self.clock_ms = now_ms;
         if self.next_heartbeat_ms.is_none_or(|due| now_ms >= due) {
             self.next_heartbeat_ms = Some(now_ms + HEARTBEAT_PERIOD_MS);
             let heartbeat = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
@@ -367,8 +440,12 @@ impl FlightEmulator {
         };
         self.sequence = self.sequence.wrapping_add(1);
         let mut frame = [0u8; MAX_FRAME_LEN];
-        // A buffer of MAX_FRAME_LEN always holds a frame.
+        // A buffer of MAX_FRAME_LEN always holds a frame, signed or not.
         if let Ok(n) = encode_v2(&header, message, &mut frame) {
+            let n = match self.signing.as_mut() {
+                Some(s) => s.sign(&mut frame, n, self.clock_ms),
+                None => n,
+            };
             out.extend_from_slice(&frame[..n]);
             self.counters.bytes_sent += n as u64;
         }
@@ -409,6 +486,57 @@ mod tests {
             bytes.extend_from_slice(&frame[..n]);
         });
         bytes
+    }
+
+    #[test]
+    fn with_signing_only_setpoints_the_key_signed_move_the_vehicle() {
+        let key = SecretKey::new([9; 32]);
+        let mut emulator = FlightEmulator::new().with_signing(key.clone());
+        let setpoint = MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+            coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+            type_mask: POSITION_YAW_TYPEMASK,
+            target_system: DEFAULT_SYSTEM_ID,
+            target_component: AUTOPILOT_COMPONENT_ID,
+            x: 1.0,
+            y: 2.0,
+            z: -1.0,
+            ..SET_POSITION_TARGET_LOCAL_NED_DATA::DEFAULT
+        });
+        // Unsigned: refused, counted, the vehicle has no setpoint.
+        let plain = encode(&setpoint, 0);
+        emulator.receive(10, &plain);
+        assert!(emulator.setpoint().is_none());
+        // Signed with another key: refused.
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        let n = plain.len();
+        frame[..n].copy_from_slice(&plain);
+        let n_other = LinkSigning::new(SecretKey::new([1; 32]), 0).sign(&mut frame, n, 10);
+        emulator.receive(20, &frame[..n_other]);
+        assert!(emulator.setpoint().is_none());
+        // Signed with the key: taken. The same bytes again: a replay, not taken twice.
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        frame[..n].copy_from_slice(&plain);
+        let n_signed = LinkSigning::new(key, 0).sign(&mut frame, n, 30);
+        emulator.receive(30, &frame[..n_signed]);
+        let taken = emulator.setpoint().expect("a signed setpoint is taken");
+        assert_eq!(taken.at_ms, 30);
+        emulator.receive(40, &frame[..n_signed]);
+        assert_eq!(emulator.setpoint().unwrap().at_ms, 30);
+        let c = emulator.signing_counters().unwrap();
+        assert_eq!(
+            (c.accepted, c.unsigned, c.bad_signature, c.replayed),
+            (1, 1, 1, 1)
+        );
+        assert_eq!(emulator.counters().setpoints_received, 1);
+        // What it sends is signed: a verifier with the key accepts its HEARTBEAT.
+        let mut out = Vec::new();
+        emulator.poll(50, &Point3::origin(), 0.0, &mut out);
+        let mut bridge_side = LinkSigning::new(SecretKey::new([9; 32]), 1);
+        let mut decoder = MavlinkDecoder::new();
+        let mut admitted = 0;
+        decoder.push_frames(&out, |raw, _| admitted += usize::from(bridge_side.admits(raw)));
+        assert!(admitted >= 1, "{admitted}");
+        assert_eq!(bridge_side.counters().unsigned, 0);
     }
 
     #[test]

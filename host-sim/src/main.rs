@@ -1050,6 +1050,12 @@ struct ExploreArgs {
     /// Record every MAVLink frame both ways in this .tlog file (QGroundControl/MAVProxy format).
     #[arg(long, requires = "mavlink")]
     tlog: Option<PathBuf>,
+    /// MAVLink 2 message signing: a file holding the 32-byte secret key as 64 hex digits. The
+    /// bridge signs every frame it sends and acts only on frames signed with the key (newer
+    /// than the last on their stream, at most a minute old); the rest are counted in
+    /// report.json (`mavlink.bridge_signing`). The emulator then requires signing too.
+    #[arg(long, requires = "mavlink")]
+    mavlink_key: Option<PathBuf>,
     /// Where the planning runs: `host` (the core in this process) or `qemu` (the firmware,
     /// harmonic-fw, on an emulated Cortex-M4F: processor in the loop; see `pil` in the docs).
     #[arg(long, default_value = "host", value_parser = ["host", "qemu"])]
@@ -1243,6 +1249,20 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
             args.emulator_rate
         ));
     }
+    let signing_key = args
+        .mavlink_key
+        .as_ref()
+        .map(|path| {
+            let text = std::fs::read_to_string(path)
+                .map_err(|e| format!("--mavlink-key {}: {e}", path.display()))?;
+            harmonic_core::signing::SecretKey::from_hex(&text).map_err(|_| {
+                format!(
+                    "--mavlink-key {}: expected the 32-byte key as 64 hex digits",
+                    path.display()
+                )
+            })
+        })
+        .transpose()?;
     cfg.mavlink = args.mavlink.clone().map(|spec| MavlinkConfig {
         spec,
         odometry: args.odometry,
@@ -1253,6 +1273,7 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
             zero_velocities: args.emulator_zero_velocities,
         },
         tlog: args.tlog.clone(),
+        signing_key: signing_key.clone(),
         ..MavlinkConfig::default()
     });
     std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;

@@ -742,6 +742,9 @@ pub fn run(
                 ..Default::default()
             },
             bridge_decoder: *autopilot.decoder.counters(),
+            // The firmware does not sign yet.
+            bridge_signing: None,
+            emulator_signing: None,
             emulator: Some(*autopilot.emulator.counters()),
             emulator_decoder: Some(*autopilot.emulator.decoder_counters()),
             status_texts: autopilot.emulator.status_texts().to_vec(),

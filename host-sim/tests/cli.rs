@@ -309,6 +309,16 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
     assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     one_line(&["explore", "--noise", "stereo:1:4"], "odd number");
     one_line(
+        &[
+            "explore",
+            "--mavlink",
+            "emulator",
+            "--mavlink-key",
+            "/nonexistent-key",
+        ],
+        "--mavlink-key /nonexistent-key",
+    );
+    one_line(
         &["explore", "--stereo-model"],
         "give --noise or --depth-from stereo",
     );

@@ -91,7 +91,7 @@ pub struct SolveStats {
     /// discrete system, or `None` where the solve has nothing to estimate it from.
     ///
     /// A converging iteration shrinks its error by about a factor ρ per step, so the error left
-    /// is about `ρ / (1 − ρ)` times the last step's largest change ([`Contraction`]): ρ is the
+    /// is about `ρ / (1 − ρ)` times the last step's largest change (the solver's contraction estimate): ρ is the
     /// larger of the last two ratios of successive largest changes. Once the changes stop
     /// shrinking (ρ ≥ 1: the rounding floor) the estimate is the last one made while they
     /// shrank plus every change since. Steps measured: the coarse-grid correction of each V-cycle (late in a solve
