@@ -49,7 +49,8 @@
 //!   `time_boot_ms` that gives the pose of a camera frame's instant (`PoseHistory`).
 //! - [`signing`] — MAVLink 2 message signing without `std`: a [`Signer`](signing::Signer) for
 //!   outgoing frames and a [`Verifier`](signing::Verifier) that refuses unsigned, forged,
-//!   replayed and stale ones (checked against pymavlink). Not yet wired into the bridge.
+//!   replayed and stale ones (checked against pymavlink); the host's MAVLink link uses both
+//!   with `--mavlink-key`, the firmware not yet.
 //!
 //! Frames: the map frame is right-handed, z up, metres; poses are `Isometry3<f32>`. The camera
 //! frame is x right, y down, z forward. Depth is `u16` millimetres, 0 = no return.

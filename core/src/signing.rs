@@ -16,7 +16,9 @@
 //!   [`Rejection`], counted in [`VerifierCounters`].
 //!
 //! Checked byte for byte against pymavlink's signing (`scripts/mavlink_signing_vectors.py`
-//! writes the frames the tests compare with).
+//! writes the frames the tests compare with). The host simulator's MAVLink link and its flight
+//! emulator sign and verify with them (`harmonic-sim explore --mavlink … --mavlink-key FILE`);
+//! a receiver drops a refused frame before the [`Bridge`](crate::mavlink::Bridge) sees it.
 
 use ::mavlink::{calculate_crc, Message as _};
 use sha2::{Digest, Sha256};
