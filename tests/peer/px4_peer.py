@@ -65,6 +65,8 @@ def parse_args(argv):
     p.add_argument("--idle-exit-s", type=float, default=5.0)
     p.add_argument("--max-s", type=float, default=3600.0)
     p.add_argument("--truth", help="write the true state at every step to this file")
+    p.add_argument("--key", help="MAVLink 2 signing: the 32-byte secret key as 64 hex digits; sign "
+                   "everything sent and drop (count) every unsigned frame received")
     return p.parse_args(argv)
 
 
@@ -115,6 +117,14 @@ def main(argv):
         "udpout:" + args.connect, source_system=1, source_component=1, dialect="common"
     )
     mav = master.mav
+    unsigned_refused = [0]
+    if args.key:
+        def refuse_unsigned(_mav, _msgid):
+            unsigned_refused[0] += 1
+            return False
+
+        master.setup_signing(bytes.fromhex(args.key), sign_outgoing=True,
+                             allow_unsigned_callback=refuse_unsigned, link_id=0)
     speed, yaw_rate = args.speed, math.radians(args.yaw_rate_deg)
     period_s = 1.0 / args.rate
     latency_s = args.latency_ms * 1e-3
@@ -209,6 +219,9 @@ def main(argv):
         truth.close()
     n, e, d, yaw, _, _ = vehicle.snapshot()
     counts["final"] = {"north": n, "east": e, "down": d, "yaw_deg": math.degrees(yaw)}
+    counts["unsigned_refused"] = unsigned_refused[0]
+    counts["bad_signatures"] = getattr(mav.signing, "badsig_count", 0)
+    counts["good_signatures"] = getattr(mav.signing, "goodsig_count", 0)
     print(json.dumps(counts))
 
 

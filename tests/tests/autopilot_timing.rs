@@ -14,6 +14,7 @@ use std::net::UdpSocket;
 use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
 
+use harmonic_core::signing::SecretKey;
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::flight::EmulatorTiming;
 use harmonic_sim::scenario::Scenario;
@@ -101,6 +102,15 @@ impl Drop for Peer {
 /// Runs the apartment against the peer with `peer_args` for at most `max_scans` scans; the
 /// report and the peer's JSON summary.
 fn against_peer(peer_args: &[&str], max_scans: u32) -> (Report, serde_json::Value) {
+    against_peer_signed(peer_args, max_scans, None)
+}
+
+/// [`against_peer`] with MAVLink signing on the explorer's side when `key` is given.
+fn against_peer_signed(
+    peer_args: &[&str],
+    max_scans: u32,
+    key: Option<SecretKey>,
+) -> (Report, serde_json::Value) {
     let _serial = PEER.lock().unwrap_or_else(|e| e.into_inner());
     let port = UdpSocket::bind("127.0.0.1:0")
         .and_then(|s| s.local_addr())
@@ -120,6 +130,7 @@ fn against_peer(peer_args: &[&str], max_scans: u32) -> (Report, serde_json::Valu
         max_scans,
         mavlink: Some(MavlinkConfig {
             spec: MavlinkSpec::UdpIn(([127, 0, 0, 1], port).into()),
+            signing_key: key,
             ..MavlinkConfig::default()
         }),
         ..SimConfig::default()
@@ -150,6 +161,42 @@ fn peer_turning_on_the_spot_adds_no_false_obstacles() {
     assert_eq!(r.free_marked_occupied, 0, "turning alone added false obstacles");
     assert_map_true(&r, "peer, turning only");
     assert_eq!(r.path_length_m, 0.0, "the vehicle stood still");
+}
+
+#[test]
+fn signed_mavlink_with_pymavlink_both_ways() {
+    if let Some(why) = peer_missing() {
+        eprintln!("SKIPPED signed_mavlink_with_pymavlink_both_ways: {why}");
+        return;
+    }
+    // pymavlink signs what the peer sends and drops unsigned frames; the explorer signs with
+    // the same key and acts only on signed frames. Both sides must accept each other's.
+    let key = [0x3c_u8; 32];
+    let hex: String = key.iter().map(|b| format!("{b:02x}")).collect();
+    let (r, peer) = against_peer_signed(&["--turn-only", "--key", &hex], 4, Some(SecretKey::new(key)));
+    assert!(r.scans >= 3, "frames were integrated: {}", r.scans);
+    // Our signatures pass pymavlink's check: setpoints arrived, none refused or bad.
+    assert!(peer["setpoints"].as_u64().unwrap_or(0) > 10, "{peer}");
+    assert_eq!(peer["unsigned_refused"].as_u64(), Some(0), "{peer}");
+    assert_eq!(peer["bad_signatures"].as_u64(), Some(0), "{peer}");
+    // pymavlink's pass ours: poses arrived and were used, nothing refused.
+    let signing = r
+        .mavlink
+        .as_ref()
+        .and_then(|m| m.bridge_signing)
+        .expect("signing counters");
+    assert!(signing.accepted > 20, "{signing:?}");
+    assert_eq!(
+        (
+            signing.unsigned,
+            signing.bad_signature,
+            signing.replayed,
+            signing.stale
+        ),
+        (0, 0, 0, 0),
+        "{signing:?}"
+    );
+    assert_map_true(&r, "peer, signed");
 }
 
 #[test]
