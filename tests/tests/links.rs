@@ -10,7 +10,6 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use harmonic_core::mavlink::{encode_v2, MavHeader, MavlinkDecoder, AUTOPILOT_COMPONENT_ID, MAX_FRAME_LEN};
-use harmonic_core::signing::SecretKey;
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::depth_link::LinkConfig;
 use harmonic_sim::flight::{FlightCounters, FlightEmulator};
@@ -346,43 +345,4 @@ fn tlog_holds_every_message_sent_and_received() {
     let n = encode_v2(&MavHeader { ..h }, &m, &mut buf).unwrap();
     assert_eq!(&buf[..n], &records[0].frame[..]);
     std::fs::remove_dir_all(path.parent().unwrap()).unwrap();
-}
-
-/// A short run against the emulator over MAVLink with signing set up by `configure`.
-fn signed_emulator_run(configure: impl FnOnce(&mut MavlinkConfig)) -> Report {
-    let mut mavlink = MavlinkConfig {
-        signing_key: Some(SecretKey::new([0x5a; 32])),
-        ..MavlinkConfig::default()
-    };
-    configure(&mut mavlink);
-    let cfg = SimConfig {
-        max_scans: 8,
-        look_around: 1,
-        mavlink: Some(mavlink),
-        ..SimConfig::default()
-    };
-    sim::run(&apartment(), &cfg, |_| {}).expect("run against the emulator")
-}
-
-#[test]
-fn signed_mavlink_flies_as_unsigned_and_nothing_unsigned_is_acted_on() {
-    let signed = signed_emulator_run(|_| {});
-    let plain = signed_emulator_run(|m| m.signing_key = None);
-    // The same flight: signing changes the bytes, not what is flown.
-    assert_eq!(signed.path_length_m, plain.path_length_m);
-    assert!(signed.path_length_m > 0.2, "{}", signed.path_length_m);
-    let mav = signed.mavlink.as_ref().unwrap();
-    let (bridge, emulator) = (mav.bridge_signing.unwrap(), mav.emulator_signing.unwrap());
-    assert!(
-        bridge.accepted > 50 && emulator.accepted > 50,
-        "{bridge:?} {emulator:?}"
-    );
-    for c in [bridge, emulator] {
-        assert_eq!(
-            (c.unsigned, c.bad_signature, c.replayed, c.stale, c.malformed),
-            (0, 0, 0, 0, 0),
-            "{c:?}"
-        );
-    }
-    assert!(plain.mavlink.as_ref().unwrap().bridge_signing.is_none());
 }
