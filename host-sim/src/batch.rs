@@ -183,18 +183,9 @@ impl RunRow {
     }
 }
 
-/// Coverage against distance flown over one run: `(path_length_m, coverage_free)` per step.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Curve {
-    /// Scenario name.
-    pub scenario: String,
-    /// Planner name.
-    pub planner: String,
-    /// Seed.
-    pub seed: u64,
-    /// `(metres flown, free coverage)` after every step.
-    pub points: Vec<(f64, f64)>,
-}
+/// Coverage against distance flown over one run (defined beside the figure that draws it, so
+/// that `figures` needs nothing from here).
+pub use crate::figures::Curve;
 
 /// The solver's work over one run: the steps that solved a new plan (outcome `goal`).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

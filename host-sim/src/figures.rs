@@ -19,7 +19,6 @@ use harmonic_core::map::{Occupancy, VoxelIndex, VoxelMap};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
-use crate::batch::Curve;
 use crate::sim::StepView;
 
 static FONTS: Once = Once::new();
@@ -466,6 +465,20 @@ fn coverage_at(points: &[(f64, f64)], d: f64) -> f64 {
     } else {
         points[k - 1].1
     }
+}
+
+/// Coverage against distance flown over one run: `(path_length_m, coverage_free)` per step
+/// (a bench's `curves.csv`, read back by `batch::read_curves`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Curve {
+    /// Scenario name.
+    pub scenario: String,
+    /// Planner name.
+    pub planner: String,
+    /// Seed.
+    pub seed: u64,
+    /// `(metres flown, free coverage)` after every step.
+    pub points: Vec<(f64, f64)>,
 }
 
 /// Writes free coverage against distance flown for every planner of one scenario (mean over

@@ -18,6 +18,7 @@
 //! exports ([`figures`]), and TUM RGB-D recordings with replay ([`record`]).
 #![warn(missing_docs)]
 
+pub mod aabb;
 pub mod autopilot;
 pub mod batch;
 pub mod bench;

@@ -73,39 +73,9 @@ pub struct PilConfig {
     pub out: PathBuf,
 }
 
-/// Instructions of one phase, over a run.
-#[derive(Debug, Clone, Copy, Default, Serialize)]
-pub struct InstructionStat {
-    /// Mean per scan (phases that did not run count as 0).
-    pub mean: f64,
-    /// Largest.
-    pub max: u64,
-}
-
-/// Processor-in-the-loop details of a run, in `report.json` as `pil`.
-#[derive(Debug, Clone, Serialize)]
-pub struct PilReport {
-    /// The firmware ELF.
-    pub firmware: String,
-    /// The QEMU command line.
-    pub qemu: String,
-    /// Flight ticks exchanged (TIMESYNC round trips).
-    pub ticks: u64,
-    /// Downlink frames the simulator could not decode.
-    pub downlink_dropped: u32,
-    /// Instructions integrating one frame.
-    pub integrate: InstructionStat,
-    /// Instructions building the domain.
-    pub domain: InstructionStat,
-    /// Instructions solving.
-    pub solve: InstructionStat,
-    /// Instructions tracing the streamline and choosing the goal.
-    pub streamline: InstructionStat,
-    /// Instructions of a whole planning cycle (domain + solve + streamline) on full replans.
-    pub plan_cycle: InstructionStat,
-    /// Per scan: instructions of integrate, domain, solve, streamline.
-    pub steps: Vec<[u64; 4]>,
-}
+/// The PIL report types live beside the [`Report`] that carries them (so that `sim` needs
+/// nothing from here).
+pub use crate::sim::{InstructionStat, PilReport};
 
 /// The firmware's grid.
 pub fn firmware_geometry() -> Result<MapGeometry, SimError> {

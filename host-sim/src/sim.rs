@@ -312,6 +312,40 @@ pub struct Timing {
     pub streamline: TimeStat,
 }
 
+/// Instructions of one phase, over a run.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct InstructionStat {
+    /// Mean per scan (phases that did not run count as 0).
+    pub mean: f64,
+    /// Largest.
+    pub max: u64,
+}
+
+/// Processor-in-the-loop details of a run, in `report.json` as `pil`.
+#[derive(Debug, Clone, Serialize)]
+pub struct PilReport {
+    /// The firmware ELF.
+    pub firmware: String,
+    /// The QEMU command line.
+    pub qemu: String,
+    /// Flight ticks exchanged (TIMESYNC round trips).
+    pub ticks: u64,
+    /// Downlink frames the simulator could not decode.
+    pub downlink_dropped: u32,
+    /// Instructions integrating one frame.
+    pub integrate: InstructionStat,
+    /// Instructions building the domain.
+    pub domain: InstructionStat,
+    /// Instructions solving.
+    pub solve: InstructionStat,
+    /// Instructions tracing the streamline and choosing the goal.
+    pub streamline: InstructionStat,
+    /// Instructions of a whole planning cycle (domain + solve + streamline) on full replans.
+    pub plan_cycle: InstructionStat,
+    /// Per scan: instructions of integrate, domain, solve, streamline.
+    pub steps: Vec<[u64; 4]>,
+}
+
 /// Everything a run produced; serialised as `report.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
@@ -373,8 +407,8 @@ pub struct Report {
     /// MAVLink: messages each way by type, setpoint rate and gaps, the bridge's and emulator's
     /// counters; `None` unless the run flew over MAVLink ([`SimConfig::mavlink`]).
     pub mavlink: Option<MavlinkReport>,
-    /// Processor-in-the-loop details; `None` unless the firmware flew ([`crate::pil`]).
-    pub pil: Option<crate::pil::PilReport>,
+    /// Processor-in-the-loop details; `None` unless the firmware flew (the `pil` module).
+    pub pil: Option<PilReport>,
     /// With imperfect sensing (noise, outliers, textureless surfaces, drift): how closely the
     /// map matches the noise-free map of the same run ([`crate::sensing`]).
     pub map_accuracy: Option<MapAccuracy>,
