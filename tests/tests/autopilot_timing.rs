@@ -111,6 +111,16 @@ fn against_peer_signed(
     max_scans: u32,
     key: Option<SecretKey>,
 ) -> (Report, serde_json::Value) {
+    let (report, summary) = peer_run(peer_args, max_scans, key);
+    (report.expect("run against the peer"), summary)
+}
+
+/// [`against_peer_signed`], with the run's error (if any) handed back instead of failing.
+fn peer_run(
+    peer_args: &[&str],
+    max_scans: u32,
+    key: Option<SecretKey>,
+) -> (Result<Report, sim::SimError>, serde_json::Value) {
     let _serial = PEER.lock().unwrap_or_else(|e| e.into_inner());
     let port = UdpSocket::bind("127.0.0.1:0")
         .and_then(|s| s.local_addr())
@@ -135,7 +145,7 @@ fn against_peer_signed(
         }),
         ..SimConfig::default()
     };
-    let report = sim::run(&apartment(), &cfg, |_| {}).expect("run against the peer");
+    let report = sim::run(&apartment(), &cfg, |_| {});
     // The peer leaves 2 s after the explorer fell silent, with its summary.
     let status = peer.0.wait().expect("peer exit");
     assert!(status.success(), "peer: {status}");
@@ -197,6 +207,23 @@ fn signed_mavlink_with_pymavlink_both_ways() {
         "{signing:?}"
     );
     assert_map_true(&r, "peer, signed");
+}
+
+#[test]
+fn a_peer_with_another_key_is_never_obeyed_and_never_believed() {
+    if let Some(why) = peer_missing() {
+        eprintln!("SKIPPED a_peer_with_another_key_is_never_obeyed_and_never_believed: {why}");
+        return;
+    }
+    // The explorer signs with one key, the pymavlink peer with another: the peer drops every
+    // setpoint, and the explorer acts on none of the peer's poses, so it never has a pose to
+    // plan from and stops with that error instead of flying.
+    let (run, peer) = peer_run(&["--key", &"11".repeat(32)], 4, Some(SecretKey::new([0x22; 32])));
+    let err = run.expect_err("no pose it can trust: the run must not go on");
+    assert!(format!("{err:?}").contains("NoPose"), "{err:?}");
+    assert_eq!(peer["setpoints"].as_u64(), Some(0), "{peer}");
+    assert!(peer["bad_signatures"].as_u64().unwrap_or(0) > 0, "{peer}");
+    assert!(peer["poses_sent"].as_u64().unwrap_or(0) > 10, "{peer}");
 }
 
 #[test]
