@@ -216,27 +216,26 @@ pub fn integrate_with_scratch(
     });
 
     // Pass 1: endpoints (with depth noise, the confident ones: a vote each).
-    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), |ray| {
+    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), false, |ray| {
         let end = match ray {
             PixelRay::Return { end } | PixelRay::Noisy { end, hit: true, .. } => end,
             _ => return,
         };
         if let Some(v) = geometry.voxel_at(&end) {
             let i = geometry.dims().linear(v);
-            if matches!(ray, PixelRay::Noisy { .. }) && votes.hit(i, map) {
+            let noisy = matches!(ray, PixelRay::Noisy { .. });
+            if noisy && votes.hit(i, map) {
                 return;
             }
             if map.apply_hit(i) {
                 stats.voxel_updates += 1;
-                if matches!(ray, PixelRay::Noisy { .. }) {
-                    stats.vote_overflow += 1;
-                }
+                stats.vote_overflow += u32::from(noisy);
             }
         }
     });
 
     // Pass 2: free space along every usable ray, classifying pixels as we go.
-    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), |ray| {
+    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), true, |ray| {
         stats.pixels += 1;
         let mut weak = false;
         let (end, endpoint) = match ray {
@@ -429,11 +428,15 @@ enum PixelRay {
     },
 }
 
+/// Calls `f` with every used pixel's ray. `free_space`: the caller wants where noisy rays'
+/// free space ends (`PixelRay::Noisy::free_to`, `reach`); the endpoints pass does not, and is
+/// spared the facing test of every return.
 fn for_each_pixel_ray(
     frame: &DepthFrame<'_>,
     pose: &Isometry3<f32>,
     params: &IntegrationParams,
     resolution: f32,
+    free_space: bool,
     mut f: impl FnMut(PixelRay),
 ) {
     let k = usize::from(params.pixel_stride.max(1));
@@ -456,7 +459,7 @@ fn for_each_pixel_ray(
                 } else if params.depth_noise_per_m > 0.0 {
                     let z = f32::from(d) * 1e-3;
                     let sigma = params.depth_noise_per_m * z * range;
-                    let leeway = if faces_camera(frame, u, v, z) {
+                    let leeway = if free_space && faces_camera(frame, u, v, z) {
                         resolution
                     } else {
                         0.0
