@@ -71,11 +71,7 @@ impl StereoNoise {
     /// (Matthies' advice, which the seed thesis follows: distrust small disparities).
     /// Infinite for σ = 0.
     pub fn trusted_range(&self, fx: f32, max_error_m: f32) -> f32 {
-        let sigma = self.filtered_sigma_px();
-        if sigma <= 0.0 {
-            return f32::INFINITY;
-        }
-        (max_error_m * fx * self.baseline_m / sigma).sqrt()
+        trusted_range(self.filtered_sigma_px(), fx, self.baseline_m, max_error_m)
     }
 
     /// Standard deviation of the depth error at depth `z`, metres (first order, filtered).
@@ -227,6 +223,16 @@ impl DepthCamera {
                 .map(|&z| if z.is_nan() { 0 } else { encode_depth_mm(z) }),
         );
     }
+}
+
+/// Depth (m) at which a disparity error of `sigma_px` moves the depth of a stereo pair with
+/// focal length `fx` (px) and baseline `baseline_m` by `max_error_m`: `sqrt(max_error · fx · b /
+/// σ)`, from z²·σ / (fx·b). Infinite for σ ≤ 0.
+pub fn trusted_range(sigma_px: f32, fx: f32, baseline_m: f32, max_error_m: f32) -> f32 {
+    if sigma_px <= 0.0 {
+        return f32::INFINITY;
+    }
+    (max_error_m * fx * baseline_m / sigma_px).sqrt()
 }
 
 /// Median of the valid (non-NaN) values in a `window` × `window` neighbourhood of every valid

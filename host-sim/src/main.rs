@@ -783,8 +783,7 @@ struct SensingArgs {
     /// With `--noise` or `--depth-from stereo`: integrate with the core's stereo sensor model
     /// (experimental, see docs/RESULTS.md) — depth error σ_z = z²σ_d/(f·b), misses stop 2σ short
     /// of a return, a return marks a surface only where σ is at most a voxel, a hit/miss vote
-    /// per voxel per frame instead of "the hit wins", one voxel more clearance, and depth used
-    /// to the camera's range.
+    /// per voxel per frame instead of "the hit wins", and depth used to the camera's range.
     #[arg(long)]
     stereo_model: bool,
     /// Range (m) up to which depth is integrated; farther returns only clear free space.
@@ -864,9 +863,6 @@ impl FieldArgs {
     }
 }
 
-/// Depth error (m, one voxel) at the default trusted range of a noisy stereo camera.
-const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
-
 impl SensingArgs {
     fn check(&self) -> Result<(), String> {
         if self.stereo_model && self.noise.is_none() && self.depth_from != "stereo" {
@@ -888,18 +884,19 @@ impl SensingArgs {
         cfg.camera.outliers = self.outliers as f32;
         cfg.camera.textureless = self.textureless;
         cfg.drift = self.drift;
+        // Exact depth: no error (the camera's range unless --trusted-range).
+        let (sigma_px, baseline_m) = self
+            .noise
+            .map_or((0.0, 1.0), |n| (n.filtered_sigma_px(), n.baseline_m));
         let fx = cfg.camera.intrinsics.fx();
-        let range = match (self.trusted_range, self.noise) {
-            (Some(r), _) => r,
-            (None, Some(n)) if !self.stereo_model => n.trusted_range(fx, TRUSTED_DEPTH_ERROR_M),
-            _ => cfg.camera.max_range,
-        };
-        if let Some(n) = self.noise.filter(|_| self.stereo_model) {
-            cfg.explorer.integration.depth_noise_per_m = n.filtered_sigma_px() / (fx * n.baseline_m);
-        }
-        cfg.explorer.integration.max_range = range
-            .min(cfg.camera.max_range)
-            .max(cfg.explorer.integration.min_range + 0.1);
+        sim::integrate_noisy_depth(
+            cfg,
+            sigma_px,
+            fx,
+            baseline_m,
+            self.trusted_range,
+            self.stereo_model,
+        );
         if self.depth_from == "stereo" {
             let rig = harmonic_sim::stereo::StereoRig {
                 scale: self.stereo_scale,

@@ -154,36 +154,58 @@ pub enum DepthSource {
     Stereo(StereoRig),
 }
 
-/// Depth error (m) at the range up to which stereo depth is integrated by default.
-pub const STEREO_TRUSTED_ERROR_M: f32 = 0.1;
+/// Depth error (m, one voxel) at the range up to which noisy depth is used with the rules of
+/// exact depth, by default.
+pub const TRUSTED_DEPTH_ERROR_M: f32 = 0.1;
 /// Disparity error (render pixels) of the core's matcher on rendered pairs: its sub-pixel error
-/// (BENCHMARKS.md) with a margin. The stereo sensor model's `σ_d`.
+/// (BENCHMARKS.md) with a margin. The stereo sensor model's `σ_d` for `--depth-from stereo`.
 pub const STEREO_TRUSTED_SIGMA_PX: f32 = 0.2;
 
-/// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than
-/// free space. With `sensor_model`, the core integrates it with its stereo sensor model
-/// ([`harmonic_core::integrate`]: disparity error [`STEREO_TRUSTED_SIGMA_PX`]) up to
-/// `trusted_range` metres (default: the camera's maximum range); without, with the rules of
-/// exact depth up to `trusted_range` (default: where a [`STEREO_TRUSTED_SIGMA_PX`] disparity
-/// error moves the depth by [`STEREO_TRUSTED_ERROR_M`]; 2.8 m for the default rig), farther
-/// returns only clearing free space up to it.
-pub fn use_stereo_depth(cfg: &mut SimConfig, rig: StereoRig, trusted_range: Option<f32>, sensor_model: bool) {
-    cfg.depth_source = DepthSource::Stereo(rig);
-    cfg.explorer.integration.no_return = harmonic_core::integrate::NoReturn::Unknown;
-    let fx = cfg.camera.intrinsics.fx() * f32::from(rig.scale.max(1));
+/// Sets how `cfg`'s explorer integrates depth whose disparity error is `sigma_px` (camera focal
+/// length `fx` px, baseline `baseline_m`; 0 for exact depth). With `sensor_model`, the core's
+/// stereo sensor model ([`harmonic_core::integrate`]) with that error, up to `trusted_range`
+/// metres (default: the camera's maximum range). Without, the rules of exact depth up to
+/// `trusted_range` (default: where the error moves the depth by [`TRUSTED_DEPTH_ERROR_M`],
+/// [`crate::camera::trusted_range`]), farther returns only clearing free space up to it.
+pub fn integrate_noisy_depth(
+    cfg: &mut SimConfig,
+    sigma_px: f32,
+    fx: f32,
+    baseline_m: f32,
+    trusted_range: Option<f32>,
+    sensor_model: bool,
+) {
     let range = match trusted_range {
         Some(r) => r,
         None if sensor_model => cfg.camera.max_range,
-        None => rig.trusted_range(fx, STEREO_TRUSTED_SIGMA_PX, STEREO_TRUSTED_ERROR_M),
+        None => crate::camera::trusted_range(sigma_px, fx, baseline_m, TRUSTED_DEPTH_ERROR_M),
     };
     cfg.explorer.integration.max_range = range
         .min(cfg.camera.max_range)
         .max(cfg.explorer.integration.min_range + 0.1);
-    cfg.explorer.integration.depth_noise_per_m = if sensor_model {
-        STEREO_TRUSTED_SIGMA_PX / (fx * rig.baseline_m)
+    cfg.explorer.integration.depth_noise_per_m = if sensor_model && sigma_px > 0.0 {
+        sigma_px / (fx * baseline_m)
     } else {
         0.0
     };
+}
+
+/// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than
+/// free space, and the matcher's depth is integrated as [`integrate_noisy_depth`] says, with a
+/// disparity error of [`STEREO_TRUSTED_SIGMA_PX`] (without `sensor_model` and `trusted_range`:
+/// up to 2.8 m for the default rig).
+pub fn use_stereo_depth(cfg: &mut SimConfig, rig: StereoRig, trusted_range: Option<f32>, sensor_model: bool) {
+    cfg.depth_source = DepthSource::Stereo(rig);
+    cfg.explorer.integration.no_return = harmonic_core::integrate::NoReturn::Unknown;
+    let fx = cfg.camera.intrinsics.fx() * f32::from(rig.scale.max(1));
+    integrate_noisy_depth(
+        cfg,
+        STEREO_TRUSTED_SIGMA_PX,
+        fx,
+        rig.baseline_m,
+        trusted_range,
+        sensor_model,
+    );
 }
 
 /// Faults the simulator injects besides the depth link's: what `harmonic-sim faults` varies.

@@ -112,12 +112,6 @@ impl StereoRig {
             ..StereoParams::new(width, height, self.num_disparities)
         }
     }
-
-    /// Depth (m) at which a disparity error of `sigma_px` (render pixels) moves the depth by
-    /// `max_error_m`: `sqrt(max_error · fx · b / σ)`, with `fx` of the rendering camera.
-    pub fn trusted_range(&self, fx_render: f32, sigma_px: f32, max_error_m: f32) -> f32 {
-        (max_error_m * fx_render * self.baseline_m / sigma_px).sqrt()
-    }
 }
 
 /// A rendered, rectified pair with its ground truth (row-major, `width × height`).
