@@ -8,6 +8,12 @@
 
 use nalgebra::Vector3;
 
+/// Depth value of a pixel that was never received — a row of a depth frame lost on the link
+/// ([`crate::link::DepthReceiver`] delivers such frames partially). Integration skips these
+/// pixels: they are neither a return nor a "no return". No sensor reading is encoded as it
+/// (the largest depth is `u16::MAX − 1` mm, 65.5 m).
+pub const NOT_RECEIVED: u16 = u16::MAX;
+
 /// Why a set of camera intrinsics was rejected.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -138,7 +144,8 @@ pub struct DepthFrame<'a> {
 }
 
 impl<'a> DepthFrame<'a> {
-    /// Wraps a row-major depth image (u16 millimetres, 0 = no return).
+    /// Wraps a row-major depth image (u16 millimetres, 0 = no return, [`NOT_RECEIVED`] = not
+    /// received).
     pub fn new(intrinsics: Intrinsics, depth_mm: &'a [u16]) -> Result<Self, DepthFrameError> {
         let expected = intrinsics.pixel_count();
         if depth_mm.len() != expected {

@@ -51,7 +51,7 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use crate::camera::DepthFrame;
+use crate::camera::{DepthFrame, NOT_RECEIVED};
 use crate::map::{Dims, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 
 /// What a depth-0 pixel means.
@@ -124,6 +124,9 @@ pub struct IntegrationStats {
     pub beyond_range: u32,
     /// Pixels closer than the minimum range: counted, not integrated.
     pub invalid: u32,
+    /// Pixels that were never received ([`NOT_RECEIVED`]: rows lost on the depth link):
+    /// counted, not integrated.
+    pub not_received: u32,
     /// Returns whose endpoint lies outside the grid (the in-grid part of the ray is still used).
     pub endpoint_outside: u32,
     /// Voxels visited by ray traversal (work done).
@@ -241,6 +244,10 @@ pub fn integrate_with_scratch(
         let (end, endpoint) = match ray {
             PixelRay::Invalid => {
                 stats.invalid += 1;
+                return;
+            }
+            PixelRay::NotReceived => {
+                stats.not_received += 1;
                 return;
             }
             PixelRay::NoReturn { end } => {
@@ -410,6 +417,8 @@ impl<'s> Votes<'s> {
 enum PixelRay {
     /// Closer than the minimum range.
     Invalid,
+    /// Never received (a row lost on the link).
+    NotReceived,
     /// Depth 0: clear to `end` (maximum range along the pixel's ray).
     NoReturn { end: Point3<f32> },
     /// Return beyond the maximum range: clear to `end`.
@@ -450,7 +459,9 @@ fn for_each_pixel_ray(
             let dir: Vector3<f32> = pose.rotation * (ray_cam / ray_len);
             let origin = Point3::from(pose.translation.vector);
             let clear_to = origin + dir * params.max_range;
-            let ray = if d == 0 {
+            let ray = if d == NOT_RECEIVED {
+                PixelRay::NotReceived
+            } else if d == 0 {
                 PixelRay::NoReturn { end: clear_to }
             } else {
                 let range = f32::from(d) * 1e-3 * ray_len;
@@ -500,7 +511,7 @@ fn faces_camera(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32) -> bool {
     let depth = |uu: Option<usize>, vv: Option<usize>| -> Option<f32> {
         let (uu, vv) = (uu.filter(|&x| x < width)?, vv?);
         let d = *frame.depth_mm().get(vv.checked_mul(width)?.checked_add(uu)?)?;
-        (d > 0).then(|| f32::from(d) * 1e-3)
+        (d > 0 && d != NOT_RECEIVED).then(|| f32::from(d) * 1e-3)
     };
     let (Some(left), Some(right), Some(up), Some(down)) = (
         depth(u.checked_sub(s), Some(v)),
@@ -896,6 +907,61 @@ mod tests {
         assert_eq!(s.beyond_range, 1);
         let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
         assert_eq!(map.occupancy(at(7)), Occupancy::Free);
+    }
+
+    #[test]
+    fn pixels_not_received_update_nothing_for_either_sensor_rule() {
+        for no_return in [NoReturn::ClearToMaxRange, NoReturn::Unknown] {
+            for noise in [0.0, 0.01] {
+                let mut f = Fixture::new();
+                let mut map = f.map();
+                let params = IntegrationParams {
+                    no_return,
+                    depth_noise_per_m: noise,
+                    ..IntegrationParams::default()
+                };
+                let mut buf = [0u16; 81];
+                // The rows lost on the link; a wall at 1 m in the rest, half of it a no-return.
+                let intr = square_frame(
+                    9,
+                    |u, v| match (v < 4, u < 5) {
+                        (true, _) => NOT_RECEIVED,
+                        (false, true) => 1000,
+                        (false, false) => 0,
+                    },
+                    &mut buf,
+                );
+                let frame = DepthFrame::new(intr, &buf).unwrap();
+                let s = integrate(&mut map, &frame, &looking_along_x(), &params).unwrap();
+                assert_eq!((s.pixels, s.not_received), (81, 36));
+                assert_eq!(s.returns + s.no_return, 45);
+                let whole: [u16; 81] = core::array::from_fn(|i| buf[i].min(1000));
+                let mut g = Fixture::new();
+                let mut all = g.map();
+                let full = integrate(
+                    &mut all,
+                    &DepthFrame::new(intr, &whole).unwrap(),
+                    &looking_along_x(),
+                    &params,
+                )
+                .unwrap();
+                // The lost rows' rays are not traced (this camera's rays share their voxels).
+                assert!(s.voxels_traversed < full.voxels_traversed, "{s:?} {full:?}");
+                assert!(s.voxel_updates <= full.voxel_updates, "{s:?} {full:?}");
+                // A frame of which nothing arrived changes nothing.
+                let before = map.counts();
+                let none = [NOT_RECEIVED; 81];
+                let s = integrate(
+                    &mut map,
+                    &DepthFrame::new(intr, &none).unwrap(),
+                    &looking_along_x(),
+                    &params,
+                )
+                .unwrap();
+                assert_eq!((s.not_received, s.voxel_updates, s.voxels_traversed), (81, 0, 0));
+                assert_eq!(map.counts(), before);
+            }
+        }
     }
 
     #[test]

@@ -5,14 +5,20 @@
 //! explorer. This module holds both ends of that link, without allocation:
 //!
 //! - [`Message`] — what travels: camera [`Intrinsics`], [`DepthChunk`]s (a run of rows of one
-//!   depth image), an optional camera [`Pose`], and a [`Heartbeat`]. Checked once, when decoded.
+//!   depth image), an optional camera [`Pose`], and a [`Heartbeat`]; back, on a return channel
+//!   if there is one, a [`ResendRequest`]. Checked once, when decoded.
 //! - [`encode_frame`] and [`LinkEncoder`] — the sender: one message into one delimited frame
 //!   in a caller buffer; [`LinkEncoder::encode_depth_frame`] cuts a whole image into chunks.
 //! - [`FrameDecoder`] — the receiver's framing: bytes in any slicing in, checked messages out,
 //!   a fixed buffer of `N` bytes, resynchronisation at the next delimiter after damage.
-//! - [`DepthAssembler`] — chunks into a caller-provided image buffer; yields a [`DepthFrame`]
-//!   only when every row arrived, in order and intact. Anything else is dropped whole.
-//! - [`DepthReceiver`] — decoder and assembler together: what the core's input task runs.
+//! - [`DepthAssembler`] — chunks, in any order, into a caller-provided image buffer; yields a
+//!   [`DepthFrame`] when every row arrived, or with the rows that did (the others
+//!   [`NOT_RECEIVED`]) when the frame's time is up. Each row is independently useful.
+//! - [`DepthReceiver`] — decoder and assembler together: what the core's input task runs. It
+//!   says what is missing from a frame ([`DepthReceiver::resend_request`]) for selective
+//!   retransmission, which the sender answers with [`LinkEncoder::encode_rows`].
+//! - [`best_rows_per_chunk`], [`estimate_bit_error_rate`] — the chunk size for a line's bit
+//!   error rate, and the rate a sender infers from the chunks it was asked to send again.
 //! - [`LinkCounters`] — one counter per kind of fault, for the status output.
 //!
 //! # Wire format, version 1
@@ -60,6 +66,12 @@
 //!   4  f32 tx, ty, tz  metres          4  u32 frames_sent     depth frames sent whole
 //!  16  f32 qx, qy, qz, qw              8  u32 frames_skipped  captured, not sent (link busy)
 //!      camera → map rotation          12  u32 sensor_errors
+//!
+//! 0x05 ResendRequest (core → camera), 6 + 4 · n bytes
+//!   0  u32 frame_id
+//!   4  u8  flags   bit 0: the pose, bit 1: the intrinsics; other bits 0
+//!   5  u8  n       row ranges, at most 16
+//!   6  (u16 first_row, u16 row_count > 0) × n
 //! ```
 //!
 //! Intrinsics must be finite with positive focal lengths and the principal point inside the
@@ -92,9 +104,23 @@
 //! # Faults
 //!
 //! Damage does not produce a wrong message (short of a CRC-32 collision, 2⁻³² per damaged
-//! frame): a frame that fails COBS, CRC, version, type or body checks is dropped and counted, and decoding resumes at the next delimiter. A depth image is
-//! delivered only if all its rows arrived in order; an image with a missing, damaged or
-//! contradictory chunk is dropped whole and counted in [`LinkCounters`].
+//! frame): a frame that fails COBS, CRC, version, type or body checks is dropped and counted,
+//! and decoding resumes at the next delimiter. A chunk is a unit on its own: a depth image is
+//! delivered with the rows whose chunks arrived intact, in whatever order, once all have or
+//! once the receiver gives it up (a newer image starts, or the caller's deadline); rows that
+//! never arrived hold [`NOT_RECEIVED`], which integration skips. A chunk that contradicts its
+//! image, or an image that does not fit, is dropped and counted in [`LinkCounters`].
+//!
+//! # Selective retransmission
+//!
+//! With a return channel, the receiving side asks for what an image lacks before giving it up:
+//! [`DepthReceiver::resend_request`] lists the missing rows (and the pose or intrinsics, if
+//! lost) in a [`ResendRequest`]; the camera side, which keeps its last image, answers with
+//! [`LinkEncoder::encode_rows`] and the pose again. The caller bounds the rounds. Lost chunks
+//! also tell the sender the line's quality: [`estimate_bit_error_rate`] turns the fraction
+//! asked for again into a bit error rate, [`best_rows_per_chunk`] that into the chunk size
+//! that carries the most depth per byte (at 1e-4, one 100-pixel row per chunk: 4× the
+//! throughput of ten).
 
 use core::num::NonZeroUsize;
 
@@ -118,6 +144,16 @@ pub const DEPTH_CHUNK_HEADER_LEN: usize = 12;
 pub const POSE_BODY_LEN: usize = 32;
 /// Body bytes of a Heartbeat message.
 pub const HEARTBEAT_BODY_LEN: usize = 16;
+/// Row ranges a [`ResendRequest`] holds at most; rows past them are asked for in the next
+/// request.
+pub const MAX_RESEND_RANGES: usize = 16;
+/// Body bytes of a ResendRequest before its row ranges (4 bytes each).
+pub const RESEND_REQUEST_HEADER_LEN: usize = 6;
+/// Rows an image may have at most: the assembler keeps a bitmap of the rows that arrived.
+pub const MAX_IMAGE_ROWS: u16 = 2048;
+/// Depth value of a pixel whose row never arrived, in a partially delivered frame (see
+/// [`crate::camera::NOT_RECEIVED`]).
+pub use crate::camera::NOT_RECEIVED;
 /// How far the norm of a pose quaternion may be from 1.
 pub const UNIT_QUATERNION_TOLERANCE: f32 = 1e-3;
 /// A chunk whose frame id is at most this far behind the newest frame seen is a late or
@@ -161,6 +197,9 @@ pub enum MessageType {
     Pose = 0x03,
     /// Camera-side liveness and counters.
     Heartbeat = 0x04,
+    /// Core side to camera side, on the return channel: send these rows (and pose, intrinsics)
+    /// of an image again.
+    ResendRequest = 0x05,
 }
 
 impl MessageType {
@@ -171,6 +210,7 @@ impl MessageType {
             0x02 => Some(Self::DepthChunk),
             0x03 => Some(Self::Pose),
             0x04 => Some(Self::Heartbeat),
+            0x05 => Some(Self::ResendRequest),
             _ => None,
         }
     }
@@ -195,6 +235,9 @@ pub enum Malformed {
     Intrinsics(IntrinsicsError),
     /// A pose that [`Pose::new`] rejects.
     Pose(PoseError),
+    /// A resend request with more than [`MAX_RESEND_RANGES`] ranges, an empty range, or flags
+    /// this version does not know.
+    ResendRequest,
 }
 
 /// Everything that can go wrong on the link. Each variant but [`LinkError::BufferTooSmall`]
@@ -216,11 +259,12 @@ pub enum LinkError {
     UnknownType(u8),
     /// Intact frame whose body is not a valid message.
     Malformed(Malformed),
-    /// A chunk behind the rows already received (duplicate, overlap, or a late chunk of an
-    /// earlier frame); dropped, the frame in progress continues.
+    /// A chunk whose rows all arrived already (a duplicate, a resend that crossed the first
+    /// copy), or a late chunk of an earlier frame; dropped, the frame in progress continues.
     OutOfOrderChunk,
-    /// Rows of a frame never arrived (a gap, or a new frame started first); the frame was
-    /// dropped whole.
+    /// Rows of a frame never arrived before it was finished ([`DepthReceiver::finish_frame`])
+    /// or a newer frame started: [`DepthReceiver`] delivers what arrived (the missing rows hold
+    /// [`NOT_RECEIVED`]); a bare [`DepthAssembler`] that is not finished first drops it.
     MissingChunks,
     /// A chunk whose image size differs from the earlier chunks of its frame; the frame was
     /// dropped whole.
@@ -258,9 +302,10 @@ pub struct LinkCounters {
     pub malformed: u32,
     /// Frames missing by sequence number (lost whole, or damaged beyond recognition).
     pub sequence_gaps: u32,
-    /// Chunks dropped as duplicate, overlapping or late.
+    /// Chunks dropped as duplicate or late.
     pub out_of_order_chunks: u32,
-    /// Depth frames dropped because rows never arrived.
+    /// Depth frames that ended with rows that never arrived: delivered partially
+    /// ([`LinkCounters::depth_frames_partial`]) or dropped.
     pub missing_chunks: u32,
     /// Depth frames larger than the assembler's buffer.
     pub frame_too_large: u32,
@@ -268,10 +313,14 @@ pub struct LinkCounters {
     pub no_intrinsics: u32,
     /// Depth frames whose size differed from the last intrinsics.
     pub intrinsics_mismatch: u32,
-    /// Depth frames delivered.
+    /// Depth frames delivered whole.
     pub depth_frames_complete: u32,
     /// Depth frames of which some chunk arrived but which were not delivered.
     pub depth_frames_dropped: u32,
+    /// Depth frames delivered with rows missing (finished, or displaced by a newer frame).
+    pub depth_frames_partial: u32,
+    /// Rows missing from the partially delivered frames, all together.
+    pub rows_missing: u32,
 }
 
 fn bump(counter: &mut u32) {
@@ -298,6 +347,8 @@ impl LinkCounters {
             intrinsics_mismatch: 0,
             depth_frames_complete: 0,
             depth_frames_dropped: 0,
+            depth_frames_partial: 0,
+            rows_missing: 0,
         }
     }
 
@@ -340,6 +391,8 @@ impl LinkCounters {
             intrinsics_mismatch: add(self.intrinsics_mismatch, other.intrinsics_mismatch),
             depth_frames_complete: add(self.depth_frames_complete, other.depth_frames_complete),
             depth_frames_dropped: add(self.depth_frames_dropped, other.depth_frames_dropped),
+            depth_frames_partial: add(self.depth_frames_partial, other.depth_frames_partial),
+            rows_missing: add(self.rows_missing, other.rows_missing),
         }
     }
 }
@@ -430,6 +483,87 @@ pub struct Heartbeat {
     pub frames_skipped: u32,
     /// Sensor faults on the camera side.
     pub sensor_errors: u32,
+}
+
+/// What the core side asks the camera side to send again for one image, on the link's return
+/// channel: up to [`MAX_RESEND_RANGES`] runs of rows, and the image's pose or the camera
+/// intrinsics if they were lost. The camera side answers by sending them again, rows clamped to
+/// its image (a run of `0xFFFF` rows from row 0 asks for a whole image none of whose rows
+/// arrived).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ResendRequest {
+    frame_id: u32,
+    pose: bool,
+    intrinsics: bool,
+    ranges: [(u16, u16); MAX_RESEND_RANGES],
+    len: u8,
+}
+
+impl ResendRequest {
+    /// Flag bit: send the image's pose again.
+    const POSE: u8 = 1;
+    /// Flag bit: send the camera intrinsics again.
+    const INTRINSICS: u8 = 2;
+
+    /// A request for image `frame_id` that asks for nothing yet.
+    pub const fn new(frame_id: u32) -> Self {
+        Self {
+            frame_id,
+            pose: false,
+            intrinsics: false,
+            ranges: [(0, 0); MAX_RESEND_RANGES],
+            len: 0,
+        }
+    }
+
+    /// Also asks for the image's pose.
+    pub fn with_pose(mut self) -> Self {
+        self.pose = true;
+        self
+    }
+
+    /// Also asks for the camera intrinsics.
+    pub fn with_intrinsics(mut self) -> Self {
+        self.intrinsics = true;
+        self
+    }
+
+    /// Asks for `row_count` rows from `first_row`; false (nothing added) if the request is
+    /// full or `row_count` is 0.
+    pub fn push_rows(&mut self, first_row: u16, row_count: u16) -> bool {
+        match self.ranges.get_mut(usize::from(self.len)) {
+            Some(slot) if row_count > 0 => {
+                *slot = (first_row, row_count);
+                self.len += 1;
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// The image asked for.
+    pub fn frame_id(&self) -> u32 {
+        self.frame_id
+    }
+    /// Whether the pose is asked for.
+    pub fn wants_pose(&self) -> bool {
+        self.pose
+    }
+    /// Whether the intrinsics are asked for.
+    pub fn wants_intrinsics(&self) -> bool {
+        self.intrinsics
+    }
+    /// The runs of rows asked for, `(first_row, row_count)`.
+    pub fn rows(&self) -> &[(u16, u16)] {
+        self.ranges.get(..usize::from(self.len)).unwrap_or(&[])
+    }
+    /// Whether it asks for nothing.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0 && !self.pose && !self.intrinsics
+    }
+    fn flags(&self) -> u8 {
+        (u8::from(self.pose) * Self::POSE) | (u8::from(self.intrinsics) * Self::INTRINSICS)
+    }
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -577,6 +711,8 @@ pub enum Message<'a> {
     Pose(Pose),
     /// Camera-side liveness and counters.
     Heartbeat(Heartbeat),
+    /// Core side to camera side: send parts of an image again.
+    ResendRequest(ResendRequest),
 }
 
 impl<'a> Message<'a> {
@@ -587,6 +723,7 @@ impl<'a> Message<'a> {
             Message::DepthChunk(_) => MessageType::DepthChunk,
             Message::Pose(_) => MessageType::Pose,
             Message::Heartbeat(_) => MessageType::Heartbeat,
+            Message::ResendRequest(_) => MessageType::ResendRequest,
         }
     }
 
@@ -598,6 +735,7 @@ impl<'a> Message<'a> {
             Message::DepthChunk(c) => depth_chunk_payload_len(c.width, c.row_count),
             Message::Pose(_) => HEADER_LEN + POSE_BODY_LEN,
             Message::Heartbeat(_) => HEADER_LEN + HEARTBEAT_BODY_LEN,
+            Message::ResendRequest(r) => HEADER_LEN + RESEND_REQUEST_HEADER_LEN + 4 * r.rows().len(),
         }
     }
 
@@ -632,6 +770,15 @@ impl<'a> Message<'a> {
             Message::Heartbeat(h) => {
                 for v in [h.uptime_ms, h.frames_sent, h.frames_skipped, h.sensor_errors] {
                     w.payload(&v.to_le_bytes())?;
+                }
+                Ok(())
+            }
+            Message::ResendRequest(r) => {
+                w.payload(&r.frame_id.to_le_bytes())?;
+                w.payload(&[r.flags(), r.len])?;
+                for &(first, count) in r.rows() {
+                    w.payload(&first.to_le_bytes())?;
+                    w.payload(&count.to_le_bytes())?;
                 }
                 Ok(())
             }
@@ -687,6 +834,26 @@ impl<'a> Message<'a> {
                 };
                 r.end()?;
                 Message::Heartbeat(heartbeat)
+            }
+            MessageType::ResendRequest => {
+                let bad = LinkError::Malformed(Malformed::ResendRequest);
+                let mut request = ResendRequest::new(r.u32()?);
+                let [flags, n] = r.array::<2>()?;
+                if flags & !(ResendRequest::POSE | ResendRequest::INTRINSICS) != 0
+                    || usize::from(n) > MAX_RESEND_RANGES
+                {
+                    return Err(bad);
+                }
+                request.pose = flags & ResendRequest::POSE != 0;
+                request.intrinsics = flags & ResendRequest::INTRINSICS != 0;
+                for _ in 0..n {
+                    let (first, count) = (r.u16()?, r.u16()?);
+                    if !request.push_rows(first, count) {
+                        return Err(bad);
+                    }
+                }
+                r.end()?;
+                Message::ResendRequest(request)
             }
         };
         Ok(message)
@@ -917,38 +1084,93 @@ impl LinkEncoder {
         mut emit: impl FnMut(&[u8]),
     ) -> Result<usize, LinkError> {
         let intrinsics = *frame.intrinsics();
-        let (width, height) = (intrinsics.width(), intrinsics.height());
-        let rows_per_chunk = rows_per_chunk.clamp(1, height);
-        let needed =
-            max_depth_chunk_len(width, rows_per_chunk).max(max_encoded_len(HEADER_LEN + INTRINSICS_BODY_LEN));
+        let rows = rows_per_chunk.clamp(1, intrinsics.height());
+        let needed = max_depth_chunk_len(intrinsics.width(), rows)
+            .max(max_encoded_len(HEADER_LEN + INTRINSICS_BODY_LEN));
         if scratch.len() < needed {
             return Err(LinkError::BufferTooSmall);
         }
-        let mut sent = 0;
-        let mut send = |encoder: &mut Self, message: &Message<'_>| -> Result<(), LinkError> {
-            let n = encoder.encode(message, scratch)?;
-            emit(scratch.get(..n).ok_or(LinkError::BufferTooSmall)?);
-            sent += n;
-            Ok(())
-        };
-        send(self, &Message::Intrinsics(intrinsics))?;
+        let n = self.encode(&Message::Intrinsics(intrinsics), scratch)?;
+        emit(scratch.get(..n).ok_or(LinkError::BufferTooSmall)?);
+        let sent = self.encode_rows(frame_id, frame, (0, intrinsics.height()), rows, scratch, emit)?;
+        Ok(n + sent)
+    }
+
+    /// Sends rows `first .. first + count` of depth image `frame_id` (clamped to the image) as
+    /// chunks of `rows_per_chunk` rows, no intrinsics: the answer to the rows of a
+    /// [`ResendRequest`]. Returns the bytes emitted (0 for rows past the image). Fails before
+    /// emitting anything if `scratch` is shorter than
+    /// [`max_depth_chunk_len`]`(width, rows_per_chunk)`.
+    pub fn encode_rows(
+        &mut self,
+        frame_id: u32,
+        frame: &DepthFrame<'_>,
+        (first, count): (u16, u16),
+        rows_per_chunk: u16,
+        scratch: &mut [u8],
+        mut emit: impl FnMut(&[u8]),
+    ) -> Result<usize, LinkError> {
+        let intrinsics = *frame.intrinsics();
+        let (width, height) = (intrinsics.width(), intrinsics.height());
+        let rows_per_chunk = rows_per_chunk.clamp(1, height);
+        if scratch.len() < max_depth_chunk_len(width, rows_per_chunk) {
+            return Err(LinkError::BufferTooSmall);
+        }
+        let end = first.saturating_add(count).min(height);
         let w = usize::from(width);
-        let mut first_row = 0u16;
-        while first_row < height {
-            let rows = rows_per_chunk.min(height - first_row);
+        let mut sent = 0;
+        let mut first_row = first;
+        while first_row < end {
+            let rows = rows_per_chunk.min(end - first_row);
             let start = usize::from(first_row) * w;
             let depth = frame
                 .depth_mm()
                 .get(start..start + usize::from(rows) * w)
                 .ok_or(LinkError::Malformed(Malformed::ChunkGeometry))?;
-            send(
-                self,
-                &Message::DepthChunk(DepthChunk::new(frame_id, width, height, first_row, depth)?),
-            )?;
+            let chunk = DepthChunk::new(frame_id, width, height, first_row, depth)?;
+            let n = self.encode(&Message::DepthChunk(chunk), scratch)?;
+            emit(scratch.get(..n).ok_or(LinkError::BufferTooSmall)?);
+            sent += n;
             first_row += rows;
         }
         Ok(sent)
     }
+}
+
+/// The rows per depth chunk, from 1 to `max_rows`, that carry the most depth per byte sent
+/// over a line with independent bit errors at `bit_error_rate`, when every lost chunk is sent
+/// again: a chunk of `L` bytes on the wire arrives intact with probability `(1 − BER)^(8L)`,
+/// so each row costs `L / (rows · (1 − BER)^(8L))` bytes. Long chunks waste less on framing
+/// (12 + 4 bytes of headers, the CRC, COBS and delimiters), short ones lose less to an error.
+/// For 100-pixel rows: 10 rows up to a BER of about 5e-7, 8 at 1e-6, 3 at 1e-5, 1 from about
+/// 4e-5; at 1e-4 a row then costs 267 bytes against 1030 in chunks of 10.
+pub fn best_rows_per_chunk(width: u16, bit_error_rate: f32, max_rows: u16) -> u16 {
+    let ber = if bit_error_rate.is_finite() {
+        bit_error_rate.clamp(0.0, 0.5)
+    } else {
+        0.5
+    };
+    let log_keep = libm::log1pf(-ber);
+    let cost = |rows: u16| {
+        let len = max_depth_chunk_len(width, rows) as f32;
+        // ln(bytes per row) = ln(L / rows) − 8L·ln(1 − BER)
+        libm::logf(len / f32::from(rows)) - 8.0 * len * log_keep
+    };
+    (1..=max_rows.max(1))
+        .min_by(|&a, &b| cost(a).total_cmp(&cost(b)))
+        .unwrap_or(1)
+}
+
+/// The bit error rate that explains losing `lost` of `sent` frames of `wire_bytes` bytes each
+/// to independent bit errors: `1 − (1 − lost/sent)^(1/(8·wire_bytes))`. Losing every frame
+/// counts as losing all but half of one (the estimate stays finite); nothing sent: 0.
+pub fn estimate_bit_error_rate(sent: u32, lost: u32, wire_bytes: usize) -> f32 {
+    if sent == 0 || wire_bytes == 0 {
+        return 0.0;
+    }
+    let sent = sent as f32;
+    let kept = (sent - lost.min(sent as u32) as f32).max(0.5) / sent;
+    -libm::expm1f(libm::logf(kept) / (8.0 * wire_bytes as f32))
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1081,11 +1303,68 @@ fn parse_frame<'b>(
 // ---------------------------------------------------------------------------------------------
 // Receiver: depth frame assembly
 
+const ROW_WORDS: usize = (MAX_IMAGE_ROWS as usize) >> 5;
+
+/// Which rows of the image in progress arrived: one bit per row.
+#[derive(Debug, Clone)]
+struct RowSet {
+    words: [u32; ROW_WORDS],
+}
+
+impl RowSet {
+    const fn new() -> Self {
+        Self {
+            words: [0; ROW_WORDS],
+        }
+    }
+
+    fn clear(&mut self) {
+        self.words.fill(0);
+    }
+
+    fn contains(&self, row: u16) -> bool {
+        self.words
+            .get(usize::from(row >> 5))
+            .is_some_and(|w| w & (1 << (row & 31)) != 0)
+    }
+
+    /// Marks `first .. first + count`; returns how many of them were not marked before.
+    fn insert(&mut self, first: u16, count: u16) -> u16 {
+        let mut new = 0;
+        for row in first..first.saturating_add(count) {
+            if let Some(w) = self.words.get_mut(usize::from(row >> 5)) {
+                let bit = 1 << (row & 31);
+                new += u16::from(*w & bit == 0);
+                *w |= bit;
+            }
+        }
+        new
+    }
+
+    /// The runs of rows below `height` not marked, `(first, count)`, in order.
+    fn missing(&self, height: u16) -> impl Iterator<Item = (u16, u16)> + '_ {
+        let mut row = 0u16;
+        core::iter::from_fn(move || {
+            while row < height && self.contains(row) {
+                row += 1;
+            }
+            if row >= height {
+                return None;
+            }
+            let first = row;
+            while row < height && !self.contains(row) {
+                row += 1;
+            }
+            Some((first, row - first))
+        })
+    }
+}
+
 #[derive(Debug, Clone, Copy)]
 enum Phase {
-    /// Rows `0..next_row` are in the buffer.
-    Receiving { width: u16, height: u16, next_row: u16 },
-    /// All rows arrived; delivered with these intrinsics.
+    /// `received` distinct rows are in the buffer (the others hold [`NOT_RECEIVED`]).
+    Receiving { width: u16, height: u16, received: u16 },
+    /// Delivered (whole or partially) with these intrinsics.
     Complete(Intrinsics),
     /// Given up; its remaining chunks are ignored.
     Dropped,
@@ -1097,20 +1376,37 @@ struct Tracked {
     phase: Phase,
 }
 
-/// Assembles depth chunks into whole depth frames in a caller-provided buffer, one frame id at
-/// a time. A frame is delivered only when rows `0..height` arrived in order and intact, and
-/// only with intrinsics of its size; otherwise it is dropped whole and counted:
+/// A depth frame as the assembler delivers it.
+#[derive(Debug, Clone, Copy)]
+pub struct Assembled<'f> {
+    /// Image id from the chunks.
+    pub frame_id: u32,
+    /// The image and its intrinsics; rows that never arrived hold [`NOT_RECEIVED`].
+    pub frame: DepthFrame<'f>,
+    /// Rows that never arrived (0: the frame is whole).
+    pub missing_rows: u16,
+}
+
+/// Assembles depth chunks into depth frames in a caller-provided buffer, one frame id at a
+/// time. Chunks of the frame in progress may come in any order; the frame is delivered when
+/// every row arrived, or — with the rows that did, the others [`NOT_RECEIVED`] — when the caller
+/// finishes it ([`DepthAssembler::finish`]: its deadline passed, or a newer frame is about to
+/// start). Each row of an image is independently useful to the integrator. What cannot be used
+/// is dropped and counted:
 ///
-/// - a chunk behind the rows received (duplicate, overlap) or of a slightly older frame:
-///   dropped, [`LinkCounters::out_of_order_chunks`]; the frame in progress continues;
-/// - a gap in the rows, a first chunk that is not row 0, or a new frame id while a frame is
-///   incomplete: that frame is dropped, [`LinkCounters::missing_chunks`];
-/// - an image larger than the buffer: [`LinkCounters::frame_too_large`];
-/// - completion without intrinsics, or with intrinsics of another size:
+/// - a chunk whose rows all arrived already (duplicate, a resend that crossed the first copy)
+///   or of a slightly older frame: dropped, [`LinkCounters::out_of_order_chunks`]; the frame in
+///   progress continues;
+/// - a new frame id while a frame is incomplete and was not finished first: that frame is
+///   dropped, [`LinkCounters::missing_chunks`];
+/// - an image larger than the buffer, or with more than [`MAX_IMAGE_ROWS`] rows:
+///   [`LinkCounters::frame_too_large`];
+/// - delivery without intrinsics, or with intrinsics of another size:
 ///   [`LinkCounters::no_intrinsics`], [`LinkCounters::intrinsics_mismatch`].
 #[derive(Debug)]
 pub struct DepthAssembler<'a> {
     buf: &'a mut [u16],
+    rows: RowSet,
     intrinsics: Option<Intrinsics>,
     tracked: Option<Tracked>,
     counters: LinkCounters,
@@ -1121,6 +1417,7 @@ impl<'a> DepthAssembler<'a> {
     pub const fn new(buf: &'a mut [u16]) -> Self {
         Self {
             buf,
+            rows: RowSet::new(),
             intrinsics: None,
             tracked: None,
             counters: LinkCounters::new(),
@@ -1153,6 +1450,24 @@ impl<'a> DepthAssembler<'a> {
         }
     }
 
+    /// Id of the newest frame any chunk arrived for, whatever became of it.
+    pub fn newest_frame(&self) -> Option<u32> {
+        self.tracked.map(|t| t.frame_id)
+    }
+
+    /// The runs of rows, `(first, count)`, still missing from the frame in progress (none if no
+    /// frame is in progress).
+    pub fn missing_rows(&self) -> impl Iterator<Item = (u16, u16)> + '_ {
+        let height = match self.tracked {
+            Some(Tracked {
+                phase: Phase::Receiving { height, .. },
+                ..
+            }) => height,
+            _ => 0,
+        };
+        self.rows.missing(height)
+    }
+
     /// The last frame delivered, while no later chunk has started overwriting it.
     pub fn completed_frame(&self) -> Option<DepthFrame<'_>> {
         let Some(Tracked {
@@ -1166,16 +1481,48 @@ impl<'a> DepthAssembler<'a> {
         DepthFrame::new(intrinsics, depth).ok()
     }
 
-    /// Takes one chunk. Returns the depth frame it completes, if any. An error says what
-    /// happened to this chunk; the counters are the full record (a chunk that starts a new
-    /// frame is accepted, yet the incomplete frame it displaces is counted as missing chunks).
-    pub fn push_chunk(&mut self, chunk: &DepthChunk<'_>) -> Result<Option<DepthFrame<'_>>, LinkError> {
+    /// Whether `chunk` would start a new frame while one is in progress (the caller may
+    /// [`finish`](Self::finish) that one first, or it is dropped).
+    pub fn displaces(&self, chunk: &DepthChunk<'_>) -> bool {
+        self.tracked.is_some_and(|t| {
+            matches!(t.phase, Phase::Receiving { .. })
+                && t.frame_id != chunk.frame_id()
+                && t.frame_id.wrapping_sub(chunk.frame_id()) > STALE_FRAME_WINDOW
+        })
+    }
+
+    /// Takes one chunk. Returns the frame it completes (every row arrived), if any. An error
+    /// says what happened to this chunk; the counters are the full record (a chunk that starts
+    /// a new frame is accepted, yet an incomplete frame it displaces is counted as missing
+    /// chunks).
+    pub fn push_chunk(&mut self, chunk: &DepthChunk<'_>) -> Result<Option<Assembled<'_>>, LinkError> {
         if !self.accept(chunk)? {
             return Ok(None);
         }
+        self.deliver()
+    }
+
+    /// Ends the frame in progress: delivers the rows that arrived (the others hold
+    /// [`NOT_RECEIVED`]), counted in [`LinkCounters::depth_frames_partial`] and
+    /// [`LinkCounters::missing_chunks`]. `Ok(None)` if no frame is in progress; later chunks
+    /// of the frame are dropped as late.
+    pub fn finish(&mut self) -> Result<Option<Assembled<'_>>, LinkError> {
+        if self.frame_in_progress().is_none() {
+            return Ok(None);
+        }
+        self.deliver()
+    }
+
+    /// Delivers the frame in progress, whole or not.
+    fn deliver(&mut self) -> Result<Option<Assembled<'_>>, LinkError> {
         let Some(Tracked {
             frame_id,
-            phase: Phase::Receiving { width, height, .. },
+            phase:
+                Phase::Receiving {
+                    width,
+                    height,
+                    received,
+                },
         }) = self.tracked
         else {
             return Ok(None);
@@ -1187,12 +1534,23 @@ impl<'a> DepthAssembler<'a> {
             }
             Some(i) => i,
         };
+        let missing = height.saturating_sub(received);
+        if missing == 0 {
+            bump(&mut self.counters.depth_frames_complete);
+        } else {
+            self.counters.record(LinkError::MissingChunks);
+            bump(&mut self.counters.depth_frames_partial);
+            self.counters.rows_missing = self.counters.rows_missing.saturating_add(u32::from(missing));
+        }
         self.tracked = Some(Tracked {
             frame_id,
             phase: Phase::Complete(intrinsics),
         });
-        bump(&mut self.counters.depth_frames_complete);
-        Ok(self.completed_frame())
+        Ok(self.completed_frame().map(|frame| Assembled {
+            frame_id,
+            frame,
+            missing_rows: missing,
+        }))
     }
 
     /// Routes a chunk; returns whether it completed its frame.
@@ -1201,21 +1559,11 @@ impl<'a> DepthAssembler<'a> {
         if let Some(tracked) = self.tracked {
             if tracked.frame_id == id {
                 return match tracked.phase {
-                    Phase::Receiving {
-                        width,
-                        height,
-                        next_row,
-                    } => {
+                    Phase::Receiving { width, height, .. } => {
                         if chunk.width() != width || chunk.height() != height {
                             return Err(self.drop_frame(id, LinkError::ChunkMismatch));
                         }
-                        match chunk.first_row().cmp(&next_row) {
-                            core::cmp::Ordering::Less => Err(self.count(LinkError::OutOfOrderChunk)),
-                            core::cmp::Ordering::Greater => {
-                                Err(self.drop_frame(id, LinkError::MissingChunks))
-                            }
-                            core::cmp::Ordering::Equal => self.store(chunk),
-                        }
+                        self.store(chunk)
                     }
                     Phase::Complete(_) => Err(self.count(LinkError::OutOfOrderChunk)),
                     Phase::Dropped => Ok(false),
@@ -1234,28 +1582,35 @@ impl<'a> DepthAssembler<'a> {
     fn start_frame(&mut self, chunk: &DepthChunk<'_>) -> Result<bool, LinkError> {
         let id = chunk.frame_id();
         let pixels = usize::from(chunk.width()).checked_mul(usize::from(chunk.height()));
-        if pixels.is_none_or(|p| p > self.buf.len()) {
+        let Some(image) = pixels.and_then(|p| self.buf.get_mut(..p)) else {
+            return Err(self.drop_frame(id, LinkError::FrameTooLarge));
+        };
+        if chunk.height() > MAX_IMAGE_ROWS {
             return Err(self.drop_frame(id, LinkError::FrameTooLarge));
         }
-        if chunk.first_row() != 0 {
-            return Err(self.drop_frame(id, LinkError::MissingChunks));
-        }
+        image.fill(NOT_RECEIVED);
+        self.rows.clear();
         self.tracked = Some(Tracked {
             frame_id: id,
             phase: Phase::Receiving {
                 width: chunk.width(),
                 height: chunk.height(),
-                next_row: 0,
+                received: 0,
             },
         });
         self.store(chunk)
     }
 
-    /// Copies an in-order chunk of the frame in progress; returns whether it was the last.
+    /// Copies a chunk of the frame in progress; returns whether the frame is now whole.
     fn store(&mut self, chunk: &DepthChunk<'_>) -> Result<bool, LinkError> {
         let Some(Tracked {
             frame_id,
-            phase: Phase::Receiving { width, height, .. },
+            phase:
+                Phase::Receiving {
+                    width,
+                    height,
+                    received,
+                },
         }) = self.tracked
         else {
             return Ok(false);
@@ -1265,20 +1620,24 @@ impl<'a> DepthAssembler<'a> {
         let Some(target) = end.and_then(|end| self.buf.get_mut(start..end)) else {
             return Err(self.drop_frame(frame_id, LinkError::FrameTooLarge));
         };
+        let new = self.rows.insert(chunk.first_row(), chunk.row_count());
+        if new == 0 {
+            return Err(self.count(LinkError::OutOfOrderChunk));
+        }
         target
             .iter_mut()
             .zip(chunk.samples())
             .for_each(|(dst, v)| *dst = v);
-        let next_row = chunk.first_row().saturating_add(chunk.row_count());
+        let received = received.saturating_add(new);
         self.tracked = Some(Tracked {
             frame_id,
             phase: Phase::Receiving {
                 width,
                 height,
-                next_row,
+                received,
             },
         });
-        Ok(next_row >= height)
+        Ok(received >= height)
     }
 
     fn count(&mut self, error: LinkError) -> LinkError {
@@ -1303,14 +1662,17 @@ impl<'a> DepthAssembler<'a> {
 /// What the receiving end of the link reports.
 #[derive(Debug, Clone, Copy)]
 pub enum LinkEvent<'f> {
-    /// A complete depth frame, with the pose received for it if the camera side sends poses.
+    /// A depth frame, whole or partial, with the pose received for it if the camera side
+    /// sends poses.
     Depth {
         /// Image id from the chunks.
         frame_id: u32,
-        /// The image and its intrinsics.
+        /// The image and its intrinsics; rows that never arrived hold [`NOT_RECEIVED`].
         frame: DepthFrame<'f>,
         /// The last Pose message, if it carried this frame id.
         pose: Option<Pose>,
+        /// Rows that never arrived (0: the frame is whole).
+        missing_rows: u16,
     },
     /// New intrinsics (also applied to the frames that follow).
     Intrinsics(Intrinsics),
@@ -1318,12 +1680,18 @@ pub enum LinkEvent<'f> {
     Pose(Pose),
     /// Camera-side liveness.
     Heartbeat(Heartbeat),
+    /// A resend request (it travels the other way; a camera side that decodes its return
+    /// channel with a receiver sees it here).
+    ResendRequest(ResendRequest),
     /// A frame or chunk was dropped (already counted).
     Error(LinkError),
 }
 
 /// The receiving end of the depth link: a [`FrameDecoder`] of `N` bytes and a
-/// [`DepthAssembler`] over a caller buffer.
+/// [`DepthAssembler`] over a caller buffer. A frame in progress is delivered when it is whole,
+/// when a chunk of a newer frame arrives, or when the caller finishes it
+/// ([`DepthReceiver::finish_frame`]) — with the rows that arrived. Before finishing, a caller
+/// with a return channel may ask for what is missing ([`DepthReceiver::resend_request`]).
 #[derive(Debug)]
 pub struct DepthReceiver<'a, const N: usize> {
     decoder: FrameDecoder<N>,
@@ -1358,26 +1726,76 @@ impl<'a, const N: usize> DepthReceiver<'a, N> {
                     on_event(LinkEvent::Pose(p));
                 }
                 Ok(Message::Heartbeat(h)) => on_event(LinkEvent::Heartbeat(h)),
-                Ok(Message::DepthChunk(chunk)) => match self.assembler.push_chunk(&chunk) {
-                    Ok(Some(frame)) => {
-                        let frame_id = chunk.frame_id();
-                        let pose = self.pose.filter(|p| p.frame_id() == frame_id);
-                        on_event(LinkEvent::Depth {
-                            frame_id,
-                            frame,
-                            pose,
-                        });
+                Ok(Message::ResendRequest(r)) => on_event(LinkEvent::ResendRequest(r)),
+                Ok(Message::DepthChunk(chunk)) => {
+                    if self.assembler.displaces(&chunk) {
+                        Self::emit(self.pose, self.assembler.finish(), &mut on_event);
                     }
-                    Ok(None) => {}
-                    Err(e) => on_event(LinkEvent::Error(e)),
-                },
+                    Self::emit(self.pose, self.assembler.push_chunk(&chunk), &mut on_event);
+                }
             }
         }
+    }
+
+    /// The frame in progress has had its time (its deadline passed, or the caller asked for
+    /// what is missing as often as it will): delivers the rows that arrived, if any.
+    pub fn finish_frame(&mut self, mut on_event: impl FnMut(LinkEvent<'_>)) {
+        Self::emit(self.pose, self.assembler.finish(), &mut on_event);
+    }
+
+    fn emit(
+        pose: Option<Pose>,
+        result: Result<Option<Assembled<'_>>, LinkError>,
+        on_event: &mut impl FnMut(LinkEvent<'_>),
+    ) {
+        match result {
+            Ok(Some(a)) => on_event(LinkEvent::Depth {
+                frame_id: a.frame_id,
+                frame: a.frame,
+                pose: pose.filter(|p| p.frame_id() == a.frame_id),
+                missing_rows: a.missing_rows,
+            }),
+            Ok(None) => {}
+            Err(e) => on_event(LinkEvent::Error(e)),
+        }
+    }
+
+    /// What to ask the camera side to send again for image `frame_id`: the rows still missing
+    /// if it is the frame in progress, every row if no chunk of it arrived yet (and no newer
+    /// frame did), its pose if `want_pose` and none arrived for it, the intrinsics if none ever
+    /// did. `None` if nothing is missing.
+    pub fn resend_request(&self, frame_id: u32, want_pose: bool) -> Option<ResendRequest> {
+        let mut request = ResendRequest::new(frame_id);
+        match self.assembler.newest_frame() {
+            Some(id) if id == frame_id => {
+                for (first, count) in self.assembler.missing_rows() {
+                    if !request.push_rows(first, count) {
+                        break;
+                    }
+                }
+            }
+            Some(id) if id.wrapping_sub(frame_id) <= STALE_FRAME_WINDOW => {}
+            _ => {
+                request.push_rows(0, u16::MAX);
+            }
+        }
+        if want_pose && self.pose.is_none_or(|p| p.frame_id() != frame_id) {
+            request = request.with_pose();
+        }
+        if self.assembler.intrinsics().is_none() {
+            request = request.with_intrinsics();
+        }
+        (!request.is_empty()).then_some(request)
     }
 
     /// The last frame delivered, while no later chunk has started overwriting it.
     pub fn completed_frame(&self) -> Option<DepthFrame<'_>> {
         self.assembler.completed_frame()
+    }
+
+    /// Id of the frame being received, if one is incomplete.
+    pub fn frame_in_progress(&self) -> Option<u32> {
+        self.assembler.frame_in_progress()
     }
 
     /// Framing and assembly counters together.
@@ -1447,7 +1865,10 @@ mod tests {
     }
 
     struct Received {
+        /// Whole images.
         images: Vec<(u32, Vec<u16>, Option<Pose>)>,
+        /// Partial images: id, depth, rows missing.
+        partial: Vec<(u32, Vec<u16>, u16)>,
         errors: Vec<LinkError>,
         counters: LinkCounters,
     }
@@ -1460,7 +1881,7 @@ mod tests {
     ) -> Received {
         let mut buf = vec![0u16; pixels];
         let mut rx = DepthReceiver::<N>::new(&mut buf);
-        let (mut images, mut errors) = (Vec::new(), Vec::new());
+        let (mut images, mut errors, mut partial) = (Vec::new(), Vec::new(), Vec::new());
         let mut rest = stream;
         while !rest.is_empty() {
             let (now, later) = rest.split_at(slices().min(rest.len()));
@@ -1469,17 +1890,35 @@ mod tests {
                     frame_id,
                     frame,
                     pose,
+                    missing_rows,
                 } => {
                     assert_eq!(frame.depth_mm().len(), frame.intrinsics().pixel_count());
-                    images.push((frame_id, frame.depth_mm().to_vec(), pose));
+                    if missing_rows == 0 {
+                        images.push((frame_id, frame.depth_mm().to_vec(), pose));
+                    } else {
+                        partial.push((frame_id, frame.depth_mm().to_vec(), missing_rows));
+                    }
                 }
                 LinkEvent::Error(e) => errors.push(e),
                 _ => {}
             });
             rest = later;
         }
+        // The caller's deadline for the last frame.
+        rx.finish_frame(|event| {
+            if let LinkEvent::Depth {
+                frame_id,
+                frame,
+                missing_rows,
+                ..
+            } = event
+            {
+                partial.push((frame_id, frame.depth_mm().to_vec(), missing_rows));
+            }
+        });
         Received {
             images,
+            partial,
             errors,
             counters: rx.counters(),
         }
@@ -1506,6 +1945,7 @@ mod tests {
                     Message::Intrinsics(i) => Message::Intrinsics(i),
                     Message::Pose(p) => Message::Pose(p),
                     Message::Heartbeat(h) => Message::Heartbeat(h),
+                    Message::ResendRequest(r) => Message::ResendRequest(r),
                 }));
             }
         }
@@ -1740,9 +2180,28 @@ mod tests {
         r.images.iter().map(|(id, _, _)| *id).collect()
     }
 
+    fn partial_ids(r: &Received) -> Vec<u32> {
+        r.partial.iter().map(|(id, _, _)| *id).collect()
+    }
+
+    /// Whole images equal their originals; in partial ones every row is its original's or
+    /// wholly [`NOT_RECEIVED`], and as many rows are as said missing.
     fn assert_images_intact(r: &Received, originals: &[Vec<u16>]) {
         for (id, depth, _) in &r.images {
             assert_eq!(depth, &originals[*id as usize], "image {id} delivered damaged");
+        }
+        for (id, depth, missing) in &r.partial {
+            let original = &originals[*id as usize];
+            let width = original.len() / 20;
+            let mut lost = 0;
+            for (row, want) in depth.chunks(width).zip(original.chunks(width)) {
+                if row.iter().all(|&d| d == NOT_RECEIVED) {
+                    lost += 1;
+                } else {
+                    assert_eq!(row, want, "image {id} delivered a damaged row");
+                }
+            }
+            assert_eq!(lost, *missing, "image {id}");
         }
     }
 
@@ -1754,16 +2213,20 @@ mod tests {
         images[2][2] = cobs_frame(&raw);
         let r = receive(&images.concat().concat());
         assert_eq!(ids(&r), [0, 1, 3, 4]);
+        // The rows that arrived are still of use: image 2 comes without the damaged chunk's.
+        assert_eq!(partial_ids(&r), [2]);
+        assert_eq!(r.partial[0].2, 5);
         assert_images_intact(&r, &originals);
         let c = r.counters;
         assert_eq!(
             (c.crc_errors, c.missing_chunks, c.depth_frames_dropped),
-            (1, 1, 1)
+            (1, 1, 0)
         );
         assert_eq!(
             (c.sequence_gaps, errors_total(&c), c.depth_frames_complete),
             (1, 2, 4)
         );
+        assert_eq!((c.depth_frames_partial, c.rows_missing), (1, 5));
     }
 
     #[test]
@@ -1799,10 +2262,15 @@ mod tests {
                 }
                 let expect: Vec<u32> = (0..5).filter(|&i| i != image as u32).collect();
                 assert_eq!(ids(&r), expect, "{name}, image {image} chunk {chunk}");
+                assert_eq!(
+                    partial_ids(&r),
+                    [image as u32],
+                    "{name}, image {image} chunk {chunk}"
+                );
                 assert_eq!(c.crc_errors + c.cobs_errors + c.malformed, 1, "{name}: {c:?}");
                 assert_eq!(
-                    (c.missing_chunks, c.depth_frames_dropped),
-                    (1, 1),
+                    (c.missing_chunks, c.depth_frames_partial, c.depth_frames_dropped),
+                    (1, 1, 0),
                     "{name}: {c:?}"
                 );
             }
@@ -1914,23 +2382,26 @@ mod tests {
             vec![f(0, 0), f(0, 1), f(0, 2), f(0, 2), f(0, 3), f(0, 4)],
             // Image 1 with a late chunk of image 0 in it and a duplicate after completion.
             vec![f(1, 0), f(1, 1), f(0, 3), f(1, 2), f(1, 3), f(1, 4), f(1, 4)],
-            // Image 2 with two chunks swapped: a gap, dropped whole.
+            // Image 2 with two chunks swapped: delivered whole.
             vec![f(2, 0), f(2, 1), f(2, 3), f(2, 2), f(2, 4)],
-            // Image 3 cut short by image 4: dropped whole.
+            // Image 3 cut short by image 4: delivered with the rows that came.
             vec![f(3, 0), f(3, 1), f(3, 2)],
             vec![f(4, 0), f(4, 1), f(4, 2), f(4, 3), f(4, 4)],
-            // Image 5 without its first chunk.
+            // Image 5 without its first chunk: delivered without it at the deadline.
             vec![f(5, 0), f(5, 2), f(5, 3), f(5, 4)],
         ]
         .concat()
         .concat();
         let r = receive(&stream);
-        assert_eq!(ids(&r), [0, 1, 4]);
+        assert_eq!(ids(&r), [0, 1, 2, 4]);
+        assert_eq!(partial_ids(&r), [3, 5]);
+        assert_eq!((r.partial[0].2, r.partial[1].2), (10, 5));
         assert_images_intact(&r, &originals);
         let c = r.counters;
         assert_eq!(c.out_of_order_chunks, 3);
-        assert_eq!(c.missing_chunks, 3);
-        assert_eq!((c.depth_frames_complete, c.depth_frames_dropped), (3, 3));
+        assert_eq!(c.missing_chunks, 2);
+        assert_eq!((c.depth_frames_complete, c.depth_frames_dropped), (4, 0));
+        assert_eq!((c.depth_frames_partial, c.rows_missing), (2, 15));
         assert_eq!(c.crc_errors + c.cobs_errors + c.malformed, 0);
     }
 
@@ -2149,7 +2620,7 @@ mod tests {
         }
         let c = rx.counters();
         std::println!("fuzz: {c:?}");
-        assert_eq!(c.depth_frames_complete, delivered);
+        assert_eq!(c.depth_frames_complete + c.depth_frames_partial, delivered);
         assert!(c.frames_ok > 1000 && c.malformed > 100 && c.crc_errors > 100 && c.cobs_errors > 100);
         assert!(c.missing_chunks > 0 && c.out_of_order_chunks > 0 && c.frame_too_large > 0);
         assert!(delivered > 0 && frames_seen > 0 && small.counters().oversize > 0);
@@ -2194,6 +2665,144 @@ mod tests {
             total = total.merged(&r.counters);
         }
         std::println!("damage: {total:?}");
-        assert!(total.depth_frames_complete > 1000 && total.depth_frames_dropped > 50);
+        assert!(total.depth_frames_complete > 1000 && total.depth_frames_partial > 50);
+    }
+
+    #[test]
+    fn resend_requests_round_trip_and_bad_ones_are_refused() {
+        let mut request = ResendRequest::new(7).with_pose();
+        assert!(request.push_rows(3, 2) && request.push_rows(40, 9));
+        assert!(!request.push_rows(50, 0));
+        let mut out = [0u8; 128];
+        let n = encode_frame(5, &Message::ResendRequest(request), &mut out).unwrap();
+        assert!(n <= max_encoded_len(Message::ResendRequest(request).payload_len()));
+        let decoded = decode_one::<128>(&out[..n]);
+        assert_eq!(decoded, [Ok(Message::ResendRequest(request))]);
+        assert_eq!(request.rows(), [(3, 2), (40, 9)]);
+        assert!(request.wants_pose() && !request.wants_intrinsics());
+        // A full request takes no more ranges.
+        let mut full = ResendRequest::new(1);
+        for k in 0..MAX_RESEND_RANGES as u16 {
+            assert!(full.push_rows(2 * k, 1));
+        }
+        assert!(!full.push_rows(99, 1));
+        // Unknown flags, too many ranges, an empty range, a short body: malformed.
+        let body = |flags: u8, n: u8, ranges: &[(u16, u16)]| {
+            let mut b = vec![
+                PROTOCOL_VERSION,
+                MessageType::ResendRequest.code(),
+                0,
+                0,
+                7,
+                0,
+                0,
+                0,
+                flags,
+                n,
+            ];
+            for (f, c) in ranges {
+                b.extend_from_slice(&f.to_le_bytes());
+                b.extend_from_slice(&c.to_le_bytes());
+            }
+            b
+        };
+        let framed = |raw: Vec<u8>| {
+            let mut raw = raw;
+            raw.extend_from_slice(&crc32(&raw).to_le_bytes());
+            cobs_frame(&raw)
+        };
+        let bad = LinkError::Malformed(Malformed::ResendRequest);
+        assert_eq!(decode_one::<256>(&framed(body(4, 0, &[]))), [Err(bad)]);
+        assert_eq!(decode_one::<256>(&framed(body(0, 1, &[(3, 0)]))), [Err(bad)]);
+        let many = vec![(1u16, 1u16); MAX_RESEND_RANGES + 1];
+        assert_eq!(
+            decode_one::<256>(&framed(body(0, many.len() as u8, &many))),
+            [Err(bad)]
+        );
+        assert_eq!(
+            decode_one::<256>(&framed(body(0, 2, &[(1, 1)]))),
+            [Err(LinkError::Malformed(Malformed::BodyLength))]
+        );
+    }
+
+    #[test]
+    fn a_receiver_asks_for_what_is_missing_and_the_answer_completes_the_frame() {
+        let mut enc = LinkEncoder::new();
+        let (depth, frames) = image_frames(&mut enc, 3, 20, 20, 5); // intrinsics, 4 chunks
+        let mut buf = vec![0u16; 400];
+        let mut rx = DepthReceiver::<BIG>::new(&mut buf);
+        // Nothing of image 3 yet: everything, its pose, the intrinsics.
+        let r = rx.resend_request(3, true).unwrap();
+        assert_eq!(r.rows(), [(0, u16::MAX)]);
+        assert!(r.wants_pose() && r.wants_intrinsics());
+        // Chunks 1 and 3 (rows 0-4, 10-14) lost.
+        let mut whole = 0;
+        for k in [0, 2, 4] {
+            rx.feed(&frames[k], |e| {
+                whole += u32::from(matches!(e, LinkEvent::Depth { .. }))
+            });
+        }
+        assert_eq!(whole, 0);
+        let r = rx.resend_request(3, false).unwrap();
+        assert_eq!(r.rows(), [(0, 5), (10, 5)]);
+        assert!(!r.wants_pose() && !r.wants_intrinsics());
+        // The camera side answers: the rows again, in chunks of another size.
+        let frame = DepthFrame::new(intrinsics(20, 20), &depth).unwrap();
+        let mut scratch = vec![0u8; max_depth_chunk_len(20, 5)];
+        let mut answer = Vec::new();
+        for &rows in r.rows() {
+            enc.encode_rows(3, &frame, rows, 2, &mut scratch, |f| answer.extend_from_slice(f))
+                .unwrap();
+        }
+        let mut got = None;
+        rx.feed(&answer, |e| {
+            if let LinkEvent::Depth {
+                frame, missing_rows, ..
+            } = e
+            {
+                got = Some((frame.depth_mm().to_vec(), missing_rows));
+            }
+        });
+        assert_eq!(got, Some((depth.clone(), 0)));
+        assert_eq!(rx.resend_request(3, false), None);
+        // Rows past the image are clamped away; a late resend is counted, not delivered.
+        assert_eq!(
+            enc.encode_rows(3, &frame, (20, 5), 5, &mut scratch, |_| ())
+                .unwrap(),
+            0
+        );
+        rx.feed(&answer, |e| assert!(!matches!(e, LinkEvent::Depth { .. })));
+        assert_eq!(rx.counters().out_of_order_chunks, 6);
+        assert_eq!(rx.counters().depth_frames_complete, 1);
+    }
+
+    #[test]
+    fn chunk_size_follows_the_bit_error_rate() {
+        // Clean or nearly: the longest chunks; at 1e-4 one row per chunk.
+        assert_eq!(best_rows_per_chunk(100, 0.0, 10), 10);
+        assert_eq!(best_rows_per_chunk(100, 3e-7, 10), 10);
+        assert_eq!(best_rows_per_chunk(100, 1e-6, 10), 8);
+        assert_eq!(best_rows_per_chunk(100, 1e-5, 10), 3);
+        assert_eq!(best_rows_per_chunk(100, 1e-4, 10), 1);
+        let mut last = 10;
+        for ber in [1e-7, 1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 1e-3, f32::NAN, -1.0, 2.0] {
+            let rows = best_rows_per_chunk(100, ber, 10);
+            assert!((1..=10).contains(&rows));
+            if ber.is_finite() && ber > 0.0 && ber < 1.0 {
+                assert!(rows <= last, "{ber}: {rows} > {last}");
+                last = rows;
+            }
+        }
+        assert_eq!(best_rows_per_chunk(100, 1e-4, 0), 1);
+        // The estimate inverts the loss model.
+        let len = max_depth_chunk_len(100, 10);
+        let keep = (1.0f32 - 1e-4).powf(8.0 * len as f32);
+        let lost = ((1.0 - keep) * 1000.0).round() as u32;
+        let est = estimate_bit_error_rate(1000, lost, len);
+        assert!((est - 1e-4).abs() < 1e-5, "{est}");
+        assert_eq!(estimate_bit_error_rate(0, 0, len), 0.0);
+        assert_eq!(estimate_bit_error_rate(10, 0, len), 0.0);
+        let all = estimate_bit_error_rate(10, 10, len);
+        assert!(all.is_finite() && all > 1e-4);
     }
 }

@@ -350,6 +350,7 @@ impl<'a> Firmware<'a> {
                 frame_id,
                 frame,
                 pose: Some(pose),
+                ..
             } => {
                 phase(Phase::Integrate);
                 let t0 = clock.ticks();

@@ -11,13 +11,17 @@
 //! - no panic;
 //! - every delivered depth frame is consistent: as many samples as its intrinsics announce,
 //!   intrinsics that [`Intrinsics::new`] accepts, a pose (if any) for the same frame id that
-//!   is finite with a unit quaternion;
+//!   is finite with a unit quaternion; a partial one has at least one row and at least as many
+//!   rows wholly [`NOT_RECEIVED`] as it says are missing;
+//! - at the end, the resend request for the frame in progress lists rows inside the image, in
+//!   order, not overlapping, and survives its own encoding; finishing the frame then delivers
+//!   it (or says why not);
 //! - the three slicings yield the same events and the same counters.
 
 use harmonic_core::camera::Intrinsics;
 use harmonic_core::link::{
-    DepthChunk, DepthReceiver, Heartbeat, LinkCounters, LinkEncoder, LinkError, LinkEvent, Message, Pose,
-    UNIT_QUATERNION_TOLERANCE,
+    DepthChunk, DepthReceiver, FrameDecoder, Heartbeat, LinkCounters, LinkEncoder, LinkError, LinkEvent,
+    Message, Pose, ResendRequest, NOT_RECEIVED, UNIT_QUATERNION_TOLERANCE,
 };
 
 /// Decoder buffer: small enough that oversize frames are reachable.
@@ -43,11 +47,15 @@ enum Event {
         intrinsics: Intrinsics,
         depth_mm: Vec<u16>,
         pose: Option<Pose>,
+        missing_rows: u16,
     },
     Intrinsics(Intrinsics),
     Pose(Pose),
     Heartbeat(Heartbeat),
+    ResendRequest(ResendRequest),
     Error(LinkError),
+    /// What the receiver asked for at the end.
+    Asked(Option<ResendRequest>),
 }
 
 /// Runs the harness on one input. Panics only when the oracle finds a bug.
@@ -81,6 +89,26 @@ fn receive(stream: &[u8], slices: &[usize]) -> (Vec<Event>, LinkCounters) {
         receiver.feed(now, |event| events.push(check(event)));
         rest = later;
     }
+    if let Some(id) = receiver.frame_in_progress() {
+        let request = receiver.resend_request(id, true);
+        events.push(Event::Asked(request));
+        let request = request.expect("a frame in progress lacks rows");
+        check_request(&request);
+        let mut before = 0u32;
+        for &(first, count) in request.rows() {
+            assert!(
+                count > 0 && u32::from(first) >= before,
+                "rows asked for twice or out of order"
+            );
+            before = u32::from(first) + u32::from(count);
+        }
+        receiver.finish_frame(|event| events.push(check(event)));
+        assert_eq!(
+            receiver.frame_in_progress(),
+            None,
+            "finishing left the frame in progress"
+        );
+    }
     let counters = receiver.counters();
     assert_eq!(counters.bytes, stream.len() as u64, "bytes counted");
     (events, counters)
@@ -93,8 +121,22 @@ fn check(event: LinkEvent<'_>) -> Event {
             frame_id,
             frame,
             pose,
+            missing_rows,
         } => {
             let i = *frame.intrinsics();
+            assert!(
+                missing_rows < i.height(),
+                "a frame of which no row arrived delivered"
+            );
+            let lost = frame
+                .depth_mm()
+                .chunks(usize::from(i.width()))
+                .filter(|row| row.iter().all(|&d| d == NOT_RECEIVED))
+                .count();
+            assert!(
+                lost >= usize::from(missing_rows),
+                "missing rows hold received values"
+            );
             assert_eq!(
                 frame.depth_mm().len(),
                 usize::from(i.width()) * usize::from(i.height()),
@@ -111,6 +153,7 @@ fn check(event: LinkEvent<'_>) -> Event {
                 intrinsics: i,
                 depth_mm: frame.depth_mm().to_vec(),
                 pose,
+                missing_rows,
             }
         }
         LinkEvent::Intrinsics(i) => {
@@ -122,8 +165,28 @@ fn check(event: LinkEvent<'_>) -> Event {
             Event::Pose(p)
         }
         LinkEvent::Heartbeat(h) => Event::Heartbeat(h),
+        LinkEvent::ResendRequest(r) => {
+            check_request(&r);
+            Event::ResendRequest(r)
+        }
         LinkEvent::Error(e) => Event::Error(e),
     }
+}
+
+/// A request survives its own encoding and decoding unchanged.
+fn check_request(r: &ResendRequest) {
+    let mut out = [0u8; 128];
+    let n = LinkEncoder::new()
+        .encode(&Message::ResendRequest(*r), &mut out)
+        .expect("a request fits 128 bytes");
+    let mut decoder = FrameDecoder::<128>::new();
+    let mut back = None;
+    for &b in &out[..n] {
+        if let Some(Ok(Message::ResendRequest(d))) = decoder.push(b) {
+            back = Some(d);
+        }
+    }
+    assert_eq!(back, Some(*r), "a resend request changed on the wire");
 }
 
 fn check_intrinsics(i: &Intrinsics) {
@@ -164,7 +227,7 @@ fn scripted_stream(data: &[u8]) -> Vec<u8> {
         if input.is_empty() {
             break;
         }
-        match input.u8() % 8 {
+        match input.u8() % 9 {
             0 => {
                 let (w, h) = (u16::from(input.u8() % 32), u16::from(input.u8() % 24));
                 let fx = input.float(FLOATS);
@@ -243,6 +306,17 @@ fn scripted_stream(data: &[u8]) -> Vec<u8> {
                 for _ in 0..n {
                     out.push(input.u8());
                 }
+            }
+            7 => {
+                // A resend request (it belongs on the return channel; the receiver reports it).
+                let mut r = ResendRequest::new(u32::from(input.u8()));
+                if input.u8() & 1 == 1 {
+                    r = r.with_pose();
+                }
+                for _ in 0..input.u8() % 20 {
+                    let _ = r.push_rows(input.u16(), input.u16());
+                }
+                emit(&mut encoder, &Message::ResendRequest(r), &mut out);
             }
             _ => edits += 1,
         }

@@ -15,14 +15,43 @@
 //!   (about 20 kB) is on the wire for about 0.22 s at 921600 baud. [`DepthLink::tick`] moves the
 //!   bytes whose time has come onto the [`Wire`] and hands whatever arrived to the core's
 //!   `DepthReceiver`; the run keeps flying (and streaming MAVLink) between ticks.
-//! - The core side keeps each complete image that came with its pose; the run integrates them.
-//!   An image without its pose (the Pose frame was lost) cannot be placed in the map and is
-//!   dropped, counted in [`LinkReport::frames_without_pose`].
+//! - The core side keeps each image that came with its pose, whole or with the rows that
+//!   arrived ([`harmonic_core::link::DepthAssembler`]: rows lost hold `NOT_RECEIVED`, which the
+//!   integrator skips); the run integrates them. An image without its pose (the Pose frame was
+//!   lost) cannot be placed in the map and is dropped, counted in
+//!   [`LinkReport::frames_without_pose`].
+//!
+//! # Selective retransmission and chunk size
+//!
+//! ```text
+//! core side: DepthReceiver::resend_request ─► FaultInjector ─► return queue (same baud) ─► camera side
+//! camera side: the rows, pose, intrinsics asked for ─► forward queue, as above
+//! ```
+//!
+//! When the camera side has sent an image, the core side asks ([`DepthLink::request_missing`])
+//! for what it lacks — rows, the pose, the intrinsics — in a `ResendRequest` over a return
+//! channel that runs at the same baud rate and suffers the same faults (its own draws), at most
+//! [`LinkConfig::arq_rounds`] times per image; the camera side keeps its last image and sends
+//! what is asked again. Then the image is finished ([`DepthLink::finish_frame`]) with what
+//! arrived. An image that arrived whole is acknowledged by an empty request (not waited for).
+//! The real system would ask at a deadline (the image's bytes at the baud rate, plus a
+//! margin); the simulation asks when the camera side's queue has drained. Over TCP and serial
+//! the forward wire is the real one and the return channel is simulated in this process.
+//!
+//! From the first request or acknowledgement of each image the camera side learns how many of
+//! its chunks were lost, turns that into a bit error rate
+//! (`harmonic_core::link::estimate_bit_error_rate`, smoothed over images) and picks the chunk
+//! size that carries the most depth per byte at that rate
+//! (`harmonic_core::link::best_rows_per_chunk`, at most [`ROWS_PER_CHUNK`] rows), unless
+//! [`LinkConfig::chunk_rows`] fixes it. A clean line keeps [`ROWS_PER_CHUNK`].
 
 use std::collections::VecDeque;
 
 use harmonic_core::camera::{DepthFrame, Intrinsics};
-use harmonic_core::link::{self, DepthReceiver, Heartbeat, LinkCounters, LinkEncoder, LinkEvent};
+use harmonic_core::link::{
+    self, DepthReceiver, FrameDecoder, Heartbeat, LinkCounters, LinkEncoder, LinkEvent, Message,
+    ResendRequest,
+};
 use nalgebra::Isometry3;
 use serde::Serialize;
 
@@ -43,6 +72,14 @@ pub const ROWS_PER_CHUNK: u16 = 10;
 /// How long the core side waits for bytes still travelling through an outside wire (TCP,
 /// serial) after the camera side finished sending, if none arrive meanwhile.
 pub const SETTLE_TIMEOUT_S: f64 = 2.0;
+/// Default rounds of selective retransmission per image.
+pub const DEFAULT_ARQ_ROUNDS: u8 = 4;
+/// Weight of the newest image in the camera side's smoothed bit error rate.
+const BER_SMOOTHING: f32 = 0.3;
+/// Seed offset of the return channel's fault draws (its own stream of faults).
+const RETURN_SEED: u64 = 0x5245_5455_524E;
+/// Decoder capacity of the camera side's return channel: a full resend request.
+const RETURN_DECODER_BYTES: usize = 128;
 
 /// How the depth link is set up.
 #[derive(Debug, Clone, PartialEq)]
@@ -51,8 +88,13 @@ pub struct LinkConfig {
     pub transport: TransportSpec,
     /// Baud rate; 10 bits per byte.
     pub baud: u32,
-    /// Faults to inject.
+    /// Faults to inject (both ways).
     pub faults: FaultConfig,
+    /// Resend requests per image at most (0: no retransmission, no return traffic).
+    pub arq_rounds: u8,
+    /// Rows per depth chunk, fixed; `None` adapts it to the bit error rate the camera side
+    /// infers (see the [module documentation](self)).
+    pub chunk_rows: Option<u16>,
 }
 
 impl Default for LinkConfig {
@@ -61,6 +103,8 @@ impl Default for LinkConfig {
             transport: TransportSpec::Sim,
             baud: DEFAULT_BAUD,
             faults: FaultConfig::default(),
+            arq_rounds: DEFAULT_ARQ_ROUNDS,
+            chunk_rows: None,
         }
     }
 }
@@ -123,23 +167,50 @@ pub struct LinkReport {
     pub transfer: MsStat,
     /// Seconds the wire was busy.
     pub wire_busy_s: f64,
-    /// The core's receiver: frames decoded, every error counter.
+    /// The core's receiver: frames decoded, every error counter (partial images in
+    /// `depth_frames_partial`, their missing rows in `rows_missing`).
     pub receiver: LinkCounters,
     /// What the fault injector did; `None` without faults.
     pub injected: Option<FaultCounters>,
+    /// Images integrated with rows missing.
+    pub partial_frames_integrated: u32,
+    /// Resend rounds allowed per image.
+    pub arq_rounds: u8,
+    /// Resend requests the core side sent (acknowledgements not counted).
+    pub resend_requests_sent: u32,
+    /// Empty requests (acknowledgements of whole images) the core side sent.
+    pub acks_sent: u32,
+    /// Requests and acknowledgements the camera side received intact.
+    pub resend_requests_received: u32,
+    /// Depth chunks the camera side sent again.
+    pub chunks_resent: u32,
+    /// Bytes of those chunks, poses and intrinsics sent again.
+    pub bytes_resent: u64,
+    /// Bytes put on the return channel.
+    pub return_bytes_sent: u64,
+    /// What the return channel's fault injector did; `None` without faults or requests.
+    pub return_injected: Option<FaultCounters>,
+    /// Rows per chunk of each image sent, mean.
+    pub rows_per_chunk_mean: f64,
+    /// Rows per chunk of the last image sent.
+    pub rows_per_chunk_last: u16,
+    /// The camera side's smoothed bit error rate estimate at the end.
+    pub ber_estimate: f64,
 }
 
-/// An image the core side received whole, with its pose.
+/// An image the core side received, whole or partially, with its pose.
 #[derive(Debug, Clone)]
 pub struct ArrivedFrame {
     /// Image id.
     pub frame_id: u32,
     /// Its intrinsics.
     pub intrinsics: Intrinsics,
-    /// Depth, mm, row-major.
+    /// Depth, mm, row-major; rows that never arrived hold `NOT_RECEIVED`.
     pub depth: Vec<u16>,
     /// Camera → map pose sent with it.
     pub camera_pose: Isometry3<f32>,
+    /// Rows that never arrived (0: whole).
+    pub missing_rows: u16,
 }
 
 impl ArrivedFrame {
@@ -149,15 +220,117 @@ impl ArrivedFrame {
     }
 }
 
+/// An image delivered before its pose arrived (the core side asks for the pose again).
+#[derive(Debug)]
+struct AwaitingPose {
+    frame_id: u32,
+    intrinsics: Intrinsics,
+    depth: Vec<u16>,
+    missing_rows: u16,
+}
+
 /// Core-side bookkeeping that the receiver's callback updates.
 #[derive(Debug, Default)]
 struct CoreSide {
     arrived: Vec<ArrivedFrame>,
+    awaiting_pose: Vec<AwaitingPose>,
     frames_without_pose: u32,
     heartbeats_received: u32,
     last_heartbeat_s: Option<f64>,
     max_heartbeat_gap_s: f64,
     camera_frames_sent_reported: u32,
+}
+
+impl CoreSide {
+    /// Takes one receiver event at simulated time `now_s`.
+    fn on_event(&mut self, now_s: f64, event: LinkEvent<'_>) {
+        match event {
+            LinkEvent::Depth {
+                frame_id,
+                frame,
+                pose,
+                missing_rows,
+            } => match pose {
+                Some(pose) => self.arrived.push(ArrivedFrame {
+                    frame_id,
+                    intrinsics: *frame.intrinsics(),
+                    depth: frame.depth_mm().to_vec(),
+                    camera_pose: pose.isometry(),
+                    missing_rows,
+                }),
+                None => self.awaiting_pose.push(AwaitingPose {
+                    frame_id,
+                    intrinsics: *frame.intrinsics(),
+                    depth: frame.depth_mm().to_vec(),
+                    missing_rows,
+                }),
+            },
+            LinkEvent::Pose(pose) => {
+                if let Some(k) = self
+                    .awaiting_pose
+                    .iter()
+                    .position(|a| a.frame_id == pose.frame_id())
+                {
+                    let a = self.awaiting_pose.swap_remove(k);
+                    self.arrived.push(ArrivedFrame {
+                        frame_id: a.frame_id,
+                        intrinsics: a.intrinsics,
+                        depth: a.depth,
+                        camera_pose: pose.isometry(),
+                        missing_rows: a.missing_rows,
+                    });
+                }
+            }
+            LinkEvent::Heartbeat(h) => {
+                self.heartbeats_received += 1;
+                self.camera_frames_sent_reported = h.frames_sent;
+                if let Some(last) = self.last_heartbeat_s {
+                    self.max_heartbeat_gap_s = self.max_heartbeat_gap_s.max(now_s - last);
+                }
+                self.last_heartbeat_s = Some(now_s);
+            }
+            _ => {}
+        }
+    }
+
+    /// Whether image `frame_id` arrived with its pose.
+    fn placed(&self, frame_id: u32) -> bool {
+        self.arrived.iter().any(|a| a.frame_id == frame_id)
+    }
+}
+
+/// The camera side's copy of its last image, for resends.
+#[derive(Debug)]
+struct SentImage {
+    frame_id: u32,
+    intrinsics: Intrinsics,
+    depth: Vec<u16>,
+    pose: link::Pose,
+    /// Rows per chunk of its first transmission.
+    rows_per_chunk: u16,
+    /// Whether its first request or acknowledgement has updated the error estimate.
+    estimated: bool,
+}
+
+/// The return channel (core side → camera side) and the camera side's retransmission state.
+struct ReturnChannel {
+    injector: Option<FaultInjector>,
+    queue: VecDeque<u8>,
+    credit: f64,
+    decoder: FrameDecoder<RETURN_DECODER_BYTES>,
+    encoder: LinkEncoder,
+    /// Requests the core side sent for the image in progress.
+    rounds: u8,
+    /// Whether the image in progress was acknowledged.
+    acked: bool,
+    requests_sent: u32,
+    acks_sent: u32,
+    requests_received: u32,
+    chunks_resent: u32,
+    bytes_resent: u64,
+    bytes_sent: u64,
+    /// The camera side's smoothed bit error rate.
+    ber: f32,
 }
 
 /// The depth link of a run. See the [module documentation](self).
@@ -167,7 +340,14 @@ pub struct DepthLink<'b> {
     // Camera side.
     encoder: LinkEncoder,
     scratch: Vec<u8>,
+    /// Most rows per chunk the decoder takes (and the adaptive size's ceiling).
+    max_rows_per_chunk: u16,
     rows_per_chunk: u16,
+    rows_per_chunk_sum: u64,
+    chunk_rows: Option<u16>,
+    arq_rounds: u8,
+    last_sent: Option<SentImage>,
+    back: ReturnChannel,
     injector: Option<FaultInjector>,
     staged: Vec<u8>,
     next_heartbeat_s: f64,
@@ -189,6 +369,7 @@ pub struct DepthLink<'b> {
     bytes_received: u64,
     core: CoreSide,
     depth_frames_integrated: u32,
+    partial_frames_integrated: u32,
 }
 
 impl<'b> DepthLink<'b> {
@@ -210,13 +391,42 @@ impl<'b> DepthLink<'b> {
             .rev()
             .find(|&r| link::max_depth_chunk_len(width, r) <= DECODER_BYTES)
             .unwrap_or(1);
+        if let Some(r) = config.chunk_rows {
+            if r == 0 || r > rows {
+                return Err(format!(
+                    "--link-chunk-rows {r}: must be 1 to {rows} (a chunk must fit the core's {DECODER_BYTES}-byte decoder)"
+                ));
+            }
+        }
+        let faulty = !config.faults.is_clean();
         Ok(Self {
             label: config.transport.to_string(),
             baud: config.baud,
             encoder: LinkEncoder::new(),
-            scratch: vec![0; link::max_depth_chunk_len(width, rows).max(link::max_encoded_len(64))],
-            rows_per_chunk: rows,
-            injector: (!config.faults.is_clean()).then(|| FaultInjector::new(config.faults, seed)),
+            scratch: vec![0; link::max_depth_chunk_len(width, rows).max(link::max_encoded_len(128))],
+            max_rows_per_chunk: rows,
+            rows_per_chunk: config.chunk_rows.unwrap_or(rows),
+            rows_per_chunk_sum: 0,
+            chunk_rows: config.chunk_rows,
+            arq_rounds: config.arq_rounds,
+            last_sent: None,
+            back: ReturnChannel {
+                injector: faulty.then(|| FaultInjector::new(config.faults, seed ^ RETURN_SEED)),
+                queue: VecDeque::new(),
+                credit: 0.0,
+                decoder: FrameDecoder::new(),
+                encoder: LinkEncoder::new(),
+                rounds: 0,
+                acked: false,
+                requests_sent: 0,
+                acks_sent: 0,
+                requests_received: 0,
+                chunks_resent: 0,
+                bytes_resent: 0,
+                bytes_sent: 0,
+                ber: 0.0,
+            },
+            injector: faulty.then(|| FaultInjector::new(config.faults, seed)),
             staged: Vec::new(),
             next_heartbeat_s: 0.0,
             heartbeats_sent: 0,
@@ -235,6 +445,7 @@ impl<'b> DepthLink<'b> {
             bytes_received: 0,
             core: CoreSide::default(),
             depth_frames_integrated: 0,
+            partial_frames_integrated: 0,
         })
     }
 
@@ -292,23 +503,156 @@ impl<'b> DepthLink<'b> {
                 });
         self.scratch = scratch;
         result.map_err(wire_err)?;
-        for f in frames {
-            self.link_frames_sent += 1;
-            match self.injector.as_mut() {
-                Some(injector) => injector.send(&f, &mut self.staged),
-                None => self.staged.extend_from_slice(&f),
-            }
-        }
+        self.stage_all(&frames);
         let start = self.now_s;
         let done = self.enqueue_staged();
         self.transfer_ms.push((done - start) * 1e3);
         self.depth_frames_sent += 1;
+        self.rows_per_chunk_sum += u64::from(self.rows_per_chunk);
+        self.last_sent = Some(SentImage {
+            frame_id,
+            intrinsics: *frame.intrinsics(),
+            depth: frame.depth_mm().to_vec(),
+            pose,
+            rows_per_chunk: self.rows_per_chunk,
+            estimated: false,
+        });
+        self.back.rounds = 0;
+        self.back.acked = false;
         Ok(())
     }
 
-    /// True while bytes wait to go on the wire.
+    /// Camera side: encoded frames through the injector into the staging buffer.
+    fn stage_all(&mut self, frames: &[Vec<u8>]) {
+        for f in frames {
+            self.link_frames_sent += 1;
+            match self.injector.as_mut() {
+                Some(injector) => injector.send(f, &mut self.staged),
+                None => self.staged.extend_from_slice(f),
+            }
+        }
+    }
+
+    /// Core side: asks the camera side for what image `frame_id` still lacks (its rows, its
+    /// pose, the intrinsics), if any and if rounds are left; true if a request went out (the
+    /// caller lets the link run until it is answered, then asks again). With nothing missing
+    /// the image is acknowledged once, which is not waited for.
+    pub fn request_missing(&mut self, frame_id: u32) -> Result<bool, String> {
+        if self.arq_rounds == 0 {
+            return Ok(false);
+        }
+        let want_pose = !self.core.placed(frame_id);
+        let request = match self.receiver.resend_request(frame_id, want_pose) {
+            Some(r) if self.back.rounds < self.arq_rounds => {
+                self.back.rounds += 1;
+                self.back.requests_sent += 1;
+                r
+            }
+            Some(_) => return Ok(false),
+            None if !self.back.acked => {
+                self.back.acked = true;
+                self.back.acks_sent += 1;
+                ResendRequest::new(frame_id)
+            }
+            None => return Ok(false),
+        };
+        let mut frame = [0u8; RETURN_DECODER_BYTES];
+        let n = self
+            .back
+            .encoder
+            .encode(&Message::ResendRequest(request), &mut frame)
+            .map_err(|e| format!("depth link return channel: {e:?}"))?;
+        let mut staged = Vec::new();
+        match self.back.injector.as_mut() {
+            Some(injector) => {
+                injector.send(frame.get(..n).unwrap_or(&[]), &mut staged);
+                injector.flush(&mut staged);
+            }
+            None => staged.extend_from_slice(frame.get(..n).unwrap_or(&[])),
+        }
+        self.back.bytes_sent += staged.len() as u64;
+        self.back.queue.extend(staged);
+        Ok(!request.is_empty())
+    }
+
+    /// Core side: gives up waiting for image `frame_id`: delivers the rows that arrived (if no
+    /// newer image displaced it already), and counts an image whose pose never came.
+    pub fn finish_frame(&mut self) {
+        let now_s = self.now_s;
+        let core = &mut self.core;
+        self.receiver.finish_frame(|event| core.on_event(now_s, event));
+        self.core.frames_without_pose += self.core.awaiting_pose.len() as u32;
+        self.core.awaiting_pose.clear();
+    }
+
+    /// Camera side: answers a request from the return channel (or takes an acknowledgement).
+    fn answer(&mut self, request: &ResendRequest) -> Result<(), String> {
+        self.back.requests_received += 1;
+        let Some(sent) = self
+            .last_sent
+            .as_mut()
+            .filter(|s| s.frame_id == request.frame_id())
+        else {
+            return Ok(());
+        };
+        if !sent.estimated {
+            sent.estimated = true;
+            self.back.ber = estimate_ber(self.back.ber, sent, request);
+            if self.chunk_rows.is_none() {
+                let width = sent.intrinsics.width();
+                self.rows_per_chunk =
+                    link::best_rows_per_chunk(width, self.back.ber, self.max_rows_per_chunk);
+            }
+        }
+        let wire_err = |e: link::LinkError| format!("depth link encoder: {e:?}");
+        let frame = DepthFrame::new(sent.intrinsics, &sent.depth).map_err(|e| format!("{e:?}"))?;
+        let mut frames: Vec<Vec<u8>> = Vec::new();
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let mut chunks = 0u32;
+        let mut result = Ok(());
+        if request.wants_pose() {
+            result = self
+                .encoder
+                .encode(&Message::Pose(sent.pose), &mut scratch)
+                .map(|n| frames.push(scratch[..n].to_vec()));
+        }
+        if request.wants_intrinsics() && result.is_ok() {
+            result = self
+                .encoder
+                .encode(&Message::Intrinsics(sent.intrinsics), &mut scratch)
+                .map(|n| frames.push(scratch[..n].to_vec()));
+        }
+        for &rows in request.rows() {
+            if result.is_err() {
+                break;
+            }
+            result = self
+                .encoder
+                .encode_rows(
+                    sent.frame_id,
+                    &frame,
+                    rows,
+                    self.rows_per_chunk,
+                    &mut scratch,
+                    |f| {
+                        chunks += 1;
+                        frames.push(f.to_vec())
+                    },
+                )
+                .map(|_| ());
+        }
+        self.scratch = scratch;
+        result.map_err(wire_err)?;
+        self.back.chunks_resent += chunks;
+        self.back.bytes_resent += frames.iter().map(|f| f.len() as u64).sum::<u64>();
+        self.stage_all(&frames);
+        self.enqueue_staged();
+        Ok(())
+    }
+
+    /// True while bytes wait to go on the wire, either way.
     pub fn sending(&self) -> bool {
-        !self.queue.is_empty()
+        !self.queue.is_empty() || !self.back.queue.is_empty()
     }
 
     /// Advances the link to simulated time `now_s`: a camera Heartbeat if one is due, the
@@ -350,7 +694,27 @@ impl<'b> DepthLink<'b> {
             // An idle wire saves no time for later.
             self.credit = 0.0;
         }
-        self.receive()
+        self.receive()?;
+        self.receive_returns(elapsed)
+    }
+
+    /// Camera side: the return channel's bytes whose time has come, and the answers to them.
+    fn receive_returns(&mut self, elapsed: f64) -> Result<(), String> {
+        if self.back.queue.is_empty() {
+            self.back.credit = 0.0;
+            return Ok(());
+        }
+        self.back.credit += elapsed * self.bytes_per_s();
+        let n = (self.back.credit.floor() as usize).min(self.back.queue.len());
+        self.back.credit -= n as f64;
+        let bytes: Vec<u8> = self.back.queue.drain(..n).collect();
+        let mut requests = Vec::new();
+        for b in bytes {
+            if let Some(Ok(Message::ResendRequest(r))) = self.back.decoder.push(b) {
+                requests.push(r);
+            }
+        }
+        requests.iter().try_for_each(|r| self.answer(r))
     }
 
     /// Core side: takes in what the wire delivered.
@@ -364,30 +728,8 @@ impl<'b> DepthLink<'b> {
         self.bytes_received += n as u64;
         let now_s = self.now_s;
         let core = &mut self.core;
-        self.receiver.feed(&self.inbox, |event| match event {
-            LinkEvent::Depth {
-                frame_id,
-                frame,
-                pose,
-            } => match pose {
-                Some(pose) => core.arrived.push(ArrivedFrame {
-                    frame_id,
-                    intrinsics: *frame.intrinsics(),
-                    depth: frame.depth_mm().to_vec(),
-                    camera_pose: pose.isometry(),
-                }),
-                None => core.frames_without_pose += 1,
-            },
-            LinkEvent::Heartbeat(h) => {
-                core.heartbeats_received += 1;
-                core.camera_frames_sent_reported = h.frames_sent;
-                if let Some(last) = core.last_heartbeat_s {
-                    core.max_heartbeat_gap_s = core.max_heartbeat_gap_s.max(now_s - last);
-                }
-                core.last_heartbeat_s = Some(now_s);
-            }
-            _ => {}
-        });
+        self.receiver
+            .feed(&self.inbox, |event| core.on_event(now_s, event));
         Ok(())
     }
 
@@ -419,8 +761,9 @@ impl<'b> DepthLink<'b> {
     }
 
     /// Counts an image the explorer integrated.
-    pub fn note_integrated(&mut self) {
+    pub fn note_integrated(&mut self, frame: &ArrivedFrame) {
         self.depth_frames_integrated += 1;
+        self.partial_frames_integrated += u32::from(frame.missing_rows > 0);
     }
 
     /// The link's statistics.
@@ -445,8 +788,52 @@ impl<'b> DepthLink<'b> {
             wire_busy_s: self.busy_s,
             receiver: self.receiver.counters(),
             injected: self.injector.as_ref().map(|i| *i.counters()),
+            partial_frames_integrated: self.partial_frames_integrated,
+            arq_rounds: self.arq_rounds,
+            resend_requests_sent: self.back.requests_sent,
+            acks_sent: self.back.acks_sent,
+            resend_requests_received: self.back.requests_received,
+            chunks_resent: self.back.chunks_resent,
+            bytes_resent: self.back.bytes_resent,
+            return_bytes_sent: self.back.bytes_sent,
+            return_injected: self
+                .back
+                .injector
+                .as_ref()
+                .filter(|_| self.back.bytes_sent > 0)
+                .map(|i| *i.counters()),
+            rows_per_chunk_mean: if self.depth_frames_sent == 0 {
+                0.0
+            } else {
+                self.rows_per_chunk_sum as f64 / f64::from(self.depth_frames_sent)
+            },
+            rows_per_chunk_last: self
+                .last_sent
+                .as_ref()
+                .map_or(self.rows_per_chunk, |s| s.rows_per_chunk),
+            ber_estimate: f64::from(self.back.ber),
         }
     }
+}
+
+/// The camera side's bit error rate after the first request (or acknowledgement) for `sent`:
+/// the chunks of its first transmission that the request asks for again count as lost.
+fn estimate_ber(smoothed: f32, sent: &SentImage, request: &ResendRequest) -> f32 {
+    let (width, height) = (sent.intrinsics.width(), sent.intrinsics.height());
+    let per = sent.rows_per_chunk.max(1);
+    let chunks = height.div_ceil(per);
+    let lost = (0..chunks)
+        .filter(|k| {
+            let (first, end) = (k * per, (k * per).saturating_add(per).min(height));
+            request.rows().iter().any(|&(f, n)| {
+                let e = f.saturating_add(n);
+                f < end && first < e
+            })
+        })
+        .count() as u32;
+    let wire = link::max_depth_chunk_len(width, per);
+    let now = link::estimate_bit_error_rate(u32::from(chunks), lost, wire);
+    (1.0 - BER_SMOOTHING) * smoothed + BER_SMOOTHING * now
 }
 
 #[cfg(test)]
@@ -485,14 +872,36 @@ mod tests {
             let frame = DepthFrame::new(intrinsics, &depth).unwrap();
             link.send_image(u32::from(k) + 1, &frame, &pose(f32::from(k)))
                 .unwrap();
-            while link.sending() {
-                t += dt;
-                link.tick(t).unwrap();
+            let mut wait = |link: &mut DepthLink<'_>| {
+                while link.sending() {
+                    t += dt;
+                    link.tick(t).unwrap();
+                }
+                link.settle().unwrap();
+            };
+            wait(link);
+            while link.request_missing(u32::from(k) + 1).unwrap() {
+                wait(link);
             }
-            link.settle().unwrap();
+            link.finish_frame();
             arrived.extend(link.take_arrived());
         }
         (arrived, t)
+    }
+
+    /// Every row of an arrived image is the original's or wholly not received, as many as it
+    /// says are missing.
+    fn assert_rows_intact(a: &ArrivedFrame, original: &[u16]) {
+        let width = usize::from(a.intrinsics.width());
+        let mut lost = 0;
+        for (row, want) in a.depth.chunks(width).zip(original.chunks(width)) {
+            if row.iter().all(|&d| d == link::NOT_RECEIVED) {
+                lost += 1;
+            } else {
+                assert_eq!(row, want, "image {} delivered a damaged row", a.frame_id);
+            }
+        }
+        assert_eq!(lost, a.missing_rows, "image {}", a.frame_id);
     }
 
     #[test]
@@ -558,6 +967,7 @@ mod tests {
                 frame_drop: 0.05,
                 ..FaultConfig::default()
             },
+            arq_rounds: 0,
             ..LinkConfig::default()
         };
         let mut link = DepthLink::open(&config, &intrinsics, &mut buffer, 9).unwrap();
@@ -569,18 +979,102 @@ mod tests {
             u64::from(r.receiver.frames_ok),
             r.link_frames_sent - injected.frames_dropped
         );
-        // Every image that arrived is intact and was sent.
+        // Without retransmission nothing goes back.
+        assert_eq!(
+            (r.resend_requests_sent, r.acks_sent, r.return_bytes_sent),
+            (0, 0, 0)
+        );
+        // Every image that arrived was sent, and each of its rows is intact or not received.
         for a in &arrived {
             let (_, depth) = image(60, 40, a.frame_id as u16 - 1);
-            assert_eq!(a.depth, depth);
+            assert_rows_intact(a, &depth);
         }
-        // A lost image was either given up by the assembler, arrived without its pose, or
-        // lost every frame: each is counted at most once.
+        let partial = arrived.iter().filter(|a| a.missing_rows > 0).count() as u32;
+        assert_eq!(partial, r.receiver.depth_frames_partial);
+        assert!(partial > 0, "{r:?}");
+        // A lost image arrived without its pose, was given up by the assembler, or lost every
+        // frame: each is counted at most once.
         let lost = 60 - arrived.len() as u32;
         let counted = r.frames_without_pose + r.receiver.depth_frames_dropped;
         assert!(
             lost > 0 && counted > 0 && counted <= lost,
             "{lost} lost, {counted} counted"
         );
+    }
+
+    #[test]
+    fn a_noisy_line_delivers_every_image_by_asking_again_with_smaller_chunks() {
+        let (intrinsics, _) = image(100, 100, 0);
+        let faults = FaultConfig {
+            bit_error_rate: 1e-4,
+            frame_drop: 0.1,
+            ..FaultConfig::default()
+        };
+        let mut outcome = Vec::new();
+        for arq_rounds in [0, DEFAULT_ARQ_ROUNDS] {
+            let mut buffer = vec![0u16; 100 * 100];
+            let config = LinkConfig {
+                faults,
+                arq_rounds,
+                ..LinkConfig::default()
+            };
+            let mut link = DepthLink::open(&config, &intrinsics, &mut buffer, 4242).unwrap();
+            let (arrived, _) = run(&mut link, intrinsics, 30, 0.01);
+            for a in &arrived {
+                let (_, depth) = image(100, 100, a.frame_id as u16 - 1);
+                assert_rows_intact(a, &depth);
+            }
+            let rows: u32 = arrived.iter().map(|a| 100 - u32::from(a.missing_rows)).sum();
+            outcome.push((arrived.len(), rows, link.report()));
+        }
+        let (placed_without, rows_without, without) = &outcome[0];
+        let (placed, rows, with) = &outcome[1];
+        // Without retransmission, chunks of 10 rows (2 kB) rarely survive a BER of 1e-4:
+        // images come with a few of their rows, and a lost pose loses the image.
+        assert_eq!(without.rows_per_chunk_last, ROWS_PER_CHUNK);
+        assert!(
+            *rows_without < 30 * 40,
+            "{rows_without} rows of {placed_without} images"
+        );
+        // Asking again brings every image with its pose and nearly every row, and the
+        // camera side, seeing most 10-row chunks lost, goes down to one row per chunk.
+        assert_eq!(*placed, 30, "{with:?}");
+        assert!(*rows >= 30 * 99, "{rows} rows");
+        assert!(
+            with.resend_requests_sent >= 30 && with.chunks_resent > 0,
+            "{with:?}"
+        );
+        assert_eq!(with.rows_per_chunk_last, 1, "{with:?}");
+        assert!(with.ber_estimate > 3e-5 && with.ber_estimate < 3e-4, "{with:?}");
+        assert!(with.return_bytes_sent > 0 && with.return_injected.is_some());
+    }
+
+    #[test]
+    fn a_clean_line_is_only_acknowledged_and_keeps_long_chunks() {
+        let (intrinsics, _) = image(100, 100, 0);
+        let mut buffer = vec![0u16; 100 * 100];
+        let mut link = DepthLink::open(&LinkConfig::default(), &intrinsics, &mut buffer, 1).unwrap();
+        let (arrived, _) = run(&mut link, intrinsics, 5, 0.01);
+        let r = link.report();
+        assert_eq!(arrived.len(), 5);
+        assert_eq!((r.resend_requests_sent, r.chunks_resent, r.acks_sent), (0, 0, 5));
+        assert_eq!((r.rows_per_chunk_last, r.ber_estimate), (ROWS_PER_CHUNK, 0.0));
+        // A fixed chunk size is kept, and a size the decoder cannot take is refused.
+        let config = LinkConfig {
+            chunk_rows: Some(3),
+            ..LinkConfig::default()
+        };
+        let mut buffer = vec![0u16; 100 * 100];
+        let mut link = DepthLink::open(&config, &intrinsics, &mut buffer, 1).unwrap();
+        run(&mut link, intrinsics, 2, 0.01);
+        assert_eq!(link.report().rows_per_chunk_last, 3);
+        for bad in [0, 41] {
+            let config = LinkConfig {
+                chunk_rows: Some(bad),
+                ..LinkConfig::default()
+            };
+            let mut buffer = vec![0u16; 100 * 100];
+            assert!(DepthLink::open(&config, &intrinsics, &mut buffer, 1).is_err());
+        }
     }
 }

@@ -143,6 +143,10 @@ pub struct CellResult {
     pub frames_integrated: u32,
     /// Depth frames lost on the link or refused.
     pub frames_lost: u32,
+    /// Depth frames integrated with rows missing, and the rows missing from all of them.
+    pub partial_frames: (u32, u32),
+    /// Resend requests the core sent, and the chunks the camera side sent again.
+    pub resends: (u32, u32),
     /// Every non-zero counter: explorer errors, link receiver, MAVLink bridge rejections.
     pub counters: Vec<(String, u64)>,
     /// STATUSTEXTs the emulator received.
@@ -188,6 +192,8 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
                 frames_sent: 0,
                 frames_integrated: 0,
                 frames_lost: 0,
+                partial_frames: (0, 0),
+                resends: (0, 0),
                 counters: Vec::new(),
                 status_texts: 0,
             }
@@ -206,8 +212,14 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
     add("", serde_json::to_value(report.errors).unwrap_or(Value::Null));
     let mut link = serde_json::to_value(report.link.receiver).unwrap_or(Value::Null);
     if let Value::Object(fields) = &mut link {
-        // Traffic, not faults.
-        for k in ["bytes", "frames_ok", "depth_frames_complete"] {
+        // Traffic, not faults; partial images have a column of their own.
+        for k in [
+            "bytes",
+            "frames_ok",
+            "depth_frames_complete",
+            "depth_frames_partial",
+            "rows_missing",
+        ] {
             fields.remove(k);
         }
     }
@@ -224,6 +236,13 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
         }
         status_texts = m.status_texts.len();
     }
+    let l = &report.link;
+    if l.frames_without_pose > 0 {
+        counters.push((
+            "link.frames_without_pose".to_string(),
+            u64::from(l.frames_without_pose),
+        ));
+    }
     CellResult {
         cell,
         termination: report.termination,
@@ -232,6 +251,8 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
         frames_sent: report.link.depth_frames_sent,
         frames_integrated: report.link.depth_frames_integrated,
         frames_lost: report.link.depth_frames_lost,
+        partial_frames: (l.partial_frames_integrated, l.receiver.rows_missing),
+        resends: (l.resend_requests_sent, l.chunks_resent),
         counters,
         status_texts,
     }
@@ -240,7 +261,7 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
 /// The results as a Markdown table (the one in docs/RELIABILITY.md).
 pub fn table(results: &[CellResult]) -> String {
     let mut out = String::from(
-        "| cell | termination | free coverage | collisions | frames sent / integrated / lost | STATUSTEXTs | non-zero error counters |\n|---|---|---|---|---|---|---|\n",
+        "| cell | termination | free coverage | collisions | frames sent / integrated / lost | integrated partial (rows missing) | resend requests / chunks resent | STATUSTEXTs | non-zero error counters |\n|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in results {
         let counters = r
@@ -250,7 +271,7 @@ pub fn table(results: &[CellResult]) -> String {
             .collect::<Vec<_>>()
             .join(", ");
         out.push_str(&format!(
-            "| {} | {} | {:.2} % | {} | {} / {} / {} | {} | {} |\n",
+            "| {} | {} | {:.2} % | {} | {} / {} / {} | {} ({}) | {} / {} | {} | {} |\n",
             r.cell.name,
             r.termination,
             r.coverage_free * 100.0,
@@ -258,6 +279,10 @@ pub fn table(results: &[CellResult]) -> String {
             r.frames_sent,
             r.frames_integrated,
             r.frames_lost,
+            r.partial_frames.0,
+            r.partial_frames.1,
+            r.resends.0,
+            r.resends.1,
             r.status_texts,
             if counters.is_empty() {
                 "—".into()

@@ -14,7 +14,7 @@ use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::batch;
 use harmonic_sim::bench::{self, BenchSolver};
 use harmonic_sim::camera::StereoNoise;
-use harmonic_sim::depth_link::{LinkConfig, DEFAULT_BAUD};
+use harmonic_sim::depth_link::{LinkConfig, DEFAULT_ARQ_ROUNDS, DEFAULT_BAUD};
 use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
 use harmonic_sim::figures::{self, SliceSnapshot};
 use harmonic_sim::flight::EmulatorTiming;
@@ -1015,6 +1015,14 @@ struct ExploreArgs {
     /// RATE and replaces BYTES bytes (default 32) by random ones.
     #[arg(long, value_parser = parse_burst)]
     link_burst: Option<(f64, u32)>,
+    /// Depth link: resend requests per image at most (selective retransmission over a return
+    /// channel at the same baud rate and with the same faults); 0 turns it off.
+    #[arg(long, default_value_t = DEFAULT_ARQ_ROUNDS)]
+    link_arq_rounds: u8,
+    /// Depth link: rows per depth chunk, fixed (1-10 for the 100-pixel camera). Default: the
+    /// camera side adapts it to the bit error rate it infers from what is asked again.
+    #[arg(long)]
+    link_chunk_rows: Option<u16>,
     /// Fly over MAVLink: `emulator` (the default when no value is given: an in-process
     /// PX4-like flight stack), `udpin:HOST:PORT` or `udpout:HOST:PORT` (a real autopilot or
     /// SITL; MAVProxy's address syntax). The explorer plans from the pose the autopilot reports.
@@ -1239,6 +1247,8 @@ fn explore(args: ExploreArgs) -> Result<(), String> {
             burst_rate,
             burst_len,
         },
+        arq_rounds: args.link_arq_rounds,
+        chunk_rows: args.link_chunk_rows,
     };
     if !(args.emulator_rate.is_finite() && args.emulator_rate > 0.0) {
         return Err(format!(
@@ -1930,6 +1940,22 @@ fn print_summary(r: &Report) {
             l.frames_without_pose
         ),
     ));
+    if l.resend_requests_sent > 0 || l.partial_frames_integrated > 0 {
+        rows.push((
+            "link recovery",
+            format!(
+                "{} partial frames integrated ({} rows missing); {} resend requests (up to {} per frame), {} chunks resent ({:.0} kB); {:.1} rows per chunk (BER estimate {:.1e})",
+                l.partial_frames_integrated,
+                c.rows_missing,
+                l.resend_requests_sent,
+                l.arq_rounds,
+                l.chunks_resent,
+                l.bytes_resent as f64 / 1e3,
+                l.rows_per_chunk_mean,
+                l.ber_estimate
+            ),
+        ));
+    }
     if let Some(f) = &l.injected {
         rows.push((
             "link faults",

@@ -1312,8 +1312,14 @@ pub fn run_observed(
             .send_image(step, &frame, &forward_camera_pose(&position, yaw))
             .map_err(SimError::Link)?;
         rig.wait_for_link(&mut vehicle, &scene, &mut track)?;
+        // Selective retransmission: ask for what is missing while rounds are left, then take
+        // the image with the rows that came.
+        while rig.link.request_missing(step).map_err(SimError::Link)? {
+            rig.wait_for_link(&mut vehicle, &scene, &mut track)?;
+        }
+        rig.link.finish_frame();
 
-        // Core side: integrate whatever arrived whole.
+        // Core side: integrate whatever arrived, whole or with rows missing.
         let t0 = Instant::now();
         let mut integrated = 0u32;
         let mut frames = Vec::new();
@@ -1323,7 +1329,7 @@ pub fn run_observed(
                 match planner.integrate(&frame, &arrived.camera_pose, timing.as_ref()) {
                     Ok(()) => {
                         integrated += 1;
-                        rig.link.note_integrated();
+                        rig.link.note_integrated(&arrived);
                         frames.push(IntegratedFrame {
                             depth_mm: frame.depth_mm().to_vec(),
                             intrinsics: *frame.intrinsics(),
