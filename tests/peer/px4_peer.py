@@ -67,6 +67,9 @@ def parse_args(argv):
     p.add_argument("--truth", help="write the true state at every step to this file")
     p.add_argument("--key", help="MAVLink 2 signing: the 32-byte secret key as 64 hex digits; sign "
                    "everything sent and drop (count) every unsigned frame received")
+    p.add_argument("--inject-unsigned", type=int, default=0, metavar="N",
+                   help="with --key: also send N unsigned COMMAND_LONG (land) and N unsigned SET_MODE "
+                   "frames, one pair per second from 1 s, as an intruder on the network would")
     return p.parse_args(argv)
 
 
@@ -135,6 +138,8 @@ def main(argv):
     next_pose_t = latency_s  # the first message leaves once its sample is old enough
     next_sample_t = 0.0
     next_heartbeat_t = 0.0
+    next_injection_t = 1.0
+    injected = 0
     target, target_yaw = None, None
     last_heard = None
     counts = {"setpoints": 0, "setpoints_ignored": 0, "heartbeats_in": 0, "poses_sent": 0, "status_texts": []}
@@ -181,6 +186,13 @@ def main(argv):
         while len(history) > 2 and history[1][0] < sim_t - 1.0 - latency_s:
             history.pop(0)
 
+        if args.key and injected < args.inject_unsigned and now >= next_injection_t and last_heard is not None:
+            next_injection_t += 1.0
+            mav.signing.sign_outgoing = False
+            mav.command_long_send(1, 191, mavutil.mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+            mav.set_mode_send(1, mavutil.mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 0)
+            mav.signing.sign_outgoing = True
+            injected += 1
         if now >= next_heartbeat_t:
             next_heartbeat_t += 1.0
             mav.heartbeat_send(
@@ -220,6 +232,7 @@ def main(argv):
     n, e, d, yaw, _, _ = vehicle.snapshot()
     counts["final"] = {"north": n, "east": e, "down": d, "yaw_deg": math.degrees(yaw)}
     counts["unsigned_refused"] = unsigned_refused[0]
+    counts["unsigned_injected"] = 2 * injected
     counts["bad_signatures"] = getattr(mav.signing, "badsig_count", 0)
     counts["good_signatures"] = getattr(mav.signing, "goodsig_count", 0)
     print(json.dumps(counts))

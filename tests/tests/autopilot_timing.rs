@@ -183,7 +183,13 @@ fn signed_mavlink_with_pymavlink_both_ways() {
     // the same key and acts only on signed frames. Both sides must accept each other's.
     let key = [0x3c_u8; 32];
     let hex: String = key.iter().map(|b| format!("{b:02x}")).collect();
-    let (r, peer) = against_peer_signed(&["--turn-only", "--key", &hex], 4, Some(SecretKey::new(key)));
+    // The peer also plays an intruder: unsigned COMMAND_LONG (land) and SET_MODE frames, which
+    // must be refused and counted, and change nothing.
+    let (r, peer) = against_peer_signed(
+        &["--turn-only", "--key", &hex, "--inject-unsigned", "2"],
+        4,
+        Some(SecretKey::new(key)),
+    );
     assert!(r.scans >= 3, "frames were integrated: {}", r.scans);
     // Our signatures pass pymavlink's check: setpoints arrived, none refused or bad.
     assert!(peer["setpoints"].as_u64().unwrap_or(0) > 10, "{peer}");
@@ -196,14 +202,16 @@ fn signed_mavlink_with_pymavlink_both_ways() {
         .and_then(|m| m.bridge_signing)
         .expect("signing counters");
     assert!(signing.accepted > 20, "{signing:?}");
+    let injected = peer["unsigned_injected"].as_u64().unwrap_or(0);
+    assert!(injected >= 2, "{peer}");
     assert_eq!(
         (
-            signing.unsigned,
+            u64::from(signing.unsigned),
             signing.bad_signature,
             signing.replayed,
             signing.stale
         ),
-        (0, 0, 0, 0),
+        (injected, 0, 0, 0),
         "{signing:?}"
     );
     assert_map_true(&r, "peer, signed");
