@@ -408,6 +408,7 @@ fn outcome_code(o: &ReportOutcome) -> (u8, u8, u8) {
                         IntegrateError::StalePose => 4,
                     },
                 ),
+                Fault::Operator => (7, 0),
             };
             (4, fault, detail)
         }
@@ -438,6 +439,7 @@ fn outcome_from_code(outcome: u8, fault: u8, detail: u8) -> Option<ReportOutcome
             (6, 2) => Fault::Integrate(IntegrateError::PoseJump),
             (6, 3) => Fault::Integrate(IntegrateError::TurningTooFast),
             (6, 4) => Fault::Integrate(IntegrateError::StalePose),
+            (7, 0) => Fault::Operator,
             _ => return None,
         }),
         _ => return None,

@@ -245,6 +245,9 @@ pub enum Fault {
     Solver(SolveError),
     /// A frame could not be integrated.
     Integrate(IntegrateError),
+    /// Not planning on the operator's word: paused, aborted or waiting for start
+    /// ([`crate::operator`]). The caller, not the explorer, decides this hold.
+    Operator,
 }
 
 /// Counts of every fault and notable event since start.

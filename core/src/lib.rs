@@ -83,6 +83,7 @@ pub mod integrate;
 pub mod link;
 pub mod map;
 pub mod mavlink;
+pub mod operator;
 pub mod signing;
 pub mod solve;
 pub mod stereo;

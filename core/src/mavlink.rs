@@ -44,13 +44,15 @@ use core::f32::consts::{FRAC_1_SQRT_2, PI, TAU};
 use core::fmt::{self, Write as _};
 
 use ::mavlink::dialects::common::{
-    MavAutopilot, MavFrame, MavModeFlag, MavState, MavType, ATTITUDE_DATA, HEARTBEAT_DATA,
-    LOCAL_POSITION_NED_DATA, ODOMETRY_DATA, SET_POSITION_TARGET_LOCAL_NED_DATA, STATUSTEXT_DATA,
+    MavAutopilot, MavCmd, MavFrame, MavModeFlag, MavResult, MavState, MavType, ATTITUDE_DATA,
+    COMMAND_ACK_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, ODOMETRY_DATA,
+    SET_POSITION_TARGET_LOCAL_NED_DATA, STATUSTEXT_DATA,
 };
 use ::mavlink::{MAVLinkMessageRaw, MAVLinkV2MessageRaw};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
 
 use crate::explore::{Fault, Goal, PlanOutcome};
+use crate::operator::{CommandResult, Operator, OperatorCommand, OperatorState};
 
 pub use ::mavlink::dialects::common::{self, MavComponent, MavMessage, MavSeverity, PositionTargetTypemask};
 /// The `mavlink` crate's message trait (`message_name`, `message_id`, `parse`), for hosts that
@@ -177,6 +179,9 @@ pub struct BridgeConfig {
     /// estimator glitch. A jump that persists (an estimator reset) is accepted once the old
     /// position has gone stale; the bridge holds meanwhile.
     pub max_pose_jump_m: f32,
+    /// Wait for the operator's start command (COMMAND_LONG `MAV_CMD_MISSION_START`) before
+    /// exploring (see [`crate::operator`]). Default false: explore at once.
+    pub wait_for_start: bool,
 }
 
 impl Default for BridgeConfig {
@@ -191,6 +196,7 @@ impl Default for BridgeConfig {
             pose_timeout_ms: 500,
             max_position_m: 1000.0,
             max_pose_jump_m: 1.0,
+            wait_for_start: false,
         }
     }
 }
@@ -281,6 +287,11 @@ pub enum Received {
     Heartbeat,
     /// Any other message from the autopilot; counted and ignored.
     Other,
+    /// An operator's COMMAND_LONG addressed to this component (from any sender), answered
+    /// with a COMMAND_ACK: what it asked, and the answer.
+    Command(Option<OperatorCommand>, CommandResult),
+    /// A COMMAND_LONG addressed to another system or component; ignored.
+    CommandForOthers,
 }
 
 /// Why [`Bridge::handle`] dropped a message. Each has a counter in [`BridgeCounters`].
@@ -363,6 +374,16 @@ pub struct BridgeCounters {
     pub sequence_gaps: u32,
     /// Times the pose went stale (fresh → stale transitions seen by [`Bridge::poll`]).
     pub stale_events: u32,
+    /// Operator COMMAND_LONGs addressed to this component.
+    pub commands_received: u32,
+    /// Of those, accepted.
+    pub commands_accepted: u32,
+    /// Of those, denied (not in the current state) or unsupported.
+    pub commands_refused: u32,
+    /// COMMAND_ACKs sent.
+    pub command_acks_sent: u32,
+    /// COMMAND_ACKs dropped because the queue was full.
+    pub command_acks_dropped: u32,
 }
 
 impl BridgeCounters {
@@ -518,8 +539,14 @@ pub struct Bridge {
     last_fault: Option<Fault>,
     /// The last pose rejection announced by STATUSTEXT, and when.
     last_rejection: Option<(InputError, u64)>,
+    operator: Operator,
+    /// COMMAND_ACKs to send: the command and the result.
+    acks: heapless::Deque<(MavCmd, MavResult), ACK_QUEUE_LEN>,
     counters: BridgeCounters,
 }
+
+/// COMMAND_ACKs waiting for the next [`Bridge::poll`] at most.
+pub const ACK_QUEUE_LEN: usize = 4;
 
 impl Bridge {
     /// A bridge with `config`, checked: positive periods (setpoints at least every
@@ -556,6 +583,8 @@ impl Bridge {
             complete_reported: false,
             last_fault: None,
             last_rejection: None,
+            operator: Operator::new(config.wait_for_start),
+            acks: heapless::Deque::new(),
             counters: BridgeCounters::default(),
         })
     }
@@ -642,11 +671,14 @@ impl Bridge {
             }
             PlanOutcome::Complete => {
                 self.hold();
+                let _ = self.operator.complete();
                 if !self.complete_reported {
                     self.complete_reported = true;
                     let _ = self.status_text(MavSeverity::MAV_SEVERITY_NOTICE, "exploration complete");
                 }
             }
+            // The operator's hold was announced when the operator asked for it.
+            PlanOutcome::Hold(Fault::Operator) => self.hold(),
             PlanOutcome::Hold(fault) => {
                 self.hold();
                 if self.last_fault != Some(*fault) {
@@ -684,7 +716,8 @@ impl Bridge {
     }
 
     /// Emits, through `send`, every message due at `now_ms`: a HEARTBEAT every
-    /// [`BridgeConfig::heartbeat_period_ms`] (the first at once), queued STATUSTEXTs, and the
+    /// [`BridgeConfig::heartbeat_period_ms`] (the first at once), queued COMMAND_ACKs and
+    /// STATUSTEXTs, and the
     /// current setpoint every [`BridgeConfig::setpoint_period_ms`] or at once when it changed.
     /// Also notices a pose going stale (hold, WARNING) or coming back (INFO). Call it at least
     /// as often as the setpoint period; a late call sends one of each, not a burst.
@@ -700,6 +733,12 @@ impl Bridge {
             let message = MavMessage::HEARTBEAT(self.heartbeat());
             self.emit(&message, &mut send);
             bump(&mut self.counters.heartbeats_sent);
+        }
+
+        while let Some((command, result)) = self.acks.pop_front() {
+            let message = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA { command, result });
+            self.emit(&message, &mut send);
+            bump(&mut self.counters.command_acks_sent);
         }
 
         while let Some(pending) = self.texts.pop_front() {
@@ -764,6 +803,9 @@ impl Bridge {
         header: &MavHeader,
         message: &MavMessage,
     ) -> Result<Received, InputError> {
+        if let MavMessage::COMMAND_LONG(command) = message {
+            return Ok(self.operator_command(command));
+        }
         let result = self.accept(now_ms, header, message);
         match result {
             Ok(Received::LocalPosition) => bump(&mut self.counters.local_positions_received),
@@ -771,6 +813,8 @@ impl Bridge {
             Ok(Received::Odometry) => bump(&mut self.counters.odometries_received),
             Ok(Received::Heartbeat) => bump(&mut self.counters.heartbeats_received),
             Ok(Received::Other) => bump(&mut self.counters.other_received),
+            // Commands are taken before `accept`, from any sender.
+            Ok(Received::Command(..) | Received::CommandForOthers) => {}
             Err(error) => {
                 self.counters.record(error);
                 self.announce_rejection(now_ms, error);
@@ -780,6 +824,66 @@ impl Bridge {
             self.hold();
         }
         result
+    }
+
+    /// What the operator has the explorer doing ([`crate::operator`]): plan only while it is
+    /// [`OperatorState::Exploring`]; hold otherwise.
+    pub fn operator_state(&self) -> OperatorState {
+        self.operator.state()
+    }
+
+    /// An operator's COMMAND_LONG: addressed to this component (or all components of this
+    /// system), it is acted on, answered with a COMMAND_ACK, and a state change is announced
+    /// (INFO) — a pause or abort also holds at once. From any sender: signing, where it is on,
+    /// has already refused frames without the key.
+    fn operator_command(&mut self, data: &COMMAND_LONG_DATA) -> Received {
+        let ours = data.target_system == self.config.system_id
+            && (data.target_component == self.config.component_id || data.target_component == 0);
+        if !ours {
+            return Received::CommandForOthers;
+        }
+        bump(&mut self.counters.commands_received);
+        let command = match data.command {
+            MavCmd::MAV_CMD_MISSION_START => Some(OperatorCommand::Start),
+            MavCmd::MAV_CMD_DO_PAUSE_CONTINUE if data.param1 == 0.0 => Some(OperatorCommand::Pause),
+            MavCmd::MAV_CMD_DO_PAUSE_CONTINUE if data.param1 == 1.0 => Some(OperatorCommand::Resume),
+            MavCmd::MAV_CMD_NAV_LOITER_UNLIM => Some(OperatorCommand::Abort),
+            _ => None,
+        };
+        let (result, changed) = match command {
+            Some(c) => self.operator.command(c),
+            None => (CommandResult::Unsupported, None),
+        };
+        let mav_result = match result {
+            CommandResult::Accepted => {
+                bump(&mut self.counters.commands_accepted);
+                MavResult::MAV_RESULT_ACCEPTED
+            }
+            CommandResult::Denied => {
+                bump(&mut self.counters.commands_refused);
+                MavResult::MAV_RESULT_DENIED
+            }
+            CommandResult::Unsupported => {
+                bump(&mut self.counters.commands_refused);
+                MavResult::MAV_RESULT_UNSUPPORTED
+            }
+        };
+        if self.acks.push_back((data.command, mav_result)).is_err() {
+            bump(&mut self.counters.command_acks_dropped);
+        }
+        if let Some(state) = changed {
+            self.announce_operator_state(state);
+        }
+        Received::Command(command, result)
+    }
+
+    fn announce_operator_state(&mut self, state: OperatorState) {
+        if !state.plans() {
+            self.hold();
+        }
+        let mut text = StatusText::new();
+        let _ = write!(text, "operator: {}", state.name());
+        let _ = self.queue_text(MavSeverity::MAV_SEVERITY_INFO, text);
     }
 
     /// The latest vehicle pose in the map frame: from ODOMETRY if it is fresh, else from
@@ -857,11 +961,13 @@ impl Bridge {
             MavState::MAV_STATE_STANDBY
         };
         HEARTBEAT_DATA {
-            custom_mode: 0,
+            // The operator state (crate::operator): exploring, paused, ...
+            custom_mode: self.operator.state().custom_mode(),
             mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
             autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
-            // The generated default is SAFETY_ARMED; an onboard computer claims no mode.
-            base_mode: MavModeFlag::empty(),
+            // The generated default is SAFETY_ARMED; an onboard computer claims no flight
+            // mode, only that custom_mode means something.
+            base_mode: MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
             system_status,
             ..HEARTBEAT_DATA::DEFAULT
         }
@@ -1999,10 +2105,152 @@ mod tests {
         };
         assert_eq!(hb.mavtype, MavType::MAV_TYPE_ONBOARD_CONTROLLER);
         assert_eq!(hb.autopilot, MavAutopilot::MAV_AUTOPILOT_INVALID);
-        assert_eq!(hb.base_mode, MavModeFlag::empty());
-        assert_eq!(hb.custom_mode, 0);
+        // No flight mode claimed; custom_mode is the operator state (exploring).
+        assert_eq!(hb.base_mode, MavModeFlag::MAV_MODE_FLAG_CUSTOM_MODE_ENABLED);
+        assert_eq!(hb.custom_mode, OperatorState::Exploring.custom_mode());
         assert_eq!(hb.system_status, MavState::MAV_STATE_STANDBY);
         assert_eq!(hb.mavlink_version, 3);
+    }
+
+    /// A ground station's COMMAND_LONG to `target` (system, component).
+    fn command(target: (u8, u8), command: MavCmd, param1: f32) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1,
+            command,
+            target_system: target.0,
+            target_component: target.1,
+            ..COMMAND_LONG_DATA::DEFAULT
+        })
+    }
+
+    #[test]
+    fn operator_commands_are_acted_on_acknowledged_and_reported() {
+        let config = BridgeConfig {
+            wait_for_start: true,
+            ..BridgeConfig::default()
+        };
+        let mut bridge = Bridge::new(config).unwrap();
+        let gcs = MavHeader {
+            system_id: 255,
+            component_id: 190,
+            sequence: 0,
+        };
+        let us = (1, 191);
+        let mut sent = Vec::new();
+        let mut exchange = |bridge: &mut Bridge, t: u64, message: MavMessage| {
+            let got = bridge.handle(t, &gcs, &message).unwrap();
+            sent.clear();
+            bridge.poll(t, |_, m| sent.push(m.clone()));
+            let acks: Vec<(MavCmd, MavResult)> = sent
+                .iter()
+                .filter_map(|m| match m {
+                    MavMessage::COMMAND_ACK(a) => Some((a.command, a.result)),
+                    _ => None,
+                })
+                .collect();
+            let mode = sent.iter().find_map(|m| match m {
+                MavMessage::HEARTBEAT(h) => Some(h.custom_mode),
+                _ => None,
+            });
+            let texts: Vec<std::string::String> = sent
+                .iter()
+                .filter_map(|m| match m {
+                    MavMessage::STATUSTEXT(t) => Some(
+                        std::string::String::from_utf8_lossy(&t.text.to_vec())
+                            .trim_end_matches('\0')
+                            .into(),
+                    ),
+                    _ => None,
+                })
+                .collect();
+            (got, acks, mode, texts)
+        };
+        assert_eq!(bridge.operator_state(), OperatorState::Waiting);
+        let (_, acks, mode, _) = exchange(
+            &mut bridge,
+            0,
+            command(us, MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0),
+        );
+        assert_eq!(
+            acks,
+            [(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, MavResult::MAV_RESULT_DENIED)]
+        );
+        assert_eq!(mode, Some(OperatorState::Waiting.custom_mode()));
+        let (got, acks, _, texts) =
+            exchange(&mut bridge, 10, command(us, MavCmd::MAV_CMD_MISSION_START, 0.0));
+        assert_eq!(
+            got,
+            Received::Command(Some(OperatorCommand::Start), CommandResult::Accepted)
+        );
+        assert_eq!(
+            acks,
+            [(MavCmd::MAV_CMD_MISSION_START, MavResult::MAV_RESULT_ACCEPTED)]
+        );
+        assert_eq!(texts, ["operator: exploring"]);
+        assert!(bridge.operator_state().plans());
+        // Pause: held at once; the next HEARTBEAT says paused.
+        bridge.set_target(Point3::new(1.0, 2.0, 3.0), 0.0).unwrap();
+        let (_, acks, _, texts) = exchange(
+            &mut bridge,
+            20,
+            command((1, 0), MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0),
+        );
+        assert_eq!(
+            acks,
+            [(MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, MavResult::MAV_RESULT_ACCEPTED)]
+        );
+        assert_eq!(texts, ["operator: paused"]);
+        assert_eq!(bridge.setpoint().map(|s| s.kind), Some(SetpointKind::Hold));
+        let (_, _, mode, _) = exchange(
+            &mut bridge,
+            1000,
+            command(us, MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0),
+        );
+        assert_eq!(mode, Some(OperatorState::Paused.custom_mode()));
+        // Unknown commands are unsupported; commands for someone else are not answered.
+        let (got, acks, _, _) = exchange(
+            &mut bridge,
+            1010,
+            command(us, MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0),
+        );
+        assert_eq!(got, Received::Command(None, CommandResult::Unsupported));
+        assert_eq!(
+            acks,
+            [(
+                MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                MavResult::MAV_RESULT_UNSUPPORTED
+            )]
+        );
+        let (got, acks, _, _) = exchange(
+            &mut bridge,
+            1020,
+            command((1, 1), MavCmd::MAV_CMD_MISSION_START, 0.0),
+        );
+        assert_eq!((got, acks.len()), (Received::CommandForOthers, 0));
+        let (_, acks, _, texts) = exchange(
+            &mut bridge,
+            1030,
+            command(us, MavCmd::MAV_CMD_NAV_LOITER_UNLIM, 0.0),
+        );
+        assert_eq!(
+            acks,
+            [(MavCmd::MAV_CMD_NAV_LOITER_UNLIM, MavResult::MAV_RESULT_ACCEPTED)]
+        );
+        assert_eq!(texts, ["operator: aborted"]);
+        let c = bridge.counters();
+        assert_eq!(
+            (
+                c.commands_received,
+                c.commands_accepted,
+                c.commands_refused,
+                c.command_acks_sent
+            ),
+            (6, 4, 2, 6)
+        );
+        // Completion is a state too, reported like the others.
+        let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
+        bridge.apply(&PlanOutcome::Complete);
+        assert_eq!(bridge.operator_state(), OperatorState::Complete);
     }
 
     #[test]

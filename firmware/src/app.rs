@@ -451,7 +451,12 @@ impl<'a> Firmware<'a> {
             Err(_) => (Point3::new(f32::NAN, f32::NAN, f32::NAN), 0.0),
         };
         let kept_before = self.explorer.status().plans_kept;
-        let outcome = self.explorer.plan_timed(&position, yaw, clock);
+        // Paused, aborted or waiting for start: hold, and plan nothing.
+        let outcome = if self.bridge.operator_state().plans() {
+            self.explorer.plan_timed(&position, yaw, clock)
+        } else {
+            PlanOutcome::Hold(harmonic_core::explore::Fault::Operator)
+        };
         let kept = self.explorer.status().plans_kept > kept_before;
         self.bridge.apply(&outcome);
         match &outcome {

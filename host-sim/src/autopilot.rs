@@ -23,9 +23,10 @@ use std::str::FromStr;
 use std::time::Duration;
 
 use harmonic_core::mavlink::{
-    encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavMessage, MavlinkDecoder,
+    common, encode_v2, Bridge, BridgeConfig, BridgeCounters, DecoderCounters, MavMessage, MavlinkDecoder,
     MavlinkMessage, PoseHistory, PoseHistoryCounters, Received, MAX_FRAME_LEN,
 };
+use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
 use harmonic_core::signing::{SecretKey, VerifierCounters};
 use nalgebra::Point3;
 use serde::Serialize;
@@ -109,6 +110,10 @@ pub struct MavlinkConfig {
     /// MAVLink 2 signing with this key (`--mavlink-key`): the bridge signs what it sends and
     /// acts only on frames the key signed; the emulator does the same.
     pub signing_key: Option<SecretKey>,
+    /// With the emulator: a ground station (system 255, component 190) sends these operator
+    /// commands as COMMAND_LONG at these simulated times (seconds), signed like everything
+    /// else when a key is set.
+    pub operator_script: Vec<(f64, OperatorCommand)>,
 }
 
 /// Pose samples kept per stream: 3.2 s at 20 Hz, 1.3 s at 50 Hz.
@@ -123,6 +128,7 @@ impl Default for MavlinkConfig {
             emulator: EmulatorTiming::default(),
             tlog: None,
             signing_key: None,
+            operator_script: Vec::new(),
         }
     }
 }
@@ -245,6 +251,77 @@ pub struct MavlinkReport {
     pub status_texts: Vec<String>,
     /// The `.tlog` written, and its records.
     pub tlog: Option<TlogInfo>,
+    /// Operator COMMAND_LONGs the bridge took, in order, with its answers.
+    pub operator_commands: Vec<OperatorEvent>,
+    /// The operator state at the end (HEARTBEAT custom_mode); `None` where the bridge runs
+    /// elsewhere (the firmware's, in processor-in-the-loop runs).
+    pub operator_state: Option<OperatorState>,
+}
+
+/// An operator command the bridge answered.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct OperatorEvent {
+    /// Simulated (or wall-clock) time it arrived, s.
+    pub time_s: f64,
+    /// What it asked (`None`: a command the explorer does not know).
+    pub command: Option<OperatorCommand>,
+    /// The COMMAND_ACK's answer.
+    pub result: CommandResult,
+    /// The operator state after it.
+    pub state: OperatorState,
+}
+
+/// The scripted ground station of an emulator run ([`MavlinkConfig::operator_script`]).
+#[derive(Debug)]
+struct GroundStation {
+    script: Vec<(f64, OperatorCommand)>,
+    next: usize,
+    sequence: u8,
+    signing: Option<LinkSigning>,
+}
+
+/// The ground station's ids: QGroundControl's system and MAV_COMP_ID_MISSIONPLANNER.
+const GROUND_STATION: (u8, u8) = (255, 190);
+
+impl GroundStation {
+    /// The frames of every command due at `now_ms`, addressed to `target`.
+    fn due(&mut self, now_ms: u64, target: (u8, u8)) -> Vec<u8> {
+        let mut out = Vec::new();
+        while let Some(&(t_s, command)) = self.script.get(self.next) {
+            if t_s * 1e3 > now_ms as f64 {
+                break;
+            }
+            self.next += 1;
+            let (cmd, param1) = match command {
+                OperatorCommand::Start => (common::MavCmd::MAV_CMD_MISSION_START, 0.0),
+                OperatorCommand::Pause => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0),
+                OperatorCommand::Resume => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0),
+                OperatorCommand::Abort => (common::MavCmd::MAV_CMD_NAV_LOITER_UNLIM, 0.0),
+            };
+            let message = MavMessage::COMMAND_LONG(common::COMMAND_LONG_DATA {
+                param1,
+                command: cmd,
+                target_system: target.0,
+                target_component: target.1,
+                ..common::COMMAND_LONG_DATA::DEFAULT
+            });
+            let header = harmonic_core::mavlink::MavHeader {
+                system_id: u32::from(GROUND_STATION.0),
+                component_id: GROUND_STATION.1,
+                sequence: self.sequence,
+            };
+            self.sequence = self.sequence.wrapping_add(1);
+            let mut frame = [0u8; MAX_FRAME_LEN];
+            if let Ok(n) = encode_v2(&header, &message, &mut frame) {
+                let n = match self.signing.as_mut() {
+                    Some(s) => s.sign(&mut frame, n, now_ms),
+                    None => n,
+                };
+                out.extend_from_slice(frame.get(..n).unwrap_or(&[]));
+            }
+        }
+        out
+    }
 }
 
 /// The `.tlog` of a run.
@@ -286,6 +363,8 @@ pub struct MavlinkLink {
     io_error: Option<String>,
     history: PoseHistory<POSE_HISTORY_LEN>,
     signing: Option<LinkSigning>,
+    ground: Option<GroundStation>,
+    operator_commands: Vec<OperatorEvent>,
 }
 
 impl MavlinkLink {
@@ -349,6 +428,13 @@ impl MavlinkLink {
             io_error: None,
             history: PoseHistory::new(),
             signing: config.signing_key.clone().map(|key| LinkSigning::new(key, 1)),
+            ground: (!config.operator_script.is_empty() && !config.spec.is_remote()).then(|| GroundStation {
+                script: config.operator_script.clone(),
+                next: 0,
+                sequence: 0,
+                signing: config.signing_key.clone().map(|key| LinkSigning::new(key, 2)),
+            }),
+            operator_commands: Vec::new(),
         })
     }
 
@@ -383,6 +469,10 @@ impl MavlinkLink {
                 let mut bytes = Vec::new();
                 emulator.poll(now_ms, position, yaw, &mut bytes);
                 datagrams.push(bytes);
+                if let Some(ground) = self.ground.as_mut() {
+                    let config = self.bridge.config();
+                    datagrams.push(ground.due(now_ms, (config.system_id, config.component_id)));
+                }
             }
             Endpoint::Udp {
                 socket,
@@ -421,10 +511,17 @@ impl MavlinkLink {
             }
             if let Some((header, message)) = decoded {
                 self.traffic.received(now_ms, &message);
-                if let Ok(Received::LocalPosition | Received::Attitude | Received::Odometry) =
-                    self.bridge.handle(now_ms, &header, &message)
-                {
-                    self.history.record(now_ms, &message);
+                match self.bridge.handle(now_ms, &header, &message) {
+                    Ok(Received::LocalPosition | Received::Attitude | Received::Odometry) => {
+                        self.history.record(now_ms, &message);
+                    }
+                    Ok(Received::Command(command, result)) => self.operator_commands.push(OperatorEvent {
+                        time_s: now_ms as f64 * 1e-3,
+                        command,
+                        result,
+                        state: self.bridge.operator_state(),
+                    }),
+                    _ => {}
                 }
             }
         }
@@ -550,6 +647,8 @@ impl MavlinkLink {
                 path: t.path().display().to_string(),
                 records: t.records(),
             }),
+            operator_commands: self.operator_commands.clone(),
+            operator_state: Some(self.bridge.operator_state()),
         }
     }
 }

@@ -712,7 +712,9 @@ pub fn run(
                 ..Default::default()
             },
             bridge_decoder: *autopilot.decoder.counters(),
-            // The firmware does not sign yet.
+            // The firmware does not sign yet, nor take operator commands.
+            operator_commands: Vec::new(),
+            operator_state: None,
             bridge_signing: None,
             emulator_signing: None,
             emulator: Some(*autopilot.emulator.counters()),

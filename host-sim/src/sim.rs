@@ -59,6 +59,7 @@ use harmonic_core::explore::{
     PlanOutcome, SolverKind,
 };
 use harmonic_core::map::{self, Dims, MapGeometry};
+use harmonic_core::operator::OperatorState;
 use harmonic_core::solve::multigrid;
 use nalgebra::Point3;
 use rand::SeedableRng;
@@ -1285,6 +1286,15 @@ pub fn run_observed(
     // Each frame's timing, by frame id (= step), until it arrives.
     let mut timings: std::collections::BTreeMap<u32, FrameTiming> = std::collections::BTreeMap::new();
     for step in 1..=cfg.max_scans {
+        // An operator's abort ends the run where the vehicle holds.
+        if rig
+            .mav
+            .as_ref()
+            .is_some_and(|m| m.bridge.operator_state() == OperatorState::Aborted)
+        {
+            termination = "aborted".into();
+            break;
+        }
         taken = step;
         // The camera sees the world from where the vehicle truly is at the frame's instant; the
         // frame is stamped with the pose the core believes for that instant.
@@ -1376,10 +1386,16 @@ pub fn run_observed(
             }
         }
         let status_before = *planner.status();
+        // Paused or waiting for start: hold (the bridge already does), integrate, plan nothing.
+        let operator = rig.mav.as_ref().map(|m| m.bridge.operator_state());
+        let held = operator.filter(|s| !s.plans());
         // Look around first: turn on the spot between the first scans, planning nothing.
-        let looking = integrated > 0 && looked + 1 < cfg.look_around;
+        let looking = integrated > 0 && held.is_none() && looked + 1 < cfg.look_around;
         let outcome = if looking {
             looked += 1;
+            steps_without_frame = 0;
+            None
+        } else if integrated > 0 && held.is_some() {
             steps_without_frame = 0;
             None
         } else if integrated > 0 {
@@ -1400,6 +1416,7 @@ pub fn run_observed(
         let coverage = truth.coverage(planner.map());
         let label = match outcome {
             None if looking => "look_around".to_string(),
+            None if integrated > 0 => format!("operator:{}", held.map_or("", |s| s.name())),
             None => "no_frame".to_string(),
             Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
             Some(PlanOutcome::Goal(_)) if kept => "kept".to_string(),

@@ -1,0 +1,107 @@
+//! Operator commands over MAVLink against the flight emulator: a ground station (system 255)
+//! starts, pauses, resumes and aborts an exploration with COMMAND_LONG; every command is
+//! acknowledged, the vehicle holds while paused, and the run ends where the abort left it.
+
+use harmonic_core::mavlink::BridgeConfig;
+use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
+use harmonic_sim::autopilot::MavlinkConfig;
+use harmonic_sim::scenario::Scenario;
+use harmonic_sim::sim::{self, SimConfig};
+
+#[test]
+fn a_ground_station_starts_pauses_resumes_and_aborts_the_exploration() {
+    use OperatorCommand as C;
+    let mavlink = MavlinkConfig {
+        bridge: BridgeConfig {
+            wait_for_start: true,
+            ..BridgeConfig::default()
+        },
+        operator_script: vec![
+            (3.0, C::Resume), // denied: nothing started yet
+            (5.0, C::Start),
+            (30.0, C::Pause),
+            (45.0, C::Resume),
+            (70.0, C::Abort),
+        ],
+        ..MavlinkConfig::default()
+    };
+    let cfg = SimConfig {
+        mavlink: Some(mavlink),
+        ..SimConfig::default()
+    };
+    let r = sim::run(&Scenario::builtin("apartment").unwrap(), &cfg, |_| {}).expect("run");
+    assert_eq!(r.termination, "aborted");
+    assert_eq!(r.collisions, 0);
+    let m = r.mavlink.as_ref().unwrap();
+    let answered: Vec<(Option<OperatorCommand>, CommandResult, OperatorState)> = m
+        .operator_commands
+        .iter()
+        .map(|e| (e.command, e.result, e.state))
+        .collect();
+    assert_eq!(
+        answered,
+        [
+            (Some(C::Resume), CommandResult::Denied, OperatorState::Waiting),
+            (Some(C::Start), CommandResult::Accepted, OperatorState::Exploring),
+            (Some(C::Pause), CommandResult::Accepted, OperatorState::Paused),
+            (Some(C::Resume), CommandResult::Accepted, OperatorState::Exploring),
+            (Some(C::Abort), CommandResult::Accepted, OperatorState::Aborted),
+        ]
+    );
+    assert_eq!(m.operator_state, Some(OperatorState::Aborted));
+    // Every command acknowledged over the link.
+    assert_eq!(m.bridge.command_acks_sent, 5, "{:?}", m.bridge);
+    assert_eq!(
+        m.traffic.sent_by_type.get("COMMAND_ACK").copied(),
+        Some(5),
+        "{:?}",
+        m.traffic.sent_by_type
+    );
+    for text in ["operator: exploring", "operator: paused", "operator: aborted"] {
+        assert!(
+            m.status_texts.iter().any(|t| t == text),
+            "{text}: {:?}",
+            m.status_texts
+        );
+    }
+    // Nothing moved before the start; nothing while paused; exploration went on between.
+    let path_at = |label: &str| -> Vec<f64> {
+        r.steps
+            .iter()
+            .filter(|s| s.outcome == label)
+            .map(|s| s.path_length_m)
+            .collect()
+    };
+    let waiting = path_at("operator:waiting");
+    assert!(
+        !waiting.is_empty() && waiting.iter().all(|&p| p == 0.0),
+        "{waiting:?}"
+    );
+    let paused = path_at("operator:paused");
+    assert!(paused.len() >= 10, "{} paused steps", paused.len());
+    let (lo, hi) = paused
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(a, b), &p| (a.min(p), b.max(p)));
+    assert!(hi - lo < 0.3, "moved {} m while paused", hi - lo);
+    let first_paused = r
+        .steps
+        .iter()
+        .position(|s| s.outcome == "operator:paused")
+        .unwrap();
+    assert!(
+        r.steps[first_paused..].iter().any(|s| s.outcome == "goal"),
+        "planning resumed"
+    );
+    assert!(
+        r.path_length_m > hi + 1.0,
+        "flew on after the resume: {} m",
+        r.path_length_m
+    );
+    eprintln!(
+        "waiting {} steps, paused {} steps at {lo:.2}-{hi:.2} m, aborted at {:.1} m after {} scans",
+        waiting.len(),
+        paused.len(),
+        r.path_length_m,
+        r.scans
+    );
+}
