@@ -1,0 +1,107 @@
+//! `harmonic-sim bench-solve`: the Laplace solvers on building-like grids (the measurement is
+//! `harmonic_sim::bench`).
+
+use harmonic_core::map::Dims;
+use harmonic_core::solve::multigrid::Method;
+use harmonic_sim::bench::{self, BenchSolver};
+
+use super::parse::{parse_dims, parse_positive};
+
+/// The flags of `bench-solve`.
+#[derive(clap::Args)]
+pub struct BenchSolveArgs {
+    /// Grid sizes, NXxNYxNZ, comma-separated.
+    #[arg(long, default_value = "64x64x32,128x128x64", value_delimiter = ',', value_parser = parse_dims)]
+    sizes: Vec<Dims>,
+    /// Run the Gauss-Seidel reference only on grids with at most this many voxels (its cost grows
+    /// like n^(5/3); the 128×128×64 grid takes many minutes).
+    #[arg(long, default_value_t = 200_000)]
+    gs_max_voxels: usize,
+    /// Repetitions per measurement (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    repeat: usize,
+    /// Relative-residual tolerance (the explorer solves the screened field to 1e-5).
+    #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
+    tol: f32,
+    /// The field: `laplace` (the seed's, vehicle φ = 1, frontiers φ = 0) or `screened` (the
+    /// explorer's default: frontiers u = 1, ∇²u = κ²u with the default 0.33 m decay length at
+    /// 0.1 m voxels, the vehicle an ordinary voxel).
+    #[arg(long, default_value = "laplace", value_parser = ["laplace", "screened"])]
+    field: String,
+}
+
+/// Run `bench-solve`: measure every solver on every grid size and print the table.
+pub fn run(args: &BenchSolveArgs) {
+    let screening = if args.field == "screened" {
+        let k = harmonic_core::field::ScreenedParams::default().kappa_voxel(0.1);
+        k * k
+    } else {
+        0.0
+    };
+    println!("| grid | unknowns | frontier | solver | start | iterations | residual | error estimate | ms | cell updates |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let mut mg_cold_ms = Vec::new();
+    for dims in &args.sizes {
+        let mut solvers = vec![
+            BenchSolver::Multigrid(Method::Pcg),
+            BenchSolver::Multigrid(Method::VCycle),
+        ];
+        if dims.len() <= args.gs_max_voxels {
+            solvers.push(BenchSolver::GaussSeidel);
+        }
+        let mut rows = Vec::new();
+        for solver in solvers {
+            eprintln!(
+                "measuring {} on {}x{}x{} ...",
+                solver_label(solver),
+                dims.nx(),
+                dims.ny(),
+                dims.nz()
+            );
+            for row in bench::measure(*dims, solver, args.tol, args.repeat, screening) {
+                println!(
+                    "| {} | {} | {} | {} | {} | {} | {:.1e} | {} | {:.2} | {} |",
+                    row.grid,
+                    row.unknowns,
+                    row.frontier,
+                    row.solver,
+                    row.start,
+                    row.iterations,
+                    row.residual,
+                    row.error_estimate.map_or("–".to_string(), |e| format!("{e:.1e}")),
+                    row.ms,
+                    row.cell_updates
+                );
+                rows.push(row);
+            }
+        }
+        let find = |solver: &str, start: &str| rows.iter().find(|r| r.solver == solver && r.start == start);
+        if let (Some(mg), Some(gs)) = (find("mg (pcg)", "cold"), find("gs", "cold")) {
+            println!(
+                "\n{}: Gauss-Seidel / MGPCG, cold: time {:.0}×, cell updates {:.0}×\n",
+                mg.grid,
+                gs.ms / mg.ms,
+                gs.cell_updates as f64 / mg.cell_updates as f64
+            );
+        }
+        if let Some(mg) = find("mg (pcg)", "cold") {
+            mg_cold_ms.push((dims.len(), mg.ms));
+        }
+    }
+    for pair in mg_cold_ms.windows(2) {
+        println!(
+            "growth: {:.1}× the voxels took {:.1}× the MGPCG cold-solve time",
+            pair[1].0 as f64 / pair[0].0 as f64,
+            pair[1].1 / pair[0].1
+        );
+    }
+}
+
+/// The solver's name in the progress lines.
+fn solver_label(s: BenchSolver) -> &'static str {
+    match s {
+        BenchSolver::Multigrid(Method::VCycle) => "multigrid V-cycles",
+        BenchSolver::Multigrid(_) => "MGPCG",
+        BenchSolver::GaussSeidel => "Gauss-Seidel",
+    }
+}

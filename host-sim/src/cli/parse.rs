@@ -1,0 +1,158 @@
+//! Value parsers of the command line's flags (clap `value_parser`s), shared by the
+//! subcommand modules.
+
+use harmonic_core::map::Dims;
+use harmonic_sim::camera::StereoNoise;
+use harmonic_sim::fault::DEFAULT_BURST_LEN;
+use harmonic_sim::sensing::DriftConfig;
+
+/// `--prefilter`: `none`, `dog` (the default Difference of Gaussians) or `dog:SIGMA_SMALL:SIGMA_LARGE`.
+pub fn parse_prefilter(s: &str) -> Result<harmonic_core::stereo::Prefilter, String> {
+    use harmonic_core::stereo::Prefilter;
+    match s {
+        "none" => return Ok(Prefilter::None),
+        "dog" => return Ok(Prefilter::DEFAULT_DOG),
+        _ => {}
+    }
+    let bad = || format!("expected `dog`, `dog:SIGMA_SMALL:SIGMA_LARGE` or `none`, got `{s}`");
+    let mut parts = s.split(':');
+    if parts.next() != Some("dog") {
+        return Err(bad());
+    }
+    let mut sigma = || parts.next().and_then(|v| v.parse::<f32>().ok()).ok_or_else(bad);
+    let (sigma_small, sigma_large) = (sigma()?, sigma()?);
+    Ok(Prefilter::DoG {
+        sigma_small,
+        sigma_large,
+    })
+}
+
+/// A voxel as `X,Y,Z` indices (`solve --source`).
+pub fn parse_voxel(s: &str) -> Result<[usize; 3], String> {
+    let n: Vec<usize> = s.split(',').filter_map(|p| p.trim().parse().ok()).collect();
+    match (n.as_slice(), s.split(',').count()) {
+        ([x, y, z], 3) => Ok([*x, *y, *z]),
+        _ => Err(format!("expected three voxel indices X,Y,Z, got `{s}`")),
+    }
+}
+
+/// A grid size `NXxNYxNZ` with NX, NY >= 16 and NZ >= 8 (`bench-solve --sizes`).
+pub fn parse_dims(s: &str) -> Result<Dims, String> {
+    let parts: Vec<&str> = s.split('x').collect();
+    let n: Vec<usize> = parts.iter().filter_map(|p| p.parse().ok()).collect();
+    match n.as_slice() {
+        [x, y, z] if parts.len() == 3 && *x >= 16 && *y >= 16 && *z >= 8 => {
+            Dims::new(*x, *y, *z).map_err(|e| format!("`{s}`: {e:?}"))
+        }
+        _ => Err(format!(
+            "expected NXxNYxNZ with NX, NY >= 16 and NZ >= 8, got `{s}`"
+        )),
+    }
+}
+
+/// `--drift`: `SIGMA_POS_M,SIGMA_YAW_RAD`, two numbers >= 0.
+pub fn parse_drift(s: &str) -> Result<DriftConfig, String> {
+    let bad = || format!("expected SIGMA_POS_M,SIGMA_YAW_RAD (two numbers >= 0), got `{s}`");
+    let (p, y) = s.split_once(',').ok_or_else(bad)?;
+    let (p, y): (f32, f32) = (
+        p.trim().parse().map_err(|_| bad())?,
+        y.trim().parse().map_err(|_| bad())?,
+    );
+    if !(p.is_finite() && y.is_finite() && p >= 0.0 && y >= 0.0) {
+        return Err(bad());
+    }
+    Ok(DriftConfig {
+        sigma_position_m: p,
+        sigma_yaw_rad: y,
+    })
+}
+
+/// A baud rate: a positive integer.
+pub fn parse_baud(s: &str) -> Result<u32, String> {
+    match s.parse::<u32>() {
+        Ok(v) if v > 0 => Ok(v),
+        _ => Err(format!("expected a baud rate (a positive integer), got `{s}`")),
+    }
+}
+
+/// A probability: a finite number from 0 to 1.
+pub fn parse_probability(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && (0.0..=1.0).contains(&v) => Ok(v),
+        _ => Err(format!("expected a probability between 0 and 1, got `{s}`")),
+    }
+}
+
+/// `--link-burst`: `RATE[:BYTES]`, a probability and a positive burst length (default
+/// [`DEFAULT_BURST_LEN`]).
+pub fn parse_burst(s: &str) -> Result<(f64, u32), String> {
+    let (rate, len) = match s.split_once(':') {
+        Some((r, l)) => (r, Some(l)),
+        None => (s, None),
+    };
+    let rate = parse_probability(rate).map_err(|e| format!("`{s}`: {e} (RATE[:BYTES])"))?;
+    let len = match len {
+        None => DEFAULT_BURST_LEN,
+        Some(l) => match l.parse::<u32>() {
+            Ok(n) if n > 0 => n,
+            _ => {
+                return Err(format!(
+                    "`{s}`: burst length `{l}` is not a positive number of bytes"
+                ))
+            }
+        },
+    };
+    Ok((rate, len))
+}
+
+/// A finite number > 0.
+pub fn parse_positive(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("expected a positive number, got `{s}`")),
+    }
+}
+
+/// A vehicle radius: 0 to 0.6 m.
+pub fn parse_radius(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() && (0.0..=0.6).contains(&v) => Ok(v),
+        _ => Err(format!("expected a radius between 0 and 0.6 m, got `{s}`")),
+    }
+}
+
+/// `--noise`: `stereo`, `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd, 1-15).
+pub fn parse_noise(s: &str) -> Result<StereoNoise, String> {
+    let mut parts = s.split(':');
+    let kind = parts.next().unwrap_or("");
+    if kind != "stereo" {
+        return Err(format!(
+            "unknown noise model `{kind}` (expected `stereo`, `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX`)"
+        ));
+    }
+    let mut noise = StereoNoise::default();
+    if let Some(v) = parts.next() {
+        noise.sigma_px = match v.parse::<f32>() {
+            Ok(x) if x.is_finite() && x >= 0.0 => x,
+            _ => {
+                return Err(format!(
+                    "bad disparity sigma `{v}` (expected a number of pixels ≥ 0)"
+                ))
+            }
+        };
+    }
+    if let Some(w) = parts.next() {
+        noise.filter_px = match w.parse::<u8>() {
+            Ok(x) if x % 2 == 1 && x <= 15 => x,
+            _ => {
+                return Err(format!(
+                    "bad median window `{w}` (expected an odd number of pixels from 1 to 15; 1 = no filter)"
+                ))
+            }
+        };
+    }
+    if parts.next().is_some() {
+        return Err(format!("`{s}`: too many fields (stereo[:SIGMA_PX[:FILTER_PX]])"));
+    }
+    Ok(noise)
+}

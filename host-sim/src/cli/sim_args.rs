@@ -1,0 +1,149 @@
+//! Flags shared by `explore` and `bench`: imperfect sensing ([`SensingArgs`]) and the
+//! harmonic planner's field ([`FieldArgs`]), both flattened into their argument structs.
+
+use harmonic_core::field::PlanningField;
+use harmonic_sim::camera::StereoNoise;
+use harmonic_sim::sensing::DriftConfig;
+use harmonic_sim::sim::{self, SimConfig};
+
+use super::parse::{parse_drift, parse_noise, parse_positive, parse_probability};
+
+/// Imperfect sensing, for `explore` and `bench`.
+#[derive(clap::Args, Clone)]
+pub struct SensingArgs {
+    /// Sensor noise model: `stereo` (σ = 1 px disparity noise per pixel, then the stereo
+    /// pipeline's 5 × 5 median), `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd median
+    /// window, 1 = unfiltered). The core integrates it with the rules of exact depth, up to the
+    /// range where the depth error stays small (see `--trusted-range`), or with `--stereo-model`.
+    #[arg(long, value_parser = parse_noise)]
+    noise: Option<StereoNoise>,
+    /// With `--noise` or `--depth-from stereo`: integrate with the core's stereo sensor model
+    /// (experimental, see docs/RESULTS.md) — depth error σ_z = z²σ_d/(f·b), misses stop 2σ short
+    /// of a return, a return marks a surface only where σ is at most a voxel, a hit/miss vote
+    /// per voxel per frame instead of "the hit wins", and depth used to the camera's range.
+    #[arg(long)]
+    stereo_model: bool,
+    /// Range (m) up to which depth is integrated; farther returns only clear free space.
+    /// Default with `--noise`: where a 1σ (filtered) disparity error moves the depth by 0.1 m
+    /// (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered; 2.8 m with
+    /// `--depth-from stereo`. Otherwise, and with `--stereo-model`, the camera's 10 m.
+    #[arg(long, value_parser = parse_positive)]
+    trusted_range: Option<f32>,
+    /// Fraction of pixels (0-1) that return half their true depth (gross matching errors).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_probability)]
+    outliers: f64,
+    /// Boxes the scenario marks `textureless = true` return no depth.
+    #[arg(long)]
+    textureless: bool,
+    /// Pose drift: random walk per keyframe, `SIGMA_POS_M,SIGMA_YAW_RAD` (e.g. 0.1,0.015).
+    #[arg(long, value_parser = parse_drift)]
+    drift: Option<DriftConfig>,
+    /// Depth source: `camera` (the depth camera, with `--noise` if given) or `stereo` (a
+    /// textured stereo pair rendered at each scan, 2x the camera's resolution with a 0.12 m
+    /// baseline, matched by the core's block matcher; pixels without a match are unknown, not
+    /// free; returns integrated up to `--trusted-range`, default 2.8 m).
+    #[arg(long, default_value = "camera", value_parser = ["camera", "stereo"])]
+    depth_from: String,
+    /// With `--depth-from stereo`: rendering resolution as a multiple of the 100x100 camera.
+    #[arg(long, default_value_t = 2)]
+    stereo_scale: u16,
+    /// With `--depth-from stereo`: the matcher's window (odd, 3-15).
+    #[arg(long, default_value_t = 7)]
+    stereo_window: u8,
+}
+
+/// Settings of the `harmonic` planner's default field (harmonic_core::field).
+#[derive(clap::Args)]
+pub struct FieldArgs {
+    /// Decay length 1/κ of the screened, frontier-sourced field of `--planner harmonic`, in
+    /// metres: how much nearness outweighs frontier size (small: the nearest frontier wins;
+    /// large: the largest frontier region wins).
+    #[arg(long, value_parser = parse_positive)]
+    decay_length: Option<f32>,
+    /// The value of the screened field at the vehicle that a lowered κ aims for when the
+    /// nearest frontier is far (it accepts down to a tenth of it): the smaller, the longer
+    /// the field stays local and visits remnants nearest first (default 1e-4; 1e-2 was the
+    /// first setting, see docs/RESULTS.md).
+    #[arg(long, value_parser = parse_positive)]
+    vehicle_value: Option<f32>,
+    /// Look from a distance: the core's goal is the first point of its streamline from which
+    /// the frontier is in plain sight within this range (metres); 0 flies up to it.
+    #[arg(long)]
+    view_range: Option<f32>,
+    /// Ablation: closest and random frontier choose their goal by the core's view rule (the
+    /// first point of the path from which the frontier is in plain sight within the view
+    /// range) instead of the thesis's (fly up to it).
+    #[arg(long)]
+    baseline_views: bool,
+    /// Ablation: the core flies its streamline's own curve instead of pulling it taut through
+    /// the safe space (same goal, same frontier).
+    #[arg(long)]
+    raw_streamline: bool,
+}
+
+impl FieldArgs {
+    /// Set the field flags given on `cfg`.
+    pub fn apply(&self, cfg: &mut SimConfig) {
+        if let (Some(d), PlanningField::Screened(p)) = (self.decay_length, &mut cfg.explorer.field) {
+            p.decay_length_m = d;
+        }
+        if let (Some(u), PlanningField::Screened(p)) = (self.vehicle_value, &mut cfg.explorer.field) {
+            p.target_vehicle_value = u.min(0.5);
+            p.min_vehicle_value = 0.1 * p.target_vehicle_value;
+        }
+        if let Some(r) = self.view_range {
+            cfg.explorer.view_range_m = r.max(0.0);
+        }
+        cfg.baseline_views = self.baseline_views;
+        if self.raw_streamline {
+            cfg.explorer.taut_path = false;
+        }
+    }
+}
+
+impl SensingArgs {
+    /// Refuse combinations of the sensing flags that do not go together.
+    pub fn check(&self) -> Result<(), String> {
+        if self.stereo_model && self.noise.is_none() && self.depth_from != "stereo" {
+            return Err(
+                "--stereo-model chooses how noisy depth is integrated: give --noise or --depth-from stereo"
+                    .into(),
+            );
+        }
+        if self.depth_from == "stereo" && (self.noise.is_some() || self.outliers > 0.0 || self.textureless) {
+            return Err(
+                "--noise, --outliers and --textureless model the depth camera; with --depth-from stereo the matcher makes its own errors (textureless boxes render flat)".into(),
+            );
+        }
+        Ok(())
+    }
+
+    /// Set the camera, pose drift and depth integration of `cfg` from the sensing flags.
+    pub fn apply(&self, cfg: &mut SimConfig) {
+        cfg.camera = cfg.camera.with_noise(self.noise);
+        cfg.camera.outliers = self.outliers as f32;
+        cfg.camera.textureless = self.textureless;
+        cfg.drift = self.drift;
+        // Exact depth: no error (the camera's range unless --trusted-range).
+        let (sigma_px, baseline_m) = self
+            .noise
+            .map_or((0.0, 1.0), |n| (n.filtered_sigma_px(), n.baseline_m));
+        let fx = cfg.camera.intrinsics.fx();
+        sim::integrate_noisy_depth(
+            cfg,
+            sigma_px,
+            fx,
+            baseline_m,
+            self.trusted_range,
+            self.stereo_model,
+        );
+        if self.depth_from == "stereo" {
+            let rig = harmonic_sim::stereo::StereoRig {
+                scale: self.stereo_scale,
+                window: self.stereo_window,
+                ..harmonic_sim::stereo::StereoRig::default()
+            };
+            sim::use_stereo_depth(cfg, rig, self.trusted_range, self.stereo_model);
+        }
+    }
+}

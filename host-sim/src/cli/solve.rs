@@ -1,0 +1,69 @@
+//! `harmonic-sim solve`: one planning problem from a .npy label grid.
+
+use std::path::PathBuf;
+
+use harmonic_sim::npy;
+use harmonic_sim::problem::{self, SolverChoice};
+
+use super::parse::{parse_positive, parse_radius, parse_voxel};
+
+/// The flags of `solve`.
+#[derive(clap::Args)]
+pub struct SolveArgs {
+    /// uint8 .npy label grid, shape (NX, NY, NZ), C order: 0 unknown, 1 free, 2 occupied.
+    #[arg(long)]
+    labels: PathBuf,
+    /// Source (vehicle) voxel as X,Y,Z indices.
+    #[arg(long, value_parser = parse_voxel)]
+    source: [usize; 3],
+    /// Solver: `mg` (multigrid-preconditioned CG, the host's), `vc` (plain V-cycles, the
+    /// firmware's) or `gs` (Gauss-Seidel reference).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "vc", "gs"])]
+    solver: String,
+    /// Relative-residual tolerance.
+    #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
+    tol: f32,
+    /// Most cycles (sweeps for `gs`). A solve stopped here before its own rule says "done"
+    /// prints `"converged": false` (and still exits 0).
+    #[arg(long, default_value_t = 1_000_000)]
+    max_cycles: u32,
+    /// Error target: go on until the solve's estimate of its largest error of φ (printed as
+    /// `error_estimate`) is at or below this as well as the tolerance; `converged` then means
+    /// both were met. Default: the residual alone decides.
+    #[arg(long, value_parser = parse_positive)]
+    max_error: Option<f32>,
+    /// Vehicle radius in metres (obstacles and unknown space are inflated by it).
+    #[arg(long, default_value_t = 0.0, value_parser = parse_radius)]
+    radius: f32,
+    /// Voxel edge in metres (scales the radius).
+    #[arg(long, default_value_t = 0.1, value_parser = parse_positive)]
+    resolution: f32,
+    /// Write φ (float32 .npy, same shape, 0 outside the domain) here.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+/// Run `solve`: solve the problem, write φ if asked and print the statistics as a JSON line.
+pub fn run(args: &SolveArgs) -> Result<(), String> {
+    let grid = npy::read_u8_file(&args.labels).map_err(|e| format!("{}: {e}", args.labels.display()))?;
+    let request = problem::SolveRequest {
+        source: args.source,
+        solver: match args.solver.as_str() {
+            "gs" => SolverChoice::GaussSeidel,
+            "vc" => SolverChoice::VCycle,
+            _ => SolverChoice::Multigrid,
+        },
+        tolerance: args.tol,
+        max_cycles: args.max_cycles,
+        max_error: args.max_error.unwrap_or(f32::INFINITY),
+        radius: args.radius,
+        resolution: args.resolution,
+    };
+    let (phi, summary) =
+        problem::solve(&grid, &request).map_err(|e| format!("{}: {e}", args.labels.display()))?;
+    if let Some(out) = &args.out {
+        std::fs::write(out, npy::write_f32(&phi)).map_err(|e| format!("{}: {e}", out.display()))?;
+    }
+    println!("{}", serde_json::to_string(&summary).map_err(|e| e.to_string())?);
+    Ok(())
+}
