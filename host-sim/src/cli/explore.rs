@@ -20,7 +20,9 @@ use harmonic_sim::sim::{self, Report, SimConfig, StepView};
 use harmonic_sim::transport::TransportSpec;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::parse::{parse_baud, parse_burst, parse_positive, parse_probability, parse_radius};
+use super::parse::{
+    self, parse_baud, parse_burst, parse_positive, parse_probability, parse_radius, OperatorScript,
+};
 use super::sim_args::{FieldArgs, SensingArgs};
 
 /// The flags of `explore`.
@@ -161,6 +163,16 @@ pub struct ExploreArgs {
     /// report.json (`mavlink.bridge_signing`). The emulator then requires signing too.
     #[arg(long, requires = "mavlink")]
     mavlink_key: Option<PathBuf>,
+    /// Hold until a ground station sends COMMAND_LONG MAV_CMD_MISSION_START to component 191
+    /// (see `--operator`); without it the exploration starts at once.
+    #[arg(long, requires = "mavlink")]
+    wait_for_start: bool,
+    /// With the emulator: a scripted ground station sends operator commands at simulated
+    /// times, `COMMAND@SECONDS,...` with COMMAND one of start, pause, resume, abort (e.g.
+    /// `pause@30,resume@45`). Each is answered with a COMMAND_ACK; report.json lists them
+    /// (`mavlink.operator_commands`).
+    #[arg(long, requires = "mavlink", value_parser = parse::parse_operator_script)]
+    operator: Option<OperatorScript>,
     /// Where the planning runs: `host` (the core in this process) or `qemu` (the firmware,
     /// harmonic-fw, on an emulated Cortex-M4F: processor in the loop; see `pil` in the docs).
     #[arg(long, default_value = "host", value_parser = ["host", "qemu"])]
@@ -266,8 +278,15 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
         },
         tlog: args.tlog.clone(),
         signing_key: signing_key.clone(),
-        ..MavlinkConfig::default()
+        bridge: harmonic_core::mavlink::BridgeConfig {
+            wait_for_start: args.wait_for_start,
+            ..harmonic_core::mavlink::BridgeConfig::default()
+        },
+        operator_script: args.operator.clone().map(|o| o.0).unwrap_or_default(),
     });
+    if args.operator.is_some() && args.mavlink.as_ref().is_some_and(|m| m.is_remote()) {
+        return Err("--operator: the scripted ground station talks to the emulator only; send commands from your ground station to a real autopilot's link".into());
+    }
     std::fs::create_dir_all(&args.out).map_err(|e| format!("{}: {e}", args.out.display()))?;
 
     // On a terminal: a live status line. Elsewhere (CI logs, pipes): a plain line every 25 steps.
@@ -617,6 +636,20 @@ fn print_summary(r: &Report) {
                 m.bridge.stale_events
             ),
         ));
+        if !m.operator_commands.is_empty() {
+            let answers: Vec<String> = m
+                .operator_commands
+                .iter()
+                .map(|e| {
+                    let what = e
+                        .command
+                        .map_or("unknown".to_string(), |c| format!("{c:?}").to_lowercase());
+                    format!("{what}@{:.1}s {:?}", e.time_s, e.result).to_lowercase()
+                })
+                .collect();
+            let state = m.operator_state.map_or("?", |s| s.name());
+            rows.push(("operator", format!("{state}; {}", answers.join(", "))));
+        }
         if let Some(t) = &m.tlog {
             rows.push(("tlog", format!("{} ({} records)", t.path, t.records)));
         }

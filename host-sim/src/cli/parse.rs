@@ -156,3 +156,69 @@ pub fn parse_noise(s: &str) -> Result<StereoNoise, String> {
     }
     Ok(noise)
 }
+
+/// Operator commands at simulated times, for `explore --operator`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OperatorScript(pub Vec<(f64, harmonic_core::operator::OperatorCommand)>);
+
+/// `COMMAND@SECONDS,...` (start, pause, resume, abort), in time order.
+pub fn parse_operator_script(s: &str) -> Result<OperatorScript, String> {
+    use harmonic_core::operator::OperatorCommand as C;
+    let mut script = Vec::new();
+    for item in s.split(',').map(str::trim).filter(|i| !i.is_empty()) {
+        let (name, at) = item
+            .split_once('@')
+            .ok_or_else(|| format!("`{item}`: expected COMMAND@SECONDS, e.g. pause@30"))?;
+        let command = match name.trim() {
+            "start" => C::Start,
+            "pause" => C::Pause,
+            "resume" => C::Resume,
+            "abort" => C::Abort,
+            other => return Err(format!("`{other}`: not a command (start, pause, resume, abort)")),
+        };
+        let t: f64 = at
+            .trim()
+            .parse()
+            .map_err(|_| format!("`{at}`: not a time in seconds"))?;
+        if !(t.is_finite() && t >= 0.0) {
+            return Err(format!("`{at}`: the time must be 0 s or later"));
+        }
+        script.push((t, command));
+    }
+    if script.is_empty() {
+        return Err("no command given".into());
+    }
+    script.sort_by(|a, b| a.0.total_cmp(&b.0));
+    Ok(OperatorScript(script))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use harmonic_core::operator::OperatorCommand as C;
+
+    #[test]
+    fn operator_scripts_parse_in_time_order_and_bad_ones_say_why() {
+        let s = parse_operator_script("resume@45, pause@30,start@0.5,abort@70").unwrap();
+        assert_eq!(
+            s.0,
+            [
+                (0.5, C::Start),
+                (30.0, C::Pause),
+                (45.0, C::Resume),
+                (70.0, C::Abort)
+            ]
+        );
+        for (bad, why) in [
+            ("pause", "COMMAND@SECONDS"),
+            ("jump@3", "not a command"),
+            ("pause@x", "not a time"),
+            ("pause@-1", "0 s or later"),
+            ("pause@inf", "0 s or later"),
+            ("", "no command"),
+        ] {
+            let err = parse_operator_script(bad).unwrap_err();
+            assert!(err.contains(why), "{bad}: {err}");
+        }
+    }
+}
