@@ -409,6 +409,7 @@ fn outcome_code(o: &ReportOutcome) -> (u8, u8, u8) {
                     },
                 ),
                 Fault::Operator => (7, 0),
+                Fault::HomeUnreachable => (7, 1),
             };
             (4, fault, detail)
         }
@@ -440,6 +441,7 @@ fn outcome_from_code(outcome: u8, fault: u8, detail: u8) -> Option<ReportOutcome
             (6, 3) => Fault::Integrate(IntegrateError::TurningTooFast),
             (6, 4) => Fault::Integrate(IntegrateError::StalePose),
             (7, 0) => Fault::Operator,
+            (7, 1) => Fault::HomeUnreachable,
             _ => return None,
         }),
         _ => return None,

@@ -137,6 +137,9 @@ pub struct FrameTiming {
     pub pose_lag_ms: u32,
 }
 
+/// [`Explorer::plan_home`] reports the vehicle home within this distance of it, metres.
+pub const HOME_REACHED_M: f32 = 0.15;
+
 /// Refused frames in a row, each within [`ExplorerConfig::max_frame_jump_m`] of the one before,
 /// after which a jumped camera pose is accepted as the new reference.
 pub const FRAMES_TO_ACCEPT_JUMP: u8 = 3;
@@ -248,6 +251,9 @@ pub enum Fault {
     /// Not planning on the operator's word: paused, aborted or waiting for start
     /// ([`crate::operator`]). The caller, not the explorer, decides this hold.
     Operator,
+    /// Returning home ([`Explorer::plan_home`]): home is not in the vehicle's safe space
+    /// (outside the grid, unknown, or cut off by what the map holds now).
+    HomeUnreachable,
 }
 
 /// Counts of every fault and notable event since start.
@@ -1096,6 +1102,143 @@ impl<'a> Explorer<'a> {
             frontier: stalled_in,
             escape: false,
         })
+    }
+
+    /// Plans the way back to `home` through known free space: the planning field of
+    /// [`ExplorerConfig::field`] solved over the vehicle's safe space with the home voxel as its
+    /// only target instead of the frontiers (every frontier voxel joins the interior), so its
+    /// streamline ends at home by the same argument that makes exploring streamlines end on a
+    /// frontier; the way is pulled taut as for exploring. The goal is home, the yaw kept.
+    ///
+    /// `Complete` once the vehicle is within [`HOME_REACHED_M`] of home;
+    /// [`Fault::HomeUnreachable`] if home is not in the vehicle's safe space (it holds: the
+    /// next scans may open the way); the faults of [`Explorer::plan`] otherwise.
+    pub fn plan_home(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut impl Clock,
+    ) -> PlanOutcome {
+        self.status.phase_ticks = PhaseTicks::default();
+        self.waypoints.clear();
+        self.last_goal = None;
+        let outcome = self.plan_home_inner(position, yaw, home, clock);
+        self.status.record_plan(&outcome, &self.map);
+        outcome
+    }
+
+    fn plan_home_inner(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut impl Clock,
+    ) -> PlanOutcome {
+        let finite = |p: &Point3<f32>| p.coords.iter().all(|c| c.is_finite());
+        if !(finite(position) && finite(home) && yaw.is_finite()) {
+            self.status.errors.bad_pose += 1;
+            return PlanOutcome::Hold(Fault::BadPose);
+        }
+        if (position - home).norm() <= HOME_REACHED_M {
+            return PlanOutcome::Complete;
+        }
+        let geometry = *self.map.geometry();
+        let Some(vehicle) = geometry.voxel_at(position) else {
+            self.status.errors.vehicle_outside_grid += 1;
+            return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
+        };
+        let Some(home_voxel) = geometry.voxel_at(home) else {
+            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        };
+        domain::mark_body(&mut self.map, &self.stencil, position);
+        let t0 = clock.ticks();
+        let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+        let t1 = clock.ticks();
+        self.status.phase_ticks.domain += t1.saturating_sub(t0);
+        match built {
+            Ok(stats) => self.status.domain = stats,
+            Err(DomainError::VehicleInInflatedSpace | DomainError::VehicleNotFree) => {
+                return self.escape(vehicle, yaw)
+            }
+            Err(_) => {
+                self.status.errors.vehicle_not_free += 1;
+                return PlanOutcome::Hold(Fault::VehicleNotFree);
+            }
+        }
+        let dims = geometry.dims();
+        let at_home = dims.linear(home_voxel);
+        if !self.labels.get(at_home).is_some_and(|l| l.in_domain()) {
+            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        }
+        if at_home == dims.linear(vehicle) {
+            // In home's voxel already: the rest of the way is inside one safe voxel.
+            let _ = self.waypoints.push(*position);
+            let _ = self.waypoints.push(*home);
+            return PlanOutcome::Goal(Goal {
+                position: *home,
+                yaw,
+                frontier: home_voxel,
+                escape: false,
+            });
+        }
+        for label in self.labels.iter_mut().filter(|l| **l == Label::Frontier) {
+            *label = Label::Interior;
+        }
+        if let Some(label) = self.labels.get_mut(at_home) {
+            *label = Label::Frontier;
+        }
+        // As in `plan_inner`: a streamline that stalls where the solve did not resolve the
+        // field retries on a less screened one.
+        for _ in 0..8 {
+            let t1 = clock.ticks();
+            let solved = self.solve_field(vehicle);
+            let t2 = clock.ticks();
+            self.status.phase_ticks.solve += t2.saturating_sub(t1);
+            match solved {
+                Ok(s) => {
+                    self.status.solve = s;
+                    self.status.planning_ops += s.cell_updates;
+                    if !s.converged {
+                        self.status.errors.solver_not_converged += 1;
+                    }
+                }
+                Err(e) => return PlanOutcome::Hold(Fault::Solver(e)),
+            }
+            let field = Field {
+                geometry: &geometry,
+                labels: self.labels,
+                phi: self.phi,
+            };
+            self.waypoints.clear();
+            match streamline::trace(&field, position, &self.config.streamline, &mut self.waypoints) {
+                Ok(end) => {
+                    self.status.streamline = Some(end);
+                    if self.config.taut_path {
+                        self.status.planning_ops +=
+                            streamline::pull_taut(&geometry, self.labels, &mut self.waypoints);
+                    }
+                    self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
+                    let goal = self.waypoints.last().copied().unwrap_or(end.end);
+                    return PlanOutcome::Goal(Goal {
+                        position: goal,
+                        yaw,
+                        frontier: home_voxel,
+                        escape: false,
+                    });
+                }
+                Err(StreamlineError::Stalled) if self.lower_screening() => {
+                    self.status.errors.screening_retries += 1;
+                }
+                Err(e) => {
+                    self.status.streamline = None;
+                    self.status.errors.streamline_failures += 1;
+                    return PlanOutcome::Hold(Fault::Streamline(e));
+                }
+            }
+        }
+        self.status.errors.streamline_failures += 1;
+        PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
     }
 
     /// Goal back into the domain for a vehicle that a new observation left inside inflated space.

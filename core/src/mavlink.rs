@@ -848,6 +848,7 @@ impl Bridge {
             MavCmd::MAV_CMD_DO_PAUSE_CONTINUE if data.param1 == 0.0 => Some(OperatorCommand::Pause),
             MavCmd::MAV_CMD_DO_PAUSE_CONTINUE if data.param1 == 1.0 => Some(OperatorCommand::Resume),
             MavCmd::MAV_CMD_NAV_LOITER_UNLIM => Some(OperatorCommand::Abort),
+            MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH => Some(OperatorCommand::ReturnHome),
             _ => None,
         };
         let (result, changed) = match command {
@@ -875,6 +876,21 @@ impl Bridge {
             self.announce_operator_state(state);
         }
         Received::Command(command, result)
+    }
+
+    /// The explorer's way home ended at home ([`OperatorState::Home`]: hold, announced).
+    pub fn arrived_home(&mut self) {
+        if let Some(state) = self.operator.arrived_home() {
+            self.announce_operator_state(state);
+        }
+    }
+
+    /// Returns home without an operator's command (after a complete exploration, by default):
+    /// as if NAV_RETURN_TO_LAUNCH had come, without an acknowledgement.
+    pub fn return_home(&mut self) {
+        if let (_, Some(state)) = self.operator.command(OperatorCommand::ReturnHome) {
+            self.announce_operator_state(state);
+        }
     }
 
     fn announce_operator_state(&mut self, state: OperatorState) {
@@ -2211,13 +2227,13 @@ mod tests {
         let (got, acks, _, _) = exchange(
             &mut bridge,
             1010,
-            command(us, MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0),
+            command(us, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 0.0),
         );
         assert_eq!(got, Received::Command(None, CommandResult::Unsupported));
         assert_eq!(
             acks,
             [(
-                MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
                 MavResult::MAV_RESULT_UNSUPPORTED
             )]
         );

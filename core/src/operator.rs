@@ -10,14 +10,17 @@
 //! | pause (hold) | `DO_PAUSE_CONTINUE`, param1 = 0 | exploring | paused |
 //! | resume | `DO_PAUSE_CONTINUE`, param1 = 1 | paused | exploring |
 //! | abort (hold, stop planning) | `NAV_LOITER_UNLIM` | any | aborted |
+//! | return home | `NAV_RETURN_TO_LAUNCH` | any but home | returning home |
 //!
 //! A command that makes no sense in the current state (resume while aborted, pause while
 //! waiting) is denied and changes nothing; one that asks for the state the explorer is already
-//! in is accepted and changes nothing. Return home (`NAV_RETURN_TO_LAUNCH`) is not implemented
-//! yet and is answered as unsupported, like every other command.
+//! in is accepted and changes nothing. A pause while returning home resumes the return. Every
+//! other command is answered as unsupported.
 //!
-//! Only [`OperatorState::Exploring`] plans; in every other state the caller holds the vehicle
-//! where it is (and keeps integrating depth, so the map stays current).
+//! [`OperatorState::Exploring`] plans the exploration and [`OperatorState::ReturningHome`] the
+//! way home ([`crate::explore::Explorer::plan_home`]), which ends in [`OperatorState::Home`]
+//! (a hold, ready to land); in every other state the caller holds the vehicle where it is (and
+//! keeps integrating depth, so the map stays current).
 
 /// What the explorer is doing, as the operator sees it. The discriminant is the HEARTBEAT
 /// `custom_mode` the bridge reports.
@@ -36,6 +39,10 @@ pub enum OperatorState {
     Aborted = 3,
     /// No reachable frontier is left; holding.
     Complete = 4,
+    /// Flying back to where the exploration started.
+    ReturningHome = 5,
+    /// Home again: holding, ready to land.
+    Home = 6,
 }
 
 impl OperatorState {
@@ -44,9 +51,9 @@ impl OperatorState {
         self as u32
     }
 
-    /// Whether the explorer plans in this state.
+    /// Whether the explorer plans in this state (the exploration, or the way home).
     pub fn plans(self) -> bool {
-        self == Self::Exploring
+        matches!(self, Self::Exploring | Self::ReturningHome)
     }
 
     /// A short lowercase name, for STATUSTEXTs and logs.
@@ -57,6 +64,8 @@ impl OperatorState {
             Self::Paused => "paused",
             Self::Aborted => "aborted",
             Self::Complete => "complete",
+            Self::ReturningHome => "returning home",
+            Self::Home => "home",
         }
     }
 }
@@ -74,6 +83,8 @@ pub enum OperatorCommand {
     Resume,
     /// Hold and stop planning.
     Abort,
+    /// Fly back to where the exploration started, through known free space.
+    ReturnHome,
 }
 
 /// How the explorer answered a command (the COMMAND_ACK result).
@@ -93,6 +104,8 @@ pub enum CommandResult {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Operator {
     state: OperatorState,
+    /// What a resume returns to: exploring, or returning home.
+    resume_to: OperatorState,
 }
 
 impl Operator {
@@ -104,6 +117,7 @@ impl Operator {
             } else {
                 OperatorState::Exploring
             },
+            resume_to: OperatorState::Exploring,
         }
     }
 
@@ -117,12 +131,28 @@ impl Operator {
         use OperatorState as S;
         let to = match (command, self.state) {
             (OperatorCommand::Start, _) => S::Exploring,
-            (OperatorCommand::Pause, S::Exploring | S::Paused) => S::Paused,
-            (OperatorCommand::Resume, S::Paused | S::Exploring) => S::Exploring,
+            (OperatorCommand::Pause, S::Exploring | S::ReturningHome) => {
+                self.resume_to = self.state;
+                S::Paused
+            }
+            (OperatorCommand::Pause, S::Paused) => S::Paused,
+            (OperatorCommand::Resume, S::Paused) => self.resume_to,
+            (OperatorCommand::Resume, S::Exploring | S::ReturningHome) => self.state,
             (OperatorCommand::Abort, _) => S::Aborted,
+            (OperatorCommand::ReturnHome, S::Home) => S::Home,
+            (OperatorCommand::ReturnHome, _) => S::ReturningHome,
             (OperatorCommand::Pause | OperatorCommand::Resume, _) => return (CommandResult::Denied, None),
         };
         (CommandResult::Accepted, self.enter(to))
+    }
+
+    /// The way home ended at home: hold there (only while returning).
+    pub fn arrived_home(&mut self) -> Option<OperatorState> {
+        if self.state == OperatorState::ReturningHome {
+            self.enter(OperatorState::Home)
+        } else {
+            None
+        }
     }
 
     /// The explorer found no reachable frontier: complete (only while exploring).
@@ -188,5 +218,38 @@ mod tests {
         assert_eq!(op.command(C::Pause), (CommandResult::Denied, None));
         assert_eq!(op.state().custom_mode(), 4);
         assert_eq!(Operator::default().state(), S::Exploring);
+    }
+
+    #[test]
+    fn the_way_home_can_be_paused_and_ends_at_home() {
+        let mut op = Operator::default();
+        assert_eq!(op.arrived_home(), None);
+        assert_eq!(
+            op.command(C::ReturnHome),
+            (CommandResult::Accepted, Some(S::ReturningHome))
+        );
+        assert!(op.state().plans());
+        // A pause while returning resumes the return, not the exploration.
+        assert_eq!(op.command(C::Pause), (CommandResult::Accepted, Some(S::Paused)));
+        assert_eq!(
+            op.command(C::Resume),
+            (CommandResult::Accepted, Some(S::ReturningHome))
+        );
+        assert_eq!(op.complete(), None);
+        assert_eq!(op.arrived_home(), Some(S::Home));
+        assert!(!op.state().plans());
+        assert_eq!(op.command(C::ReturnHome), (CommandResult::Accepted, None));
+        assert_eq!(op.command(C::Resume), (CommandResult::Denied, None));
+        // A new start explores again; a pause then resumes the exploration.
+        assert_eq!(
+            op.command(C::Start),
+            (CommandResult::Accepted, Some(S::Exploring))
+        );
+        assert_eq!(op.command(C::Pause), (CommandResult::Accepted, Some(S::Paused)));
+        assert_eq!(
+            op.command(C::Resume),
+            (CommandResult::Accepted, Some(S::Exploring))
+        );
+        assert_eq!(S::Home.custom_mode(), 6);
     }
 }

@@ -25,7 +25,7 @@ use embedded_io::{Read, ReadReady, Write};
 use harmonic_core::domain::Label;
 use harmonic_core::downlink::{self, PlanReport, MAP_SLICE_VOXELS};
 use harmonic_core::explore::{
-    Clock, ConfigError, Explorer, ExplorerConfig, ExplorerStorage, Goal, PlanOutcome,
+    Clock, ConfigError, Explorer, ExplorerConfig, ExplorerStorage, Fault, Goal, PlanOutcome,
 };
 use harmonic_core::link::{DepthReceiver, LinkError, LinkEvent};
 use harmonic_core::map::{Dims, MapError, MapGeometry};
@@ -34,6 +34,7 @@ use harmonic_core::mavlink::{
     write_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, AUTOPILOT_COMPONENT_ID,
     DEFAULT_SYSTEM_ID, ONBOARD_COMPUTER_COMPONENT_ID,
 };
+use harmonic_core::operator::OperatorState;
 use harmonic_core::solve::Bf16;
 use harmonic_core::streamline::Waypoints;
 use nalgebra::Point3;
@@ -283,6 +284,8 @@ pub struct Firmware<'a> {
     mav_sequence: u8,
     downlink_sequence: u16,
     tick_hz: u32,
+    /// Where a return home goes: the position of the first plan.
+    home: Option<Point3<f32>>,
 }
 
 impl<'a> Firmware<'a> {
@@ -306,6 +309,7 @@ impl<'a> Firmware<'a> {
             mav_sequence: 0,
             downlink_sequence: 0,
             tick_hz,
+            home: None,
         })
     }
 
@@ -451,14 +455,28 @@ impl<'a> Firmware<'a> {
             Err(_) => (Point3::new(f32::NAN, f32::NAN, f32::NAN), 0.0),
         };
         let kept_before = self.explorer.status().plans_kept;
-        // Paused, aborted or waiting for start: hold, and plan nothing.
-        let outcome = if self.bridge.operator_state().plans() {
-            self.explorer.plan_timed(&position, yaw, clock)
-        } else {
-            PlanOutcome::Hold(harmonic_core::explore::Fault::Operator)
+        // Home is where the first plan was made from.
+        if self.home.is_none() && position.coords.iter().all(|c| c.is_finite()) {
+            self.home = Some(position);
+        }
+        // The operator decides: explore, go home, or hold (paused, aborted, waiting).
+        let state = self.bridge.operator_state();
+        let outcome = match (state, self.home) {
+            (OperatorState::Exploring, _) => self.explorer.plan_timed(&position, yaw, clock),
+            (OperatorState::ReturningHome, Some(home)) => {
+                self.explorer.plan_home(&position, yaw, &home, clock)
+            }
+            (OperatorState::ReturningHome, None) => PlanOutcome::Hold(Fault::HomeUnreachable),
+            _ => PlanOutcome::Hold(Fault::Operator),
         };
         let kept = self.explorer.status().plans_kept > kept_before;
-        self.bridge.apply(&outcome);
+        match outcome {
+            PlanOutcome::Complete if state == OperatorState::ReturningHome => {
+                self.bridge.hold();
+                self.bridge.arrived_home();
+            }
+            _ => self.bridge.apply(&outcome),
+        }
         match &outcome {
             PlanOutcome::Goal(goal) => self.follower.follow(self.explorer.waypoints(), goal),
             _ => self.follower.stop(),

@@ -297,6 +297,7 @@ impl GroundStation {
                 OperatorCommand::Pause => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0),
                 OperatorCommand::Resume => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0),
                 OperatorCommand::Abort => (common::MavCmd::MAV_CMD_NAV_LOITER_UNLIM, 0.0),
+                OperatorCommand::ReturnHome => (common::MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0),
             };
             let message = MavMessage::COMMAND_LONG(common::COMMAND_LONG_DATA {
                 param1,

@@ -665,6 +665,8 @@ pub fn run(
         ..LinkReport::default()
     };
     Ok(Report {
+        // The firmware does not fly home yet.
+        return_home: None,
         scenario: scenario.world.name.clone(),
         planner: "harmonic".into(),
         solver: "mg".into(),

@@ -133,6 +133,11 @@ pub struct SimConfig {
     pub dump_problem: Option<std::path::PathBuf>,
     /// The depth link: transport, baud rate, faults.
     pub link: LinkConfig,
+    /// After a complete exploration, fly back to the start through known free space
+    /// ([`Explorer::plan_home`](harmonic_core::explore::Explorer::plan_home)); the report keeps
+    /// the exploration's numbers and gives the way home apart ([`Report::return_home`]).
+    /// Default false (benchmarks compare explorations); `explore` turns it on.
+    pub return_home: bool,
     /// Fly over MAVLink (see the [module documentation](self)); `None`: the vehicle flies the
     /// waypoints directly.
     pub mavlink: Option<MavlinkConfig>,
@@ -243,11 +248,28 @@ impl Default for SimConfig {
             drift: None,
             dump_problem: None,
             link: LinkConfig::default(),
+            return_home: false,
             mavlink: None,
             faults: SimFaults::default(),
             depth_source: DepthSource::Camera,
         }
     }
+}
+
+/// The flight back to the start.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReturnHome {
+    /// "home" (within 0.15 m of the start), "stuck:FAULT" (e.g. `stuck:HomeUnreachable`),
+    /// "aborted" or "scan_limit".
+    pub termination: String,
+    /// Distance flown on the way, m.
+    pub path_length_m: f64,
+    /// Depth frames integrated on the way.
+    pub scans: u32,
+    /// Distance from the start at the end, m.
+    pub distance_to_home_m: f64,
+    /// Simulated time of the way home, s.
+    pub time_s: f64,
 }
 
 /// One capture-and-plan step.
@@ -394,6 +416,10 @@ pub struct Report {
     pub scans: u32,
     /// Steps (captures), with or without a frame arriving.
     pub steps_taken: u32,
+    /// The way home, if one was flown (after a complete exploration with
+    /// [`SimConfig::return_home`], or on the operator's command); the other fields describe
+    /// the exploration up to its completion.
+    pub return_home: Option<ReturnHome>,
     /// Collision events (body sphere entering an obstacle).
     pub collisions: u32,
     /// Where each collision began, map frame.
@@ -674,6 +700,18 @@ impl Track {
 struct Scene<'a> {
     cfg: &'a SimConfig,
     world: &'a World,
+}
+
+/// Where the way home began: the exploration's numbers at that moment.
+struct ReturnStart {
+    distance: f64,
+    frames: u32,
+    taken: u32,
+    t_s: f64,
+    status: harmonic_core::explore::Status,
+    coverage: Coverage,
+    /// The exploration was complete (else the operator called the vehicle home).
+    after_complete: bool,
 }
 
 /// What moves with time: the depth link, and the MAVLink link if the run flies over it.
@@ -1280,6 +1318,11 @@ pub fn run_observed(
         vehicle.yaw = yaw;
         track = Track::start(world, &vehicle.position, cfg.body_radius);
     }
+    // Where a return home goes: the start, in the frame the core plans in.
+    let home = vehicle.position;
+    let mut returning = false;
+    let mut return_start: Option<ReturnStart> = None;
+    let mut return_end: Option<String> = None;
 
     let mut taken = 0u32;
     let mut looked = 0u32;
@@ -1294,6 +1337,9 @@ pub fn run_observed(
         {
             termination = "aborted".into();
             break;
+        }
+        if step == cfg.max_scans && return_start.is_some() {
+            return_end = Some("scan_limit".into());
         }
         taken = step;
         // The camera sees the world from where the vehicle truly is at the frame's instant; the
@@ -1389,8 +1435,21 @@ pub fn run_observed(
         // Paused or waiting for start: hold (the bridge already does), integrate, plan nothing.
         let operator = rig.mav.as_ref().map(|m| m.bridge.operator_state());
         let held = operator.filter(|s| !s.plans());
+        // The way home: after a complete exploration (`return_home`), or on the operator's word.
+        let going_home = returning || operator == Some(OperatorState::ReturningHome);
+        if going_home && return_start.is_none() {
+            return_start = Some(ReturnStart {
+                distance: track.distance,
+                frames: status_before.frames,
+                taken: step - 1,
+                t_s: rig.t_s,
+                status: status_before,
+                coverage: truth.coverage(planner.map()),
+                after_complete: false,
+            });
+        }
         // Look around first: turn on the spot between the first scans, planning nothing.
-        let looking = integrated > 0 && held.is_none() && looked + 1 < cfg.look_around;
+        let looking = integrated > 0 && held.is_none() && !going_home && looked + 1 < cfg.look_around;
         let outcome = if looking {
             looked += 1;
             steps_without_frame = 0;
@@ -1403,7 +1462,11 @@ pub fn run_observed(
             if let Some(reference) = reference.as_mut() {
                 harmonic_core::domain::mark_body(reference, &stencil, &vehicle.position);
             }
-            Some(planner.plan(&position, yaw, &mut clock))
+            Some(if going_home {
+                planner.plan_home(&position, yaw, &home, &mut clock)
+            } else {
+                planner.plan(&position, yaw, &mut clock)
+            })
         } else {
             steps_without_frame += 1;
             None
@@ -1496,13 +1559,41 @@ pub fn run_observed(
         };
         let now = rig.now_ms();
         if let Some(m) = rig.mav.as_mut() {
-            m.bridge.apply(&outcome);
+            match outcome {
+                // Home again: a hold, announced as such (not as a complete exploration).
+                PlanOutcome::Complete if going_home => {
+                    m.bridge.hold();
+                    m.bridge.arrived_home();
+                }
+                _ => m.bridge.apply(&outcome),
+            }
             if !matches!(outcome, PlanOutcome::Goal(_)) {
                 // The hold setpoint and any STATUSTEXT go out now.
                 m.push(now).map_err(SimError::Mavlink)?;
             }
         }
         match outcome {
+            PlanOutcome::Complete if going_home => {
+                return_end = Some("home".into());
+                break;
+            }
+            PlanOutcome::Complete if cfg.return_home => {
+                // Explored: the numbers so far are the exploration's; now fly home.
+                return_start = Some(ReturnStart {
+                    distance: track.distance,
+                    frames: status.frames,
+                    taken: step,
+                    t_s: rig.t_s,
+                    status,
+                    coverage,
+                    after_complete: true,
+                });
+                returning = true;
+                if let Some(m) = rig.mav.as_mut() {
+                    m.bridge.return_home();
+                    m.push(now).map_err(SimError::Mavlink)?;
+                }
+            }
             PlanOutcome::Complete => {
                 termination = "complete".into();
                 break;
@@ -1511,6 +1602,9 @@ pub fn run_observed(
                 consecutive_holds += 1;
                 if consecutive_holds >= 3 {
                     termination = format!("stuck:{fault:?}");
+                    if going_home {
+                        return_end = Some(termination.clone());
+                    }
                     break;
                 }
             }
@@ -1553,8 +1647,30 @@ pub fn run_observed(
         planned_at: None,
         finished: true,
     });
-    let status = *planner.status();
-    let coverage: Coverage = truth.coverage(planner.map());
+    // With a way home flown, the run's numbers are the exploration's, up to where it began.
+    let (status, coverage, explored_path, explored_steps) = match &return_start {
+        Some(r) => (r.status, r.coverage, r.distance, r.taken),
+        None => (
+            *planner.status(),
+            truth.coverage(planner.map()),
+            track.distance,
+            taken,
+        ),
+    };
+    let return_home = return_start.as_ref().map(|r| ReturnHome {
+        termination: return_end.clone().unwrap_or_else(|| termination.clone()),
+        path_length_m: track.distance - r.distance,
+        scans: planner.status().frames.saturating_sub(r.frames),
+        distance_to_home_m: f64::from((vehicle.position - home).norm()),
+        time_s: rig.t_s - r.t_s,
+    });
+    if let (Some(r), Some(back)) = (&return_start, &return_home) {
+        termination = if r.after_complete {
+            "complete".into()
+        } else {
+            back.termination.clone()
+        };
+    }
     let timing = Timing {
         integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
         domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
@@ -1580,9 +1696,10 @@ pub fn run_observed(
         coverage_surface: coverage.surface,
         free_marked_occupied: coverage.free_marked_occupied,
         coverage_observed: coverage.observed,
-        path_length_m: track.distance,
+        path_length_m: explored_path,
         scans: status.frames,
-        steps_taken: taken,
+        steps_taken: explored_steps,
+        return_home,
         collisions: track.collisions.len() as u32,
         collision_points: track.collisions,
         integration_ops: status.integration_ops,

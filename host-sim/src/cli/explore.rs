@@ -70,6 +70,11 @@ pub struct ExploreArgs {
     /// after the first scan).
     #[arg(long, default_value_t = 4)]
     look_around: u32,
+    /// Stay where the exploration ends instead of flying back to the start (by default the
+    /// vehicle returns home through known free space after a complete exploration; the
+    /// report's path and scans are the exploration's, the way home is reported apart).
+    #[arg(long)]
+    no_return_home: bool,
     /// Planner: `harmonic` (the core with its default field, frontier-sourced and screened, on
     /// multigrid; the default), `harmonic-laplace` (the core with the seed's Laplace field,
     /// vehicle φ = 1 and frontiers φ = 0, on multigrid), `harmonic-gs` (the seed's field on the
@@ -228,6 +233,7 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     cfg.max_yaw_rate = args.max_yaw_rate.to_radians();
     cfg.max_scans = args.max_scans;
     cfg.look_around = args.look_around;
+    cfg.return_home = !args.no_return_home;
     cfg.explorer.max_frame_yaw_rate = args.max_frame_yaw_rate.to_radians();
     cfg.explorer.max_frame_pose_lag_ms = args.max_frame_pose_lag_ms;
     cfg.dump_problem = args.dump_problem.clone();
@@ -473,7 +479,7 @@ fn write_run_figures(
 
 /// The end-of-run summary: one aligned line per quantity of the report.
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 15] = [
+    let rows: [(&str, String); 16] = [
         ("scenario", r.scenario.clone()),
         ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
@@ -488,6 +494,16 @@ fn print_summary(r: &Report) {
         ),
         ("path length", format!("{:.1} m", r.path_length_m)),
         ("scans", r.scans.to_string()),
+        (
+            "return home",
+            match &r.return_home {
+                Some(h) => format!(
+                    "{} after {:.1} m, {} scans, {:.0} s; {:.2} m from the start",
+                    h.termination, h.path_length_m, h.scans, h.time_s, h.distance_to_home_m
+                ),
+                None => "not flown".into(),
+            },
+        ),
         ("collisions", r.collisions.to_string()),
         ("integration ops", r.integration_ops.to_string()),
         ("planning ops", r.planning_ops.to_string()),

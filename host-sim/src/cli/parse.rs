@@ -161,7 +161,7 @@ pub fn parse_noise(s: &str) -> Result<StereoNoise, String> {
 #[derive(Debug, Clone, PartialEq)]
 pub struct OperatorScript(pub Vec<(f64, harmonic_core::operator::OperatorCommand)>);
 
-/// `COMMAND@SECONDS,...` (start, pause, resume, abort), in time order.
+/// `COMMAND@SECONDS,...` (start, pause, resume, abort, home), in time order.
 pub fn parse_operator_script(s: &str) -> Result<OperatorScript, String> {
     use harmonic_core::operator::OperatorCommand as C;
     let mut script = Vec::new();
@@ -174,7 +174,12 @@ pub fn parse_operator_script(s: &str) -> Result<OperatorScript, String> {
             "pause" => C::Pause,
             "resume" => C::Resume,
             "abort" => C::Abort,
-            other => return Err(format!("`{other}`: not a command (start, pause, resume, abort)")),
+            "home" => C::ReturnHome,
+            other => {
+                return Err(format!(
+                    "`{other}`: not a command (start, pause, resume, abort, home)"
+                ))
+            }
         };
         let t: f64 = at
             .trim()

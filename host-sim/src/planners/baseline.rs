@@ -291,6 +291,71 @@ impl<'a> Baseline<'a> {
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
     }
 
+    /// A* through the safe space to `home`, smoothed as the exploring paths are.
+    fn plan_home_inner(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut HostClock,
+    ) -> PlanOutcome {
+        let finite = |p: &Point3<f32>| p.coords.iter().all(|c| c.is_finite());
+        if !(finite(position) && finite(home) && yaw.is_finite()) {
+            self.status.errors.bad_pose += 1;
+            return PlanOutcome::Hold(Fault::BadPose);
+        }
+        if (position - home).norm() <= harmonic_core::explore::HOME_REACHED_M {
+            return PlanOutcome::Complete;
+        }
+        let geometry = *self.map.geometry();
+        let Some(vehicle) = geometry.voxel_at(position) else {
+            self.status.errors.vehicle_outside_grid += 1;
+            return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
+        };
+        let Some(home_voxel) = geometry.voxel_at(home) else {
+            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        };
+        domain::mark_body(&mut self.map, &self.stencil, position);
+        let t0 = clock.ticks();
+        let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+        let t1 = clock.ticks();
+        self.status.phase_ticks.domain += t1.saturating_sub(t0);
+        match built {
+            Ok(stats) => self.status.domain = stats,
+            Err(DomainError::VehicleInInflatedSpace) => return self.escape(vehicle, yaw),
+            Err(_) => {
+                self.status.errors.vehicle_not_free += 1;
+                return PlanOutcome::Hold(Fault::VehicleNotFree);
+            }
+        }
+        let dims = geometry.dims();
+        let (from, to) = (dims.linear(vehicle), dims.linear(home_voxel));
+        if !self.labels.get(to).is_some_and(|l| l.in_domain()) {
+            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        }
+        let expansions0 = self.search.expansions;
+        let found = self.search.astar(self.labels, from, to);
+        let mut steps = 0u64;
+        if found.is_some() {
+            let path = self.search.path(to);
+            self.waypoints = smooth(&geometry, self.labels, position, &path, &mut steps);
+        }
+        self.status.planning_ops += self.search.expansions - expansions0 + steps;
+        self.status.phase_ticks.solve += clock.ticks().saturating_sub(t1);
+        if found.is_none() {
+            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        }
+        if self.waypoints.last().is_none_or(|w| (w - home).norm() > 1e-3) {
+            self.waypoints.push(*home);
+        }
+        PlanOutcome::Goal(Goal {
+            position: *home,
+            yaw,
+            frontier: home_voxel,
+            escape: false,
+        })
+    }
+
     /// Dijkstra to the first frontier voxel settled.
     fn closest_frontier(&mut self, vehicle_i: usize) -> Option<Target> {
         let labels = &*self.labels;
@@ -721,6 +786,22 @@ impl Planner for Baseline<'_> {
         if let PlanOutcome::Hold(_) = outcome {
             self.commitment = None;
         }
+        outcome
+    }
+
+    fn plan_home(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut HostClock,
+    ) -> PlanOutcome {
+        self.status.plans += 1;
+        self.status.phase_ticks = Default::default();
+        self.commitment = None;
+        self.waypoints.clear();
+        let outcome = self.plan_home_inner(position, yaw, home, clock);
+        self.status.record_plan(&outcome, &self.map);
         outcome
     }
 

@@ -181,6 +181,17 @@ pub trait Planner {
     ) -> Result<(), Fault>;
     /// Plans from the vehicle at `position` with heading `yaw`.
     fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome;
+    /// Plans the way back to `home` through known free space: `Complete` once there (within
+    /// [`harmonic_core::explore::HOME_REACHED_M`]), `Hold(HomeUnreachable)` if home is not in
+    /// the vehicle's safe space. The core's planners follow their field with home as its only
+    /// target ([`harmonic_core::explore::Explorer::plan_home`]); the baselines take A* there.
+    fn plan_home(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut HostClock,
+    ) -> PlanOutcome;
     /// Waypoints from the vehicle to the last goal, map frame.
     fn waypoints(&self) -> &[Point3<f32>];
     /// The occupancy map.
@@ -233,6 +244,15 @@ impl Planner for HarmonicPlanner<'_> {
     }
     fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
         self.explorer.plan_timed(position, yaw, clock)
+    }
+    fn plan_home(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut HostClock,
+    ) -> PlanOutcome {
+        self.explorer.plan_home(position, yaw, home, clock)
     }
     fn waypoints(&self) -> &[Point3<f32>] {
         self.explorer.waypoints()
