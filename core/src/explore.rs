@@ -815,18 +815,11 @@ impl<'a> Explorer<'a> {
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
             }
-            let solved = self.solve_field(vehicle);
+            let solved = self.solve_counted(vehicle);
             let t2 = clock.ticks();
             self.status.phase_ticks.solve += t2.saturating_sub(t1);
-            match solved {
-                Ok(s) => {
-                    self.status.solve = s;
-                    self.status.planning_ops += s.cell_updates;
-                    if !s.converged {
-                        self.status.errors.solver_not_converged += 1;
-                    }
-                }
-                Err(e) => return PlanOutcome::Hold(Fault::Solver(e)),
+            if let Err(fault) = solved {
+                return PlanOutcome::Hold(fault);
             }
             let field = Field {
                 geometry: &geometry,
@@ -927,6 +920,17 @@ impl<'a> Explorer<'a> {
             self.kappa_voxel = params.lowered_kappa(kappa, u);
         }
         total.ok_or(SolveError::StorageTooSmall)
+    }
+
+    /// [`Explorer::solve_field`], its stats and work recorded in the status.
+    fn solve_counted(&mut self, vehicle: VoxelIndex) -> Result<(), Fault> {
+        let s = self.solve_field(vehicle).map_err(Fault::Solver)?;
+        self.status.solve = s;
+        self.status.planning_ops += s.cell_updates;
+        if !s.converged {
+            self.status.errors.solver_not_converged += 1;
+        }
+        Ok(())
     }
 
     /// Halves the screened field's κ if it can go lower; false for the seed's field.
@@ -1135,21 +1139,12 @@ impl<'a> Explorer<'a> {
         home: &Point3<f32>,
         clock: &mut impl Clock,
     ) -> PlanOutcome {
-        let finite = |p: &Point3<f32>| p.coords.iter().all(|c| c.is_finite());
-        if !(finite(position) && finite(home) && yaw.is_finite()) {
-            self.status.errors.bad_pose += 1;
-            return PlanOutcome::Hold(Fault::BadPose);
-        }
-        if (position - home).norm() <= HOME_REACHED_M {
-            return PlanOutcome::Complete;
-        }
         let geometry = *self.map.geometry();
-        let Some(vehicle) = geometry.voxel_at(position) else {
-            self.status.errors.vehicle_outside_grid += 1;
-            return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
-        };
-        let Some(home_voxel) = geometry.voxel_at(home) else {
-            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        let (vehicle, home_voxel) = match locate_home(&geometry, position, yaw, home, &mut self.status.errors)
+        {
+            Ok(Some(voxels)) => voxels,
+            Ok(None) => return PlanOutcome::Complete,
+            Err(fault) => return PlanOutcome::Hold(fault),
         };
         domain::mark_body(&mut self.map, &self.stencil, position);
         let t0 = clock.ticks();
@@ -1192,18 +1187,11 @@ impl<'a> Explorer<'a> {
         // field retries on a less screened one.
         for _ in 0..8 {
             let t1 = clock.ticks();
-            let solved = self.solve_field(vehicle);
+            let solved = self.solve_counted(vehicle);
             let t2 = clock.ticks();
             self.status.phase_ticks.solve += t2.saturating_sub(t1);
-            match solved {
-                Ok(s) => {
-                    self.status.solve = s;
-                    self.status.planning_ops += s.cell_updates;
-                    if !s.converged {
-                        self.status.errors.solver_not_converged += 1;
-                    }
-                }
-                Err(e) => return PlanOutcome::Hold(Fault::Solver(e)),
+            if let Err(fault) = solved {
+                return PlanOutcome::Hold(fault);
             }
             let field = Field {
                 geometry: &geometry,
@@ -1264,6 +1252,33 @@ impl<'a> Explorer<'a> {
             }
         }
     }
+}
+
+/// The first checks of a plan home, shared by every planner: the voxels of the vehicle and of
+/// home, or `Ok(None)` when the vehicle is within [`HOME_REACHED_M`] of home. A non-finite
+/// pose is [`Fault::BadPose`], a vehicle outside the grid [`Fault::VehicleOutsideGrid`]
+/// (both counted in `errors`), a home outside it [`Fault::HomeUnreachable`].
+pub fn locate_home(
+    geometry: &crate::map::MapGeometry,
+    position: &Point3<f32>,
+    yaw: f32,
+    home: &Point3<f32>,
+    errors: &mut ErrorCounters,
+) -> Result<Option<(VoxelIndex, VoxelIndex)>, Fault> {
+    let finite = |p: &Point3<f32>| p.coords.iter().all(|c| c.is_finite());
+    if !(finite(position) && finite(home) && yaw.is_finite()) {
+        errors.bad_pose += 1;
+        return Err(Fault::BadPose);
+    }
+    if (position - home).norm() <= HOME_REACHED_M {
+        return Ok(None);
+    }
+    let Some(vehicle) = geometry.voxel_at(position) else {
+        errors.vehicle_outside_grid += 1;
+        return Err(Fault::VehicleOutsideGrid);
+    };
+    let home_voxel = geometry.voxel_at(home).ok_or(Fault::HomeUnreachable)?;
+    Ok(Some((vehicle, home_voxel)))
 }
 
 /// Yaw that looks along `d`, or `fallback` when `d` is (nearly) vertical.

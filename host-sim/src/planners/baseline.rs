@@ -299,21 +299,13 @@ impl<'a> Baseline<'a> {
         home: &Point3<f32>,
         clock: &mut HostClock,
     ) -> PlanOutcome {
-        let finite = |p: &Point3<f32>| p.coords.iter().all(|c| c.is_finite());
-        if !(finite(position) && finite(home) && yaw.is_finite()) {
-            self.status.errors.bad_pose += 1;
-            return PlanOutcome::Hold(Fault::BadPose);
-        }
-        if (position - home).norm() <= harmonic_core::explore::HOME_REACHED_M {
-            return PlanOutcome::Complete;
-        }
         let geometry = *self.map.geometry();
-        let Some(vehicle) = geometry.voxel_at(position) else {
-            self.status.errors.vehicle_outside_grid += 1;
-            return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
-        };
-        let Some(home_voxel) = geometry.voxel_at(home) else {
-            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        let located =
+            harmonic_core::explore::locate_home(&geometry, position, yaw, home, &mut self.status.errors);
+        let (vehicle, home_voxel) = match located {
+            Ok(Some(voxels)) => voxels,
+            Ok(None) => return PlanOutcome::Complete,
+            Err(fault) => return PlanOutcome::Hold(fault),
         };
         domain::mark_body(&mut self.map, &self.stencil, position);
         let t0 = clock.ticks();
