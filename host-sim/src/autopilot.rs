@@ -39,7 +39,7 @@ use crate::tlog::{TlogWriter, SIM_EPOCH_US};
 pub enum MavlinkSpec {
     /// The in-process flight-stack emulator.
     Emulator,
-    /// Listen on an address; answer the last sender.
+    /// Listen on an address; answer the autopilot (the address its latest frame came from).
     UdpIn(SocketAddr),
     /// Send to an address.
     UdpOut(SocketAddr),
@@ -334,15 +334,20 @@ pub struct TlogInfo {
     pub records: u64,
 }
 
-/// A frame as it arrived, with its message if it decoded.
-type ReceivedFrame = (Vec<u8>, Option<(harmonic_core::mavlink::MavHeader, MavMessage)>);
+/// A frame as it arrived: its sender (UDP), its bytes, its message if it decoded.
+type ReceivedFrame = (
+    Option<SocketAddr>,
+    Vec<u8>,
+    Option<(harmonic_core::mavlink::MavHeader, MavMessage)>,
+);
 
 #[derive(Debug)]
 enum Endpoint {
     Emulator(Box<FlightEmulator>),
     Udp {
         socket: UdpSocket,
-        /// Where messages go: fixed for udpout, the last sender for udpin.
+        /// Where messages go: fixed for udpout; for udpin the address the autopilot's latest
+        /// admitted frame came from.
         peer: Option<SocketAddr>,
         learn_peer: bool,
     },
@@ -464,31 +469,23 @@ impl MavlinkLink {
     /// when due, or the datagrams that arrived are read; every frame is logged, counted and
     /// handed to the bridge.
     pub fn pull(&mut self, now_ms: u64, position: &Point3<f32>, yaw: f32) -> Result<(), String> {
-        let mut datagrams: Vec<Vec<u8>> = Vec::new();
+        // Each datagram with its sender (UDP).
+        let mut datagrams: Vec<(Option<SocketAddr>, Vec<u8>)> = Vec::new();
         match &mut self.endpoint {
             Endpoint::Emulator(emulator) => {
                 let mut bytes = Vec::new();
                 emulator.poll(now_ms, position, yaw, &mut bytes);
-                datagrams.push(bytes);
+                datagrams.push((None, bytes));
                 if let Some(ground) = self.ground.as_mut() {
                     let config = self.bridge.config();
-                    datagrams.push(ground.due(now_ms, (config.system_id, config.component_id)));
+                    datagrams.push((None, ground.due(now_ms, (config.system_id, config.component_id))));
                 }
             }
-            Endpoint::Udp {
-                socket,
-                peer,
-                learn_peer,
-            } => {
+            Endpoint::Udp { socket, .. } => {
                 let mut buf = [0u8; 65536];
                 loop {
                     match socket.recv_from(&mut buf) {
-                        Ok((n, from)) => {
-                            if *learn_peer {
-                                *peer = Some(from);
-                            }
-                            datagrams.push(buf[..n].to_vec());
-                        }
+                        Ok((n, from)) => datagrams.push((Some(from), buf[..n].to_vec())),
                         Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
                         // An ICMP "port unreachable" for an earlier send (nobody listening yet).
                         Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => break,
@@ -498,19 +495,37 @@ impl MavlinkLink {
             }
         }
         let mut frames: Vec<ReceivedFrame> = Vec::new();
-        for bytes in &datagrams {
+        for (from, bytes) in &datagrams {
             self.traffic.report.bytes_received += bytes.len() as u64;
             self.decoder.push_frames(bytes, |raw, decoded| {
-                frames.push((raw.to_vec(), decoded.map(|(h, m)| (*h, m.clone()))));
+                frames.push((*from, raw.to_vec(), decoded.map(|(h, m)| (*h, m.clone()))));
             });
         }
-        for (raw, decoded) in frames {
+        for (from, raw, decoded) in frames {
             self.log(now_ms, &raw);
             if self.signing.as_mut().is_some_and(|s| !s.admits(&raw)) {
                 // Unsigned, forged, replayed or stale: logged, counted, never acted on.
                 continue;
             }
             if let Some((header, message)) = decoded {
+                // udpin answers the autopilot: learn its address from its own (admitted)
+                // frames only, so a ground station sending commands to this port does not
+                // draw the setpoints away from the autopilot.
+                let config = self.bridge.config();
+                let from_autopilot = header.system_id == u32::from(config.target_system)
+                    && header.component_id == config.target_component;
+                if let (
+                    Endpoint::Udp {
+                        peer,
+                        learn_peer: true,
+                        ..
+                    },
+                    Some(from),
+                    true,
+                ) = (&mut self.endpoint, from, from_autopilot)
+                {
+                    *peer = Some(from);
+                }
                 self.traffic.received(now_ms, &message);
                 match self.bridge.handle(now_ms, &header, &message) {
                     Ok(Received::LocalPosition | Received::Attitude | Received::Odometry) => {
@@ -662,6 +677,55 @@ pub(crate) fn nap() {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// One MAVLink 2 frame of `message` from (`system`, `component`).
+    fn frame(system: u8, component: u8, message: &MavMessage) -> Vec<u8> {
+        let header = harmonic_core::mavlink::MavHeader {
+            system_id: u32::from(system),
+            component_id: component,
+            sequence: 0,
+        };
+        let mut out = [0u8; MAX_FRAME_LEN];
+        let n = encode_v2(&header, message, &mut out).unwrap();
+        out[..n].to_vec()
+    }
+
+    #[test]
+    fn udpin_answers_the_autopilot_not_a_ground_station_on_the_same_port() {
+        let config = MavlinkConfig {
+            spec: MavlinkSpec::UdpIn(([127, 0, 0, 1], 0).into()),
+            ..MavlinkConfig::default()
+        };
+        let mut link = MavlinkLink::open(&config).unwrap();
+        let port = link.local_addr().unwrap();
+        let autopilot = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let gcs = UdpSocket::bind("127.0.0.1:0").unwrap();
+        for s in [&autopilot, &gcs] {
+            s.set_read_timeout(Some(Duration::from_millis(300))).unwrap();
+        }
+        let heartbeat = MavMessage::HEARTBEAT(common::HEARTBEAT_DATA::DEFAULT);
+        autopilot.send_to(&frame(1, 1, &heartbeat), port).unwrap();
+        let pause = MavMessage::COMMAND_LONG(common::COMMAND_LONG_DATA {
+            command: common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE,
+            target_system: 1,
+            target_component: 191,
+            ..common::COMMAND_LONG_DATA::DEFAULT
+        });
+        // The ground station speaks last; its command is taken, its address is not.
+        std::thread::sleep(Duration::from_millis(20));
+        gcs.send_to(&frame(255, 190, &pause), port).unwrap();
+        std::thread::sleep(Duration::from_millis(20));
+        link.pull(0, &Point3::origin(), 0.0).unwrap();
+        assert_eq!(link.bridge.operator_state(), OperatorState::Paused);
+        link.push(0).unwrap();
+        let mut buf = [0u8; 2048];
+        let got = autopilot.recv_from(&mut buf).map(|(n, _)| n).unwrap_or(0);
+        assert!(got > 0, "the autopilot hears the bridge (HEARTBEAT, COMMAND_ACK)");
+        assert!(
+            gcs.recv_from(&mut buf).is_err(),
+            "the ground station is not answered directly"
+        );
+    }
 
     #[test]
     fn endpoint_specs_parse_and_name_their_problems() {
