@@ -3,20 +3,23 @@
 //! Shared by `fuzz/fuzz_targets/mavlink_input.rs` and `tests/tests/fuzz_harness.rs`.
 //!
 //! Input: a script of operations. Each takes one selector byte and its fields: raw line bytes;
-//! LOCAL_POSITION_NED, ATTITUDE, ODOMETRY or HEARTBEAT with fuzzed values and sender ids,
-//! encoded as valid MAVLink 2 frames (so the fuzzer gets past the checksum) and split across
-//! two pushes; clock steps (forward, or to any u64); `poll`, `pose`, `set_target` and `apply`.
-//! The oracle checks:
+//! LOCAL_POSITION_NED, ATTITUDE, ODOMETRY, HEARTBEAT or an operator's COMMAND_LONG with fuzzed
+//! values and sender ids, encoded as valid MAVLink 2 frames (so the fuzzer gets past the
+//! checksum) and split across two pushes; clock steps (forward, or to any u64); `poll`,
+//! `pose`, `set_target`, `apply`, `return_home` and `arrived_home`. The oracle checks:
 //!
 //! - no panic;
 //! - a pose the bridge hands out is finite, inside [`BridgeConfig::max_position_m`] and fresh;
 //! - every setpoint it holds or sends is finite;
+//! - every operator command addressed to the bridge is accepted or refused, and answered or
+//!   counted as dropped;
 //! - the decoder yields the same messages when all the bytes are pushed at once.
 
 use harmonic_core::explore::{Fault, Goal, PlanOutcome};
 use harmonic_core::map::VoxelIndex;
 use harmonic_core::mavlink::common::{
-    MavFrame, ATTITUDE_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, ODOMETRY_DATA,
+    MavCmd, MavFrame, ATTITUDE_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA,
+    ODOMETRY_DATA,
 };
 use harmonic_core::mavlink::{encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder};
 use nalgebra::Point3;
@@ -50,7 +53,7 @@ pub fn run(data: &[u8]) {
         if input.is_empty() {
             break;
         }
-        let op = input.u8() % 12;
+        let op = input.u8() % 14;
         let mut bytes = Vec::new();
         let message = match op {
             0 => {
@@ -135,6 +138,36 @@ pub fn run(data: &[u8]) {
                 bridge.apply(&outcome);
                 None
             }
+            12 => {
+                let command = [
+                    MavCmd::MAV_CMD_MISSION_START,
+                    MavCmd::MAV_CMD_DO_PAUSE_CONTINUE,
+                    MavCmd::MAV_CMD_NAV_LOITER_UNLIM,
+                    MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH,
+                    MavCmd::MAV_CMD_NAV_LAND,
+                ][usize::from(input.u8() % 5)];
+                // Mostly to the bridge (1, 191), sometimes to any component or anyone.
+                let (target_system, target_component) = match input.u8() % 4 {
+                    0 => (input.u8(), input.u8()),
+                    1 => (1, 0),
+                    _ => (1, 191),
+                };
+                Some(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                    param1: input.float(FLOATS),
+                    command,
+                    target_system,
+                    target_component,
+                    ..COMMAND_LONG_DATA::DEFAULT
+                }))
+            }
+            13 => {
+                if input.u8() % 2 == 0 {
+                    bridge.return_home();
+                } else {
+                    bridge.arrived_home();
+                }
+                None
+            }
             _ => {
                 bridge.hold();
                 None
@@ -178,6 +211,17 @@ pub fn run(data: &[u8]) {
     }
     poll(&mut bridge, now, &mut scratch);
     check_pose(&bridge, &config, now);
+    let c = bridge.counters();
+    assert_eq!(
+        c.commands_received,
+        c.commands_accepted + c.commands_refused,
+        "a command neither accepted nor refused: {c:?}"
+    );
+    assert_eq!(
+        c.commands_received,
+        c.command_acks_sent + c.command_acks_dropped,
+        "a command neither answered nor counted as dropped (all polled): {c:?}"
+    );
 
     let mut again = MavlinkDecoder::new();
     let mut decoded_again = Vec::new();
