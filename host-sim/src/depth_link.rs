@@ -824,7 +824,8 @@ fn estimate_ber(smoothed: f32, sent: &SentImage, request: &ResendRequest) -> f32
     let chunks = height.div_ceil(per);
     let lost = (0..chunks)
         .filter(|k| {
-            let (first, end) = (k * per, (k * per).saturating_add(per).min(height));
+            let first = k.saturating_mul(per);
+            let end = first.saturating_add(per).min(height);
             request.rows().iter().any(|&(f, n)| {
                 let e = f.saturating_add(n);
                 f < end && first < e
