@@ -815,12 +815,10 @@ impl<'a> Explorer<'a> {
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
             }
-            let solved = self.solve_counted(vehicle);
-            let t2 = clock.ticks();
-            self.status.phase_ticks.solve += t2.saturating_sub(t1);
-            if let Err(fault) = solved {
-                return PlanOutcome::Hold(fault);
-            }
+            let t2 = match self.solve_counted(vehicle, t1, clock) {
+                Ok(t2) => t2,
+                Err(fault) => return PlanOutcome::Hold(fault),
+            };
             let field = Field {
                 geometry: &geometry,
                 labels: self.labels,
@@ -922,15 +920,19 @@ impl<'a> Explorer<'a> {
         total.ok_or(SolveError::StorageTooSmall)
     }
 
-    /// [`Explorer::solve_field`], its stats and work recorded in the status.
-    fn solve_counted(&mut self, vehicle: VoxelIndex) -> Result<(), Fault> {
-        let s = self.solve_field(vehicle).map_err(Fault::Solver)?;
+    /// [`Explorer::solve_field`] from tick `t1`, its stats, work and time recorded in the
+    /// status; the tick it ended at.
+    fn solve_counted(&mut self, vehicle: VoxelIndex, t1: u64, clock: &mut impl Clock) -> Result<u64, Fault> {
+        let solved = self.solve_field(vehicle);
+        let t2 = clock.ticks();
+        self.status.phase_ticks.solve += t2.saturating_sub(t1);
+        let s = solved.map_err(Fault::Solver)?;
         self.status.solve = s;
         self.status.planning_ops += s.cell_updates;
         if !s.converged {
             self.status.errors.solver_not_converged += 1;
         }
-        Ok(())
+        Ok(t2)
     }
 
     /// Halves the screened field's κ if it can go lower; false for the seed's field.
@@ -1187,12 +1189,10 @@ impl<'a> Explorer<'a> {
         // field retries on a less screened one.
         for _ in 0..8 {
             let t1 = clock.ticks();
-            let solved = self.solve_counted(vehicle);
-            let t2 = clock.ticks();
-            self.status.phase_ticks.solve += t2.saturating_sub(t1);
-            if let Err(fault) = solved {
-                return PlanOutcome::Hold(fault);
-            }
+            let t2 = match self.solve_counted(vehicle, t1, clock) {
+                Ok(t2) => t2,
+                Err(fault) => return PlanOutcome::Hold(fault),
+            };
             let field = Field {
                 geometry: &geometry,
                 labels: self.labels,
