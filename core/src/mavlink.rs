@@ -878,8 +878,10 @@ impl Bridge {
         Received::Command(command, result)
     }
 
-    /// The explorer's way home ended at home ([`OperatorState::Home`]: hold, announced).
+    /// The explorer's way home ended at home: hold there, and while the operator state was
+    /// returning home, enter [`OperatorState::Home`] and announce it.
     pub fn arrived_home(&mut self) {
+        self.hold();
         if let Some(state) = self.operator.arrived_home() {
             self.announce_operator_state(state);
         }

@@ -471,10 +471,7 @@ impl<'a> Firmware<'a> {
         };
         let kept = self.explorer.status().plans_kept > kept_before;
         match outcome {
-            PlanOutcome::Complete if state == OperatorState::ReturningHome => {
-                self.bridge.hold();
-                self.bridge.arrived_home();
-            }
+            PlanOutcome::Complete if state == OperatorState::ReturningHome => self.bridge.arrived_home(),
             _ => self.bridge.apply(&outcome),
         }
         match &outcome {

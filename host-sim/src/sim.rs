@@ -1561,10 +1561,7 @@ pub fn run_observed(
         if let Some(m) = rig.mav.as_mut() {
             match outcome {
                 // Home again: a hold, announced as such (not as a complete exploration).
-                PlanOutcome::Complete if going_home => {
-                    m.bridge.hold();
-                    m.bridge.arrived_home();
-                }
+                PlanOutcome::Complete if going_home => m.bridge.arrived_home(),
                 _ => m.bridge.apply(&outcome),
             }
             if !matches!(outcome, PlanOutcome::Goal(_)) {
