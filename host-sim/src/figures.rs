@@ -353,7 +353,7 @@ pub fn top_view(map: &VoxelMap<'_>, trajectory: &[[f32; 3]], title: &str, path: 
 /// [`top_view`] from a label grid (0 unknown, 1 free, 2 occupied, as `map.npy` holds it) whose
 /// voxel (0,0,0) starts at `origin`.
 pub fn top_view_labels(
-    grid: &crate::npy::Array3<u8>,
+    grid: &crate::io::npy::Array3<u8>,
     origin: [f32; 3],
     resolution: f32,
     trajectory: &[[f32; 3]],
@@ -584,7 +584,7 @@ pub fn write_ply(map: &VoxelMap<'_>, path: &Path) -> Result<(), String> {
 /// Writes the map's `.npy` label grid (0 unknown, 1 free, 2 occupied) to `path`.
 pub fn write_labels(map: &VoxelMap<'_>, path: &Path) -> Result<(), String> {
     let grid = crate::problem::labels_from_map(map);
-    std::fs::write(path, crate::npy::write_u8(&grid)).map_err(|e| format!("{}: {e}", path.display()))
+    std::fs::write(path, crate::io::npy::write_u8(&grid)).map_err(|e| format!("{}: {e}", path.display()))
 }
 
 #[cfg(test)]

@@ -15,7 +15,7 @@ use harmonic_core::solve::{gauss_seidel, SolveParams};
 use nalgebra::Point3;
 use serde::Serialize;
 
-use crate::npy::Array3;
+use crate::io::npy::Array3;
 
 /// Label values in problem files.
 pub mod labels {

@@ -1136,7 +1136,7 @@ fn dump_problem(
     let map = planner.map();
     let grid = crate::problem::problem_labels_from_map(map);
     let labels_path = dir.join(format!("step_{step:04}.npy"));
-    std::fs::write(&labels_path, crate::npy::write_u8(&grid)).map_err(err)?;
+    std::fs::write(&labels_path, crate::io::npy::write_u8(&grid)).map_err(err)?;
     let Some(v) = map.geometry().voxel_at(position) else {
         return Ok(());
     };

@@ -568,7 +568,7 @@ pub fn write_pair(
     write_png_gray(&dir.join("right.png"), w, h, &pair.right)?;
     write_png_gray(&dir.join("mask.png"), w, h, &pair.mask)?;
     write_pfm(&dir.join("gt.pfm"), w, h, &pair.disparity)?;
-    let npy = crate::npy::write_f32_image(usize::from(h), usize::from(w), &pair.disparity);
+    let npy = crate::io::npy::write_f32_image(usize::from(h), usize::from(w), &pair.disparity);
     std::fs::write(dir.join("gt.npy"), npy).map_err(|e| format!("{}: {e}", dir.display()))?;
     let cam = format!("[{} 0 {}; 0 {} {}; 0 0 1]", k.fx(), k.cx(), k.fy(), k.cy());
     let calib = format!(
@@ -585,7 +585,7 @@ pub fn read_disparity(path: &Path) -> Result<(u16, u16, Vec<f32>), String> {
         Some("npy") => {
             let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
             let (h, w, data) =
-                crate::npy::read_f32_image(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
+                crate::io::npy::read_f32_image(&bytes).map_err(|e| format!("{}: {e}", path.display()))?;
             match (u16::try_from(w), u16::try_from(h)) {
                 (Ok(w), Ok(h)) => Ok((w, h, data)),
                 _ => Err(format!("{}: image too large", path.display())),
@@ -601,7 +601,7 @@ pub fn write_disparity(path: &Path, width: u16, height: u16, data: &[f32]) -> Re
         Some("pfm") => write_pfm(path, width, height, data),
         Some("npy") => std::fs::write(
             path,
-            crate::npy::write_f32_image(usize::from(height), usize::from(width), data),
+            crate::io::npy::write_f32_image(usize::from(height), usize::from(width), data),
         )
         .map_err(|e| format!("{}: {e}", path.display())),
         _ => Err(format!("{}: expected a .pfm or .npy file name", path.display())),

@@ -109,7 +109,7 @@ fn solve_round_trips_a_numpy_label_grid() {
         }
         assert_eq!(line["cells"], 24);
         assert_eq!(line["solver"], solver);
-        let phi = harmonic_sim::npy::read_f32(&std::fs::read(&out_path).unwrap()).unwrap();
+        let phi = harmonic_sim::io::npy::read_f32(&std::fs::read(&out_path).unwrap()).unwrap();
         assert_eq!(phi.shape, [4, 3, 2]);
         assert_eq!(*phi.get(0, 0, 0).unwrap(), 1.0, "φ = 1 at the source");
         assert_eq!(

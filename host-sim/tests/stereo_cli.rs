@@ -61,7 +61,7 @@ fn rendered_pair_round_trips_through_the_matcher() {
         .unwrap_or_else(|| panic!("{text}"));
     assert!(rates.contains("bad-2.0") && rates.contains("density"), "{rates}");
     let bytes = std::fs::read(dir.join("disp.npy")).unwrap();
-    let (h, w, disparity) = harmonic_sim::npy::read_f32_image(&bytes).unwrap();
+    let (h, w, disparity) = harmonic_sim::io::npy::read_f32_image(&bytes).unwrap();
     assert_eq!((h, w), (200, 200));
     let valid = disparity.iter().filter(|d| d.is_finite()).count();
     assert!(valid > 20_000 && valid < 40_000, "{valid}");

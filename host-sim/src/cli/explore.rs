@@ -12,7 +12,7 @@ use harmonic_sim::depth_link::{LinkConfig, DEFAULT_ARQ_ROUNDS, DEFAULT_BAUD};
 use harmonic_sim::fault::{FaultConfig, DEFAULT_BURST_LEN};
 use harmonic_sim::figures::{self, SliceSnapshot};
 use harmonic_sim::flight::EmulatorTiming;
-use harmonic_sim::npy;
+use harmonic_sim::io::npy;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::record::{MapSettings, Recorder};
 use harmonic_sim::scenario::Scenario;

@@ -1,0 +1,11 @@
+//! File formats several stages share, with no simulator types in them: NumPy `.npy` arrays
+//! ([`npy`]: `uint8` label grids, `float32` fields and images).
+//!
+//! In: bytes (or a path) from the outside world. Out: plain arrays ([`npy::Array3`], image
+//! buffers) and the bytes to write back. Nothing here depends on another module of the crate;
+//! the planning-problem grids, disparity images and map exports that use it (`solve`,
+//! `explore --dump-problem`, `stereo`, `replay`) build on it from their own stages. Formats that
+//! belong to one stage stay with that stage (PFM and PNG with the stereo camera, `.tlog` with
+//! the vehicle's MAVLink, PLY with the figures, TUM RGB-D with the recorder).
+
+pub mod npy;
