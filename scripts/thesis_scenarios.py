@@ -3,7 +3,7 @@
 
 The worlds are hand-designed; this script only saves typing (walls with door gaps and lintels,
 slabs with openings) and keeps every coordinate on the 0.1 m grid. Rules (checked by the unit
-tests in host-sim/src/scenario.rs): closed shell; doors >= 0.9 m wide; no run of free space
+tests in host-sim/src/world/scenario.rs): closed shell; doors >= 0.9 m wide; no run of free space
 narrower than 0.7 m between two solids along any axis; nothing hovers (every raised box rests on
 or hangs from another); start 1.0-1.3 m high and >= 0.6 m from every box.
 

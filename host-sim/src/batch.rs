@@ -26,8 +26,8 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::planners::PlannerKind;
-use crate::scenario::{Scenario, THESIS_SCENARIOS};
 use crate::sim::{self, Report, SimConfig};
+use crate::world::scenario::{Scenario, THESIS_SCENARIOS};
 
 /// One run's results: a row of `runs.csv`.
 #[derive(Debug, Clone, PartialEq)]

@@ -11,8 +11,8 @@ use serde_json::Value;
 use crate::autopilot::MavlinkConfig;
 use crate::depth_link::LinkConfig;
 use crate::fault::FaultConfig;
-use crate::scenario::Scenario;
 use crate::sim::{self, SimConfig, SimError, SimFaults};
+use crate::world::scenario::Scenario;
 
 /// One cell of the matrix: a name and the faults it injects.
 #[derive(Debug, Clone, Serialize)]

@@ -1,7 +1,7 @@
 //! # harmonic-sim
 //!
 //! The `std` host simulator around `harmonic-core`: box worlds from scenario files
-//! ([`scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`camera`]),
+//! ([`world::scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`camera`]),
 //! a textured stereo camera whose pairs the core's block matcher turns into depth ([`stereo`]),
 //! a multirotor that flies the core's plans ([`sim`]), directly or over MAVLink
 //! ([`autopilot`]) through an emulated flight stack ([`flight`]) or a real autopilot over UDP,
@@ -13,12 +13,11 @@
 //! decision of the harmonic planner is the core's.
 //!
 //! The evaluation suite: the seed thesis's baseline planners behind one interface with the core
-//! ([`planners`]), triangle-mesh worlds ([`mesh`]), sensing faults and map accuracy
+//! ([`planners`]), triangle-mesh worlds ([`world::mesh`]), sensing faults and map accuracy
 //! ([`sensing`], [`camera`]), batch runs with thesis-style tables ([`batch`]), figures and map
 //! exports ([`figures`]), and TUM RGB-D recordings with replay ([`record`]).
 #![warn(missing_docs)]
 
-pub mod aabb;
 pub mod autopilot;
 pub mod batch;
 pub mod bench;
@@ -29,13 +28,11 @@ pub mod faults;
 pub mod figures;
 pub mod flight;
 pub mod io;
-pub mod mesh;
 pub mod metrics;
 pub mod pil;
 pub mod planners;
 pub mod problem;
 pub mod record;
-pub mod scenario;
 pub mod sensing;
 pub mod sim;
 pub mod stereo;

@@ -52,8 +52,8 @@ use crate::autopilot::{MavlinkReport, TrafficReport};
 use crate::depth_link::LinkReport;
 use crate::flight::FlightEmulator;
 use crate::metrics::GroundTruth;
-use crate::scenario::Scenario;
 use crate::sim::{Report, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
+use crate::world::scenario::Scenario;
 
 /// Flight ticks after which a leg ends even if the vehicle has not arrived (100 s).
 pub const MAX_TICKS_PER_LEG: usize = 2000;

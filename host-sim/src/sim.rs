@@ -72,9 +72,9 @@ use crate::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::metrics::{Coverage, GroundTruth};
 use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
-use crate::scenario::Scenario;
 use crate::sensing::{Drift, DriftConfig, MapAccuracy};
 use crate::stereo::{StereoDepth, StereoReport, StereoRig};
+use crate::world::scenario::Scenario;
 use crate::world::World;
 
 /// Steps in a row without a depth frame after which the run gives up (`stuck:link`).

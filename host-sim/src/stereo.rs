@@ -715,7 +715,7 @@ pub fn read_pfm(path: &Path) -> Result<(u16, u16, Vec<f32>), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scenario::Scenario;
+    use crate::world::scenario::Scenario;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 

@@ -17,8 +17,8 @@ use std::sync::Mutex;
 use harmonic_core::signing::SecretKey;
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::flight::EmulatorTiming;
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::world::scenario::Scenario;
 
 fn apartment() -> Scenario {
     Scenario::builtin("apartment").expect("built-in scenario")

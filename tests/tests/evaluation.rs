@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use harmonic_sim::batch::{self, BenchConfig};
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::record::{self, MapSettings, Recorder, ReplayConfig};
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::{self, SimConfig};
+use harmonic_sim::world::scenario::Scenario;
 
 fn fixture(name: &str) -> String {
     format!(

@@ -5,9 +5,9 @@ use harmonic_sim::autopilot::MavlinkConfig;
 use harmonic_sim::depth_link::LinkConfig;
 use harmonic_sim::fault::FaultConfig;
 use harmonic_sim::planners::PlannerKind;
-use harmonic_sim::scenario::{builtin_names, Scenario};
 use harmonic_sim::sim::{self, Report, SimConfig};
 use harmonic_sim::transport::TransportSpec;
+use harmonic_sim::world::scenario::{builtin_names, Scenario};
 
 fn explore(name: &str) -> Report {
     let scenario = Scenario::builtin(name).expect("built-in scenario");

@@ -13,10 +13,10 @@ use harmonic_core::mavlink::{encode_v2, MavHeader, MavlinkDecoder, AUTOPILOT_COM
 use harmonic_sim::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::depth_link::LinkConfig;
 use harmonic_sim::flight::{FlightCounters, FlightEmulator};
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::{self, Report, SimConfig};
 use harmonic_sim::tlog;
 use harmonic_sim::transport::{self, TransportSpec};
+use harmonic_sim::world::scenario::Scenario;
 use nalgebra::Point3;
 
 fn apartment() -> Scenario {

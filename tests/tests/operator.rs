@@ -6,8 +6,8 @@
 use harmonic_core::mavlink::BridgeConfig;
 use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
 use harmonic_sim::autopilot::MavlinkConfig;
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::{self, SimConfig};
+use harmonic_sim::world::scenario::Scenario;
 
 #[test]
 fn a_ground_station_starts_pauses_resumes_and_aborts_the_exploration() {

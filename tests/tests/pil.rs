@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use harmonic_sim::pil::{self, PilConfig};
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::SimConfig;
+use harmonic_sim::world::scenario::Scenario;
 
 const TARGET: &str = "thumbv7em-none-eabihf";
 const RAM_BUDGET: u64 = 1024 * 1024;

@@ -7,8 +7,8 @@ use std::process::{Command, Stdio};
 
 use harmonic_core::signing::SecretKey;
 use harmonic_sim::autopilot::MavlinkConfig;
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::world::scenario::Scenario;
 
 fn apartment() -> Scenario {
     Scenario::builtin("apartment").unwrap()

@@ -15,9 +15,9 @@ use harmonic_sim::flight::EmulatorTiming;
 use harmonic_sim::io::npy;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::record::{MapSettings, Recorder};
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::{self, Report, SimConfig, StepView};
 use harmonic_sim::transport::TransportSpec;
+use harmonic_sim::world::scenario::Scenario;
 use indicatif::{ProgressBar, ProgressStyle};
 
 use super::parse::{

@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
-use harmonic_sim::scenario::Scenario;
 use harmonic_sim::sim::SimConfig;
+use harmonic_sim::world::scenario::Scenario;
 
 /// The flags of `fw-budget`.
 #[derive(clap::Args)]

@@ -1,6 +1,6 @@
 //! `harmonic-sim scenarios`: list the built-in scenarios.
 
-use harmonic_sim::scenario::builtin_names;
+use harmonic_sim::world::scenario::builtin_names;
 
 /// Print the name of every built-in scenario, one a line.
 pub fn run() {

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use harmonic_sim::scenario::Scenario;
+use harmonic_sim::world::scenario::Scenario;
 
 use super::parse::{parse_positive, parse_prefilter};
 

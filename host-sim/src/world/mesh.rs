@@ -10,7 +10,7 @@
 //!   closest-point queries visit only the boxes that can matter, so a million triangles cost
 //!   microseconds per ray.
 //! - [`MeshObject::voxelise`]: a voxel is solid if the surface passes through its interior
-//!   (triangle–box separating-axis test on the voxel shrunk by [`crate::aabb::CELL_EPSILON`],
+//!   (triangle–box separating-axis test on the voxel shrunk by [`crate::world::aabb::CELL_EPSILON`],
 //!   so a face lying on a voxel boundary does not claim the voxel beside it), or — with `fill` —
 //!   if its centre is inside a closed surface (odd number of crossings along +x).
 
@@ -18,7 +18,7 @@ use std::path::Path;
 
 use nalgebra::{Point3, Vector3};
 
-use crate::aabb::{Aabb, CELL_EPSILON};
+use crate::world::aabb::{Aabb, CELL_EPSILON};
 
 /// Most triangles in a BVH leaf.
 pub const LEAF_SIZE: usize = 4;

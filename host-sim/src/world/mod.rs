@@ -1,13 +1,26 @@
-//! Ground-truth worlds: a bounded region of free space with solid axis-aligned boxes in it.
+//! The world stage: the ground truth a run explores, and where the vehicle starts.
 //!
-//! The simulator renders depth images from a [`World`] ([`World::raycast`]), checks the vehicle
-//! against it ([`World::sphere_collides`]) and builds the ground-truth voxel grid that coverage
-//! is measured against ([`World::cell_occupied`]). Everything is in the map frame: right-handed,
-//! z up, metres.
+//! [`scenario`] reads a scenario file (TOML, or one of the built-ins) and validates it into a
+//! [`scenario::Scenario`]: a [`World`], the voxel size to map it with and the start pose. A
+//! [`World`] (this module) is a bounded region of free space with solid axis-aligned boxes
+//! ([`aabb`]) and triangle meshes ([`mesh`]: OBJ and STL, ray cast through a BVH, voxelised on
+//! the scenario grid) in it. [`aabb`] is the shared geometry under both the world and the
+//! meshes, so that neither needs the other for it: `world → mesh → aabb`, `world → aabb`.
+//!
+//! In: scenario files and the mesh files they name. Out: a [`scenario::Scenario`] whose
+//! [`World`] the sensors render depth from ([`World::raycast`]), the run checks the vehicle
+//! against ([`World::sphere_collides`]) and the metrics build the ground-truth voxel grid from
+//! ([`World::cell_occupied`]). Everything is in the map frame: right-handed, z up, metres.
+//! This stage depends on no other (only a slow, ignored test of [`scenario`] renders from the
+//! start with the sensors' camera).
+
+pub mod aabb;
+pub mod mesh;
+pub mod scenario;
 
 use nalgebra::{Point3, Vector3};
 
-pub use crate::aabb::Aabb;
+pub use aabb::Aabb;
 
 /// A world: free space inside `bounds`, minus the solid `boxes`.
 #[derive(Debug, Clone, PartialEq)]
@@ -22,7 +35,7 @@ pub struct World {
     /// means none is.
     pub textureless: Vec<bool>,
     /// Triangle-mesh obstacles (OBJ, STL), ray cast exactly and voxelised on the scenario grid.
-    pub meshes: Vec<std::sync::Arc<crate::mesh::MeshObject>>,
+    pub meshes: Vec<std::sync::Arc<mesh::MeshObject>>,
 }
 
 /// Where a ray first meets a surface.
@@ -193,7 +206,7 @@ impl World {
 
     /// Tolerance of [`World::cell_occupied`], metres: absorbs the rounding of grid-aligned
     /// coordinates such as 0.1 m, which f32 cannot represent exactly.
-    pub const CELL_EPSILON: f32 = crate::aabb::CELL_EPSILON;
+    pub const CELL_EPSILON: f32 = aabb::CELL_EPSILON;
 }
 
 /// Outward normal of the face of `b` that the point `p` (on its surface) lies on; `t == 0`

@@ -32,7 +32,7 @@
 //!
 //! Meshes are ray cast exactly by the camera (a BVH over the triangles) and voxelised on the
 //! scenario grid for coverage: surface voxels and, with `fill`, the inside of closed surfaces
-//! (see [`crate::mesh`]).
+//! (see [`crate::world::mesh`]).
 //!
 //! Unknown keys are errors. Every error is one line naming the file and the place: the TOML
 //! line and column for syntax and type errors (`office.toml:12:1: unknown field ...`), the item
@@ -80,16 +80,16 @@ const BUILTIN_NAMES: [&str; 10] = [
     "pil-small",
 ];
 const BUILTIN_SOURCES: [&str; 10] = [
-    include_str!("../scenarios/apartment.toml"),
-    include_str!("../scenarios/office.toml"),
-    include_str!("../scenarios/two-level.toml"),
-    include_str!("../scenarios/s1.toml"),
-    include_str!("../scenarios/s2.toml"),
-    include_str!("../scenarios/kitchen.toml"),
-    include_str!("../scenarios/s4.toml"),
-    include_str!("../scenarios/apartment-thesis.toml"),
-    include_str!("../scenarios/garage.toml"),
-    include_str!("../scenarios/pil-small.toml"),
+    include_str!("../../scenarios/apartment.toml"),
+    include_str!("../../scenarios/office.toml"),
+    include_str!("../../scenarios/two-level.toml"),
+    include_str!("../../scenarios/s1.toml"),
+    include_str!("../../scenarios/s2.toml"),
+    include_str!("../../scenarios/kitchen.toml"),
+    include_str!("../../scenarios/s4.toml"),
+    include_str!("../../scenarios/apartment-thesis.toml"),
+    include_str!("../../scenarios/garage.toml"),
+    include_str!("../../scenarios/pil-small.toml"),
 ];
 
 /// The six scenarios of the seed thesis's comparison (Shade 2011, §6.5), in its order.
@@ -519,7 +519,7 @@ impl ScenarioFile {
                 Some(b) if Path::new(&m.file).is_relative() => b.join(&m.file),
                 _ => Path::new(&m.file).to_path_buf(),
             };
-            let mut mesh = crate::mesh::TriangleMesh::load(&path)
+            let mut mesh = crate::world::mesh::TriangleMesh::load(&path)
                 .map_err(|e| invalid(&location, line, format!("{}: {e}", path.display())))?;
             mesh.transform(scale, m.rotate_z_deg.to_radians(), m.translate);
             let source = format!(
@@ -530,7 +530,7 @@ impl ScenarioFile {
             );
             world
                 .meshes
-                .push(std::sync::Arc::new(crate::mesh::MeshObject::new(
+                .push(std::sync::Arc::new(crate::world::mesh::MeshObject::new(
                     source,
                     mesh,
                     m.textureless,

@@ -1,5 +1,5 @@
 //! The solid axis-aligned box of the ground-truth worlds, shared by [`crate::world`] (boxes)
-//! and [`crate::mesh`] (mesh bounds and voxel tests) so that neither needs the other for it.
+//! and [`crate::world::mesh`] (mesh bounds and voxel tests) so that neither needs the other for it.
 
 use nalgebra::{Point3, Vector3};
 
