@@ -1,8 +1,8 @@
 //! # harmonic-sim
 //!
 //! The `std` host simulator around `harmonic-core`: box worlds from scenario files
-//! ([`world::scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`camera`]),
-//! a textured stereo camera whose pairs the core's block matcher turns into depth ([`stereo`]),
+//! ([`world::scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`sensors::camera`]),
+//! a textured stereo camera whose pairs the core's block matcher turns into depth ([`sensors::stereo`]),
 //! a multirotor that flies the core's plans ([`sim`]), directly or over MAVLink
 //! ([`autopilot`]) through an emulated flight stack ([`flight`]) or a real autopilot over UDP,
 //! and ground-truth coverage metrics ([`metrics`]); or with the core running as firmware on an
@@ -14,14 +14,13 @@
 //!
 //! The evaluation suite: the seed thesis's baseline planners behind one interface with the core
 //! ([`planners`]), triangle-mesh worlds ([`world::mesh`]), sensing faults and map accuracy
-//! ([`sensing`], [`camera`]), batch runs with thesis-style tables ([`batch`]), figures and map
+//! ([`sensors::sensing`], [`sensors::camera`]), batch runs with thesis-style tables ([`batch`]), figures and map
 //! exports ([`figures`]), and TUM RGB-D recordings with replay ([`record`]).
 #![warn(missing_docs)]
 
 pub mod autopilot;
 pub mod batch;
 pub mod bench;
-pub mod camera;
 pub mod depth_link;
 pub mod fault;
 pub mod faults;
@@ -33,9 +32,8 @@ pub mod pil;
 pub mod planners;
 pub mod problem;
 pub mod record;
-pub mod sensing;
+pub mod sensors;
 pub mod sim;
-pub mod stereo;
 pub mod tlog;
 pub mod transport;
 pub mod world;

@@ -67,13 +67,13 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
-use crate::camera::DepthCamera;
 use crate::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::metrics::{Coverage, GroundTruth};
 use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
-use crate::sensing::{Drift, DriftConfig, MapAccuracy};
-use crate::stereo::{StereoDepth, StereoReport, StereoRig};
+use crate::sensors::camera::DepthCamera;
+use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
+use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
 use crate::world::scenario::Scenario;
 use crate::world::World;
 
@@ -155,7 +155,7 @@ pub enum DepthSource {
     #[default]
     Camera,
     /// A stereo pair is rendered at the camera's pose and matched by
-    /// [`harmonic_core::stereo`] ([`crate::stereo::StereoDepth`]); the frame has the camera's
+    /// [`harmonic_core::stereo`] ([`crate::sensors::stereo::StereoDepth`]); the frame has the camera's
     /// intrinsics.
     Stereo(StereoRig),
 }
@@ -172,7 +172,7 @@ pub const STEREO_TRUSTED_SIGMA_PX: f32 = 0.2;
 /// stereo sensor model ([`harmonic_core::integrate`]) with that error, up to `trusted_range`
 /// metres (default: the camera's maximum range). Without, the rules of exact depth up to
 /// `trusted_range` (default: where the error moves the depth by [`TRUSTED_DEPTH_ERROR_M`],
-/// [`crate::camera::trusted_range`]), farther returns only clearing free space up to it.
+/// [`crate::sensors::camera::trusted_range`]), farther returns only clearing free space up to it.
 pub fn integrate_noisy_depth(
     cfg: &mut SimConfig,
     sigma_px: f32,
@@ -184,7 +184,7 @@ pub fn integrate_noisy_depth(
     let range = match trusted_range {
         Some(r) => r,
         None if sensor_model => cfg.camera.max_range,
-        None => crate::camera::trusted_range(sigma_px, fx, baseline_m, TRUSTED_DEPTH_ERROR_M),
+        None => crate::sensors::camera::trusted_range(sigma_px, fx, baseline_m, TRUSTED_DEPTH_ERROR_M),
     };
     cfg.explorer.integration.max_range = range
         .min(cfg.camera.max_range)
@@ -459,7 +459,7 @@ pub struct Report {
     /// Processor-in-the-loop details; `None` unless the firmware flew (the `pil` module).
     pub pil: Option<PilReport>,
     /// With imperfect sensing (noise, outliers, textureless surfaces, drift): how closely the
-    /// map matches the noise-free map of the same run ([`crate::sensing`]).
+    /// map matches the noise-free map of the same run ([`crate::sensors::sensing`]).
     pub map_accuracy: Option<MapAccuracy>,
     /// With drift: the believed pose's position and yaw error at the end, metres and radians.
     pub final_drift: Option<[f32; 2]>,
@@ -1717,7 +1717,7 @@ pub fn run_observed(
         pil: None,
         map_accuracy: reference
             .as_ref()
-            .map(|r| crate::sensing::accuracy(planner.map(), r)),
+            .map(|r| crate::sensors::sensing::accuracy(planner.map(), r)),
         final_drift: drift.as_ref().map(|d| {
             let (e, y) = d.error_at(&vehicle.position);
             [e, y]

@@ -81,7 +81,7 @@ fn rendered_pair_round_trips_through_the_matcher() {
         &d("disp.pfm"),
     ]));
     assert!(text.contains("ground-truth pixels"), "{text}");
-    let (pw, ph, pfm) = harmonic_sim::stereo::read_pfm(&dir.join("disp.pfm")).unwrap();
+    let (pw, ph, pfm) = harmonic_sim::sensors::stereo::read_pfm(&dir.join("disp.pfm")).unwrap();
     assert_eq!((pw, ph), (200, 200));
     assert_eq!(pfm.len(), disparity.len());
     assert!(pfm

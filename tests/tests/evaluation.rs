@@ -177,7 +177,7 @@ fn record_then_replay_reproduces_the_explorers_map_exactly() {
 
 #[test]
 fn stereo_noise_no_longer_ends_exploration_early() {
-    use harmonic_sim::camera::StereoNoise;
+    use harmonic_sim::sensors::camera::StereoNoise;
     let scenario = Scenario::builtin("apartment").unwrap();
     let run = |noise: StereoNoise, trusted_range: f32| {
         let mut cfg = SimConfig::default();
@@ -209,8 +209,8 @@ fn stereo_noise_no_longer_ends_exploration_early() {
 
 #[test]
 fn mesh_world_matches_the_same_world_built_from_boxes() {
-    use harmonic_sim::camera::{camera_pose, DepthCamera};
     use harmonic_sim::metrics::GroundTruth;
+    use harmonic_sim::sensors::camera::{camera_pose, DepthCamera};
     use rand::SeedableRng;
     let boxes = Scenario::load(fixture("two-rooms")).unwrap();
     let meshes = Scenario::load(fixture("mesh-rooms")).unwrap();

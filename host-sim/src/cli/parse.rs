@@ -2,9 +2,9 @@
 //! subcommand modules.
 
 use harmonic_core::map::Dims;
-use harmonic_sim::camera::StereoNoise;
 use harmonic_sim::fault::DEFAULT_BURST_LEN;
-use harmonic_sim::sensing::DriftConfig;
+use harmonic_sim::sensors::camera::StereoNoise;
+use harmonic_sim::sensors::sensing::DriftConfig;
 
 /// `--prefilter`: `none`, `dog` (the default Difference of Gaussians) or `dog:SIGMA_SMALL:SIGMA_LARGE`.
 pub fn parse_prefilter(s: &str) -> Result<harmonic_core::stereo::Prefilter, String> {

@@ -2,8 +2,8 @@
 //! harmonic planner's field ([`FieldArgs`]), both flattened into their argument structs.
 
 use harmonic_core::field::PlanningField;
-use harmonic_sim::camera::StereoNoise;
-use harmonic_sim::sensing::DriftConfig;
+use harmonic_sim::sensors::camera::StereoNoise;
+use harmonic_sim::sensors::sensing::DriftConfig;
 use harmonic_sim::sim::{self, SimConfig};
 
 use super::parse::{parse_drift, parse_noise, parse_positive, parse_probability};
@@ -138,10 +138,10 @@ impl SensingArgs {
             self.stereo_model,
         );
         if self.depth_from == "stereo" {
-            let rig = harmonic_sim::stereo::StereoRig {
+            let rig = harmonic_sim::sensors::stereo::StereoRig {
                 scale: self.stereo_scale,
                 window: self.stereo_window,
-                ..harmonic_sim::stereo::StereoRig::default()
+                ..harmonic_sim::sensors::stereo::StereoRig::default()
             };
             sim::use_stereo_depth(cfg, rig, self.trusted_range, self.stereo_model);
         }

@@ -140,7 +140,7 @@ pub struct BenchStereoArgs {
 /// Run `stereo`: match the pair, write the disparity, print the statistics (and with `--gt`
 /// the bad-pixel rates).
 pub fn run_match(args: &StereoArgs) -> Result<(), String> {
-    use harmonic_sim::stereo as st;
+    use harmonic_sim::sensors::stereo as st;
     let (w, h, left) = st::read_png_gray(&args.left)?;
     let (wr, hr, right) = st::read_png_gray(&args.right)?;
     if (w, h) != (wr, hr) {
@@ -200,7 +200,7 @@ pub fn run_match(args: &StereoArgs) -> Result<(), String> {
 
 /// Run `stereo-render`: render the pair with its ground truth into the output directory.
 pub fn run_render(args: &StereoRenderArgs) -> Result<(), String> {
-    use harmonic_sim::stereo as st;
+    use harmonic_sim::sensors::stereo as st;
     use rand::SeedableRng;
     let mut scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
     if let Some(seed) = args.start_seed {
@@ -212,8 +212,9 @@ pub fn run_render(args: &StereoRenderArgs) -> Result<(), String> {
         pixel_noise: args.pixel_noise,
         ..st::StereoRig::default()
     };
-    let k = rig.render_intrinsics(&harmonic_sim::camera::DepthCamera::default_thesis().intrinsics)?;
-    let pose = harmonic_sim::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
+    let k =
+        rig.render_intrinsics(&harmonic_sim::sensors::camera::DepthCamera::default_thesis().intrinsics)?;
+    let pose = harmonic_sim::sensors::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(args.seed);
     let pair = st::render_pair(
         &scenario.world,
@@ -249,9 +250,9 @@ pub fn run_render(args: &StereoRenderArgs) -> Result<(), String> {
 
 /// Run `bench-stereo`: render, match and score the pairs of every scenario and print the table.
 pub fn run_bench(args: &BenchStereoArgs) -> Result<(), String> {
-    use harmonic_sim::stereo as st;
+    use harmonic_sim::sensors::stereo as st;
     use rand::SeedableRng;
-    let camera = harmonic_sim::camera::DepthCamera::default_thesis();
+    let camera = harmonic_sim::sensors::camera::DepthCamera::default_thesis();
     let rig = st::StereoRig {
         scale: args.scale,
         baseline_m: args.baseline,
@@ -299,7 +300,8 @@ pub fn run_bench(args: &BenchStereoArgs) -> Result<(), String> {
         let mut rows = Vec::new();
         for i in 1..=u64::from(args.pairs) {
             let scenario = base.with_random_start(i);
-            let pose = harmonic_sim::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
+            let pose =
+                harmonic_sim::sensors::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(i);
             let pair = st::render_pair(
                 &scenario.world,

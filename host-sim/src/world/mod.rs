@@ -48,7 +48,7 @@ pub struct Hit {
 }
 
 /// Where a ray first meets a surface, which surface it is and which way it faces: what a
-/// camera that renders intensities needs ([`crate::stereo`]).
+/// camera that renders intensities needs ([`crate::sensors::stereo`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SurfaceHit {
     /// Distance along the (unit) ray, metres.

@@ -1014,7 +1014,7 @@ max = [4, 3, 0.1]
         #[test]
         #[ignore]
         fn builtin_free_space_is_visible() {
-            use crate::camera::{camera_pose, DepthCamera};
+            use crate::sensors::camera::{camera_pose, DepthCamera};
             use rand::SeedableRng;
 
             for s in builtins() {

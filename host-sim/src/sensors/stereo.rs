@@ -45,7 +45,7 @@ use nalgebra::{Isometry3, Point3, Translation3, Vector3};
 use rand::Rng;
 use serde::Serialize;
 
-use crate::camera::RAYCAST_LIMIT_M;
+use crate::sensors::camera::RAYCAST_LIMIT_M;
 use crate::world::World;
 
 /// The stereo camera and its matcher settings.
@@ -756,10 +756,10 @@ mod tests {
         let scenario = Scenario::builtin("apartment").unwrap();
         let rig = StereoRig::default();
         let k = rig
-            .render_intrinsics(&crate::camera::DepthCamera::default_thesis().intrinsics)
+            .render_intrinsics(&crate::sensors::camera::DepthCamera::default_thesis().intrinsics)
             .unwrap();
         assert_eq!((k.width(), k.height()), (200, 200));
-        let pose = crate::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
+        let pose = crate::sensors::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let pair = render_pair(&scenario.world, &k, &pose, rig.baseline_m, 0.0, &mut rng);
         // Texture: neighbouring pixels differ.
