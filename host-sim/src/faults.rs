@@ -8,10 +8,10 @@
 use serde::Serialize;
 use serde_json::Value;
 
-use crate::autopilot::MavlinkConfig;
 use crate::depth_link::LinkConfig;
 use crate::fault::FaultConfig;
 use crate::sim::{self, SimConfig, SimError, SimFaults};
+use crate::vehicle::autopilot::MavlinkConfig;
 use crate::world::scenario::Scenario;
 
 /// One cell of the matrix: a name and the faults it injects.

@@ -4,12 +4,12 @@
 //! ([`world::scenario`], [`world`]), a ray-cast depth camera with optional stereo noise ([`sensors::camera`]),
 //! a textured stereo camera whose pairs the core's block matcher turns into depth ([`sensors::stereo`]),
 //! a multirotor that flies the core's plans ([`sim`]), directly or over MAVLink
-//! ([`autopilot`]) through an emulated flight stack ([`flight`]) or a real autopilot over UDP,
+//! ([`vehicle::autopilot`]) through an emulated flight stack ([`vehicle::flight`]) or a real autopilot over UDP,
 //! and ground-truth coverage metrics ([`metrics`]); or with the core running as firmware on an
 //! emulated Cortex-M4F ([`pil`]). Depth reaches the core over the depth link
 //! ([`depth_link`]): the core's wire format at a baud rate, over a transport ([`transport`]:
 //! in-process pipe, TCP, serial), through an optional fault injector ([`fault`]). MAVLink
-//! traffic can be recorded as a `.tlog` ([`tlog`]). The simulator renders and flies; every
+//! traffic can be recorded as a `.tlog` ([`vehicle::tlog`]). The simulator renders and flies; every
 //! decision of the harmonic planner is the core's.
 //!
 //! The evaluation suite: the seed thesis's baseline planners behind one interface with the core
@@ -18,14 +18,12 @@
 //! exports ([`figures`]), and TUM RGB-D recordings with replay ([`record`]).
 #![warn(missing_docs)]
 
-pub mod autopilot;
 pub mod batch;
 pub mod bench;
 pub mod depth_link;
 pub mod fault;
 pub mod faults;
 pub mod figures;
-pub mod flight;
 pub mod io;
 pub mod metrics;
 pub mod pil;
@@ -34,6 +32,6 @@ pub mod problem;
 pub mod record;
 pub mod sensors;
 pub mod sim;
-pub mod tlog;
 pub mod transport;
+pub mod vehicle;
 pub mod world;

@@ -48,11 +48,11 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::autopilot::{MavlinkReport, TrafficReport};
 use crate::depth_link::LinkReport;
-use crate::flight::FlightEmulator;
 use crate::metrics::GroundTruth;
 use crate::sim::{Report, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
+use crate::vehicle::autopilot::{MavlinkReport, TrafficReport};
+use crate::vehicle::flight::FlightEmulator;
 use crate::world::scenario::Scenario;
 
 /// Flight ticks after which a leg ends even if the vehicle has not arrived (100 s).

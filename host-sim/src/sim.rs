@@ -24,7 +24,7 @@
 //!
 //! With [`SimConfig::mavlink`] the vehicle is not handed the waypoints. The core's `Bridge`
 //! streams them as MAVLink setpoints (the next waypoint along the plan, advancing within
-//! [`WAYPOINT_ADVANCE_M`]) to the autopilot ([`crate::autopilot`]): the in-process flight-stack
+//! [`WAYPOINT_ADVANCE_M`]) to the autopilot ([`crate::vehicle::autopilot`]): the in-process flight-stack
 //! emulator, which the vehicle follows, or a real autopilot over UDP, which flies the vehicle
 //! itself (time is then the wall clock, and the vehicle is wherever the autopilot says). The
 //! explorer plans from, and the depth frames are stamped with, the pose the bridge reports —
@@ -42,7 +42,7 @@
 //! `time_boot_ms` when position and attitude were not sampled together). Against a remote
 //! autopilot the camera renders at that same pose: it is the only truth there is. Against the
 //! emulator it renders at the simulator's true pose of that instant (the emulator's clock is
-//! the simulator's plus [`EmulatorTiming::boot_ms`](crate::flight::EmulatorTiming::boot_ms)),
+//! the simulator's plus [`EmulatorTiming::boot_ms`](crate::vehicle::flight::EmulatorTiming::boot_ms)),
 //! so a stamp from the wrong instant shows as a smeared map. Each frame also carries its
 //! [`FrameTiming`] — the yaw rate measured from the samples' timestamps, and how long before
 //! the capture the newest sample arrived — and the core refuses frames taken while turning
@@ -66,7 +66,6 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::metrics::{Coverage, GroundTruth};
 use crate::planners::baseline::Baseline;
@@ -74,6 +73,7 @@ use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
 use crate::sensors::camera::DepthCamera;
 use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
 use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
+use crate::vehicle::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::world::scenario::Scenario;
 use crate::world::World;
 
@@ -957,7 +957,7 @@ impl Rig<'_> {
                     track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
                     self.advance()?;
                     if self.wall.is_some() {
-                        crate::autopilot::nap();
+                        crate::vehicle::autopilot::nap();
                     }
                 }
             }

@@ -2,7 +2,7 @@
 """An independent MAVLink autopilot for testing `harmonic-sim explore --mavlink udpin:...`.
 
 Written on pymavlink from the MAVLink specification alone: it shares no code and no
-conventions with the project's flight-stack emulator (host-sim/src/flight.rs) or bridge
+conventions with the project's flight-stack emulator (host-sim/src/vehicle/flight.rs) or bridge
 (core/src/mavlink.rs).
 
 What it does, like a PX4 multirotor already armed in offboard mode:

@@ -5,8 +5,8 @@
 
 use harmonic_core::mavlink::BridgeConfig;
 use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
-use harmonic_sim::autopilot::MavlinkConfig;
 use harmonic_sim::sim::{self, SimConfig};
+use harmonic_sim::vehicle::autopilot::MavlinkConfig;
 use harmonic_sim::world::scenario::Scenario;
 
 #[test]

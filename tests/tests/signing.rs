@@ -6,8 +6,8 @@
 use std::process::{Command, Stdio};
 
 use harmonic_core::signing::SecretKey;
-use harmonic_sim::autopilot::MavlinkConfig;
 use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::vehicle::autopilot::MavlinkConfig;
 use harmonic_sim::world::scenario::Scenario;
 
 fn apartment() -> Scenario {

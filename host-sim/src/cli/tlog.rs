@@ -1,8 +1,8 @@
-//! `harmonic-sim tlog`: summarise a MAVLink .tlog (the reading is `harmonic_sim::tlog`).
+//! `harmonic-sim tlog`: summarise a MAVLink .tlog (the reading is `harmonic_sim::vehicle::tlog`).
 
 use std::path::PathBuf;
 
-use harmonic_sim::tlog;
+use harmonic_sim::vehicle::tlog;
 
 /// The flags of `tlog`.
 #[derive(clap::Args)]

@@ -9,7 +9,7 @@
 //! | `udpout:HOST:PORT` | send to `HOST:PORT`, take answers on the local port (MAVProxy's `udpout`); wall-clock time |
 //!
 //! Every MAVLink frame each way is decoded, counted by message name in [`TrafficReport`], and
-//! written to the `.tlog` if one is open (see [`crate::tlog`]). Every pose sample the bridge
+//! written to the `.tlog` if one is open (see [`crate::vehicle::tlog`]). Every pose sample the bridge
 //! accepts also goes into a [`PoseHistory`] by the autopilot's `time_boot_ms`, from which the
 //! simulator takes the pose of the instant each depth frame is captured at
 //! ([`MavlinkLink::history`]). Against a remote autopilot the vehicle is wherever it says
@@ -31,8 +31,8 @@ use harmonic_core::signing::{SecretKey, VerifierCounters};
 use nalgebra::Point3;
 use serde::Serialize;
 
-use crate::flight::{EmulatorTiming, FlightCounters, FlightEmulator, FlightSetpoint, LinkSigning};
-use crate::tlog::{TlogWriter, SIM_EPOCH_US};
+use crate::vehicle::flight::{EmulatorTiming, FlightCounters, FlightEmulator, FlightSetpoint, LinkSigning};
+use crate::vehicle::tlog::{TlogWriter, SIM_EPOCH_US};
 
 /// Which autopilot the bridge talks to (`--mavlink`).
 #[derive(Debug, Clone, PartialEq, Eq)]
