@@ -8,8 +8,8 @@
 use serde::Serialize;
 use serde_json::Value;
 
-use crate::depth_link::LinkConfig;
-use crate::fault::FaultConfig;
+use crate::link::depth_link::LinkConfig;
+use crate::link::fault::FaultConfig;
 use crate::sim::{self, SimConfig, SimError, SimFaults};
 use crate::vehicle::autopilot::MavlinkConfig;
 use crate::world::scenario::Scenario;

@@ -7,8 +7,8 @@
 //! ([`vehicle::autopilot`]) through an emulated flight stack ([`vehicle::flight`]) or a real autopilot over UDP,
 //! and ground-truth coverage metrics ([`metrics`]); or with the core running as firmware on an
 //! emulated Cortex-M4F ([`pil`]). Depth reaches the core over the depth link
-//! ([`depth_link`]): the core's wire format at a baud rate, over a transport ([`transport`]:
-//! in-process pipe, TCP, serial), through an optional fault injector ([`fault`]). MAVLink
+//! ([`link::depth_link`]): the core's wire format at a baud rate, over a transport ([`link::transport`]:
+//! in-process pipe, TCP, serial), through an optional fault injector ([`link::fault`]). MAVLink
 //! traffic can be recorded as a `.tlog` ([`vehicle::tlog`]). The simulator renders and flies; every
 //! decision of the harmonic planner is the core's.
 //!
@@ -20,11 +20,10 @@
 
 pub mod batch;
 pub mod bench;
-pub mod depth_link;
-pub mod fault;
 pub mod faults;
 pub mod figures;
 pub mod io;
+pub mod link;
 pub mod metrics;
 pub mod pil;
 pub mod planners;
@@ -32,6 +31,5 @@ pub mod problem;
 pub mod record;
 pub mod sensors;
 pub mod sim;
-pub mod transport;
 pub mod vehicle;
 pub mod world;

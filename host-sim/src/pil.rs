@@ -48,7 +48,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::depth_link::LinkReport;
+use crate::link::depth_link::LinkReport;
 use crate::metrics::GroundTruth;
 use crate::sim::{Report, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
 use crate::vehicle::autopilot::{MavlinkReport, TrafficReport};

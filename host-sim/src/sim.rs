@@ -5,7 +5,7 @@
 //!
 //! 1. renders the depth camera at the vehicle's true pose at the frame's instant and sends the
 //!    frame, stamped with the pose the core believes for that instant, over the depth link
-//!    ([`crate::depth_link`]: the link's wire format at its baud rate, through the configured
+//!    ([`crate::link::depth_link`]: the link's wire format at its baud rate, through the configured
 //!    transport and fault injector);
 //! 2. keeps time running while the frame is on the wire (about 0.22 s at 921600 baud): the
 //!    vehicle hovers, and over MAVLink the bridge keeps streaming its setpoint;
@@ -66,7 +66,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::depth_link::{DepthLink, LinkConfig, LinkReport};
+use crate::link::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::metrics::{Coverage, GroundTruth};
 use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};

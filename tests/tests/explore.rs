@@ -1,11 +1,11 @@
 //! End to end: every built-in scenario explored to completion by the core, through the
 //! simulator's camera and vehicle, judged against the true world.
 
-use harmonic_sim::depth_link::LinkConfig;
-use harmonic_sim::fault::FaultConfig;
+use harmonic_sim::link::depth_link::LinkConfig;
+use harmonic_sim::link::fault::FaultConfig;
+use harmonic_sim::link::transport::TransportSpec;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::sim::{self, Report, SimConfig};
-use harmonic_sim::transport::TransportSpec;
 use harmonic_sim::vehicle::autopilot::MavlinkConfig;
 use harmonic_sim::world::scenario::{builtin_names, Scenario};
 

@@ -27,7 +27,7 @@ pub fn run(args: &LinkEchoArgs) -> Result<(), String> {
         }
         (None, None) => return Err("give --listen HOST:PORT or --connect HOST:PORT".into()),
     };
-    let bytes = harmonic_sim::transport::echo(stream).map_err(|e| format!("link-echo: {e}"))?;
+    let bytes = harmonic_sim::link::transport::echo(stream).map_err(|e| format!("link-echo: {e}"))?;
     eprintln!("link-echo: {bytes} bytes sent back");
     Ok(())
 }

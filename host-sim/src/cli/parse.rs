@@ -2,7 +2,7 @@
 //! subcommand modules.
 
 use harmonic_core::map::Dims;
-use harmonic_sim::fault::DEFAULT_BURST_LEN;
+use harmonic_sim::link::fault::DEFAULT_BURST_LEN;
 use harmonic_sim::sensors::camera::StereoNoise;
 use harmonic_sim::sensors::sensing::DriftConfig;
 

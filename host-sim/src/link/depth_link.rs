@@ -55,8 +55,8 @@ use harmonic_core::link::{
 use nalgebra::Isometry3;
 use serde::Serialize;
 
-use crate::fault::{FaultConfig, FaultCounters, FaultInjector};
-use crate::transport::{self, TransportSpec, Wire};
+use crate::link::fault::{FaultConfig, FaultCounters, FaultInjector};
+use crate::link::transport::{self, TransportSpec, Wire};
 
 /// Default baud rate of the link.
 pub const DEFAULT_BAUD: u32 = 921_600;
