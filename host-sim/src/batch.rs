@@ -26,7 +26,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use crate::planners::PlannerKind;
-use crate::sim::{self, Report, SimConfig};
+use crate::run::sim::{self, Report, SimConfig};
 use crate::world::scenario::{Scenario, THESIS_SCENARIOS};
 
 /// One run's results: a row of `runs.csv`.
@@ -213,7 +213,7 @@ impl SolveSummary {
     pub fn of(report: &Report) -> Self {
         let solved: Vec<_> = report.steps.iter().filter(|s| s.outcome == "goal").collect();
         let n = solved.len();
-        let mean = |f: &dyn Fn(&crate::sim::StepRecord) -> f64| {
+        let mean = |f: &dyn Fn(&crate::run::sim::StepRecord) -> f64| {
             solved.iter().map(|s| f(s)).sum::<f64>() / n.max(1) as f64
         };
         Self {

@@ -10,7 +10,7 @@ use serde_json::Value;
 
 use crate::link::depth_link::LinkConfig;
 use crate::link::fault::FaultConfig;
-use crate::sim::{self, SimConfig, SimError, SimFaults};
+use crate::run::sim::{self, SimConfig, SimError, SimFaults};
 use crate::vehicle::autopilot::MavlinkConfig;
 use crate::world::scenario::Scenario;
 

@@ -19,7 +19,7 @@ use harmonic_core::map::{Occupancy, VoxelIndex, VoxelMap};
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
-use crate::sim::StepView;
+use crate::run::sim::StepView;
 
 static FONTS: Once = Once::new();
 

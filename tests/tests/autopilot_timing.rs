@@ -15,7 +15,7 @@ use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
 
 use harmonic_core::signing::SecretKey;
-use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::run::sim::{self, Report, SimConfig};
 use harmonic_sim::vehicle::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::vehicle::flight::EmulatorTiming;
 use harmonic_sim::world::scenario::Scenario;

@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 
 use harmonic_sim::batch::{self, BenchConfig};
 use harmonic_sim::planners::PlannerKind;
-use harmonic_sim::record::{self, MapSettings, Recorder, ReplayConfig};
-use harmonic_sim::sim::{self, SimConfig};
+use harmonic_sim::run::record::{self, MapSettings, Recorder, ReplayConfig};
+use harmonic_sim::run::sim::{self, SimConfig};
 use harmonic_sim::world::scenario::Scenario;
 
 fn fixture(name: &str) -> String {
@@ -209,7 +209,7 @@ fn stereo_noise_no_longer_ends_exploration_early() {
 
 #[test]
 fn mesh_world_matches_the_same_world_built_from_boxes() {
-    use harmonic_sim::metrics::GroundTruth;
+    use harmonic_sim::run::metrics::GroundTruth;
     use harmonic_sim::sensors::camera::{camera_pose, DepthCamera};
     use rand::SeedableRng;
     let boxes = Scenario::load(fixture("two-rooms")).unwrap();

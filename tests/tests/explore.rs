@@ -5,7 +5,7 @@ use harmonic_sim::link::depth_link::LinkConfig;
 use harmonic_sim::link::fault::FaultConfig;
 use harmonic_sim::link::transport::TransportSpec;
 use harmonic_sim::planners::PlannerKind;
-use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::run::sim::{self, Report, SimConfig};
 use harmonic_sim::vehicle::autopilot::MavlinkConfig;
 use harmonic_sim::world::scenario::{builtin_names, Scenario};
 

@@ -3,7 +3,7 @@
 //! matrix (`harmonic-sim faults`) is too long for CI; docs/RELIABILITY.md has its numbers.
 
 use harmonic_sim::faults::{self, Cell};
-use harmonic_sim::sim::SimConfig;
+use harmonic_sim::run::sim::SimConfig;
 use harmonic_sim::world::scenario::Scenario;
 
 fn cells(names: &[&str]) -> Vec<Cell> {

@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 use harmonic_core::mavlink::{encode_v2, MavHeader, MavlinkDecoder, AUTOPILOT_COMPONENT_ID, MAX_FRAME_LEN};
 use harmonic_sim::link::depth_link::LinkConfig;
 use harmonic_sim::link::transport::{self, TransportSpec};
-use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::run::sim::{self, Report, SimConfig};
 use harmonic_sim::vehicle::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::vehicle::flight::{FlightCounters, FlightEmulator};
 use harmonic_sim::vehicle::tlog;

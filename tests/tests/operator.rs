@@ -5,7 +5,7 @@
 
 use harmonic_core::mavlink::BridgeConfig;
 use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
-use harmonic_sim::sim::{self, SimConfig};
+use harmonic_sim::run::sim::{self, SimConfig};
 use harmonic_sim::vehicle::autopilot::MavlinkConfig;
 use harmonic_sim::world::scenario::Scenario;
 

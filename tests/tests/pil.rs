@@ -8,8 +8,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use harmonic_sim::pil::{self, PilConfig};
-use harmonic_sim::sim::SimConfig;
+use harmonic_sim::run::pil::{self, PilConfig};
+use harmonic_sim::run::sim::SimConfig;
 use harmonic_sim::world::scenario::Scenario;
 
 const TARGET: &str = "thumbv7em-none-eabihf";

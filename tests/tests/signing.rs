@@ -6,7 +6,7 @@
 use std::process::{Command, Stdio};
 
 use harmonic_core::signing::SecretKey;
-use harmonic_sim::sim::{self, Report, SimConfig};
+use harmonic_sim::run::sim::{self, Report, SimConfig};
 use harmonic_sim::vehicle::autopilot::MavlinkConfig;
 use harmonic_sim::world::scenario::Scenario;
 

@@ -3,9 +3,9 @@
 
 use harmonic_core::integrate::{integrate, IntegrationParams, NoReturn};
 use harmonic_core::map::{LogOddsParams, Occupancy, VoxelMap};
+use harmonic_sim::run::sim::{self, SimConfig};
 use harmonic_sim::sensors::camera::{camera_pose, DepthCamera};
 use harmonic_sim::sensors::stereo::{self as st, StereoDepth, StereoMetrics, StereoRig};
-use harmonic_sim::sim::{self, SimConfig};
 use harmonic_sim::world::scenario::Scenario;
 use harmonic_sim::world::{Aabb, World};
 use rand::SeedableRng;

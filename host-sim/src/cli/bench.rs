@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use clap::Subcommand;
 use harmonic_sim::batch;
 use harmonic_sim::planners::PlannerKind;
-use harmonic_sim::sim::SimConfig;
+use harmonic_sim::run::sim::SimConfig;
 
 use super::sim_args::{FieldArgs, SensingArgs};
 

@@ -13,8 +13,8 @@ use harmonic_sim::link::depth_link::{LinkConfig, DEFAULT_ARQ_ROUNDS, DEFAULT_BAU
 use harmonic_sim::link::fault::{FaultConfig, DEFAULT_BURST_LEN};
 use harmonic_sim::link::transport::TransportSpec;
 use harmonic_sim::planners::PlannerKind;
-use harmonic_sim::record::{MapSettings, Recorder};
-use harmonic_sim::sim::{self, Report, SimConfig, StepView};
+use harmonic_sim::run::record::{MapSettings, Recorder};
+use harmonic_sim::run::sim::{self, Report, SimConfig, StepView};
 use harmonic_sim::vehicle::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::vehicle::flight::EmulatorTiming;
 use harmonic_sim::world::scenario::Scenario;
@@ -382,12 +382,12 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
         }
     };
     let report = if args.core == "qemu" {
-        let pil = harmonic_sim::pil::PilConfig {
+        let pil = harmonic_sim::run::pil::PilConfig {
             firmware: args.firmware.clone(),
             qemu: args.qemu.clone(),
             out: args.out.clone(),
         };
-        harmonic_sim::pil::run(&scenario, &cfg, &pil, on_step)
+        harmonic_sim::run::pil::run(&scenario, &cfg, &pil, on_step)
     } else {
         sim::run_observed(&scenario, &cfg, on_step, observe)
     }

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use harmonic_sim::sim::SimConfig;
+use harmonic_sim::run::sim::SimConfig;
 use harmonic_sim::world::scenario::Scenario;
 
 /// The flags of `faults`.

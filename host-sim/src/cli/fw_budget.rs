@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use harmonic_sim::sim::SimConfig;
+use harmonic_sim::run::sim::SimConfig;
 use harmonic_sim::world::scenario::Scenario;
 
 /// The flags of `fw-budget`.
@@ -43,7 +43,7 @@ const PLAN_BUDGET: u64 = 48_000_000;
 /// Run `fw-budget`: the image sizes, then (unless `--sizes-only`) the instructions per phase of
 /// a processor-in-the-loop run; with `--stereo`, the matcher's budget instead.
 pub fn run(args: &FwBudgetArgs) -> Result<(), String> {
-    use harmonic_sim::pil;
+    use harmonic_sim::run::pil;
     if args.stereo {
         return fw_stereo_budget(args);
     }
@@ -231,7 +231,7 @@ pub fn run(args: &FwBudgetArgs) -> Result<(), String> {
 
 /// `fw-budget --stereo`: the matcher's instructions per frame on the emulated Cortex-M4F.
 fn fw_stereo_budget(args: &FwBudgetArgs) -> Result<(), String> {
-    use harmonic_sim::pil;
+    use harmonic_sim::run::pil;
     let elf = match &args.firmware {
         Some(p) => p.clone(),
         None => pil::build_firmware_example("stereo_bench", None).map_err(|e| e.to_string())?,

@@ -1,10 +1,10 @@
 //! `harmonic-sim replay`: integrate a recorded depth sequence and write the map (the replay
-//! itself is `harmonic_sim::record`).
+//! itself is `harmonic_sim::run::record`).
 
 use std::path::PathBuf;
 
 use harmonic_sim::figures;
-use harmonic_sim::record;
+use harmonic_sim::run::record;
 
 use super::parse::parse_positive;
 

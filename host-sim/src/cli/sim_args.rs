@@ -2,9 +2,9 @@
 //! harmonic planner's field ([`FieldArgs`]), both flattened into their argument structs.
 
 use harmonic_core::field::PlanningField;
+use harmonic_sim::run::sim::{self, SimConfig};
 use harmonic_sim::sensors::camera::StereoNoise;
 use harmonic_sim::sensors::sensing::DriftConfig;
-use harmonic_sim::sim::{self, SimConfig};
 
 use super::parse::{parse_drift, parse_noise, parse_positive, parse_probability};
 

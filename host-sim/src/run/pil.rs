@@ -49,8 +49,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::link::depth_link::LinkReport;
-use crate::metrics::GroundTruth;
-use crate::sim::{Report, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
+use crate::run::metrics::GroundTruth;
+use crate::run::sim::{Report, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
 use crate::vehicle::autopilot::{MavlinkReport, TrafficReport};
 use crate::vehicle::flight::FlightEmulator;
 use crate::world::scenario::Scenario;
@@ -75,7 +75,7 @@ pub struct PilConfig {
 
 /// The PIL report types live beside the [`Report`] that carries them (so that `sim` needs
 /// nothing from here).
-pub use crate::sim::{InstructionStat, PilReport};
+pub use crate::run::sim::{InstructionStat, PilReport};
 
 /// The firmware's grid.
 pub fn firmware_geometry() -> Result<MapGeometry, SimError> {
@@ -763,7 +763,7 @@ fn fly(
             break;
         };
         let here = (sp.position - vehicle.position).norm() < 1e-4
-            && crate::sim::wrap_angle(sp.yaw - vehicle.yaw).abs() < 1e-3;
+            && crate::run::sim::wrap_angle(sp.yaw - vehicle.yaw).abs() < 1e-3;
         let same = previous == Some((sp.position, sp.yaw));
         if travelled >= budget || (here && same) {
             break;

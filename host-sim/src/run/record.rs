@@ -32,7 +32,7 @@ use harmonic_core::map::{Dims, LogOddsParams, MapGeometry, VoxelMap};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
 use serde::{Deserialize, Serialize};
 
-use crate::sim::StepView;
+use crate::run::sim::StepView;
 
 /// The map settings a recording was made with (`map.json`).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -67,9 +67,9 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::link::depth_link::{DepthLink, LinkConfig, LinkReport};
-use crate::metrics::{Coverage, GroundTruth};
 use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
+use crate::run::metrics::{Coverage, GroundTruth};
 use crate::sensors::camera::DepthCamera;
 use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
 use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
