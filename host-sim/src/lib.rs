@@ -14,19 +14,15 @@
 //!
 //! The evaluation suite: the seed thesis's baseline planners behind one interface with the core
 //! ([`planners`]), triangle-mesh worlds ([`world::mesh`]), sensing faults and map accuracy
-//! ([`sensors::sensing`], [`sensors::camera`]), batch runs with thesis-style tables ([`batch`]), figures and map
-//! exports ([`figures`]), and TUM RGB-D recordings with replay ([`run::record`]).
+//! ([`sensors::sensing`], [`sensors::camera`]), batch runs with thesis-style tables ([`tools::batch`]), figures and map
+//! exports ([`tools::figures`]), and TUM RGB-D recordings with replay ([`run::record`]).
 #![warn(missing_docs)]
 
-pub mod batch;
-pub mod bench;
-pub mod faults;
-pub mod figures;
 pub mod io;
 pub mod link;
 pub mod planners;
-pub mod problem;
 pub mod run;
 pub mod sensors;
+pub mod tools;
 pub mod vehicle;
 pub mod world;

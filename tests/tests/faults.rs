@@ -2,8 +2,8 @@
 //! ridden out (hold, then continue) to completion without a collision, and counted. The whole
 //! matrix (`harmonic-sim faults`) is too long for CI; docs/RELIABILITY.md has its numbers.
 
-use harmonic_sim::faults::{self, Cell};
 use harmonic_sim::run::sim::SimConfig;
+use harmonic_sim::tools::faults::{self, Cell};
 use harmonic_sim::world::scenario::Scenario;
 
 fn cells(names: &[&str]) -> Vec<Cell> {

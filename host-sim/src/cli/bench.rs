@@ -1,12 +1,12 @@
 //! `harmonic-sim bench` and `bench merge`: the flags of the planner sweep and its run (the
-//! sweep itself is `harmonic_sim::batch`).
+//! sweep itself is `harmonic_sim::tools::batch`).
 
 use std::path::PathBuf;
 
 use clap::Subcommand;
-use harmonic_sim::batch;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::run::sim::SimConfig;
+use harmonic_sim::tools::batch;
 
 use super::sim_args::{FieldArgs, SensingArgs};
 

@@ -1,9 +1,9 @@
 //! `harmonic-sim bench-solve`: the Laplace solvers on building-like grids (the measurement is
-//! `harmonic_sim::bench`).
+//! `harmonic_sim::tools::bench`).
 
 use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
-use harmonic_sim::bench::{self, BenchSolver};
+use harmonic_sim::tools::bench::{self, BenchSolver};
 
 use super::parse::{parse_dims, parse_positive};
 

@@ -6,8 +6,6 @@ use std::path::PathBuf;
 use std::str::FromStr;
 
 use harmonic_core::explore::SolverKind;
-use harmonic_sim::batch;
-use harmonic_sim::figures::{self, SliceSnapshot};
 use harmonic_sim::io::npy;
 use harmonic_sim::link::depth_link::{LinkConfig, DEFAULT_ARQ_ROUNDS, DEFAULT_BAUD};
 use harmonic_sim::link::fault::{FaultConfig, DEFAULT_BURST_LEN};
@@ -15,6 +13,8 @@ use harmonic_sim::link::transport::TransportSpec;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::run::record::{MapSettings, Recorder};
 use harmonic_sim::run::sim::{self, Report, SimConfig, StepView};
+use harmonic_sim::tools::batch;
+use harmonic_sim::tools::figures::{self, SliceSnapshot};
 use harmonic_sim::vehicle::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::vehicle::flight::EmulatorTiming;
 use harmonic_sim::world::scenario::Scenario;

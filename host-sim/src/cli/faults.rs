@@ -1,5 +1,5 @@
 //! `harmonic-sim faults`: the fault campaign's flags and run (the matrix itself is
-//! `harmonic_sim::faults`).
+//! `harmonic_sim::tools::faults`).
 
 use std::path::PathBuf;
 
@@ -36,7 +36,7 @@ pub struct FaultsArgs {
 /// Run `faults`: explore once per cell, print the table, write faults.json and faults.md; an
 /// error if any cell collided.
 pub fn run(args: &FaultsArgs) -> Result<(), String> {
-    use harmonic_sim::faults;
+    use harmonic_sim::tools::faults;
     let scenario = Scenario::by_name_or_path(&args.scenario).map_err(|e| e.to_string())?;
     let mut cfg = SimConfig {
         max_scans: args.max_scans,

@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
-use harmonic_sim::figures;
 use harmonic_sim::run::record;
+use harmonic_sim::tools::figures;
 
 use super::parse::parse_positive;
 

@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use harmonic_sim::io::npy;
-use harmonic_sim::problem::{self, SolverChoice};
+use harmonic_sim::tools::problem::{self, SolverChoice};
 
 use super::parse::{parse_positive, parse_radius, parse_voxel};
 

@@ -14,7 +14,7 @@
 //! ([`RunRow`]); `curves.csv`, coverage against distance flown for every run; `solves.csv`,
 //! the solver's work per run ([`SolveSummary`]); `results.md`, one
 //! table per scenario ([`markdown`]); `coverage_<scenario>.png`, the coverage curves of every
-//! planner ([`crate::figures::coverage_curves`]).
+//! planner ([`crate::tools::figures::coverage_curves`]).
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -185,7 +185,7 @@ impl RunRow {
 
 /// Coverage against distance flown over one run (defined beside the figure that draws it, so
 /// that `figures` needs nothing from here).
-pub use crate::figures::Curve;
+pub use crate::tools::figures::Curve;
 
 /// The solver's work over one run: the steps that solved a new plan (outcome `goal`).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -463,7 +463,7 @@ fn write_curve_figures(curves_path: &Path, out: &Path) -> Result<(), String> {
     scenarios.sort_unstable();
     scenarios.dedup();
     for s in scenarios {
-        crate::figures::coverage_curves(&curves, s, &out.join(format!("coverage_{s}.png")))?;
+        crate::tools::figures::coverage_curves(&curves, s, &out.join(format!("coverage_{s}.png")))?;
     }
     Ok(())
 }

@@ -1,0 +1,24 @@
+//! The tools around runs: many runs at once, the solver on its own, and what is drawn and
+//! written from them — the library side of the `bench`, `faults`, `bench-solve` and `solve`
+//! subcommands and of the figures `explore` and `replay` write.
+//!
+//! - [`batch`]: every planner on every scenario from the same random starts, in parallel; CSV
+//!   rows and the thesis-style tables (`bench`, `bench merge`).
+//! - [`faults`]: the fault campaign, one run per cell of a matrix of injected faults (`faults`).
+//! - [`figures`]: PNG figures (field slices, top views, coverage curves) and PLY map exports.
+//! - [`bench`]: the solver benchmarks on building-like grids (`bench-solve`, BENCHMARKS.md).
+//! - [`problem`]: planning problems as `.npy` label grids, and solving one (`solve`,
+//!   `explore --dump-problem`).
+//!
+//! In: scenarios ([`crate::world`]), run configurations and the runs themselves
+//! ([`crate::run`]), planner kinds ([`crate::planners`]), the link and autopilot settings a
+//! fault cell changes ([`crate::link`], [`crate::vehicle`]), arrays ([`crate::io`]). Out:
+//! tables, CSV and JSON files, PNG figures, label grids and solver statistics. The run loop
+//! uses one thing from here: [`problem::problem_labels_from_map`], to write
+//! `explore --dump-problem`'s grids.
+
+pub mod batch;
+pub mod bench;
+pub mod faults;
+pub mod figures;
+pub mod problem;
