@@ -1012,7 +1012,7 @@ mod tests {
             let dims = Dims::new(10, 10, 4).unwrap();
             let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
             let n = dims.len();
-            let mut storage = crate::run::sim::HostStorage::new(&dims);
+            let mut storage = crate::planners::HostStorage::new(&dims);
             let config = ExplorerConfig { vehicle_radius: 0.0, ..Default::default() };
             let mut planner =
                 Baseline::new(PlannerKind::ClosestFrontier, g, config, storage.lend(), 1).unwrap();

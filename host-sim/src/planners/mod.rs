@@ -32,9 +32,12 @@ use std::time::Instant;
 
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::domain::Label;
-use harmonic_core::explore::{Clock, Explorer, Fault, FrameTiming, PlanOutcome, SolverKind, Status};
+use harmonic_core::explore::{
+    Clock, Explorer, ExplorerStorage, Fault, FrameTiming, PlanOutcome, SolverKind, Status,
+};
 use harmonic_core::field::PlanningField;
-use harmonic_core::map::VoxelMap;
+use harmonic_core::map::{self, Dims, VoxelMap};
+use harmonic_core::solve::multigrid;
 use nalgebra::{Isometry3, Point3};
 
 /// The planners the simulator can fly.
@@ -158,6 +161,62 @@ impl Default for HostClock {
 impl Clock for HostClock {
     fn ticks(&mut self) -> u64 {
         self.0.elapsed().as_nanos() as u64
+    }
+}
+
+/// Host-owned buffers for one explorer.
+pub struct HostStorage {
+    log_odds: Vec<i8>,
+    touched: Vec<u32>,
+    labels: Vec<Label>,
+    phi: Vec<f32>,
+    queue: Vec<u32>,
+    coarse_values: Vec<f32>,
+    coarse_labels: Vec<Label>,
+    coarse_faces: Vec<[u8; 4]>,
+    krylov: Vec<f32>,
+    /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
+    jacobi: Vec<f32>,
+}
+
+impl HostStorage {
+    /// Buffers for `dims`, with MGPCG storage.
+    pub fn new(dims: &Dims) -> Self {
+        let n = dims.len();
+        let mg = multigrid::scratch_size(dims);
+        Self {
+            coarse_values: vec![0.0; mg.values],
+            coarse_labels: vec![Label::Outside; mg.labels],
+            coarse_faces: vec![[0; 4]; mg.faces],
+            krylov: vec![0.0; mg.krylov],
+            log_odds: vec![0; n],
+            touched: vec![0; map::touched_words(dims)],
+            labels: vec![Label::Outside; n],
+            phi: vec![0.0; n],
+            queue: vec![0; 16 * 1024],
+            jacobi: Vec::new(),
+        }
+    }
+    /// Adds the one-per-voxel scratch the thesis's Jacobi solve needs
+    /// ([`SolverKind::ThesisJacobi`]); a no-op if it is there.
+    pub fn with_jacobi(&mut self) -> &mut Self {
+        self.jacobi.resize(self.phi.len(), 0.0);
+        self
+    }
+    /// Lends the buffers to an explorer.
+    pub fn lend(&mut self) -> ExplorerStorage<'_> {
+        ExplorerStorage {
+            log_odds: &mut self.log_odds,
+            touched: &mut self.touched,
+            labels: &mut self.labels,
+            phi: &mut self.phi,
+            queue: &mut self.queue,
+            coarse_values: self.coarse_values.as_mut_slice().into(),
+            coarse_labels: &mut self.coarse_labels,
+            coarse_faces: &mut self.coarse_faces,
+            krylov: &mut self.krylov,
+            jacobi: &mut self.jacobi,
+        }
     }
 }
 

@@ -53,14 +53,11 @@
 use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
-use harmonic_core::domain::Label;
 use harmonic_core::explore::{
-    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, ExplorerStorage, FrameTiming, Goal,
-    PlanOutcome, SolverKind,
+    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, FrameTiming, Goal, PlanOutcome, SolverKind,
 };
 use harmonic_core::map::{self, Dims, MapGeometry};
 use harmonic_core::operator::OperatorState;
-use harmonic_core::solve::multigrid;
 use nalgebra::Point3;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -68,7 +65,7 @@ use serde::Serialize;
 
 use crate::link::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::planners::baseline::Baseline;
-use crate::planners::{HarmonicPlanner, HostClock, Planner, PlannerKind};
+use crate::planners::{HarmonicPlanner, HostClock, HostStorage, Planner, PlannerKind};
 use crate::run::metrics::{Coverage, GroundTruth};
 use crate::sensors::camera::DepthCamera;
 use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
@@ -533,62 +530,6 @@ impl std::fmt::Display for SimError {
 }
 
 impl std::error::Error for SimError {}
-
-/// Host-owned buffers for one explorer.
-pub struct HostStorage {
-    log_odds: Vec<i8>,
-    touched: Vec<u32>,
-    labels: Vec<Label>,
-    phi: Vec<f32>,
-    queue: Vec<u32>,
-    coarse_values: Vec<f32>,
-    coarse_labels: Vec<Label>,
-    coarse_faces: Vec<[u8; 4]>,
-    krylov: Vec<f32>,
-    /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
-    jacobi: Vec<f32>,
-}
-
-impl HostStorage {
-    /// Buffers for `dims`, with MGPCG storage.
-    pub fn new(dims: &Dims) -> Self {
-        let n = dims.len();
-        let mg = multigrid::scratch_size(dims);
-        Self {
-            coarse_values: vec![0.0; mg.values],
-            coarse_labels: vec![Label::Outside; mg.labels],
-            coarse_faces: vec![[0; 4]; mg.faces],
-            krylov: vec![0.0; mg.krylov],
-            log_odds: vec![0; n],
-            touched: vec![0; map::touched_words(dims)],
-            labels: vec![Label::Outside; n],
-            phi: vec![0.0; n],
-            queue: vec![0; 16 * 1024],
-            jacobi: Vec::new(),
-        }
-    }
-    /// Adds the one-per-voxel scratch the thesis's Jacobi solve needs
-    /// ([`SolverKind::ThesisJacobi`]); a no-op if it is there.
-    pub fn with_jacobi(&mut self) -> &mut Self {
-        self.jacobi.resize(self.phi.len(), 0.0);
-        self
-    }
-    /// Lends the buffers to an explorer.
-    pub fn lend(&mut self) -> ExplorerStorage<'_> {
-        ExplorerStorage {
-            log_odds: &mut self.log_odds,
-            touched: &mut self.touched,
-            labels: &mut self.labels,
-            phi: &mut self.phi,
-            queue: &mut self.queue,
-            coarse_values: self.coarse_values.as_mut_slice().into(),
-            coarse_labels: &mut self.coarse_labels,
-            coarse_faces: &mut self.coarse_faces,
-            krylov: &mut self.krylov,
-            jacobi: &mut self.jacobi,
-        }
-    }
-}
 
 /// The map geometry a scenario is explored on.
 pub fn scenario_geometry(scenario: &Scenario) -> Result<MapGeometry, SimError> {
