@@ -5,7 +5,9 @@
 //! buffers) and the bytes to write back. Nothing here depends on another module of the crate;
 //! the planning-problem grids, disparity images and map exports that use it (`solve`,
 //! `explore --dump-problem`, `stereo`, `replay`) build on it from their own stages. Formats that
-//! belong to one stage stay with that stage (PFM and PNG with the stereo camera, `.tlog` with
-//! the vehicle's MAVLink, PLY with the figures, TUM RGB-D with the recorder).
+//! belong to one stage stay with that stage: PFM and PNG with the stereo camera
+//! ([`crate::sensors::stereo`]), `.tlog` with the vehicle's MAVLink ([`crate::vehicle::tlog`]),
+//! PLY with the figures ([`crate::tools::figures`]), TUM RGB-D with the recorder
+//! ([`crate::run::record`]).
 
 pub mod npy;

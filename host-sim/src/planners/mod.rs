@@ -22,6 +22,12 @@
 //! "Planning ops" ([`Status::planning_ops`]) count each planner's elementary voxel operations:
 //! solver cell updates for the harmonic planners; search-node expansions plus voxels stepped by
 //! line-of-sight and visibility ray casts for the baselines.
+//!
+//! In: the depth frames the run hands over (after the depth link) with their poses, and the
+//! vehicle's pose at each planning step; the buffers every planner borrows ([`HostStorage`]).
+//! Out: the map, the plan (waypoints, goal, or the reason there is none) and the planning
+//! statistics, through [`Planner`]. The run picks the planner ([`PlannerKind`]) and flies the
+//! plan; nothing here depends on another stage of the simulator.
 
 pub mod baseline;
 pub mod search;

@@ -24,11 +24,11 @@
 //!
 //! With [`SimConfig::mavlink`] the vehicle is not handed the waypoints. The core's `Bridge`
 //! streams them as MAVLink setpoints (the next waypoint along the plan, advancing within
-//! [`WAYPOINT_ADVANCE_M`]) to the autopilot ([`crate::vehicle::autopilot`]): the in-process flight-stack
-//! emulator, which the vehicle follows, or a real autopilot over UDP, which flies the vehicle
-//! itself (time is then the wall clock, and the vehicle is wherever the autopilot says). The
-//! explorer plans from, and the depth frames are stamped with, the pose the bridge reports —
-//! not the simulator's ground truth.
+//! [`WAYPOINT_ADVANCE_M`]) to the autopilot ([`crate::vehicle::autopilot`]): the in-process
+//! flight-stack emulator, which the vehicle follows, or a real autopilot over UDP, which flies
+//! the vehicle itself (time is then the wall clock, and the vehicle is wherever the autopilot
+//! says). The explorer plans from, and the depth frames are stamped with, the pose the bridge
+//! reports — not the simulator's ground truth.
 //!
 //! # A frame's instant over MAVLink
 //!
@@ -36,17 +36,18 @@
 //! it was sampled, arrives some latency later, and the next one is a stream period away. So a
 //! frame is captured at an instant of the *autopilot's* clock — the newest one for which both
 //! position and attitude have arrived
-//! ([`PoseHistory::newest_ms`](harmonic_core::mavlink::PoseHistory::newest_ms)) — and its camera
-//! pose is the pose of that instant from the bridge's history
+//! ([`PoseHistory::newest_ms`](harmonic_core::mavlink::PoseHistory::newest_ms)) — and its
+//! camera pose is the pose of that instant from the bridge's history
 //! ([`PoseHistory::pose_at`](harmonic_core::mavlink::PoseHistory::pose_at), interpolated by
 //! `time_boot_ms` when position and attitude were not sampled together). Against a remote
 //! autopilot the camera renders at that same pose: it is the only truth there is. Against the
 //! emulator it renders at the simulator's true pose of that instant (the emulator's clock is
-//! the simulator's plus [`EmulatorTiming::boot_ms`](crate::vehicle::flight::EmulatorTiming::boot_ms)),
-//! so a stamp from the wrong instant shows as a smeared map. Each frame also carries its
-//! [`FrameTiming`] — the yaw rate measured from the samples' timestamps, and how long before
-//! the capture the newest sample arrived — and the core refuses frames taken while turning
-//! faster than [`ExplorerConfig::max_frame_yaw_rate`] or on a pose stream older than
+//! the simulator's plus
+//! [`EmulatorTiming::boot_ms`](crate::vehicle::flight::EmulatorTiming::boot_ms)), so a stamp
+//! from the wrong instant shows as a smeared map. Each frame also carries its [`FrameTiming`] —
+//! the yaw rate measured from the samples' timestamps, and how long before the capture the
+//! newest sample arrived — and the core refuses frames taken while turning faster than
+//! [`ExplorerConfig::max_frame_yaw_rate`] or on a pose stream older than
 //! [`ExplorerConfig::max_frame_pose_lag_ms`]; the vehicle holds and the next step captures
 //! again.
 
@@ -152,8 +153,8 @@ pub enum DepthSource {
     #[default]
     Camera,
     /// A stereo pair is rendered at the camera's pose and matched by
-    /// [`harmonic_core::stereo`] ([`crate::sensors::stereo::StereoDepth`]); the frame has the camera's
-    /// intrinsics.
+    /// [`harmonic_core::stereo`] ([`crate::sensors::stereo::StereoDepth`]); the frame has the
+    /// camera's intrinsics.
     Stereo(StereoRig),
 }
 

@@ -6,7 +6,8 @@
 //!   rows and the thesis-style tables (`bench`, `bench merge`).
 //! - [`faults`]: the fault campaign, one run per cell of a matrix of injected faults (`faults`).
 //! - [`figures`]: PNG figures (field slices, top views, coverage curves) and PLY map exports.
-//! - [`bench`]: the solver benchmarks on building-like grids (`bench-solve`, BENCHMARKS.md).
+//! - [`bench`](mod@bench): the solver benchmarks on building-like grids (`bench-solve`,
+//!   BENCHMARKS.md).
 //! - [`problem`]: planning problems as `.npy` label grids, and solving one (`solve`,
 //!   `explore --dump-problem`).
 //!

@@ -9,9 +9,9 @@
 //! | `udpout:HOST:PORT` | send to `HOST:PORT`, take answers on the local port (MAVProxy's `udpout`); wall-clock time |
 //!
 //! Every MAVLink frame each way is decoded, counted by message name in [`TrafficReport`], and
-//! written to the `.tlog` if one is open (see [`crate::vehicle::tlog`]). Every pose sample the bridge
-//! accepts also goes into a [`PoseHistory`] by the autopilot's `time_boot_ms`, from which the
-//! simulator takes the pose of the instant each depth frame is captured at
+//! written to the `.tlog` if one is open (see [`crate::vehicle::tlog`]). Every pose sample the
+//! bridge accepts also goes into a [`PoseHistory`] by the autopilot's `time_boot_ms`, from which
+//! the simulator takes the pose of the instant each depth frame is captured at
 //! ([`MavlinkLink::history`]). Against a remote autopilot the vehicle is wherever it says
 //! (LOCAL_POSITION_NED + ATTITUDE or ODOMETRY); the simulator renders depth there.
 

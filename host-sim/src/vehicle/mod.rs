@@ -12,7 +12,7 @@
 //! Out: the pose the core believes (with the time each sample was taken), the setpoint the
 //! vehicle flies, counters and traffic for the run's report, and the `.tlog`. The multirotor's
 //! own kinematics (speed and yaw-rate limits, collision checks) are the run loop's
-//! (`run::sim`). Depends on no other stage.
+//! ([`crate::run::sim`]). Depends on no other stage.
 
 pub mod autopilot;
 pub mod flight;

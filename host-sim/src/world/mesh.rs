@@ -10,9 +10,10 @@
 //!   closest-point queries visit only the boxes that can matter, so a million triangles cost
 //!   microseconds per ray.
 //! - [`MeshObject::voxelise`]: a voxel is solid if the surface passes through its interior
-//!   (triangle–box separating-axis test on the voxel shrunk by [`crate::world::aabb::CELL_EPSILON`],
-//!   so a face lying on a voxel boundary does not claim the voxel beside it), or — with `fill` —
-//!   if its centre is inside a closed surface (odd number of crossings along +x).
+//!   (triangle–box separating-axis test on the voxel shrunk by
+//!   [`crate::world::aabb::CELL_EPSILON`], so a face lying on a voxel boundary does not claim the
+//!   voxel beside it), or — with `fill` — if its centre is inside a closed surface (odd number of
+//!   crossings along +x).
 
 use std::path::Path;
 
