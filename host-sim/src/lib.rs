@@ -37,15 +37,15 @@
 //! | [`planners`] | the core's explorer and the baselines behind one interface, their buffers | map + pose → where to go |
 //! | [`run`] | the closed loop ([`run::sim`]), the firmware in the loop, metrics, recordings | all of the above → reports, step records |
 //! | [`tools`] | batch runs, the fault campaign, figures, solver benchmarks, problem files | runs → tables, CSV, figures |
-//! | [`io`] | stage-free file formats (`.npy`) | bytes ↔ arrays |
+//! | [`io`] | stage-free file formats (`.npy`, label grids) | bytes ↔ arrays, map → labels |
 //!
 //! Each folder's `mod.rs` says what flows in and out. `world`, `link`, `vehicle`, `planners`
 //! and `io` use no other stage; `sensors` uses `world`; `run` uses all of them; `tools` uses `run`
-//! and what it uses. No two files import each other, directly or around a loop
-//! (`scripts/module_cycles.py`). Two folder-level edges go against the flow: the run loop
-//! writes `explore --dump-problem`'s grids with [`tools::problem::problem_labels_from_map`]
-//! (so `run` and `tools` use each other), and an ignored test of [`world::scenario`] renders
-//! with the sensors' camera. There are no re-exports at the crate root: everything is reached by
+//! and what it uses. No two files and no two folders import each other, directly or around a
+//! loop (`scripts/module_cycles.py`, run by the test suite): the label grids both the run loop
+//! (`explore --dump-problem`) and `tools` write live in [`io::labels`], and the camera's
+//! visibility bound over the built-in worlds is a test of [`sensors::camera`] that borrows the
+//! worlds' voxel ground truth from [`world::scenario`]'s tests. There are no re-exports at the crate root: everything is reached by
 //! its folder (`harmonic_sim::run::sim::SimConfig`). As before the move, a few modules
 //! re-export a type that lives in a lower one: [`world::Aabb`] (from [`world::aabb`]),
 //! [`tools::batch::Curve`] (from [`tools::figures`]), [`run::pil::PilReport`] and

@@ -127,7 +127,7 @@ fn explore_recording(scenario: &Scenario, dir: &Path) -> (Vec<u8>, usize) {
         |view| {
             recorder.step(view).unwrap();
             if view.finished {
-                labels = harmonic_sim::tools::problem::labels_from_map(view.planner.map()).data;
+                labels = harmonic_sim::io::labels::labels_from_map(view.planner.map()).data;
             }
         },
     )
@@ -161,7 +161,7 @@ fn record_then_replay_reproduces_the_explorers_map_exactly() {
     };
     let mut replayed = Vec::new();
     let summary = record::replay(&cfg, |map| {
-        replayed = harmonic_sim::tools::problem::labels_from_map(map).data;
+        replayed = harmonic_sim::io::labels::labels_from_map(map).data;
         Ok(())
     })
     .unwrap();

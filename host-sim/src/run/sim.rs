@@ -1076,7 +1076,7 @@ fn dump_problem(
     let err = |e: std::io::Error| SimError::Dump(format!("{}: {e}", dir.display()));
     std::fs::create_dir_all(dir).map_err(err)?;
     let map = planner.map();
-    let grid = crate::tools::problem::problem_labels_from_map(map);
+    let grid = crate::io::labels::problem_labels_from_map(map);
     let labels_path = dir.join(format!("step_{step:04}.npy"));
     std::fs::write(&labels_path, crate::io::npy::write_u8(&grid)).map_err(err)?;
     let Some(v) = map.geometry().voxel_at(position) else {

@@ -9,7 +9,7 @@
 //! - [`coverage_curves`]: free coverage against distance flown, one mean curve per planner over
 //!   the runs of a bench, with every run faintly behind it.
 //! - [`write_ply`]: occupied voxel centres as an ASCII PLY point cloud (MeshLab, CloudCompare,
-//!   Open3D); the `.npy` label grid comes from [`crate::tools::problem::labels_from_map`].
+//!   Open3D); the `.npy` label grid comes from [`crate::io::labels::labels_from_map`].
 
 use std::path::Path;
 use std::sync::Once;
@@ -583,7 +583,7 @@ pub fn write_ply(map: &VoxelMap<'_>, path: &Path) -> Result<(), String> {
 
 /// Writes the map's `.npy` label grid (0 unknown, 1 free, 2 occupied) to `path`.
 pub fn write_labels(map: &VoxelMap<'_>, path: &Path) -> Result<(), String> {
-    let grid = crate::tools::problem::labels_from_map(map);
+    let grid = crate::io::labels::labels_from_map(map);
     std::fs::write(path, crate::io::npy::write_u8(&grid)).map_err(|e| format!("{}: {e}", path.display()))
 }
 

@@ -14,9 +14,9 @@
 //! In: scenarios ([`crate::world`]), run configurations and the runs themselves
 //! ([`crate::run`]), planner kinds ([`crate::planners`]), the link and autopilot settings a
 //! fault cell changes ([`crate::link`], [`crate::vehicle`]), arrays ([`crate::io`]). Out:
-//! tables, CSV and JSON files, PNG figures, label grids and solver statistics. The run loop
-//! uses one thing from here: [`problem::problem_labels_from_map`], to write
-//! `explore --dump-problem`'s grids.
+//! tables, CSV and JSON files, PNG figures, label grids and solver statistics. Nothing in the
+//! stages uses this folder (the grids `explore --dump-problem` writes are
+//! [`crate::io::labels`]').
 
 pub mod batch;
 pub mod bench;

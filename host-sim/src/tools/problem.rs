@@ -9,23 +9,14 @@
 use std::time::Instant;
 
 use harmonic_core::domain::{self, InflationStencil, Label};
-use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
 use harmonic_core::solve::{gauss_seidel, SolveParams};
 use nalgebra::Point3;
 use serde::Serialize;
 
+use crate::io::labels;
 use crate::io::npy::Array3;
-
-/// Label values in problem files.
-pub mod labels {
-    /// Never observed.
-    pub const UNKNOWN: u8 = 0;
-    /// Observed free.
-    pub const FREE: u8 = 1;
-    /// Observed occupied (or uncertain).
-    pub const OCCUPIED: u8 = 2;
-}
 
 /// Which solver [`solve`] uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -128,33 +119,6 @@ impl std::fmt::Display for ProblemError {
 }
 
 impl std::error::Error for ProblemError {}
-
-/// The map's state as a label grid (the `.npy` map export): 0 unknown (sealed or not),
-/// 1 free, 2 occupied or uncertain.
-pub fn labels_from_map(map: &VoxelMap<'_>) -> Array3<u8> {
-    label_grid(map, labels::UNKNOWN)
-}
-
-/// The planning problem as a label grid (for `--dump-problem`). Like [`labels_from_map`], but
-/// unknown voxels the planner sealed as unobservable are written as occupied: the domain treats
-/// them so (they inflate and make no frontier), which keeps `solve` on the dump the explorer's
-/// own problem.
-pub fn problem_labels_from_map(map: &VoxelMap<'_>) -> Array3<u8> {
-    label_grid(map, labels::OCCUPIED)
-}
-
-fn label_grid(map: &VoxelMap<'_>, sealed: u8) -> Array3<u8> {
-    let dims = map.dims();
-    Array3::from_fn([dims.nx(), dims.ny(), dims.nz()], |x, y, z| {
-        let i = dims.linear(VoxelIndex::new(x as u16, y as u16, z as u16));
-        match map.occupancy(i) {
-            Occupancy::Unknown if map.is_sealed(i) => sealed,
-            Occupancy::Unknown => labels::UNKNOWN,
-            Occupancy::Free => labels::FREE,
-            Occupancy::Occupied | Occupancy::Uncertain => labels::OCCUPIED,
-        }
-    })
-}
 
 /// Solves the problem in `grid`; returns φ (C order, like the input) and the summary.
 pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, SolveSummary), ProblemError> {
@@ -381,8 +345,11 @@ mod tests {
                 }
             }
         }
-        assert_eq!(labels_from_map(&map).get(11, 1, 1), Some(&labels::UNKNOWN));
-        let dumped = problem_labels_from_map(&map);
+        assert_eq!(
+            labels::labels_from_map(&map).get(11, 1, 1),
+            Some(&labels::UNKNOWN)
+        );
+        let dumped = labels::problem_labels_from_map(&map);
         assert_eq!(dumped.get(11, 1, 1), Some(&labels::OCCUPIED));
         assert_eq!(dumped.get(3, 1, 1), Some(&labels::FREE));
         let (_, s) = solve(&dumped, &request(SolverChoice::Multigrid)).unwrap();

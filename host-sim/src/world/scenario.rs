@@ -589,7 +589,7 @@ impl ScenarioFile {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     const MINIMAL: &str = r#"
@@ -771,7 +771,9 @@ max = [4, 3, 0.1]
 
     /// Geometry rules the built-ins must follow so that the whole free space is visible to a
     /// level camera on a vehicle with 0.2 m clearance (see `scenarios/*.toml`).
-    mod builtin_geometry {
+    /// Ground truth of the built-in worlds, voxel by voxel (also used by the camera's
+    /// visibility bound, `crate::sensors::camera`'s tests).
+    pub(crate) mod builtin_geometry {
         use super::*;
         use crate::world::World;
         use nalgebra::Vector3;
@@ -783,7 +785,7 @@ max = [4, 3, 0.1]
             ((x * 10.0) - (x * 10.0).round()).abs() < EPS
         }
 
-        fn builtins() -> impl Iterator<Item = Scenario> {
+        pub(crate) fn builtins() -> impl Iterator<Item = Scenario> {
             builtin_names().iter().map(|n| Scenario::builtin(n).unwrap())
         }
 
@@ -841,7 +843,7 @@ max = [4, 3, 0.1]
         }
 
         /// Ground-truth occupancy of every voxel, x fastest.
-        fn occupancy(s: &Scenario) -> Vec<bool> {
+        pub(crate) fn occupancy(s: &Scenario) -> Vec<bool> {
             let [nx, ny, nz] = s.grid_dims();
             let r = s.resolution;
             let mut occupied = Vec::with_capacity(nx * ny * nz);
@@ -939,7 +941,7 @@ max = [4, 3, 0.1]
 
         /// Free cells reachable by a 0.2 m sphere from the start, as a flood fill over voxel
         /// centres.
-        fn reachable_centres(s: &Scenario) -> Vec<bool> {
+        pub(crate) fn reachable_centres(s: &Scenario) -> Vec<bool> {
             let [nx, ny, nz] = s.grid_dims();
             let r = s.resolution;
             let centre = |x: usize, y: usize, z: usize| {
@@ -973,7 +975,14 @@ max = [4, 3, 0.1]
 
         /// Marks the voxels a ray from `o` along unit `d` passes through up to distance `t_end`
         /// (Amanatides–Woo), as the core's integrator would observe them.
-        fn trace(o: &Point3<f32>, d: &Vector3<f32>, t_end: f32, r: f32, dims: [usize; 3], seen: &mut [bool]) {
+        pub(crate) fn trace(
+            o: &Point3<f32>,
+            d: &Vector3<f32>,
+            t_end: f32,
+            r: f32,
+            dims: [usize; 3],
+            seen: &mut [bool],
+        ) {
             let mut v = [0i64; 3];
             let mut step = [0i64; 3];
             let mut t_max = [f32::INFINITY; 3];
@@ -1002,103 +1011,6 @@ max = [4, 3, 0.1]
                 }
                 v[i] += step[i];
                 t_max[i] += t_delta[i];
-            }
-        }
-
-        /// Upper bound on exploration coverage: the share of free voxels that the reference
-        /// camera sees from reachable viewpoints on a 0.5 m grid at eye height (1.25 m above
-        /// each storey's floor, i.e. at z = 1.25 m and 3.75 m) looking in eight directions.
-        /// Regions no viewpoint sees would need the vehicle to change altitude to be covered,
-        /// or could not be covered at all. Slow (≈ 30 s); run with
-        /// `cargo test -p harmonic-sim --lib -- --ignored --nocapture visible`.
-        #[test]
-        #[ignore]
-        fn builtin_free_space_is_visible() {
-            use crate::sensors::camera::{camera_pose, DepthCamera};
-            use rand::SeedableRng;
-
-            for s in builtins() {
-                let dims = s.grid_dims();
-                let r = s.resolution;
-                let occupied = occupancy(&s);
-                let reach = reachable_centres(&s);
-                let mut viewpoints = Vec::new();
-                for z in 0..dims[2] {
-                    for y in 0..dims[1] {
-                        for x in 0..dims[0] {
-                            // 0.1 m voxels: voxel 12 of every 25 (2.5 m) is eye height.
-                            let eye_height = z % 25 == 12;
-                            if eye_height
-                                && x % 5 == 2
-                                && y % 5 == 2
-                                && reach[x + dims[0] * (y + dims[1] * z)]
-                            {
-                                let p = Point3::new(x as f32 + 0.5, y as f32 + 0.5, z as f32 + 0.5) * r;
-                                viewpoints.push(p);
-                            }
-                        }
-                    }
-                }
-                let cam = DepthCamera::default_thesis();
-                let k = cam.intrinsics;
-                let observe = |points: &[Point3<f32>]| {
-                    let mut seen = vec![false; occupied.len()];
-                    let mut depth = Vec::new();
-                    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-                    for p in points {
-                        for heading in 0..8 {
-                            let pose = camera_pose(p, heading as f32 * std::f32::consts::FRAC_PI_4);
-                            cam.render(&s.world, &pose, &mut rng, &mut depth);
-                            for vv in 0..k.height() {
-                                for u in 0..k.width() {
-                                    let ray = k.ray(u, vv);
-                                    let z = f32::from(
-                                        depth[usize::from(vv) * usize::from(k.width()) + usize::from(u)],
-                                    ) / 1000.0;
-                                    if z > 0.0 && z < cam.min_range {
-                                        continue;
-                                    }
-                                    let z = if z == 0.0 {
-                                        cam.max_range
-                                    } else {
-                                        z.min(cam.max_range)
-                                    };
-                                    let dir = pose.rotation * ray;
-                                    trace(p, &dir.normalize(), z * ray.norm(), r, dims, &mut seen);
-                                }
-                            }
-                        }
-                    }
-                    seen
-                };
-                let (a, b) = viewpoints.split_at(viewpoints.len() / 2);
-                let (sa, sb) = std::thread::scope(|scope| {
-                    let ha = scope.spawn(|| observe(a));
-                    let sb = observe(b);
-                    (ha.join().unwrap(), sb)
-                });
-                let free = occupied.iter().filter(|&&o| !o).count();
-                let mut unseen_by_metre = std::collections::BTreeMap::<[usize; 3], usize>::new();
-                for i in 0..occupied.len() {
-                    if !occupied[i] && !sa[i] && !sb[i] {
-                        let (x, y, z) = (i % dims[0], (i / dims[0]) % dims[1], i / (dims[0] * dims[1]));
-                        *unseen_by_metre.entry([x / 10, y / 10, z / 10]).or_default() += 1;
-                    }
-                }
-                let unseen: usize = unseen_by_metre.values().sum();
-                let coverage = 1.0 - unseen as f64 / free as f64;
-                println!(
-                    "{}: {} viewpoints, {free} free voxels, {unseen} never seen, coverage bound {:.2} %",
-                    s.name(),
-                    viewpoints.len(),
-                    100.0 * coverage
-                );
-                let mut worst: Vec<_> = unseen_by_metre.into_iter().collect();
-                worst.sort_by_key(|&(_, n)| std::cmp::Reverse(n));
-                for (m, n) in worst.iter().take(8) {
-                    println!("    {n:5} unseen in the metre cell at {m:?}");
-                }
-                assert!(coverage > 0.995, "{}: coverage bound {coverage}", s.name());
             }
         }
 
