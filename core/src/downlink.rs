@@ -14,16 +14,19 @@
 //! Downlink frames use the link's framing exactly (a `0x00` delimiter, COBS of header, body and
 //! CRC-32, a `0x00` delimiter; the 4-byte header of version, type and sequence number), with
 //! message types of their own that have the high bit set, so a depth-link decoder that is fed
-//! them by mistake drops them as an unknown type, and the other way round.
+//! them drops them as an unknown type. The core's resend requests and acknowledgements (link
+//! messages) share the return channel: a [`DownlinkDecoder`] passes those over as
+//! [`Downlink::Link`], neither decoded nor counted as dropped.
 //!
 //! ```text
-//! 0x81 PlanReport, 248 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
+//! 0x81 PlanReport, 288 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
 //!   0  u32 frame_id   of the frame just planned from     0  u32 first   voxel index
 //!   4  u8  outcome    0 goal 1 kept 2 escape             4  u16 count   1 ..= MAP_SLICE_VOXELS
 //!                     3 complete 4 hold                  6  u8[]  two bits per voxel, voxel
 //!   5  u8  fault      0 none, else Fault (below)              first + k in bits 2(k % 4) of
 //!   6  u8  detail     the fault's inner error                 byte k / 4: 0 unknown 1 free
-//!   7  u8  reserved   0                                       2 occupied 3 uncertain
+//!   7  u8  operator   0 not reported, else 1 + the            2 occupied 3 uncertain
+//!                     operator state's custom_mode
 //!   8  f32 x, y, z, yaw   where the plan started (map frame)
 //!  24  u32 frames, plans, plans_kept
 //!  36  u32 frontier, interior             of the last domain
@@ -36,6 +39,9 @@
 //! 120  u32 × 14 ErrorCounters, in declaration order
 //! 176  u64 bytes, u32 × 15  LinkCounters, in declaration order
 //! 244  u32 unreachable frontier voxels   at a complete end, else 0
+//! 248  u32 × 7 VerifierCounters of MAVLink signing, in declaration order (0 without)
+//! 276  u32 depth frames partial, u32 rows missing   (LinkCounters' last two)
+//! 284  u32 resend requests sent on the return channel
 //! ```
 //!
 //! Fault codes: 1 BadPose, 2 VehicleOutsideGrid, 3 VehicleNotFree, 4 Streamline (detail:
@@ -48,6 +54,8 @@ use crate::integrate::IntegrateError;
 use crate::link::{cobs_decode_in_place, crc32, CobsWriter, LinkCounters, LinkError, Malformed};
 use crate::link::{CRC_LEN, DELIMITER, HEADER_LEN, PROTOCOL_VERSION};
 use crate::map::{Occupancy, VoxelMap};
+use crate::operator::OperatorState;
+use crate::signing::VerifierCounters;
 use crate::solve::SolveError;
 use crate::streamline::StreamlineError;
 
@@ -56,7 +64,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 248;
+pub const PLAN_REPORT_LEN: usize = 288;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -153,6 +161,13 @@ pub struct PlanReport {
     /// At a complete end, frontier voxels seen but out of the vehicle's reach
     /// ([`Status::unreachable_frontier`]); 0 otherwise.
     pub unreachable_frontier: u32,
+    /// The operator state after the plan (`None` if the reporter has no operator: only the
+    /// explorer, without a MAVLink bridge).
+    pub operator: Option<OperatorState>,
+    /// What the reporter's MAVLink signing accepted and refused (all 0 without signing).
+    pub signing: VerifierCounters,
+    /// Resend requests the reporter sent back over the depth link (0 if it sends none).
+    pub resend_requests: u32,
 }
 
 impl PlanReport {
@@ -203,14 +218,36 @@ impl PlanReport {
             errors: status.errors,
             link,
             unreachable_frontier: status.unreachable_frontier,
+            operator: None,
+            signing: VerifierCounters::default(),
+            resend_requests: 0,
         }
+    }
+
+    /// The report with what MAVLink signing accepted and refused (`None`: no signing).
+    pub fn with_signing(mut self, counters: Option<VerifierCounters>) -> Self {
+        self.signing = counters.unwrap_or_default();
+        self
+    }
+
+    /// The report with the count of resend requests sent so far.
+    pub fn with_resend_requests(mut self, count: u32) -> Self {
+        self.resend_requests = count;
+        self
+    }
+
+    /// The report with the operator state after the plan.
+    pub fn with_operator(mut self, state: OperatorState) -> Self {
+        self.operator = Some(state);
+        self
     }
 
     fn write_body(&self, out: &mut [u8; PLAN_REPORT_LEN]) {
         let mut w = Writer { out, at: 0 };
         w.u32(self.frame_id);
         let (outcome, fault, detail) = outcome_code(&self.outcome);
-        w.bytes(&[outcome, fault, detail, 0]);
+        let operator = self.operator.map_or(0, |s| 1 + s.custom_mode() as u8);
+        w.bytes(&[outcome, fault, detail, operator]);
         for v in self.position {
             w.f32(v);
         }
@@ -281,6 +318,21 @@ impl PlanReport {
             w.u32(v);
         }
         w.u32(self.unreachable_frontier);
+        let c = &self.signing;
+        for v in [
+            c.accepted,
+            c.unsigned,
+            c.malformed,
+            c.bad_signature,
+            c.replayed,
+            c.stale,
+            c.too_many_streams,
+        ] {
+            w.u32(v);
+        }
+        w.u32(l.depth_frames_partial);
+        w.u32(l.rows_missing);
+        w.u32(self.resend_requests);
     }
 
     fn read_body(body: &[u8]) -> Result<Self, DownlinkError> {
@@ -289,7 +341,11 @@ impl PlanReport {
             .map_err(|_| DownlinkError::Link(LinkError::Malformed(Malformed::BodyLength)))?;
         let mut r = Reader { body, at: 0 };
         let frame_id = r.u32();
-        let [outcome, fault, detail, _] = r.bytes4();
+        let [outcome, fault, detail, operator] = r.bytes4();
+        let operator = match operator {
+            0 => None,
+            k => Some(OperatorState::from_custom_mode(u32::from(k) - 1).ok_or(DownlinkError::BadOutcome)?),
+        };
         let outcome = outcome_from_code(outcome, fault, detail).ok_or(DownlinkError::BadOutcome)?;
         let position = [r.f32(), r.f32(), r.f32()];
         let yaw = r.f32();
@@ -339,6 +395,21 @@ impl PlanReport {
             ..LinkCounters::default()
         };
         let unreachable_frontier = r.u32();
+        let signing = VerifierCounters {
+            accepted: r.u32(),
+            unsigned: r.u32(),
+            malformed: r.u32(),
+            bad_signature: r.u32(),
+            replayed: r.u32(),
+            stale: r.u32(),
+            too_many_streams: r.u32(),
+        };
+        let link = LinkCounters {
+            depth_frames_partial: r.u32(),
+            rows_missing: r.u32(),
+            ..link
+        };
+        let resend_requests = r.u32();
         Ok(Self {
             frame_id,
             outcome,
@@ -364,6 +435,9 @@ impl PlanReport {
             errors,
             link,
             unreachable_frontier,
+            operator,
+            signing,
+            resend_requests,
         })
     }
 }
@@ -588,6 +662,13 @@ pub enum Downlink<'a> {
         /// `⌈count / 4⌉` bytes of states.
         states: &'a [u8],
     },
+    /// An intact frame of one of the depth link's own message types (high bit clear): the
+    /// core's resend requests and acknowledgements travel the same return channel. Not damage;
+    /// a [`crate::link::FrameDecoder`] fed the same bytes reads it.
+    Link {
+        /// Its message type ([`crate::link::MessageType`]'s code).
+        kind: u8,
+    },
 }
 
 impl Downlink<'_> {
@@ -691,6 +772,7 @@ fn parse(frame: &mut [u8]) -> Result<Downlink<'_>, DownlinkError> {
             }
             Ok(Downlink::MapSlice { first, count, states })
         }
+        link if link & 0x80 == 0 => Ok(Downlink::Link { kind: link }),
         other => Err(LinkError::UnknownType(other).into()),
     }
 }
@@ -719,6 +801,8 @@ mod tests {
         let link = LinkCounters {
             bytes: 1 << 40,
             depth_frames_complete: 7,
+            depth_frames_partial: 5,
+            rows_missing: 33,
             ..LinkCounters::default()
         };
         let outcomes = [
@@ -747,6 +831,11 @@ mod tests {
             report.solver_updates = u64::MAX - k as u64;
             report.errors.seals = 3;
             report.unreachable_frontier = 241 + k as u32;
+            // Every operator state travels, and "not reported" too.
+            report.operator = crate::operator::OperatorState::from_custom_mode(k as u32);
+            report.signing.accepted = 1000 + k as u32;
+            report.signing.too_many_streams = k as u32;
+            report.resend_requests = 40 + k as u32;
             let mut out = [0u8; max_frame_len(PLAN_REPORT_LEN)];
             let n = encode_report(k as u16, &report, &mut out).unwrap();
             let mut dec = DownlinkDecoder::<512>::new();
@@ -796,7 +885,7 @@ mod tests {
     }
 
     #[test]
-    fn damage_and_foreign_frames_are_dropped() {
+    fn damage_is_dropped_and_link_frames_passed_over() {
         let report = PlanReport::new(
             1,
             &PlanOutcome::Complete,
@@ -820,16 +909,24 @@ mod tests {
         )
         .unwrap();
         let mut dec = DownlinkDecoder::<{ max_frame_len(PLAN_REPORT_LEN) }>::new();
-        let mut results = 0;
+        let mut results = heapless::Vec::<Result<u8, DownlinkError>, 4>::new();
         for bytes in [&damaged[..n], &heartbeat[..hb], &out[..n]] {
             for &b in bytes {
                 if let Some(r) = dec.push(b) {
-                    results += 1;
-                    let _ = r;
+                    let kind = r.map(|m| match m {
+                        Downlink::Report(_) => 0x81,
+                        Downlink::MapSlice { .. } => 0x82,
+                        Downlink::Link { kind } => kind,
+                    });
+                    results.push(kind).unwrap();
                 }
             }
         }
-        assert_eq!(results, 3);
-        assert_eq!(dec.dropped(), 2);
+        assert_eq!(
+            results.as_slice(),
+            [Err(DownlinkError::Link(LinkError::Crc)), Ok(0x04), Ok(0x81)],
+            "damage dropped, the link's Heartbeat passed over, the report read"
+        );
+        assert_eq!(dec.dropped(), 1);
     }
 }

@@ -51,6 +51,21 @@ impl OperatorState {
         self as u32
     }
 
+    /// The state of a HEARTBEAT `custom_mode` (`None` for a value no state has).
+    pub fn from_custom_mode(mode: u32) -> Option<Self> {
+        [
+            Self::Waiting,
+            Self::Exploring,
+            Self::Paused,
+            Self::Aborted,
+            Self::Complete,
+            Self::ReturningHome,
+            Self::Home,
+        ]
+        .into_iter()
+        .find(|s| s.custom_mode() == mode)
+    }
+
     /// Whether the explorer plans in this state (the exploration, or the way home).
     pub fn plans(self) -> bool {
         matches!(self, Self::Exploring | Self::ReturningHome)

@@ -61,6 +61,11 @@ impl SecretKey {
         Self(bytes)
     }
 
+    /// The key's bytes (to hand it on, say to a firmware build; never logged).
+    pub const fn as_bytes(&self) -> &[u8; 32] {
+        &self.0
+    }
+
     /// Reads a key written as 64 hexadecimal digits (either case; white space around them is
     /// ignored), as `--mavlink-key` files hold it.
     pub fn from_hex(text: &str) -> Result<Self, KeyError> {
@@ -242,6 +247,12 @@ impl<const N: usize> Verifier<N> {
     /// What was accepted and refused so far.
     pub fn counters(&self) -> &VerifierCounters {
         &self.counters
+    }
+
+    /// The newest timestamp of an accepted frame (0 before the first). A signer without a
+    /// clock of its own signs from it, as the signing spec recommends.
+    pub fn newest(&self) -> u64 {
+        self.newest
     }
 
     /// Accepts `frame` (one whole MAVLink frame, from STX) or says why not, and counts it.

@@ -27,14 +27,18 @@ use harmonic_core::downlink::{self, PlanReport, MAP_SLICE_VOXELS};
 use harmonic_core::explore::{
     Clock, ConfigError, Explorer, ExplorerConfig, ExplorerStorage, Fault, Goal, PlanOutcome,
 };
-use harmonic_core::link::{DepthReceiver, LinkError, LinkEvent};
+use harmonic_core::link::{
+    max_encoded_len, DepthReceiver, LinkEncoder, LinkError, LinkEvent, Message as LinkMessage, Pose,
+    ResendRequest, HEADER_LEN, MAX_RESEND_RANGES, RESEND_REQUEST_HEADER_LEN,
+};
 use harmonic_core::map::{Dims, MapError, MapGeometry};
 use harmonic_core::mavlink::common::TIMESYNC_DATA;
 use harmonic_core::mavlink::{
-    write_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, AUTOPILOT_COMPONENT_ID,
-    DEFAULT_SYSTEM_ID, ONBOARD_COMPUTER_COMPONENT_ID,
+    encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, AUTOPILOT_COMPONENT_ID,
+    DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
 };
 use harmonic_core::operator::OperatorState;
+use harmonic_core::signing::{SecretKey, Signer, Verifier, VerifierCounters};
 use harmonic_core::solve::Bf16;
 use harmonic_core::streamline::Waypoints;
 use nalgebra::Point3;
@@ -62,6 +66,107 @@ pub const MAX_DEPTH_PIXELS: usize = 100 * 100;
 pub const LINK_DECODER_BYTES: usize = 2048;
 /// Link speed of both UARTs, baud (8N1).
 pub const BAUD: u32 = 921_600;
+/// Resend requests per depth image at most; then the image is taken with the rows that came
+/// (as `harmonic-sim --link-arq-rounds` defaults to).
+pub const ARQ_ROUNDS: u8 = 4;
+/// Payload bytes (header and body) of the largest resend request.
+const RESEND_REQUEST_MAX_LEN: usize = HEADER_LEN + RESEND_REQUEST_HEADER_LEN + 4 * MAX_RESEND_RANGES;
+
+/// After a complete exploration the firmware flies home, as `harmonic-sim explore` does by
+/// default; false holds where the exploration ended.
+pub const RETURN_HOME_AFTER_COMPLETE: bool = true;
+/// MAVLink 2 signing key shared with the autopilot (64 hex digits), taken from the build
+/// environment: `HARMONIC_FW_MAVLINK_KEY=$(cat key.hex) cargo build -p harmonic-fw …`. With a
+/// key every frame the firmware sends is signed and only frames the key signed are acted on
+/// (see [`harmonic_core::signing`]); without one, neither. A key that is not 64 hex digits
+/// fails the build.
+pub const MAVLINK_KEY: Option<SecretKey> = match option_env!("HARMONIC_FW_MAVLINK_KEY") {
+    Some(hex) => Some(SecretKey::new(parse_key(hex))),
+    None => None,
+};
+/// Signing streams (system, component, link) the firmware's verifier tells apart: the
+/// autopilot, a ground station or two, and room to spare.
+pub const SIGNING_STREAMS: usize = 8;
+
+/// The 32 bytes of a key written as 64 hex digits (surrounding white space allowed). Runs at
+/// compile time for [`MAVLINK_KEY`]: anything else stops the build there.
+#[allow(
+    clippy::indexing_slicing,
+    reason = "evaluated only for the MAVLINK_KEY constant: an index out of range is a build error, never a run-time panic"
+)]
+const fn parse_key(text: &str) -> [u8; 32] {
+    let bytes = text.as_bytes();
+    let (mut start, mut end) = (0, bytes.len());
+    while start < end && bytes[start].is_ascii_whitespace() {
+        start += 1;
+    }
+    while end > start && bytes[end - 1].is_ascii_whitespace() {
+        end -= 1;
+    }
+    assert!(end - start == 64, "HARMONIC_FW_MAVLINK_KEY: not 64 hex digits");
+    let mut key = [0u8; 32];
+    let mut i = 0;
+    while i < 32 {
+        key[i] = hex_digit(bytes[start + 2 * i]) << 4 | hex_digit(bytes[start + 2 * i + 1]);
+        i += 1;
+    }
+    key
+}
+
+#[allow(
+    clippy::panic,
+    reason = "evaluated only for the MAVLINK_KEY constant: the panic is a build error naming the bad key"
+)]
+const fn hex_digit(c: u8) -> u8 {
+    match c {
+        b'0'..=b'9' => c - b'0',
+        b'a'..=b'f' => c - b'a' + 10,
+        b'A'..=b'F' => c - b'A' + 10,
+        _ => panic!("HARMONIC_FW_MAVLINK_KEY: not 64 hex digits"),
+    }
+}
+
+/// MAVLink 2 signing on the firmware's side of UART1. The board has no calendar clock, so, as
+/// the signing spec recommends for such systems, it signs with time taken from the newest
+/// timestamp it has accepted, advanced by the autopilot time since (the signer also never
+/// repeats one). Until it has accepted a signed frame its own frames carry boot-relative
+/// timestamps, which an autopilot that already signs refuses as stale — the firmware speaks
+/// once it has heard the autopilot.
+#[derive(Debug, Clone)]
+struct Signing {
+    signer: Signer,
+    verifier: Verifier<SIGNING_STREAMS>,
+    /// (newest accepted timestamp, autopilot ms when it was accepted).
+    anchor: Option<(u64, u64)>,
+}
+
+impl Signing {
+    fn new(key: SecretKey) -> Self {
+        Self {
+            signer: Signer::new(key.clone(), 0),
+            verifier: Verifier::new(key),
+            anchor: None,
+        }
+    }
+
+    /// The signing time (10 µs units) at autopilot time `now_ms`.
+    fn now(&self, now_ms: u64) -> u64 {
+        match self.anchor {
+            Some((stamp, at_ms)) => stamp.saturating_add(now_ms.saturating_sub(at_ms).saturating_mul(100)),
+            None => now_ms.saturating_mul(100),
+        }
+    }
+
+    /// Whether a received frame may be acted on (counted either way); an accepted one moves
+    /// the clock.
+    fn admits(&mut self, raw: &[u8], now_ms: u64) -> bool {
+        let ok = self.verifier.check(raw).is_ok();
+        if ok {
+            self.anchor = Some((self.verifier.newest(), now_ms));
+        }
+        ok
+    }
+}
 
 /// Everything the explorer and the link work in; lives in one `static` on the MCU. Zeroed
 /// (`.bss`): the explorer initialises what it needs.
@@ -286,6 +391,16 @@ pub struct Firmware<'a> {
     tick_hz: u32,
     /// Where a return home goes: the position of the first plan.
     home: Option<Point3<f32>>,
+    /// MAVLink signing, with [`MAVLINK_KEY`].
+    signing: Option<Signing>,
+    /// Encodes resend requests for the depth link's return channel.
+    return_encoder: LinkEncoder,
+    /// The frame the last resend requests were for, and how many were sent.
+    arq: Option<(u32, u8)>,
+    /// Resend requests sent.
+    resend_requests: u32,
+    /// An image that arrived without its pose, waiting for it.
+    awaiting_pose: Option<u32>,
 }
 
 impl<'a> Firmware<'a> {
@@ -310,12 +425,22 @@ impl<'a> Firmware<'a> {
             downlink_sequence: 0,
             tick_hz,
             home: None,
+            signing: MAVLINK_KEY.map(Signing::new),
+            return_encoder: LinkEncoder::new(),
+            arq: None,
+            resend_requests: 0,
+            awaiting_pose: None,
         })
     }
 
     /// The explorer.
     pub fn explorer(&self) -> &Explorer<'a> {
         self.explorer
+    }
+
+    /// What MAVLink signing accepted and refused (`None` when built without a key).
+    pub fn signing_counters(&self) -> Option<VerifierCounters> {
+        self.signing.as_ref().map(|s| *s.verifier.counters())
     }
 
     /// One pass: takes what both streams have ready and acts on it. `phase` is told what the
@@ -347,26 +472,74 @@ impl<'a> Firmware<'a> {
         let Self {
             receiver, explorer, ..
         } = self;
-        let mut integrated = None;
-        let mut event = ticked;
-        receiver.feed(buf.get(..n).unwrap_or(&[]), |e| match e {
-            LinkEvent::Depth {
-                frame_id,
-                frame,
-                pose: Some(pose),
-                ..
-            } => {
-                phase(Phase::Integrate);
-                let t0 = clock.ticks();
-                // A rejected frame is counted by the explorer and reported like any other.
-                let _ = explorer.integrate(&frame, &pose.isometry());
-                integrated = Some((frame_id, clock.ticks().saturating_sub(t0)));
-            }
-            LinkEvent::Depth { frame_id, .. } => event = Some(Event::FrameWithoutPose(frame_id)),
-            LinkEvent::Error(e) => event = Some(Event::LinkError(e)),
-            _ => {}
+        let mut taken = Taken {
+            delivered: None,
+            without_pose: None,
+            pose: None,
+            heartbeat: false,
+            event: ticked,
+        };
+        receiver.feed(buf.get(..n).unwrap_or(&[]), |e| {
+            taken.take(e, explorer, clock, &mut phase)
         });
-        if let Some((frame_id, integrate_ticks)) = integrated {
+        // An image that came without its pose waits for it (asked for below), kept in the
+        // receiver's buffer.
+        if let Some(frame_id) = taken.without_pose {
+            self.awaiting_pose = Some(frame_id);
+        }
+        if let (Some(frame_id), Some(pose)) = (self.awaiting_pose, taken.pose) {
+            if pose.frame_id() == frame_id {
+                self.awaiting_pose = None;
+                if let Some(frame) = self.receiver.completed_frame() {
+                    phase(Phase::Integrate);
+                    let t0 = clock.ticks();
+                    let _ = self.explorer.integrate(&frame, &pose.isometry());
+                    taken.delivered = Some((frame_id, clock.ticks().saturating_sub(t0)));
+                }
+            }
+        }
+        if taken.delivered.is_none() && (taken.heartbeat || taken.without_pose.is_some()) {
+            // The camera side has sent what it had (its Heartbeat follows each image), or an
+            // image lacks its pose: ask for what is missing, or, once asked often enough, take
+            // what came.
+            if let Some(frame_id) = self.receiver.frame_in_progress().or(self.awaiting_pose) {
+                let rounds = match self.arq {
+                    Some((id, r)) if id == frame_id => r,
+                    _ => 0,
+                };
+                match self.receiver.resend_request(frame_id, true) {
+                    Some(request) if rounds < ARQ_ROUNDS => {
+                        self.arq = Some((frame_id, rounds + 1));
+                        self.resend_requests = self.resend_requests.saturating_add(1);
+                        self.send_link(&LinkMessage::ResendRequest(request), link)?;
+                    }
+                    _ if self.awaiting_pose == Some(frame_id) => {
+                        // No pose came: the image cannot be placed. Planned from, not
+                        // integrated, so the camera side still hears "frame N done".
+                        self.awaiting_pose = None;
+                        taken.event = Some(Event::FrameWithoutPose(frame_id));
+                        taken.delivered = Some((frame_id, 0));
+                    }
+                    _ => {
+                        let Self {
+                            receiver, explorer, ..
+                        } = self;
+                        receiver.finish_frame(|e| taken.take(e, explorer, clock, &mut phase));
+                        if let Some(frame_id) = taken.without_pose.filter(|_| taken.delivered.is_none()) {
+                            taken.event = Some(Event::FrameWithoutPose(frame_id));
+                            taken.delivered = Some((frame_id, 0));
+                        }
+                    }
+                }
+            }
+        }
+        if let Some((frame_id, _)) = taken.delivered {
+            // Acknowledged at once (an empty request), before the plan: the camera side
+            // knows the image is in and waits for the report however long the plan takes.
+            self.send_link(&LinkMessage::ResendRequest(ResendRequest::new(frame_id)), link)?;
+        }
+        let mut event = taken.event;
+        if let Some((frame_id, integrate_ticks)) = taken.delivered {
             phase(Phase::Plan);
             let report = self.plan(frame_id, integrate_ticks, mav, clock)?;
             phase(Phase::Report);
@@ -376,16 +549,37 @@ impl<'a> Firmware<'a> {
         Ok(event)
     }
 
-    /// MAVLink bytes from the autopilot; true if they ended a flight tick.
+    /// One link message on the return channel (resend requests).
+    fn send_link<L: Write>(&mut self, message: &LinkMessage<'_>, link: &mut L) -> Result<(), IoError> {
+        let mut out = [0u8; max_encoded_len(RESEND_REQUEST_MAX_LEN)];
+        let n = self
+            .return_encoder
+            .encode(message, &mut out)
+            .map_err(|_| IoError::Link)?;
+        link.write_all(out.get(..n).unwrap_or(&[]))
+            .map_err(|_| IoError::Link)?;
+        link.flush().map_err(|_| IoError::Link)
+    }
+
+    /// MAVLink bytes from the autopilot (and any ground station on the same wire); true if
+    /// they ended a flight tick. With signing, a frame the key did not sign is counted and
+    /// dropped before anything reads it.
     fn on_mavlink<M: Write>(&mut self, bytes: &[u8], mav: &mut M) -> Result<bool, IoError> {
         let Self {
             mavlink,
             bridge,
             now_ms,
+            signing,
             ..
         } = self;
         let mut timesync = None;
-        mavlink.push(bytes, |header, message| {
+        mavlink.push_frames(bytes, |raw, decoded| {
+            let Some((header, message)) = decoded else {
+                return;
+            };
+            if signing.as_mut().is_some_and(|s| !s.admits(raw, *now_ms)) {
+                return;
+            }
             let autopilot = header.system_id == u32::from(DEFAULT_SYSTEM_ID)
                 && header.component_id == AUTOPILOT_COMPONENT_ID;
             if autopilot {
@@ -423,10 +617,19 @@ impl<'a> Firmware<'a> {
                 let _ = self.bridge.set_target(target, yaw);
             }
         }
-        self.bridge
-            .poll_write(self.now_ms, mav)
-            .map(|_| ())
-            .map_err(|_| IoError::Mavlink)
+        let Self {
+            bridge,
+            signing,
+            now_ms,
+            ..
+        } = self;
+        let mut result = Ok(());
+        bridge.poll(*now_ms, |header, message| {
+            if let Err(e) = write_frame(mav, signing.as_mut(), *now_ms, header, message) {
+                result = Err(e);
+            }
+        });
+        result
     }
 
     fn send_mavlink<M: Write>(&mut self, message: &MavMessage, mav: &mut M) -> Result<(), IoError> {
@@ -436,9 +639,7 @@ impl<'a> Firmware<'a> {
             sequence: self.mav_sequence,
         };
         self.mav_sequence = self.mav_sequence.wrapping_add(1);
-        write_v2(mav, &header, message)
-            .map(|_| ())
-            .map_err(|_| IoError::Mavlink)
+        write_frame(mav, self.signing.as_mut(), self.now_ms, &header, message)
     }
 
     /// Plans from the bridge's vehicle pose and hands the plan to the bridge and the follower.
@@ -472,6 +673,12 @@ impl<'a> Firmware<'a> {
         let kept = self.explorer.status().plans_kept > kept_before;
         match outcome {
             PlanOutcome::Complete if state == OperatorState::ReturningHome => self.bridge.arrived_home(),
+            PlanOutcome::Complete if RETURN_HOME_AFTER_COMPLETE && self.home.is_some() => {
+                // Explored ("exploration complete" goes out), then home by the same way the
+                // operator's return-to-launch takes: the next frame plans it.
+                self.bridge.apply(&outcome);
+                self.bridge.return_home();
+            }
             _ => self.bridge.apply(&outcome),
         }
         match &outcome {
@@ -489,7 +696,10 @@ impl<'a> Firmware<'a> {
             integrate_ticks,
             self.tick_hz,
             self.receiver.counters(),
-        ))
+        )
+        .with_resend_requests(self.resend_requests)
+        .with_operator(self.bridge.operator_state())
+        .with_signing(self.signing_counters()))
     }
 
     /// The map, then the report, back over the link.
@@ -516,6 +726,72 @@ impl<'a> Firmware<'a> {
             .map_err(|_| IoError::Link)?;
         link.flush().map_err(|_| IoError::Link)
     }
+}
+
+/// What one read of the depth link delivered.
+struct Taken {
+    /// The frame to plan from: its id and the ticks integrating it took (0 for a frame whose
+    /// pose never came: it is not integrated, but still planned from and reported, so the
+    /// camera side hears "frame N done").
+    delivered: Option<(u32, u64)>,
+    /// An image that came whole or finished without its pose.
+    without_pose: Option<u32>,
+    /// A Pose that came.
+    pose: Option<Pose>,
+    /// The camera side's Heartbeat came: it has sent what it had.
+    heartbeat: bool,
+    /// What to log.
+    event: Option<Event>,
+}
+
+impl Taken {
+    fn take<C: Clock>(
+        &mut self,
+        e: LinkEvent<'_>,
+        explorer: &mut Explorer<'_>,
+        clock: &mut C,
+        phase: &mut impl FnMut(Phase),
+    ) {
+        match e {
+            LinkEvent::Depth {
+                frame_id,
+                frame,
+                pose: Some(pose),
+                ..
+            } => {
+                phase(Phase::Integrate);
+                let t0 = clock.ticks();
+                // A rejected frame is counted by the explorer and reported like any other.
+                // Rows that never arrived hold NOT_RECEIVED, which integration skips.
+                let _ = explorer.integrate(&frame, &pose.isometry());
+                self.delivered = Some((frame_id, clock.ticks().saturating_sub(t0)));
+            }
+            LinkEvent::Depth { frame_id, .. } => self.without_pose = Some(frame_id),
+            LinkEvent::Pose(pose) => self.pose = Some(pose),
+            LinkEvent::Heartbeat(_) => self.heartbeat = true,
+            LinkEvent::Error(e) => self.event = Some(Event::LinkError(e)),
+            _ => {}
+        }
+    }
+}
+
+/// Writes one MAVLink 2 frame, signed if `signing` is set.
+fn write_frame<M: Write>(
+    mav: &mut M,
+    signing: Option<&mut Signing>,
+    now_ms: u64,
+    header: &MavHeader,
+    message: &MavMessage,
+) -> Result<(), IoError> {
+    let mut frame = [0u8; MAX_FRAME_LEN];
+    let mut n = encode_v2(header, message, &mut frame).map_err(|_| IoError::Mavlink)?;
+    if let Some(s) = signing {
+        let stamp = s.now(now_ms);
+        // Only a frame the encoder did not write could be refused; it goes out as it is.
+        n = s.signer.sign(&mut frame, n, stamp).unwrap_or(n);
+    }
+    mav.write_all(frame.get(..n).unwrap_or(&[]))
+        .map_err(|_| IoError::Mavlink)
 }
 
 #[cfg(test)]
@@ -550,6 +826,39 @@ mod tests {
         assert_eq!((t, yaw), (goal.position, 1.0));
         f.stop();
         assert!(f.setpoint(&goal.position, 0.0).is_none());
+    }
+
+    #[test]
+    fn the_build_time_key_reads_as_hex_and_signing_time_follows_the_autopilot() {
+        let key = parse_key("  000102030405060708090a0b0c0d0e0f101112131415161718191A1B1C1D1E1F\n");
+        assert_eq!(key[0], 0);
+        assert_eq!(key[10], 10);
+        assert_eq!(key[31], 31);
+        let mut signing = Signing::new(SecretKey::new(key));
+        assert_eq!(
+            signing.now(1500),
+            150_000,
+            "boot-relative until a signed frame is accepted"
+        );
+        // A signed frame accepted at 2 s sets the clock; 1.5 s later it reads 150 000 more.
+        signing.anchor = Some((7_000_000_000, 2000));
+        assert_eq!(signing.now(3500), 7_000_150_000);
+        // An unsigned frame is refused and does not move it.
+        let mut frame = [0u8; MAX_FRAME_LEN];
+        let header = MavHeader {
+            system_id: 255,
+            component_id: 190,
+            sequence: 0,
+        };
+        let n = encode_v2(
+            &header,
+            &MavMessage::HEARTBEAT(harmonic_core::mavlink::common::HEARTBEAT_DATA::DEFAULT),
+            &mut frame,
+        )
+        .unwrap();
+        assert!(!signing.admits(&frame[..n], 4000));
+        assert_eq!(signing.anchor, Some((7_000_000_000, 2000)));
+        assert_eq!(signing.verifier.counters().unsigned, 1);
     }
 
     #[test]

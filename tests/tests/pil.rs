@@ -68,6 +68,7 @@ fn firmware_explores_pil_small_under_qemu() {
         firmware: Some(elf),
         qemu,
         out: out.clone(),
+        intruder: Vec::new(),
     };
     let r = pil::run(&scenario, &SimConfig::default(), &cfg, |s| {
         if s.step.is_multiple_of(10) {
@@ -117,10 +118,122 @@ fn firmware_explores_pil_small_under_qemu() {
     let emulator = mav.emulator.expect("the PIL run flies against the emulator");
     assert!(emulator.setpoints_received > 10, "{emulator:?}");
     assert_eq!(emulator.setpoints_rejected, 0, "{emulator:?}");
-    assert_eq!(
-        mav.status_texts.last().map(String::as_str),
-        Some("exploration complete"),
+    // Complete: said so, and (the run ends there, `return_home` being off) on the way home.
+    assert!(
+        mav.status_texts.iter().any(|t| t == "exploration complete"),
         "{:?}",
         mav.status_texts
+    );
+    assert_eq!(
+        mav.operator_state,
+        Some(harmonic_core::operator::OperatorState::ReturningHome)
+    );
+}
+
+/// The firmware built with a MAVLink signing key, under QEMU, with a ground station on the
+/// autopilot's wire and a noisy depth link: it signs everything it sends (the flight stack
+/// refuses anything else and still flies it), acts on the signed operator commands — pause,
+/// resume, return home — and refuses the unsigned ones another station sends; it asks the
+/// camera for the depth rows the line lost and plans from what came; it flies home to the
+/// start and reports `home` there.
+#[test]
+fn signed_firmware_takes_operator_commands_and_flies_home_under_qemu() {
+    use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
+    use harmonic_sim::vehicle::autopilot::MavlinkConfig;
+
+    let qemu = qemu();
+    firmware(); // the target, installed if missing
+    let key = harmonic_core::signing::SecretKey::new([0x5a; 32]);
+    let elf = pil::build_firmware_keyed(&key).expect("the keyed firmware builds");
+    let scenario = Scenario::builtin("pil-small").expect("built-in");
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/pil-operator-test");
+    let mut sim = SimConfig {
+        return_home: true,
+        seed: 4242,
+        ..SimConfig::default()
+    };
+    // The acceptance line of the host's faulty-link run: BER 1e-4, a tenth of the frames lost.
+    sim.link.faults.bit_error_rate = 1e-4;
+    sim.link.faults.frame_drop = 0.1;
+    sim.mavlink = Some(MavlinkConfig {
+        signing_key: Some(key),
+        operator_script: vec![
+            (4.0, OperatorCommand::Pause),
+            (8.0, OperatorCommand::Resume),
+            (20.0, OperatorCommand::ReturnHome),
+        ],
+        ..MavlinkConfig::default()
+    });
+    let cfg = PilConfig {
+        firmware: Some(elf),
+        qemu,
+        out: out.clone(),
+        // Unsigned: a pause at 10 s (while exploring) and an abort at 15 s.
+        intruder: vec![(10.0, OperatorCommand::Pause), (15.0, OperatorCommand::Abort)],
+    };
+    let r = pil::run(&scenario, &sim, &cfg, |_| {}).unwrap_or_else(|e| {
+        let log = std::fs::read_to_string(out.join("qemu.log")).unwrap_or_default();
+        panic!("processor-in-the-loop run failed: {e}\nQEMU: {log}")
+    });
+    let mav = r.mavlink.as_ref().expect("MAVLink counters");
+    let answers: Vec<_> = mav
+        .operator_commands
+        .iter()
+        .map(|e| (e.command, e.result, e.state))
+        .collect();
+    assert_eq!(
+        answers,
+        [
+            (
+                Some(OperatorCommand::Pause),
+                CommandResult::Accepted,
+                OperatorState::Paused
+            ),
+            (
+                Some(OperatorCommand::Resume),
+                CommandResult::Accepted,
+                OperatorState::Exploring
+            ),
+            (
+                Some(OperatorCommand::ReturnHome),
+                CommandResult::Accepted,
+                OperatorState::ReturningHome
+            ),
+        ],
+        "every signed command answered, and only those"
+    );
+    // The line lost chunks; the firmware asked for them again and integrated every image.
+    let link = &r.link;
+    assert!(
+        link.resend_requests_sent > 0 && link.chunks_resent > 0,
+        "{link:?}"
+    );
+    assert_eq!(
+        link.resend_requests_received, link.resend_requests_sent,
+        "the return channel is clean"
+    );
+    assert_eq!(link.depth_frames_integrated, link.depth_frames_sent, "{link:?}");
+    let home = r.return_home.as_ref().expect("a way home");
+    assert_eq!(home.termination, "home", "{home:?}");
+    assert!(home.distance_to_home_m <= 0.3, "{home:?}");
+    assert_eq!(mav.operator_state, Some(OperatorState::Home));
+    assert_eq!(r.collisions, 0, "collisions at {:?}", r.collision_points);
+    // The flight stack took only signed frames from the firmware, and refused none.
+    let emulator_side = mav.emulator_signing.expect("the emulator signs");
+    assert!(emulator_side.accepted > 100, "{emulator_side:?}");
+    let refused = emulator_side.unsigned
+        + emulator_side.malformed
+        + emulator_side.bad_signature
+        + emulator_side.replayed
+        + emulator_side.stale
+        + emulator_side.too_many_streams;
+    assert_eq!(refused, 0, "{emulator_side:?}");
+    // The firmware refused the intruder's two unsigned commands and took everything signed.
+    let firmware_side = mav.bridge_signing.expect("the firmware's verifier counts");
+    assert_eq!(firmware_side.unsigned, 2, "{firmware_side:?}");
+    assert_eq!(
+        firmware_side.bad_signature + firmware_side.replayed + firmware_side.stale,
+        0,
+        "{firmware_side:?}"
     );
 }

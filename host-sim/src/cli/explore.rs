@@ -386,6 +386,7 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
             firmware: args.firmware.clone(),
             qemu: args.qemu.clone(),
             out: args.out.clone(),
+            intruder: Vec::new(),
         };
         harmonic_sim::run::pil::run(&scenario, &cfg, &pil, on_step)
     } else {

@@ -90,6 +90,7 @@ pub fn run(args: &FwBudgetArgs) -> Result<(), String> {
         firmware: Some(elf),
         qemu: args.qemu.clone(),
         out: args.out.clone(),
+        intruder: Vec::new(),
     };
     eprintln!(
         "exploring {} with the firmware under QEMU (-icount shift=0) ...",
@@ -156,6 +157,7 @@ pub fn run(args: &FwBudgetArgs) -> Result<(), String> {
                 firmware: Some(elf.clone()),
                 qemu: args.qemu.clone(),
                 out: args.out.join("cold"),
+                intruder: Vec::new(),
             };
             let cold = pil::run(&scenario, &cfg, &cold_cfg, |_| {}).map_err(|e| e.to_string())?;
             let steps = cold.pil.map(|p| p.steps).unwrap_or_default();

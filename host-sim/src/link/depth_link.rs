@@ -819,16 +819,31 @@ impl<'b> DepthLink<'b> {
 /// The camera side's bit error rate after the first request (or acknowledgement) for `sent`:
 /// the chunks of its first transmission that the request asks for again count as lost.
 fn estimate_ber(smoothed: f32, sent: &SentImage, request: &ResendRequest) -> f32 {
-    let (width, height) = (sent.intrinsics.width(), sent.intrinsics.height());
-    let per = sent.rows_per_chunk.max(1);
+    smoothed_ber(smoothed, &sent.intrinsics, sent.rows_per_chunk, Some(request))
+}
+
+/// A camera side's bit error rate, smoothed, after one image of `intrinsics` sent in chunks of
+/// `rows_per_chunk` rows: the chunks the first resend request for it asks for again count as
+/// lost (`None`: the image arrived whole). Used by [`DepthLink`] and by the
+/// processor-in-the-loop camera (`crate::run::pil`).
+pub(crate) fn smoothed_ber(
+    smoothed: f32,
+    intrinsics: &Intrinsics,
+    rows_per_chunk: u16,
+    first_request: Option<&ResendRequest>,
+) -> f32 {
+    let (width, height) = (intrinsics.width(), intrinsics.height());
+    let per = rows_per_chunk.max(1);
     let chunks = height.div_ceil(per);
     let lost = (0..chunks)
         .filter(|k| {
             let first = k.saturating_mul(per);
             let end = first.saturating_add(per).min(height);
-            request.rows().iter().any(|&(f, n)| {
-                let e = f.saturating_add(n);
-                f < end && first < e
+            first_request.is_some_and(|request| {
+                request.rows().iter().any(|&(f, n)| {
+                    let e = f.saturating_add(n);
+                    f < end && first < e
+                })
             })
         })
         .count() as u32;

@@ -38,25 +38,31 @@ use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::downlink::{Downlink, DownlinkDecoder, PlanReport, ReportOutcome};
-use harmonic_core::explore::{forward_camera_pose, ErrorCounters};
-use harmonic_core::link::{self, LinkCounters, LinkEncoder};
+use harmonic_core::explore::{forward_camera_pose, ErrorCounters, Fault};
+use harmonic_core::link::{self, FrameDecoder, LinkCounters, LinkEncoder};
 use harmonic_core::map::{Dims, MapGeometry, Occupancy};
+use harmonic_core::mavlink::common::MavResult;
 use harmonic_core::mavlink::common::TIMESYNC_DATA;
 use harmonic_core::mavlink::{encode_v2, MavHeader, MavMessage, MavlinkDecoder, MAX_FRAME_LEN};
+use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
 use harmonic_fw::app as fw;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::link::depth_link::LinkReport;
+use crate::link::fault::FaultInjector;
 use crate::run::metrics::GroundTruth;
-use crate::run::sim::{Report, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
-use crate::vehicle::autopilot::{MavlinkReport, TrafficReport};
-use crate::vehicle::flight::FlightEmulator;
+use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
+use crate::vehicle::autopilot::{GroundStation, MavlinkReport, OperatorEvent, TrafficReport};
+use crate::vehicle::flight::{FlightEmulator, LinkSigning};
 use crate::world::scenario::Scenario;
 
 /// Flight ticks after which a leg ends even if the vehicle has not arrived (100 s).
 pub const MAX_TICKS_PER_LEG: usize = 2000;
+/// Simulated time that passes per scan while the operator holds the vehicle (paused, or
+/// waiting for start), ms: the scripted ground station's commands come due meanwhile.
+pub const OPERATOR_HOLD_MS: u64 = 1000;
 /// Wall-clock seconds to wait for the firmware to answer one scan or tick.
 pub const ANSWER_TIMEOUT_S: u64 = 600;
 /// Instructions per board tick under `-icount shift=0` (1 ns each, 25 MHz timer).
@@ -71,6 +77,9 @@ pub struct PilConfig {
     pub qemu: String,
     /// Where the firmware's log goes (`firmware.defmt`, `firmware.log`, `qemu.log`).
     pub out: PathBuf,
+    /// Commands another station sends on the same wire, unsigned, at simulated seconds: a
+    /// firmware built with a signing key must refuse (and count) them. Empty by default.
+    pub intruder: Vec<(f64, OperatorCommand)>,
 }
 
 /// The PIL report types live beside the [`Report`] that carries them (so that `sim` needs
@@ -89,6 +98,20 @@ pub fn build_firmware(target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
     Ok(target_dir.join("thumbv7em-none-eabihf/release/harmonic-fw"))
 }
 
+/// Builds the firmware with `key` as its MAVLink signing key (`HARMONIC_FW_MAVLINK_KEY`) into
+/// the workspace's `target/fw-signed/` and returns the ELF's path.
+pub fn build_firmware_keyed(key: &harmonic_core::signing::SecretKey) -> Result<PathBuf, SimError> {
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let hex: String = key.as_bytes().iter().map(|b| format!("{b:02x}")).collect();
+    let target_dir = cargo_build_firmware_env(
+        &[],
+        "the firmware (with the signing key)",
+        Some(&workspace.join("target/fw-signed")),
+        &[("HARMONIC_FW_MAVLINK_KEY", hex.as_str())],
+    )?;
+    Ok(target_dir.join("thumbv7em-none-eabihf/release/harmonic-fw"))
+}
+
 /// Builds the firmware example `name` (firmware/examples/NAME.rs, e.g. `stereo_bench`) like
 /// [`build_firmware`] and returns the ELF's path.
 pub fn build_firmware_example(name: &str, target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
@@ -101,6 +124,16 @@ pub fn build_firmware_example(name: &str, target_dir: Option<&Path>) -> Result<P
 /// `cargo build -p harmonic-fw --release --target thumbv7em-none-eabihf EXTRA` into
 /// `target_dir` (the workspace's `target/` if `None`); returns the target directory.
 fn cargo_build_firmware(extra: &[&str], what: &str, target_dir: Option<&Path>) -> Result<PathBuf, SimError> {
+    cargo_build_firmware_env(extra, what, target_dir, &[])
+}
+
+/// [`cargo_build_firmware`] with `env` set for the build.
+fn cargo_build_firmware_env(
+    extra: &[&str],
+    what: &str,
+    target_dir: Option<&Path>,
+    env: &[(&str, &str)],
+) -> Result<PathBuf, SimError> {
     let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let target_dir = target_dir.map_or_else(|| workspace.join("target"), Path::to_path_buf);
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
@@ -115,6 +148,7 @@ fn cargo_build_firmware(extra: &[&str], what: &str, target_dir: Option<&Path>) -
             "thumbv7em-none-eabihf",
         ])
         .args(extra)
+        .envs(env.iter().copied())
         .arg("--target-dir")
         .arg(&target_dir)
         .status()
@@ -350,6 +384,16 @@ struct Autopilot {
     decoder: MavlinkDecoder,
     sequence: u8,
     ticks: u64,
+    /// Signs the TIMESYNC requests with the run's key, on link 1 (the emulator signs on 0).
+    signing: Option<LinkSigning>,
+    /// The scripted ground station on the same wire (`--operator`).
+    ground: Option<GroundStation>,
+    /// [`PilConfig::intruder`]'s station: unsigned, unanswered by a signed firmware.
+    intruder: Option<GroundStation>,
+    /// The firmware's COMMAND_ACKs, matched to the commands sent in order.
+    operator_events: Vec<OperatorEvent>,
+    /// The firmware's operator state, from its latest HEARTBEAT.
+    operator_state: Option<OperatorState>,
 }
 
 impl Autopilot {
@@ -358,6 +402,24 @@ impl Autopilot {
         let mut out = Vec::new();
         self.emulator
             .poll(now_ms, &vehicle.position, vehicle.yaw, &mut out);
+        if let Some(ground) = self.ground.as_mut() {
+            out.extend(ground.due(
+                now_ms,
+                (
+                    harmonic_core::mavlink::DEFAULT_SYSTEM_ID,
+                    harmonic_core::mavlink::ONBOARD_COMPUTER_COMPONENT_ID,
+                ),
+            ));
+        }
+        if let Some(intruder) = self.intruder.as_mut() {
+            out.extend(intruder.due(
+                now_ms,
+                (
+                    harmonic_core::mavlink::DEFAULT_SYSTEM_ID,
+                    harmonic_core::mavlink::ONBOARD_COMPUTER_COMPONENT_ID,
+                ),
+            ));
+        }
         let ts1 = i64::try_from(now_ms)
             .unwrap_or(i64::MAX)
             .saturating_mul(1_000_000);
@@ -374,6 +436,10 @@ impl Autopilot {
             &mut frame,
         )
         .map_err(|e| SimError::Config(format!("TIMESYNC: {e:?}")))?;
+        let n = match self.signing.as_mut() {
+            Some(s) => s.sign(&mut frame, n, now_ms),
+            None => n,
+        };
         out.extend_from_slice(&frame[..n]);
         board.mav.write_all(&out).map_err(io("UART1 write"))?;
         self.ticks += 1;
@@ -391,15 +457,73 @@ impl Autopilot {
             let bytes = &buf[..n];
             self.emulator.receive(now_ms, bytes);
             let mut answered = false;
-            self.decoder.push(bytes, |_, m| {
-                if let MavMessage::TIMESYNC(d) = m {
-                    answered |= d.tc1 != 0 && d.ts1 == ts1;
+            let (mut acks, mut state) = (Vec::new(), None);
+            self.decoder.push(bytes, |_, m| match m {
+                MavMessage::TIMESYNC(d) => answered |= d.tc1 != 0 && d.ts1 == ts1,
+                MavMessage::COMMAND_ACK(d) => acks.push((d.command, d.result)),
+                MavMessage::HEARTBEAT(d) => state = OperatorState::from_custom_mode(d.custom_mode),
+                // "operator: paused" and the like: the change itself, before the next HEARTBEAT.
+                MavMessage::STATUSTEXT(d) => {
+                    let text = String::from_utf8_lossy(d.text.as_ref());
+                    if let Some(name) = text.trim_end_matches('\0').strip_prefix("operator: ") {
+                        state = (0..=6)
+                            .filter_map(OperatorState::from_custom_mode)
+                            .find(|s| s.name() == name)
+                            .or(state);
+                    }
                 }
+                _ => {}
             });
+            if state.is_some() {
+                self.operator_state = state;
+            }
+            for (command, result) in acks {
+                self.acknowledged(now_ms, command, result);
+            }
             if answered {
                 return Ok(());
             }
         }
+    }
+}
+
+impl Autopilot {
+    /// Records the firmware's answer to the oldest unanswered command of the ground station
+    /// with that MAV_CMD.
+    fn acknowledged(
+        &mut self,
+        now_ms: u64,
+        command: harmonic_core::mavlink::common::MavCmd,
+        result: MavResult,
+    ) {
+        let Some(ground) = self.ground.as_ref() else {
+            return;
+        };
+        let answered = self.operator_events.len();
+        let asked = ground.sent().nth(answered);
+        let result = match result {
+            MavResult::MAV_RESULT_ACCEPTED => CommandResult::Accepted,
+            MavResult::MAV_RESULT_UNSUPPORTED => CommandResult::Unsupported,
+            _ => CommandResult::Denied,
+        };
+        self.operator_events.push(OperatorEvent {
+            time_s: now_ms as f64 * 1e-3,
+            command: asked.filter(|c| operator_mav_cmd(*c) == command),
+            result,
+            // The state the firmware announced with the answer (or its latest HEARTBEAT's).
+            state: self.operator_state.unwrap_or(OperatorState::Exploring),
+        });
+    }
+}
+
+/// The MAV_CMD a ground station sends for `command`.
+fn operator_mav_cmd(command: OperatorCommand) -> harmonic_core::mavlink::common::MavCmd {
+    use harmonic_core::mavlink::common::MavCmd;
+    match command {
+        OperatorCommand::Start => MavCmd::MAV_CMD_MISSION_START,
+        OperatorCommand::Pause | OperatorCommand::Resume => MavCmd::MAV_CMD_DO_PAUSE_CONTINUE,
+        OperatorCommand::Abort => MavCmd::MAV_CMD_NAV_LOITER_UNLIM,
+        OperatorCommand::ReturnHome => MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH,
     }
 }
 
@@ -409,10 +533,158 @@ struct Camera {
     scratch: Vec<u8>,
     rows_per_chunk: u16,
     decoder: Box<DownlinkDecoder<2048>>,
+    /// Reads the firmware's resend requests from the same bytes (the downlink decoder drops
+    /// them as a type it does not know, and the other way round).
+    requests: Box<FrameDecoder<256>>,
+    /// Faults on the camera → firmware direction (`SimConfig::link.faults`); the return
+    /// direction (map, reports, resend requests) stays clean.
+    injector: Option<FaultInjector>,
+    /// What the camera side did about losses.
+    arq: CameraArq,
+    /// Most rows per chunk (the firmware decoder's capacity); `None` in
+    /// [`Camera::adapt`]'s place when `--link-chunk-rows` fixes the size.
+    max_rows_per_chunk: Option<u16>,
+    /// Smoothed bit error rate the camera side infers from what it is asked again.
+    ber: f32,
 }
 
+/// What the PIL camera side did about a faulty link.
+#[derive(Debug, Clone, Copy, Default)]
+struct CameraArq {
+    requests_received: u32,
+    chunks_resent: u32,
+    bytes_resent: u64,
+    /// Images sent again whole because the firmware neither acknowledged them nor asked for
+    /// anything for [`REPEAT_IMAGE_AFTER`] (every chunk of one, or its Heartbeats, lost).
+    images_repeated: u32,
+    heartbeats_sent: u32,
+    link_frames_sent: u64,
+    bytes_sent: u64,
+    /// Rows per chunk of each image, summed (for the mean).
+    rows_per_chunk_sum: u64,
+    images: u32,
+}
+
+/// Heartbeats sent after each image and each answer: the firmware asks for what is missing
+/// when one arrives, so one must survive the line.
+const HEARTBEAT_COPIES: usize = 3;
+/// Wall time after which the camera side sends an image again whole if the firmware has
+/// answered nothing.
+const REPEAT_IMAGE_AFTER: Duration = Duration::from_secs(3);
+
 impl Camera {
-    /// Sends one scan and waits for its report, updating `map` from the slices on the way.
+    /// Encodes `message` and puts it through the injector into `wire`.
+    fn put(&mut self, message: &link::Message<'_>, wire: &mut Vec<u8>) -> Result<(), SimError> {
+        let n = self
+            .encoder
+            .encode(message, &mut self.scratch)
+            .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
+        let frame = self.scratch[..n].to_vec();
+        self.put_frame(&frame, wire);
+        Ok(())
+    }
+
+    fn put_frame(&mut self, frame: &[u8], wire: &mut Vec<u8>) {
+        self.arq.link_frames_sent += 1;
+        match self.injector.as_mut() {
+            Some(injector) => injector.send(frame, wire),
+            None => wire.extend_from_slice(frame),
+        }
+    }
+
+    /// The Heartbeats that end what was sent, then everything onto UART0.
+    fn send(&mut self, board: &mut Board, frame_id: u32, mut wire: Vec<u8>) -> Result<(), SimError> {
+        for _ in 0..HEARTBEAT_COPIES {
+            let heartbeat = link::Heartbeat {
+                uptime_ms: 0,
+                frames_sent: frame_id,
+                frames_skipped: 0,
+                sensor_errors: 0,
+            };
+            self.put(&link::Message::Heartbeat(heartbeat), &mut wire)?;
+            self.arq.heartbeats_sent += 1;
+        }
+        if let Some(injector) = self.injector.as_mut() {
+            injector.flush(&mut wire);
+        }
+        self.arq.bytes_sent += wire.len() as u64;
+        board.link.write_all(&wire).map_err(io("UART0 write"))
+    }
+
+    /// The image's pose and its depth (intrinsics, then chunks).
+    fn image(
+        &mut self,
+        frame_id: u32,
+        frame: &DepthFrame<'_>,
+        pose: &link::Pose,
+    ) -> Result<Vec<u8>, SimError> {
+        let mut wire = Vec::new();
+        self.put(&link::Message::Pose(*pose), &mut wire)?;
+        let mut frames = Vec::new();
+        self.encoder
+            .encode_depth_frame(frame_id, frame, self.rows_per_chunk, &mut self.scratch, |b| {
+                frames.push(b.to_vec())
+            })
+            .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
+        for f in frames {
+            self.put_frame(&f, &mut wire);
+        }
+        Ok(wire)
+    }
+
+    /// What `request` asks for of image `frame_id`.
+    fn answer(
+        &mut self,
+        request: &link::ResendRequest,
+        frame: &DepthFrame<'_>,
+        pose: &link::Pose,
+    ) -> Result<Vec<u8>, SimError> {
+        self.arq.requests_received += 1;
+        let mut wire = Vec::new();
+        if request.wants_pose() {
+            self.put(&link::Message::Pose(*pose), &mut wire)?;
+        }
+        if request.wants_intrinsics() {
+            self.put(&link::Message::Intrinsics(*frame.intrinsics()), &mut wire)?;
+        }
+        let mut frames = Vec::new();
+        for &rows in request.rows() {
+            self.encoder
+                .encode_rows(
+                    request.frame_id(),
+                    frame,
+                    rows,
+                    self.rows_per_chunk,
+                    &mut self.scratch,
+                    |b| frames.push(b.to_vec()),
+                )
+                .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
+        }
+        self.arq.chunks_resent += frames.len() as u32;
+        self.arq.bytes_resent += frames.iter().map(|f| f.len() as u64).sum::<u64>();
+        for f in frames {
+            self.put_frame(&f, &mut wire);
+        }
+        Ok(wire)
+    }
+
+    /// After an image's report: the bit error rate from what its first resend request asked
+    /// for again (none: it arrived whole), and the chunk size that carries the most depth per
+    /// byte at that rate — as `harmonic-sim`'s host link does (`crate::link::depth_link`).
+    fn adapt(
+        &mut self,
+        intrinsics: &harmonic_core::camera::Intrinsics,
+        first_request: Option<&link::ResendRequest>,
+    ) {
+        self.ber =
+            crate::link::depth_link::smoothed_ber(self.ber, intrinsics, self.rows_per_chunk, first_request);
+        if let Some(max) = self.max_rows_per_chunk {
+            self.rows_per_chunk = link::best_rows_per_chunk(intrinsics.width(), self.ber, max);
+        }
+    }
+
+    /// Sends one scan and waits for its report, updating `map` from the slices on the way and
+    /// answering the firmware's resend requests.
     fn scan(
         &mut self,
         board: &mut Board,
@@ -421,22 +693,18 @@ impl Camera {
         camera_pose: &nalgebra::Isometry3<f32>,
         map: &mut [Occupancy],
     ) -> Result<PlanReport, SimError> {
-        let wire = |e: link::LinkError| SimError::Config(format!("depth link encoder: {e:?}"));
-        let mut bytes = Vec::new();
         let pose = link::Pose::from_isometry(frame_id, camera_pose)
             .map_err(|e| SimError::Config(format!("camera pose: {e:?}")))?;
-        let n = self
-            .encoder
-            .encode(&link::Message::Pose(pose), &mut self.scratch)
-            .map_err(wire)?;
-        bytes.extend_from_slice(&self.scratch[..n]);
-        self.encoder
-            .encode_depth_frame(frame_id, frame, self.rows_per_chunk, &mut self.scratch, |b| {
-                bytes.extend_from_slice(b)
-            })
-            .map_err(wire)?;
-        board.link.write_all(&bytes).map_err(io("UART0 write"))?;
+        self.arq.images += 1;
+        self.arq.rows_per_chunk_sum += u64::from(self.rows_per_chunk);
+        let mut first_request = None;
+        // The firmware acknowledges an image as soon as it is in (an empty request), before it
+        // plans; until then silence means it heard nothing.
+        let mut acknowledged = false;
+        let wire = self.image(frame_id, frame, &pose)?;
+        self.send(board, frame_id, wire)?;
         let start = Instant::now();
+        let mut heard = Instant::now();
         let mut buf = [0u8; 8192];
         loop {
             let n = read_some(&mut board.link, &mut buf)?;
@@ -445,11 +713,28 @@ impl Camera {
                 if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
                     return Err(SimError::Config(format!("no report for frame {frame_id}")));
                 }
+                if self.injector.is_some() && !acknowledged && heard.elapsed() > REPEAT_IMAGE_AFTER {
+                    heard = Instant::now();
+                    self.arq.images_repeated += 1;
+                    let wire = self.image(frame_id, frame, &pose)?;
+                    self.send(board, frame_id, wire)?;
+                }
                 continue;
             }
+            heard = Instant::now();
+            let mut requests = Vec::new();
+            self.requests.feed(&buf[..n], |m| {
+                if let Ok(link::Message::ResendRequest(r)) = m {
+                    requests.push(r);
+                }
+            });
             for &b in &buf[..n] {
                 match self.decoder.push(b) {
-                    Some(Ok(Downlink::Report(r))) if r.frame_id == frame_id => return Ok(r),
+                    Some(Ok(Downlink::Report(r))) if r.frame_id == frame_id => {
+                        let request = first_request.or(requests.first().copied());
+                        self.adapt(frame.intrinsics(), request.as_ref());
+                        return Ok(r);
+                    }
                     Some(Ok(m @ Downlink::MapSlice { first, count, .. })) => {
                         for k in 0..usize::from(count) {
                             if let (Some(slot), Some(state)) =
@@ -461,6 +746,17 @@ impl Camera {
                     }
                     _ => {}
                 }
+            }
+            if first_request.is_none() {
+                first_request = requests.iter().find(|r| r.frame_id() == frame_id).copied();
+            }
+            for request in requests.iter().filter(|r| r.frame_id() == frame_id) {
+                if request.is_empty() {
+                    acknowledged = true;
+                    continue;
+                }
+                let wire = self.answer(request, frame, &pose)?;
+                self.send(board, frame_id, wire)?;
             }
         }
     }
@@ -492,9 +788,14 @@ pub fn run(
     let geometry = firmware_geometry()?;
     check_fits(scenario, &geometry)?;
     std::fs::create_dir_all(&pil.out).map_err(io("output directory"))?;
-    let elf = match &pil.firmware {
-        Some(p) => p.clone(),
-        None => build_firmware(None)?,
+    let mavlink = cfg.mavlink.as_ref();
+    let key = mavlink.and_then(|m| m.signing_key.clone());
+    let elf = match (&pil.firmware, &key) {
+        (Some(p), _) => p.clone(),
+        (None, None) => build_firmware(None)?,
+        // The key is built in (the firmware's `MAVLINK_KEY`), into a target directory of its
+        // own so the unkeyed build stays as it is.
+        (None, Some(k)) => build_firmware_keyed(k)?,
     };
     if !elf.is_file() {
         return Err(SimError::Config(format!(
@@ -520,14 +821,31 @@ pub fn run(
     let mut camera = Camera {
         encoder: LinkEncoder::new(),
         scratch: vec![0; link::max_depth_chunk_len(intrinsics.width(), rows).max(link::max_encoded_len(64))],
-        rows_per_chunk: rows,
+        // `--link-chunk-rows` may ask for shorter chunks (a noisy line), never longer ones
+        // than the firmware's decoder takes.
+        rows_per_chunk: cfg.link.chunk_rows.map_or(rows, |r| r.clamp(1, rows)),
         decoder: Box::default(),
+        requests: Box::new(FrameDecoder::new()),
+        injector: (!cfg.link.faults.is_clean()).then(|| FaultInjector::new(cfg.link.faults, cfg.seed)),
+        arq: CameraArq::default(),
+        max_rows_per_chunk: cfg.link.chunk_rows.is_none().then_some(rows),
+        ber: 0.0,
     };
+    let mut emulator = FlightEmulator::new();
+    if let Some(k) = &key {
+        emulator = emulator.with_signing(k.clone());
+    }
+    let script = mavlink.map(|m| m.operator_script.clone()).unwrap_or_default();
     let mut autopilot = Autopilot {
-        emulator: FlightEmulator::new(),
+        emulator,
         decoder: MavlinkDecoder::new(),
         sequence: 0,
         ticks: 0,
+        signing: key.clone().map(|k| LinkSigning::new(k, 1)),
+        ground: (!script.is_empty()).then(|| GroundStation::new(script, key.clone())),
+        intruder: (!pil.intruder.is_empty()).then(|| GroundStation::new(pil.intruder.clone(), None)),
+        operator_events: Vec::new(),
+        operator_state: None,
     };
     let mut map = vec![Occupancy::Unknown; geometry.dims().len()];
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
@@ -551,6 +869,10 @@ pub fn run(
     let mut last: Option<PlanReport> = None;
     let mut consecutive_holds = 0;
     let mut termination = String::from("scan_limit");
+    // Where the way home began (after a complete exploration, or on the operator's word): the
+    // exploration's numbers are the ones up to there.
+    let mut return_start: Option<PilReturnStart> = None;
+    let mut return_end: Option<String> = None;
 
     for step in 1..=cfg.max_scans {
         let pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
@@ -575,7 +897,8 @@ pub fn run(
             ReportOutcome::Complete => "complete".to_string(),
             ReportOutcome::Hold(f) => format!("hold:{f:?}"),
         };
-        if matches!(report.outcome, ReportOutcome::Goal) {
+        // The planning budget is the exploration's (the way home plans with the same field).
+        if matches!(report.outcome, ReportOutcome::Goal) && return_start.is_none() {
             plan_cycles.push(phases[1] + phases[2] + phases[3]);
         }
         let solved = !matches!(report.outcome, ReportOutcome::Kept);
@@ -603,16 +926,57 @@ pub fn run(
         progress(&record);
         steps.push(record);
         let outcome = report.outcome;
+        let operator = report.operator;
+        let homeward = matches!(operator, Some(OperatorState::ReturningHome | OperatorState::Home));
+        let ends_here = outcome == ReportOutcome::Complete && !cfg.return_home;
+        if homeward && return_start.is_none() && !ends_here {
+            return_start = Some(PilReturnStart {
+                path,
+                frames: report.frames,
+                steps: steps.len(),
+                now_ms,
+                coverage,
+                report,
+                after_complete: outcome == ReportOutcome::Complete,
+            });
+        }
         last = Some(report);
         match outcome {
+            ReportOutcome::Complete if operator == Some(OperatorState::Home) => {
+                return_end = Some("home".into());
+                break;
+            }
+            // Explored; the next frame plans the way home (unless the run ends here,
+            // `SimConfig::return_home` false).
+            ReportOutcome::Complete if operator == Some(OperatorState::ReturningHome) && cfg.return_home => {
+                consecutive_holds = 0;
+                now_ms += dt_ms;
+                autopilot.tick(&mut board, now_ms, &vehicle)?;
+            }
             ReportOutcome::Complete => {
                 termination = "complete".into();
                 break;
+            }
+            ReportOutcome::Hold(Fault::Operator) if operator == Some(OperatorState::Aborted) => {
+                termination = "aborted".into();
+                break;
+            }
+            ReportOutcome::Hold(Fault::Operator) => {
+                // Paused or waiting for start: not stuck. Time passes, holding, so the ground
+                // station's next command comes due.
+                consecutive_holds = 0;
+                for _ in 0..OPERATOR_HOLD_MS / dt_ms.max(1) {
+                    now_ms += dt_ms;
+                    autopilot.tick(&mut board, now_ms, &vehicle)?;
+                }
             }
             ReportOutcome::Hold(fault) => {
                 consecutive_holds += 1;
                 if consecutive_holds >= 3 {
                     termination = format!("stuck:{fault:?}");
+                    if return_start.is_some() {
+                        return_end = Some(termination.clone());
+                    }
                     break;
                 }
                 // The firmware holds; one tick lets its hold setpoint reach the autopilot.
@@ -634,6 +998,9 @@ pub fn run(
                 collisions.extend(leg.collisions);
             }
         }
+        if step == cfg.max_scans && return_start.is_some() {
+            return_end = Some("scan_limit".into());
+        }
     }
     // One more tick collects what the firmware sent after its last plan (the hold setpoint and
     // the "exploration complete" STATUSTEXT).
@@ -642,9 +1009,32 @@ pub fn run(
     drop(board);
     decode_log(&elf, &pil.out);
 
-    let last = last.ok_or_else(|| SimError::Config("the firmware planned nothing".into()))?;
+    let end = last.ok_or_else(|| SimError::Config("the firmware planned nothing".into()))?;
+    let return_home = return_start.as_ref().map(|r| ReturnHome {
+        termination: return_end.clone().unwrap_or_else(|| termination.clone()),
+        path_length_m: path - r.path,
+        scans: end.frames.saturating_sub(r.frames),
+        distance_to_home_m: f64::from((vehicle.position - scenario.start_position).norm()),
+        time_s: now_ms.saturating_sub(r.now_ms) as f64 * 1e-3,
+    });
+    // With a way home flown, the run's numbers are the exploration's, up to where it began.
+    let (last, coverage, explored_path, explored_steps) = match &return_start {
+        Some(r) => {
+            termination = if r.after_complete {
+                "complete".into()
+            } else {
+                return_end.clone().unwrap_or(termination)
+            };
+            (r.report, r.coverage, r.path, r.steps)
+        }
+        None => (
+            end,
+            truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown)),
+            path,
+            steps.len(),
+        ),
+    };
     let unreachable_frontier_voxels = (termination == "complete").then_some(last.unreachable_frontier);
-    let coverage = truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown));
     let timing = Timing {
         integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
         domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
@@ -653,20 +1043,40 @@ pub fn run(
     };
     let dims = geometry.dims();
     let errors: ErrorCounters = last.errors;
-    let receiver: LinkCounters = last.link;
+    // The link's numbers are the whole run's, the way home included.
+    let receiver: LinkCounters = end.link;
     let sent = steps.len() as u32;
     let link = LinkReport {
         transport: "qemu uart0 (tcp)".into(),
         baud: cfg.link.baud,
         depth_frames_sent: sent,
-        depth_frames_integrated: last.frames,
-        depth_frames_lost: sent.saturating_sub(last.frames),
+        depth_frames_integrated: end.frames,
+        depth_frames_lost: sent.saturating_sub(end.frames),
         receiver,
+        link_frames_sent: camera.arq.link_frames_sent,
+        bytes_sent: camera.arq.bytes_sent,
+        bytes_received: receiver.bytes,
+        heartbeats_sent: camera.arq.heartbeats_sent,
+        injected: camera.injector.as_ref().map(|i| *i.counters()),
+        partial_frames_integrated: receiver.depth_frames_partial,
+        arq_rounds: fw::ARQ_ROUNDS,
+        resend_requests_sent: end.resend_requests,
+        resend_requests_received: camera.arq.requests_received,
+        chunks_resent: camera.arq.chunks_resent,
+        bytes_resent: camera.arq.bytes_resent,
+        rows_per_chunk_mean: camera.arq.rows_per_chunk_sum as f64 / f64::from(camera.arq.images.max(1)),
+        rows_per_chunk_last: camera.rows_per_chunk,
+        ber_estimate: f64::from(camera.ber),
         ..LinkReport::default()
     };
+    if camera.arq.images_repeated > 0 {
+        eprintln!(
+            "pil: {} images sent again whole (the firmware acknowledged none of them)",
+            camera.arq.images_repeated
+        );
+    }
     Ok(Report {
-        // The firmware does not fly home yet.
-        return_home: None,
+        return_home,
         scenario: scenario.world.name.clone(),
         planner: "harmonic".into(),
         solver: "mg".into(),
@@ -675,7 +1085,7 @@ pub fn run(
         coverage_surface: coverage.surface,
         coverage_observed: coverage.observed,
         free_marked_occupied: coverage.free_marked_occupied,
-        path_length_m: path,
+        path_length_m: explored_path,
         scans: last.frames,
         collisions: collisions.len() as u32,
         collision_points: collisions,
@@ -691,7 +1101,7 @@ pub fn run(
         timing,
         errors,
         link,
-        steps_taken: steps.len() as u32,
+        steps_taken: explored_steps as u32,
         grid_origin: geometry.origin().coords.into(),
         map_accuracy: None,
         final_drift: None,
@@ -714,11 +1124,11 @@ pub fn run(
                 ..Default::default()
             },
             bridge_decoder: *autopilot.decoder.counters(),
-            // The firmware does not sign yet, nor take operator commands.
-            operator_commands: Vec::new(),
-            operator_state: None,
-            bridge_signing: None,
-            emulator_signing: None,
+            operator_commands: autopilot.operator_events.clone(),
+            operator_state: autopilot.operator_state,
+            // The firmware's verifier, as its last report told it.
+            bridge_signing: key.as_ref().map(|_| end.signing),
+            emulator_signing: autopilot.emulator.signing_counters(),
             emulator: Some(*autopilot.emulator.counters()),
             emulator_decoder: Some(*autopilot.emulator.decoder_counters()),
             status_texts: autopilot.emulator.status_texts().to_vec(),
@@ -728,15 +1138,34 @@ pub fn run(
             qemu: qemu_command,
             ticks: autopilot.ticks,
             downlink_dropped: camera.decoder.dropped(),
-            integrate: stat(instructions.iter().map(|p| p[0])),
-            domain: stat(instructions.iter().map(|p| p[1])),
-            solve: stat(instructions.iter().map(|p| p[2])),
-            streamline: stat(instructions.iter().map(|p| p[3])),
+            integrate: stat(instructions.iter().take(explored_steps).map(|p| p[0])),
+            domain: stat(instructions.iter().take(explored_steps).map(|p| p[1])),
+            solve: stat(instructions.iter().take(explored_steps).map(|p| p[2])),
+            streamline: stat(instructions.iter().take(explored_steps).map(|p| p[3])),
             plan_cycle: stat(plan_cycles.iter().copied()),
             steps: instructions,
         }),
         steps,
     })
+}
+
+/// Where a PIL run's way home began.
+#[derive(Debug, Clone, Copy)]
+struct PilReturnStart {
+    /// Distance flown before it, m.
+    path: f64,
+    /// Frames the firmware had integrated.
+    frames: u32,
+    /// Scans taken (steps recorded) before it.
+    steps: usize,
+    /// Simulated time, ms.
+    now_ms: u64,
+    /// Coverage of the downlinked map then.
+    coverage: crate::run::metrics::Coverage,
+    /// The firmware's report then: the exploration's counters.
+    report: PlanReport,
+    /// The exploration was complete (rather than the operator calling the vehicle home).
+    after_complete: bool,
 }
 
 /// Flies one leg: ticks until the vehicle has flown `budget` metres, or stands at the

@@ -271,9 +271,10 @@ pub struct OperatorEvent {
     pub state: OperatorState,
 }
 
-/// The scripted ground station of an emulator run ([`MavlinkConfig::operator_script`]).
+/// The scripted ground station of an emulator run ([`MavlinkConfig::operator_script`]), and
+/// of a processor-in-the-loop run (`crate::run::pil`).
 #[derive(Debug)]
-struct GroundStation {
+pub(crate) struct GroundStation {
     script: Vec<(f64, OperatorCommand)>,
     next: usize,
     sequence: u8,
@@ -284,8 +285,24 @@ struct GroundStation {
 const GROUND_STATION: (u8, u8) = (255, 190);
 
 impl GroundStation {
+    /// A ground station that sends `script` (simulated seconds, command), signing with `key`
+    /// on link 2 if given.
+    pub(crate) fn new(script: Vec<(f64, OperatorCommand)>, key: Option<SecretKey>) -> Self {
+        Self {
+            script,
+            next: 0,
+            sequence: 0,
+            signing: key.map(|key| LinkSigning::new(key, 2)),
+        }
+    }
+
+    /// The commands sent so far, in order.
+    pub(crate) fn sent(&self) -> impl Iterator<Item = OperatorCommand> + '_ {
+        self.script.iter().take(self.next).map(|&(_, c)| c)
+    }
+
     /// The frames of every command due at `now_ms`, addressed to `target`.
-    fn due(&mut self, now_ms: u64, target: (u8, u8)) -> Vec<u8> {
+    pub(crate) fn due(&mut self, now_ms: u64, target: (u8, u8)) -> Vec<u8> {
         let mut out = Vec::new();
         while let Some(&(t_s, command)) = self.script.get(self.next) {
             if t_s * 1e3 > now_ms as f64 {
@@ -434,12 +451,8 @@ impl MavlinkLink {
             io_error: None,
             history: PoseHistory::new(),
             signing: config.signing_key.clone().map(|key| LinkSigning::new(key, 1)),
-            ground: (!config.operator_script.is_empty() && !config.spec.is_remote()).then(|| GroundStation {
-                script: config.operator_script.clone(),
-                next: 0,
-                sequence: 0,
-                signing: config.signing_key.clone().map(|key| LinkSigning::new(key, 2)),
-            }),
+            ground: (!config.operator_script.is_empty() && !config.spec.is_remote())
+                .then(|| GroundStation::new(config.operator_script.clone(), config.signing_key.clone())),
             operator_commands: Vec::new(),
         })
     }
