@@ -51,7 +51,7 @@
 
 use crate::explore::{ErrorCounters, Fault, PlanOutcome, Status};
 use crate::integrate::IntegrateError;
-use crate::link::{cobs_decode_in_place, crc32, CobsWriter, LinkCounters, LinkError, Malformed};
+use crate::link::{cobs_decode_in_place, crc32, write_frame, LinkCounters, LinkError, Malformed};
 use crate::link::{CRC_LEN, DELIMITER, HEADER_LEN, PROTOCOL_VERSION};
 use crate::map::{Occupancy, VoxelMap};
 use crate::operator::OperatorState;
@@ -636,14 +636,11 @@ pub fn encode_map_slice(
 }
 
 fn encode(seq: u16, kind: u8, parts: &[&[u8]], out: &mut [u8]) -> Result<usize, LinkError> {
-    *out.first_mut().ok_or(LinkError::BufferTooSmall)? = DELIMITER;
-    let mut w = CobsWriter::new(out, 1);
-    let [s0, s1] = seq.to_le_bytes();
-    w.payload(&[PROTOCOL_VERSION, kind, s0, s1])?;
-    for part in parts {
-        w.payload(part)?;
-    }
-    w.finish()
+    write_frame(out, |w| {
+        let [s0, s1] = seq.to_le_bytes();
+        w.payload(&[PROTOCOL_VERSION, kind, s0, s1])?;
+        parts.iter().try_for_each(|part| w.payload(part))
+    })
 }
 
 /// A decoded downlink message; a map slice borrows the decoder's buffer. (A report is held by

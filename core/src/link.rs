@@ -39,8 +39,10 @@
 //!
 //! - **CRC-32/ISO-HDLC** (the zlib / Ethernet `crc32`): reflected polynomial `0xEDB88320`,
 //!   initial value `0xFFFFFFFF`, final xor `0xFFFFFFFF`; `crc32("123456789") = 0xCBF43926`.
-//!   It covers header and body and is appended after them, before COBS encoding.
-//! - **COBS** (Cheshire & Baker, 1999) removes every `0x00` from payload and CRC: the encoded
+//!   It covers header and body and is appended after them, before COBS encoding. Computed by
+//!   the `crc` crate (`CRC_32_ISO_HDLC`, table-driven).
+//! - **COBS** (Cheshire & Baker, 1999; the `cobs` crate's streaming encoder and in-place
+//!   decoder, both no_std and allocation-free) removes every `0x00` from payload and CRC: the encoded
 //!   bytes are groups, each a code byte `k` (1..=255) followed by `k − 1` non-zero bytes; a
 //!   group with `k < 255` stands for its bytes followed by one `0x00`, except the last group.
 //!   `n` bytes encode to at most `n + n / 254 + 1` bytes ([`max_encoded_len`]).
@@ -893,142 +895,59 @@ impl Reader<'_> {
 }
 
 // ---------------------------------------------------------------------------------------------
-// CRC-32/ISO-HDLC and COBS
+// CRC-32/ISO-HDLC and COBS, from the `crc` and `cobs` crates
 
-const CRC32_INIT: u32 = 0xFFFF_FFFF;
-
-#[allow(
-    clippy::indexing_slicing,
-    reason = "evaluated at compile time (a bad index is a build error); i < 256 = the table's length"
-)]
-const CRC32_TABLE: [u32; 256] = {
-    let mut table = [0u32; 256];
-    let mut i = 0;
-    while i < 256 {
-        let mut c = i as u32;
-        let mut k = 0;
-        while k < 8 {
-            c = if c & 1 != 0 {
-                0xEDB8_8320 ^ (c >> 1)
-            } else {
-                c >> 1
-            };
-            k += 1;
-        }
-        table[i] = c;
-        i += 1;
-    }
-    table
-};
-
-fn crc32_update(mut crc: u32, bytes: &[u8]) -> u32 {
-    for &b in bytes {
-        // A u8 index into a 256-entry table: the compiler drops the check and the fallback.
-        let entry = CRC32_TABLE.get(usize::from(crc as u8 ^ b)).copied().unwrap_or(0);
-        crc = entry ^ (crc >> 8);
-    }
-    crc
-}
+/// CRC-32/ISO-HDLC: the `crc` crate's table-driven implementation (a 1 KiB table in flash).
+static CRC32: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
 
 /// CRC-32/ISO-HDLC (zlib's `crc32`) of `bytes`.
 pub fn crc32(bytes: &[u8]) -> u32 {
-    !crc32_update(CRC32_INIT, bytes)
+    CRC32.checksum(bytes)
 }
 
-/// Streaming COBS encoder into a slice, computing the CRC of what it is given as payload.
+/// Streaming COBS encoder (the `cobs` crate's) into a slice, computing the CRC of the payload
+/// it is given; [`write_frame`] puts the delimiters around it.
 pub(crate) struct CobsWriter<'o> {
-    out: &'o mut [u8],
-    /// Where the code byte of the open group goes.
-    code_at: usize,
-    /// Where the next data byte goes.
-    pos: usize,
-    /// Code of the open group: 1 + its data bytes.
-    code: u8,
-    crc: u32,
+    cobs: cobs::CobsEncoder<'o>,
+    crc: crc::Digest<'static, u32>,
 }
 
-impl<'o> CobsWriter<'o> {
-    /// An encoder whose first group starts at `out[start]`.
-    pub(crate) fn new(out: &'o mut [u8], start: usize) -> Self {
-        Self {
-            out,
-            code_at: start,
-            pos: start + 1,
-            code: 1,
-            crc: CRC32_INIT,
-        }
-    }
-
-    fn slot(&mut self, at: usize) -> Result<&mut u8, LinkError> {
-        self.out.get_mut(at).ok_or(LinkError::BufferTooSmall)
-    }
-
-    fn close_group(&mut self) -> Result<(), LinkError> {
-        let code = self.code;
-        *self.slot(self.code_at)? = code;
-        self.code_at = self.pos;
-        self.pos += 1;
-        self.code = 1;
-        Ok(())
-    }
-
-    /// One byte into the encoding, outside the CRC.
-    fn put(&mut self, byte: u8) -> Result<(), LinkError> {
-        if byte == 0 {
-            return self.close_group();
-        }
-        *self.slot(self.pos)? = byte;
-        self.pos += 1;
-        self.code += 1;
-        if self.code == 0xFF {
-            self.close_group()?;
-        }
-        Ok(())
-    }
-
+impl CobsWriter<'_> {
     /// Payload bytes: into the CRC and the encoding.
     pub(crate) fn payload(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
-        self.crc = crc32_update(self.crc, bytes);
-        bytes.iter().try_for_each(|&b| self.put(b))
-    }
-
-    /// Appends the CRC, closes the last group and writes the trailing delimiter. Returns the
-    /// length of `out` used.
-    pub(crate) fn finish(mut self) -> Result<usize, LinkError> {
-        for b in (!self.crc).to_le_bytes() {
-            self.put(b)?;
-        }
-        let (code, code_at, end) = (self.code, self.code_at, self.pos);
-        *self.slot(code_at)? = code;
-        *self.slot(end)? = DELIMITER;
-        Ok(end + 1)
+        self.crc.update(bytes);
+        self.cobs.push(bytes).map_err(|_| LinkError::BufferTooSmall)
     }
 }
 
-/// Decodes COBS in place (the output never overtakes the input); returns the decoded length.
+/// One frame at the start of `out`: the leading delimiter, COBS of what `fill` writes as
+/// payload followed by its CRC-32 (little-endian), the trailing delimiter. Returns the bytes
+/// written.
+pub(crate) fn write_frame(
+    out: &mut [u8],
+    fill: impl FnOnce(&mut CobsWriter<'_>) -> Result<(), LinkError>,
+) -> Result<usize, LinkError> {
+    *out.first_mut().ok_or(LinkError::BufferTooSmall)? = DELIMITER;
+    let body = out.get_mut(1..).ok_or(LinkError::BufferTooSmall)?;
+    let mut w = CobsWriter {
+        cobs: cobs::CobsEncoder::new(body),
+        crc: CRC32.digest(),
+    };
+    fill(&mut w)?;
+    let CobsWriter { mut cobs, crc } = w;
+    cobs.push(&crc.finalize().to_le_bytes())
+        .map_err(|_| LinkError::BufferTooSmall)?;
+    let end = 1 + cobs.finalize();
+    *out.get_mut(end).ok_or(LinkError::BufferTooSmall)? = DELIMITER;
+    Ok(end + 1)
+}
+
+/// Decodes COBS in place (the `cobs` crate's decoder); returns the decoded length.
 pub(crate) fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
-    let len = buf.len();
-    let (mut read, mut write) = (0, 0);
-    while read < len {
-        let code = *buf.get(read).ok_or(LinkError::Cobs)?;
-        if code == 0 {
-            return Err(LinkError::Cobs);
-        }
-        read += 1;
-        let end = read + usize::from(code - 1);
-        if end > len {
-            return Err(LinkError::Cobs);
-        }
-        // write < read, so the copy stays inside the buffer.
-        buf.copy_within(read..end, write);
-        write += end - read;
-        read = end;
-        if code != 0xFF && read < len {
-            *buf.get_mut(write).ok_or(LinkError::Cobs)? = 0;
-            write += 1;
-        }
+    if buf.is_empty() {
+        return Ok(0);
     }
-    Ok(write)
+    cobs::decode_in_place(buf).map_err(|_| LinkError::Cobs)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1038,12 +957,11 @@ pub(crate) fn cobs_decode_in_place(buf: &mut [u8]) -> Result<usize, LinkError> {
 /// of payload and CRC, trailing delimiter) at the start of `out`; returns the bytes written.
 /// `out` of [`max_encoded_len`]`(message.payload_len())` bytes always suffices.
 pub fn encode_frame(seq: u16, message: &Message<'_>, out: &mut [u8]) -> Result<usize, LinkError> {
-    *out.first_mut().ok_or(LinkError::BufferTooSmall)? = DELIMITER;
-    let mut w = CobsWriter::new(out, 1);
-    let [s0, s1] = seq.to_le_bytes();
-    w.payload(&[PROTOCOL_VERSION, message.message_type().code(), s0, s1])?;
-    message.write_body(&mut w)?;
-    w.finish()
+    write_frame(out, |w| {
+        let [s0, s1] = seq.to_le_bytes();
+        w.payload(&[PROTOCOL_VERSION, message.message_type().code(), s0, s1])?;
+        message.write_body(w)
+    })
 }
 
 /// The sending end of the link: numbers frames and cuts depth images into chunks.
@@ -1955,12 +1873,14 @@ mod tests {
     /// COBS-encodes raw bytes (no CRC added) between two delimiters.
     fn cobs_frame(raw: &[u8]) -> Vec<u8> {
         let mut out = vec![0u8; max_encoded_len(raw.len())];
-        let mut w = CobsWriter::new(&mut out, 1);
-        raw.iter().for_each(|&b| w.put(b).unwrap());
-        let (code, code_at, end) = (w.code, w.code_at, w.pos);
-        out[code_at] = code;
-        out[end] = 0;
-        out.truncate(end + 1);
+        let n = if raw.is_empty() {
+            out[1] = 1;
+            1
+        } else {
+            cobs::encode(raw, &mut out[1..])
+        };
+        out[n + 1] = 0;
+        out.truncate(n + 2);
         out
     }
 
