@@ -822,4 +822,157 @@ mod tests {
         assert!(TriangleMesh::from_obj("v 0 0 x\n").is_err());
         assert!(TriangleMesh::from_stl(b"solid empty\nendsolid\n").is_err());
     }
+
+    fn fixture(name: &str) -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scenarios/fixtures/meshes")
+            .join(name)
+    }
+
+    fn corners_of(mesh: &TriangleMesh, t: usize) -> [[f32; 3]; 3] {
+        mesh.corners(t).map(|p| [p.x, p.y, p.z])
+    }
+
+    /// A binary STL: `header` (padded to 80 bytes), then the triangles, normals zero.
+    fn binary_stl(header: &[u8], triangles: &[[[f32; 3]; 3]]) -> Vec<u8> {
+        let mut bin = header.to_vec();
+        bin.resize(80, b' ');
+        bin.extend_from_slice(&(triangles.len() as u32).to_le_bytes());
+        for t in triangles {
+            bin.extend_from_slice(&[0u8; 12]);
+            for c in t.iter().flatten() {
+                bin.extend_from_slice(&c.to_le_bytes());
+            }
+            bin.extend_from_slice(&[0, 0]);
+        }
+        bin
+    }
+
+    /// The repository's mesh fixtures (`mesh-rooms.toml`): triangle counts, bounds and exact
+    /// corners, as the hand-written readers gave them (checked against the files, not copied).
+    #[test]
+    fn fixtures_give_the_same_triangles() {
+        let obj = TriangleMesh::load(&fixture("two-rooms.obj")).unwrap();
+        assert_eq!((obj.vertices.len(), obj.triangles.len()), (80, 120));
+        let b = obj.bounds();
+        assert_eq!(
+            (b.min, b.max),
+            (Point3::new(0.0, 0.0, 0.0), Point3::new(5.0, 3.0, 2.0))
+        );
+        // Quads become fans (v0, v1, v2), (v0, v2, v3).
+        assert_eq!(
+            corners_of(&obj, 0),
+            [[0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [5.0, 3.0, 0.0]]
+        );
+        assert_eq!(
+            corners_of(&obj, 1),
+            [[0.0, 0.0, 0.0], [5.0, 3.0, 0.0], [5.0, 0.0, 0.0]]
+        );
+        assert_eq!(
+            corners_of(&obj, 119),
+            [[4.2, 1.1, 0.1], [4.2, 1.9, 0.8], [4.2, 1.1, 0.8]]
+        );
+
+        let stl = TriangleMesh::load(&fixture("table-cm.stl")).unwrap();
+        assert_eq!((stl.vertices.len(), stl.triangles.len()), (36, 12));
+        let b = stl.bounds();
+        assert_eq!(
+            (b.min, b.max),
+            (Point3::new(360.0, 110.0, 10.0), Point3::new(420.0, 190.0, 80.0))
+        );
+        // Corners are not shared: triangle t is vertices 3t, 3t + 1, 3t + 2, in file order.
+        assert!(stl
+            .triangles
+            .iter()
+            .enumerate()
+            .all(|(t, v)| *v == [0, 1, 2].map(|k| (3 * t + k) as u32)));
+        assert_eq!(
+            corners_of(&stl, 0),
+            [[360.0, 110.0, 10.0], [360.0, 190.0, 10.0], [420.0, 190.0, 10.0]]
+        );
+        assert_eq!(
+            corners_of(&stl, 1),
+            [[360.0, 110.0, 10.0], [420.0, 190.0, 10.0], [420.0, 110.0, 10.0]]
+        );
+        assert_eq!(
+            corners_of(&stl, 11),
+            [[420.0, 110.0, 10.0], [420.0, 190.0, 80.0], [420.0, 110.0, 80.0]]
+        );
+    }
+
+    /// Binary is told from ASCII by size: a binary header that starts with `solid` (as some CAD
+    /// exporters write it) is still binary, even when the triangle count's low byte is a line
+    /// feed (10 triangles) so that the header reads as a text line; a file one byte longer than
+    /// its header announces is not binary, and not text either.
+    #[test]
+    fn binary_stl_is_told_by_its_size_not_its_header() {
+        let tris: Vec<[[f32; 3]; 3]> = (0..10)
+            .map(|k| [[0.0, 0.0, k as f32], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+            .collect();
+        let bin = binary_stl(b"solid part, exported as binary", &tris);
+        let mesh = TriangleMesh::from_stl(&bin).unwrap();
+        assert_eq!(mesh.triangles.len(), 10);
+        for (t, tri) in tris.iter().enumerate() {
+            assert_eq!(corners_of(&mesh, t), *tri);
+        }
+        let mut long = binary_stl(b"binary", &tris);
+        long.push(0);
+        assert!(TriangleMesh::from_stl(&long)
+            .unwrap_err()
+            .0
+            .contains("neither binary"));
+    }
+
+    /// ASCII STL: every `vertex` line counts, three to a facet, whatever surrounds them: a
+    /// nameless `solid`, several solids in one file, a missing `endsolid`.
+    #[test]
+    fn ascii_stl_reads_every_facet() {
+        let facet = |z: f32| {
+            format!(
+                "facet normal 0 0 1\nouter loop\nvertex 0 0 {z}\nvertex 1 0 {z}\nvertex 0 1 {z}\nendloop\nendfacet\n"
+            )
+        };
+        let nameless = format!("solid\n{}endsolid\n", facet(0.0));
+        assert_eq!(
+            TriangleMesh::from_stl(nameless.as_bytes())
+                .unwrap()
+                .triangles
+                .len(),
+            1
+        );
+        let two = format!(
+            "solid a\n{}endsolid a\nsolid b\n{}endsolid b\n",
+            facet(0.0),
+            facet(5.0)
+        );
+        let mesh = TriangleMesh::from_stl(two.as_bytes()).unwrap();
+        assert_eq!(mesh.triangles.len(), 2);
+        assert_eq!(corners_of(&mesh, 1)[0], [0.0, 0.0, 5.0]);
+        let open = format!("solid t\n{}", facet(1.0));
+        assert_eq!(
+            TriangleMesh::from_stl(open.as_bytes()).unwrap().triangles.len(),
+            1
+        );
+    }
+
+    /// OBJ: polylines (`l`) are not surfaces, a face needs three corners, coordinates must be
+    /// finite, and errors name the line; texture and normal indices are not checked.
+    #[test]
+    fn obj_reads_faces_only_and_names_the_bad_line() {
+        let tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+        let with_line = format!("{tri}v 0 0 1\nf 1 2 3\nl 1 2 4\n");
+        assert_eq!(TriangleMesh::from_obj(&with_line).unwrap().triangles.len(), 1);
+        let err = TriangleMesh::from_obj(&format!("{tri}f 1 2 3\nf 1 2\n")).unwrap_err();
+        assert_eq!(err.0, "line 5: a face needs 3 vertices");
+        let err = TriangleMesh::from_obj("v 0 0 0\nv inf 0 0\n").unwrap_err();
+        assert_eq!(err.0, "line 2: coordinate not finite");
+        let err = TriangleMesh::from_obj(&format!("{tri}f 1 2 4\n")).unwrap_err();
+        assert_eq!(err.0, "line 4: face index 4 refers to no vertex (3 so far)");
+        // `v x y z w`: w is ignored (not divided by); `vt`/`vn` indices are not looked up.
+        let mesh = TriangleMesh::from_obj("v 2 2 2 2\nv 1 0 0\nv 0 1 0\nvt 0\nf 1/7 2/7 3/7\n").unwrap();
+        assert_eq!(corners_of(&mesh, 0)[0], [2.0, 2.0, 2.0]);
+        // A material library that is not there does not matter.
+        let mtl = format!("mtllib missing.mtl\n{tri}usemtl red\nf -3 -2 -1\n");
+        assert_eq!(TriangleMesh::from_obj(&mtl).unwrap().triangles.len(), 1);
+    }
 }
