@@ -104,6 +104,10 @@ impl TriangleMesh {
         if bytes.len() >= 84 {
             let n = u32::from_le_bytes([bytes[80], bytes[81], bytes[82], bytes[83]]) as usize;
             if bytes.len() == 84 + 50 * n {
+                // An empty mesh has no hierarchy to build (`Bvh::build` needs a triangle).
+                if n == 0 {
+                    return Err(MeshError("binary STL with no facets".into()));
+                }
                 return Ok(Self::from_binary_stl(&bytes[84..], n));
             }
         }
@@ -915,6 +919,10 @@ mod tests {
         for (t, tri) in tris.iter().enumerate() {
             assert_eq!(corners_of(&mesh, t), *tri);
         }
+        assert_eq!(
+            TriangleMesh::from_stl(&binary_stl(b"binary", &[])).unwrap_err().0,
+            "binary STL with no facets"
+        );
         let mut long = binary_stl(b"binary", &tris);
         long.push(0);
         assert!(TriangleMesh::from_stl(&long)
