@@ -1,10 +1,31 @@
 //! Triangle-mesh obstacles: Wavefront OBJ and STL (binary or ASCII) files, scaled and placed,
 //! ray cast exactly through a bounding-volume hierarchy and voxelised on the scenario's grid.
 //!
-//! - [`TriangleMesh::from_obj`] reads `v` and `f` records (polygons become triangle fans;
-//!   `f` indices may be `v`, `v/t`, `v//n`, `v/t/n`, negative = relative); everything else is
-//!   ignored. [`TriangleMesh::from_stl`] tells binary from ASCII by the size the binary header
-//!   announces.
+//! - Reading. [`TriangleMesh::from_stl`] tells binary from ASCII by size: a file exactly 84 bytes
+//!   plus 50 per triangle its header announces is binary, whatever its 80-byte header says (even
+//!   `solid …`), and is read by the [`stl_io`] crate; one announcing no triangle is an error.
+//!   Anything else must be UTF-8 text, read as ASCII STL: every `vertex x y z` line, three to a
+//!   facet, whatever surrounds them. [`TriangleMesh::from_obj`] reads `v` and `f` records
+//!   (polygons become triangle fans (v0, vi, vi+1); `f` indices may be `v`, `v/t`, `v//n`,
+//!   `v/t/n`, negative = relative; a face needs three corners; coordinates must be finite);
+//!   everything else, `l` polylines and `mtllib` included, is ignored. Errors name the line.
+//!   Every triangle keeps its corners in file order and degenerate ones are kept.
+//!
+//!   OBJ and ASCII STL stay hand-written because the maintained crates would change what loads
+//!   (checked against `tobj` 4.0.5 and `stl_io` 0.11.0; the tests
+//!   `obj_reads_faces_only_and_names_the_bad_line` and `ascii_stl_reads_every_facet` pin it):
+//!   - `tobj` reports errors as a bare enum with no position, so `line 2: face index 2 refers to
+//!     no vertex` would become `face vertex index out of bounds`; it reads `l` polylines of three
+//!     or more points as faces (obstacles that are not there), silently drops one- and
+//!     two-corner faces, accepts `nan` and `inf` coordinates, divides `v x y z w` by `w`, and
+//!     rejects files that load here (a one-component `vt`, a `vt` index out of range, a bare
+//!     `usemtl`). Its fan order, relative indices and missing material libraries do match.
+//!   - `stl_io`'s ASCII reader stops at the first `endsolid`, silently dropping the other solids
+//!     of a multi-solid file; takes a nameless or indented `solid` line for binary (and fails
+//!     with "failed to fill whole buffer"); requires `endsolid`; and names no line in errors.
+//!     Its own binary/ASCII test (first line starts with `solid `) misreads a binary file whose
+//!     header starts so when the bytes up to the first line feed are UTF-8 (10 triangles: the
+//!     count's low byte is a line feed), hence the size rule and a blanked header.
 //! - [`Bvh`]: a binary tree of boxes over the triangles, split at the median of the longest
 //!   axis; leaves hold at most [`LEAF_SIZE`] triangles. Ray casts (Möller–Trumbore) and
 //!   closest-point queries visit only the boxes that can matter, so a million triangles cost
@@ -101,15 +122,12 @@ impl TriangleMesh {
 
     /// Parses an STL file, binary or ASCII.
     pub fn from_stl(bytes: &[u8]) -> Result<Self, MeshError> {
-        if bytes.len() >= 84 {
-            let n = u32::from_le_bytes([bytes[80], bytes[81], bytes[82], bytes[83]]) as usize;
-            if bytes.len() == 84 + 50 * n {
-                // An empty mesh has no hierarchy to build (`Bvh::build` needs a triangle).
-                if n == 0 {
-                    return Err(MeshError("binary STL with no facets".into()));
-                }
-                return Ok(Self::from_binary_stl(&bytes[84..], n));
+        if let Some(n) = binary_stl_triangles(bytes) {
+            // An empty mesh has no hierarchy to build (`Bvh::build` needs a triangle).
+            if n == 0 {
+                return Err(MeshError("binary STL with no facets".into()));
             }
+            return Self::from_binary_stl(bytes, n);
         }
         let text = std::str::from_utf8(bytes).map_err(|_| {
             MeshError("neither binary STL (size does not match the triangle count) nor ASCII".into())
@@ -117,21 +135,39 @@ impl TriangleMesh {
         Self::from_ascii_stl(text)
     }
 
-    fn from_binary_stl(body: &[u8], n: usize) -> Self {
+    /// Reads a binary STL of `n` triangles (its size already checked) with `stl_io`.
+    fn from_binary_stl(bytes: &[u8], n: usize) -> Result<Self, MeshError> {
+        // stl_io reads a file as ASCII if its first line starts with `solid `, which a binary
+        // header may (it is free text); the size has said binary, so stl_io gets the file with
+        // the header blanked (it skips the header's content anyway).
+        let blanked;
+        let input = match bytes.split_at_checked(80) {
+            Some((header, rest)) if header.trim_ascii_start().starts_with(b"solid") => {
+                blanked = [&[b' '; 80][..], rest].concat();
+                blanked.as_slice()
+            }
+            _ => bytes,
+        };
+        let read_error = |e: std::io::Error| MeshError(format!("binary STL: {e}"));
+        let mut cursor = std::io::Cursor::new(input);
+        let facets = stl_io::create_stl_reader(&mut cursor).map_err(read_error)?;
         let mut mesh = TriangleMesh {
             vertices: Vec::with_capacity(3 * n),
             triangles: Vec::with_capacity(n),
         };
-        let f = |b: &[u8], o: usize| f32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
-        for t in body.chunks_exact(50) {
+        for facet in facets {
+            let facet = facet.map_err(read_error)?;
             let base = mesh.vertices.len() as u32;
-            for v in 0..3 {
-                let o = 12 + 12 * v;
-                mesh.vertices.push(Point3::new(f(t, o), f(t, o + 4), f(t, o + 8)));
-            }
+            mesh.vertices.extend(facet.vertices.map(|v| Point3::from(v.0)));
             mesh.triangles.push([base, base + 1, base + 2]);
         }
-        mesh
+        if mesh.triangles.len() != n {
+            return Err(MeshError(format!(
+                "binary STL: {} of the {n} triangles announced were read",
+                mesh.triangles.len()
+            )));
+        }
+        Ok(mesh)
     }
 
     fn from_ascii_stl(text: &str) -> Result<Self, MeshError> {
@@ -220,6 +256,15 @@ impl TriangleMesh {
         }
         Aabb::new(lo, hi)
     }
+}
+
+/// The triangle count a binary STL's header announces, if the file is exactly that long
+/// (80-byte header, 4-byte count, 50 bytes per triangle).
+fn binary_stl_triangles(bytes: &[u8]) -> Option<usize> {
+    let count: [u8; 4] = bytes.get(80..84)?.try_into().ok()?;
+    let n = u32::from_le_bytes(count) as usize;
+    let size = n.checked_mul(50)?.checked_add(84)?;
+    (bytes.len() == size).then_some(n)
 }
 
 #[derive(Debug, Clone)]
