@@ -1,10 +1,31 @@
 //! Triangle-mesh obstacles: Wavefront OBJ and STL (binary or ASCII) files, scaled and placed,
 //! ray cast exactly through a bounding-volume hierarchy and voxelised on the scenario's grid.
 //!
-//! - [`TriangleMesh::from_obj`] reads `v` and `f` records (polygons become triangle fans;
-//!   `f` indices may be `v`, `v/t`, `v//n`, `v/t/n`, negative = relative); everything else is
-//!   ignored. [`TriangleMesh::from_stl`] tells binary from ASCII by the size the binary header
-//!   announces.
+//! - Reading. [`TriangleMesh::from_stl`] tells binary from ASCII by size: a file exactly 84 bytes
+//!   plus 50 per triangle its header announces is binary, whatever its 80-byte header says (even
+//!   `solid …`), and is read by the [`stl_io`] crate; one announcing no triangle is an error.
+//!   Anything else must be UTF-8 text, read as ASCII STL: every `vertex x y z` line, three to a
+//!   facet, whatever surrounds them. [`TriangleMesh::from_obj`] reads `v` and `f` records
+//!   (polygons become triangle fans (v0, vi, vi+1); `f` indices may be `v`, `v/t`, `v//n`,
+//!   `v/t/n`, negative = relative; a face needs three corners; coordinates must be finite);
+//!   everything else, `l` polylines and `mtllib` included, is ignored. Errors name the line.
+//!   Every triangle keeps its corners in file order and degenerate ones are kept.
+//!
+//!   OBJ and ASCII STL stay hand-written because the maintained crates would change what loads
+//!   (checked against `tobj` 4.0.5 and `stl_io` 0.11.0; the tests
+//!   `obj_reads_faces_only_and_names_the_bad_line` and `ascii_stl_reads_every_facet` pin it):
+//!   - `tobj` reports errors as a bare enum with no position, so `line 2: face index 2 refers to
+//!     no vertex` would become `face vertex index out of bounds`; it reads `l` polylines of three
+//!     or more points as faces (obstacles that are not there), silently drops one- and
+//!     two-corner faces, accepts `nan` and `inf` coordinates, divides `v x y z w` by `w`, and
+//!     rejects files that load here (a one-component `vt`, a `vt` index out of range, a bare
+//!     `usemtl`). Its fan order, relative indices and missing material libraries do match.
+//!   - `stl_io`'s ASCII reader stops at the first `endsolid`, silently dropping the other solids
+//!     of a multi-solid file; takes a nameless or indented `solid` line for binary (and fails
+//!     with "failed to fill whole buffer"); requires `endsolid`; and names no line in errors.
+//!     Its own binary/ASCII test (first line starts with `solid `) misreads a binary file whose
+//!     header starts so when the bytes up to the first line feed are UTF-8 (10 triangles: the
+//!     count's low byte is a line feed), hence the size rule and a blanked header.
 //! - [`Bvh`]: a binary tree of boxes over the triangles, split at the median of the longest
 //!   axis; leaves hold at most [`LEAF_SIZE`] triangles. Ray casts (Möller–Trumbore) and
 //!   closest-point queries visit only the boxes that can matter, so a million triangles cost
@@ -101,11 +122,12 @@ impl TriangleMesh {
 
     /// Parses an STL file, binary or ASCII.
     pub fn from_stl(bytes: &[u8]) -> Result<Self, MeshError> {
-        if bytes.len() >= 84 {
-            let n = u32::from_le_bytes([bytes[80], bytes[81], bytes[82], bytes[83]]) as usize;
-            if bytes.len() == 84 + 50 * n {
-                return Ok(Self::from_binary_stl(&bytes[84..], n));
+        if let Some(n) = binary_stl_triangles(bytes) {
+            // An empty mesh has no hierarchy to build (`Bvh::build` needs a triangle).
+            if n == 0 {
+                return Err(MeshError("binary STL with no facets".into()));
             }
+            return Self::from_binary_stl(bytes, n);
         }
         let text = std::str::from_utf8(bytes).map_err(|_| {
             MeshError("neither binary STL (size does not match the triangle count) nor ASCII".into())
@@ -113,21 +135,39 @@ impl TriangleMesh {
         Self::from_ascii_stl(text)
     }
 
-    fn from_binary_stl(body: &[u8], n: usize) -> Self {
+    /// Reads a binary STL of `n` triangles (its size already checked) with `stl_io`.
+    fn from_binary_stl(bytes: &[u8], n: usize) -> Result<Self, MeshError> {
+        // stl_io reads a file as ASCII if its first line starts with `solid `, which a binary
+        // header may (it is free text); the size has said binary, so stl_io gets the file with
+        // the header blanked (it skips the header's content anyway).
+        let blanked;
+        let input = match bytes.split_at_checked(80) {
+            Some((header, rest)) if header.trim_ascii_start().starts_with(b"solid") => {
+                blanked = [&[b' '; 80][..], rest].concat();
+                blanked.as_slice()
+            }
+            _ => bytes,
+        };
+        let read_error = |e: std::io::Error| MeshError(format!("binary STL: {e}"));
+        let mut cursor = std::io::Cursor::new(input);
+        let facets = stl_io::create_stl_reader(&mut cursor).map_err(read_error)?;
         let mut mesh = TriangleMesh {
             vertices: Vec::with_capacity(3 * n),
             triangles: Vec::with_capacity(n),
         };
-        let f = |b: &[u8], o: usize| f32::from_le_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
-        for t in body.chunks_exact(50) {
+        for facet in facets {
+            let facet = facet.map_err(read_error)?;
             let base = mesh.vertices.len() as u32;
-            for v in 0..3 {
-                let o = 12 + 12 * v;
-                mesh.vertices.push(Point3::new(f(t, o), f(t, o + 4), f(t, o + 8)));
-            }
+            mesh.vertices.extend(facet.vertices.map(|v| Point3::from(v.0)));
             mesh.triangles.push([base, base + 1, base + 2]);
         }
-        mesh
+        if mesh.triangles.len() != n {
+            return Err(MeshError(format!(
+                "binary STL: {} of the {n} triangles announced were read",
+                mesh.triangles.len()
+            )));
+        }
+        Ok(mesh)
     }
 
     fn from_ascii_stl(text: &str) -> Result<Self, MeshError> {
@@ -216,6 +256,15 @@ impl TriangleMesh {
         }
         Aabb::new(lo, hi)
     }
+}
+
+/// The triangle count a binary STL's header announces, if the file is exactly that long
+/// (80-byte header, 4-byte count, 50 bytes per triangle).
+fn binary_stl_triangles(bytes: &[u8]) -> Option<usize> {
+    let count: [u8; 4] = bytes.get(80..84)?.try_into().ok()?;
+    let n = u32::from_le_bytes(count) as usize;
+    let size = n.checked_mul(50)?.checked_add(84)?;
+    (bytes.len() == size).then_some(n)
 }
 
 #[derive(Debug, Clone)]
@@ -821,5 +870,162 @@ mod tests {
             .contains("line 2"));
         assert!(TriangleMesh::from_obj("v 0 0 x\n").is_err());
         assert!(TriangleMesh::from_stl(b"solid empty\nendsolid\n").is_err());
+    }
+
+    fn fixture(name: &str) -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("scenarios/fixtures/meshes")
+            .join(name)
+    }
+
+    fn corners_of(mesh: &TriangleMesh, t: usize) -> [[f32; 3]; 3] {
+        mesh.corners(t).map(|p| [p.x, p.y, p.z])
+    }
+
+    /// A binary STL: `header` (padded to 80 bytes), then the triangles, normals zero.
+    fn binary_stl(header: &[u8], triangles: &[[[f32; 3]; 3]]) -> Vec<u8> {
+        let mut bin = header.to_vec();
+        bin.resize(80, b' ');
+        bin.extend_from_slice(&(triangles.len() as u32).to_le_bytes());
+        for t in triangles {
+            bin.extend_from_slice(&[0u8; 12]);
+            for c in t.iter().flatten() {
+                bin.extend_from_slice(&c.to_le_bytes());
+            }
+            bin.extend_from_slice(&[0, 0]);
+        }
+        bin
+    }
+
+    /// The repository's mesh fixtures (`mesh-rooms.toml`): triangle counts, bounds and exact
+    /// corners, as the hand-written readers gave them (checked against the files, not copied).
+    #[test]
+    fn fixtures_give_the_same_triangles() {
+        let obj = TriangleMesh::load(&fixture("two-rooms.obj")).unwrap();
+        assert_eq!((obj.vertices.len(), obj.triangles.len()), (80, 120));
+        let b = obj.bounds();
+        assert_eq!(
+            (b.min, b.max),
+            (Point3::new(0.0, 0.0, 0.0), Point3::new(5.0, 3.0, 2.0))
+        );
+        // Quads become fans (v0, v1, v2), (v0, v2, v3).
+        assert_eq!(
+            corners_of(&obj, 0),
+            [[0.0, 0.0, 0.0], [0.0, 3.0, 0.0], [5.0, 3.0, 0.0]]
+        );
+        assert_eq!(
+            corners_of(&obj, 1),
+            [[0.0, 0.0, 0.0], [5.0, 3.0, 0.0], [5.0, 0.0, 0.0]]
+        );
+        assert_eq!(
+            corners_of(&obj, 119),
+            [[4.2, 1.1, 0.1], [4.2, 1.9, 0.8], [4.2, 1.1, 0.8]]
+        );
+
+        let stl = TriangleMesh::load(&fixture("table-cm.stl")).unwrap();
+        assert_eq!((stl.vertices.len(), stl.triangles.len()), (36, 12));
+        let b = stl.bounds();
+        assert_eq!(
+            (b.min, b.max),
+            (Point3::new(360.0, 110.0, 10.0), Point3::new(420.0, 190.0, 80.0))
+        );
+        // Corners are not shared: triangle t is vertices 3t, 3t + 1, 3t + 2, in file order.
+        assert!(stl
+            .triangles
+            .iter()
+            .enumerate()
+            .all(|(t, v)| *v == [0, 1, 2].map(|k| (3 * t + k) as u32)));
+        assert_eq!(
+            corners_of(&stl, 0),
+            [[360.0, 110.0, 10.0], [360.0, 190.0, 10.0], [420.0, 190.0, 10.0]]
+        );
+        assert_eq!(
+            corners_of(&stl, 1),
+            [[360.0, 110.0, 10.0], [420.0, 190.0, 10.0], [420.0, 110.0, 10.0]]
+        );
+        assert_eq!(
+            corners_of(&stl, 11),
+            [[420.0, 110.0, 10.0], [420.0, 190.0, 80.0], [420.0, 110.0, 80.0]]
+        );
+    }
+
+    /// Binary is told from ASCII by size: a binary header that starts with `solid` (as some CAD
+    /// exporters write it) is still binary, even when the triangle count's low byte is a line
+    /// feed (10 triangles) so that the header reads as a text line; a file one byte longer than
+    /// its header announces is not binary, and not text either.
+    #[test]
+    fn binary_stl_is_told_by_its_size_not_its_header() {
+        let tris: Vec<[[f32; 3]; 3]> = (0..10)
+            .map(|k| [[0.0, 0.0, k as f32], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+            .collect();
+        let bin = binary_stl(b"solid part, exported as binary", &tris);
+        let mesh = TriangleMesh::from_stl(&bin).unwrap();
+        assert_eq!(mesh.triangles.len(), 10);
+        for (t, tri) in tris.iter().enumerate() {
+            assert_eq!(corners_of(&mesh, t), *tri);
+        }
+        assert_eq!(
+            TriangleMesh::from_stl(&binary_stl(b"binary", &[])).unwrap_err().0,
+            "binary STL with no facets"
+        );
+        let mut long = binary_stl(b"binary", &tris);
+        long.push(0);
+        assert!(TriangleMesh::from_stl(&long)
+            .unwrap_err()
+            .0
+            .contains("neither binary"));
+    }
+
+    /// ASCII STL: every `vertex` line counts, three to a facet, whatever surrounds them: a
+    /// nameless `solid`, several solids in one file, a missing `endsolid`.
+    #[test]
+    fn ascii_stl_reads_every_facet() {
+        let facet = |z: f32| {
+            format!(
+                "facet normal 0 0 1\nouter loop\nvertex 0 0 {z}\nvertex 1 0 {z}\nvertex 0 1 {z}\nendloop\nendfacet\n"
+            )
+        };
+        let nameless = format!("solid\n{}endsolid\n", facet(0.0));
+        assert_eq!(
+            TriangleMesh::from_stl(nameless.as_bytes())
+                .unwrap()
+                .triangles
+                .len(),
+            1
+        );
+        let two = format!(
+            "solid a\n{}endsolid a\nsolid b\n{}endsolid b\n",
+            facet(0.0),
+            facet(5.0)
+        );
+        let mesh = TriangleMesh::from_stl(two.as_bytes()).unwrap();
+        assert_eq!(mesh.triangles.len(), 2);
+        assert_eq!(corners_of(&mesh, 1)[0], [0.0, 0.0, 5.0]);
+        let open = format!("solid t\n{}", facet(1.0));
+        assert_eq!(
+            TriangleMesh::from_stl(open.as_bytes()).unwrap().triangles.len(),
+            1
+        );
+    }
+
+    /// OBJ: polylines (`l`) are not surfaces, a face needs three corners, coordinates must be
+    /// finite, and errors name the line; texture and normal indices are not checked.
+    #[test]
+    fn obj_reads_faces_only_and_names_the_bad_line() {
+        let tri = "v 0 0 0\nv 1 0 0\nv 0 1 0\n";
+        let with_line = format!("{tri}v 0 0 1\nf 1 2 3\nl 1 2 4\n");
+        assert_eq!(TriangleMesh::from_obj(&with_line).unwrap().triangles.len(), 1);
+        let err = TriangleMesh::from_obj(&format!("{tri}f 1 2 3\nf 1 2\n")).unwrap_err();
+        assert_eq!(err.0, "line 5: a face needs 3 vertices");
+        let err = TriangleMesh::from_obj("v 0 0 0\nv inf 0 0\n").unwrap_err();
+        assert_eq!(err.0, "line 2: coordinate not finite");
+        let err = TriangleMesh::from_obj(&format!("{tri}f 1 2 4\n")).unwrap_err();
+        assert_eq!(err.0, "line 4: face index 4 refers to no vertex (3 so far)");
+        // `v x y z w`: w is ignored (not divided by); `vt`/`vn` indices are not looked up.
+        let mesh = TriangleMesh::from_obj("v 2 2 2 2\nv 1 0 0\nv 0 1 0\nvt 0\nf 1/7 2/7 3/7\n").unwrap();
+        assert_eq!(corners_of(&mesh, 0)[0], [2.0, 2.0, 2.0]);
+        // A material library that is not there does not matter.
+        let mtl = format!("mtllib missing.mtl\n{tri}usemtl red\nf -3 -2 -1\n");
+        assert_eq!(TriangleMesh::from_obj(&mtl).unwrap().triangles.len(), 1);
     }
 }
