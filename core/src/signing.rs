@@ -66,19 +66,31 @@ impl SecretKey {
         &self.0
     }
 
-    /// Reads a key written as 64 hexadecimal digits (either case; white space around them is
-    /// ignored), as `--mavlink-key` files hold it.
-    pub fn from_hex(text: &str) -> Result<Self, KeyError> {
-        let digits = text.trim().as_bytes();
+    /// Reads a key written as 64 hexadecimal digits (either case; ASCII white space around
+    /// them is ignored), as `--mavlink-key` files hold it. A `const fn`, so the firmware reads
+    /// its built-in key at compile time.
+    pub const fn from_hex(text: &str) -> Result<Self, KeyError> {
+        const fn nibble(c: u8) -> Option<u8> {
+            match c {
+                b'0'..=b'9' => Some(c - b'0'),
+                b'a'..=b'f' => Some(c - b'a' + 10),
+                b'A'..=b'F' => Some(c - b'A' + 10),
+                _ => None,
+            }
+        }
+        let mut digits = text.as_bytes().trim_ascii();
         if digits.len() != 64 {
             return Err(KeyError::NotHex64);
         }
         let mut key = [0u8; 32];
-        for (byte, pair) in key.iter_mut().zip(digits.chunks_exact(2)) {
-            let nibble = |c: u8| char::from(c).to_digit(16).ok_or(KeyError::NotHex64);
-            let (&[hi, lo], _) = pair.split_first_chunk::<2>().ok_or(KeyError::NotHex64)?;
-            // Both digits are below 16.
-            *byte = (nibble(hi)? * 16 + nibble(lo)?) as u8;
+        let mut out: &mut [u8] = &mut key;
+        while let ([hi, lo, rest @ ..], [byte, tail @ ..]) = (digits, out) {
+            let (Some(hi), Some(lo)) = (nibble(*hi), nibble(*lo)) else {
+                return Err(KeyError::NotHex64);
+            };
+            *byte = hi << 4 | lo;
+            digits = rest;
+            out = tail;
         }
         Ok(Self(key))
     }

@@ -81,48 +81,23 @@ pub const RETURN_HOME_AFTER_COMPLETE: bool = true;
 /// (see [`harmonic_core::signing`]); without one, neither. A key that is not 64 hex digits
 /// fails the build.
 pub const MAVLINK_KEY: Option<SecretKey> = match option_env!("HARMONIC_FW_MAVLINK_KEY") {
-    Some(hex) => Some(SecretKey::new(parse_key(hex))),
+    Some(hex) => Some(built_in_key(hex)),
     None => None,
 };
 /// Signing streams (system, component, link) the firmware's verifier tells apart: the
 /// autopilot, a ground station or two, and room to spare.
 pub const SIGNING_STREAMS: usize = 8;
 
-/// The 32 bytes of a key written as 64 hex digits (surrounding white space allowed). Runs at
-/// compile time for [`MAVLINK_KEY`]: anything else stops the build there.
-#[allow(
-    clippy::indexing_slicing,
-    reason = "evaluated only for the MAVLINK_KEY constant: an index out of range is a build error, never a run-time panic"
-)]
-const fn parse_key(text: &str) -> [u8; 32] {
-    let bytes = text.as_bytes();
-    let (mut start, mut end) = (0, bytes.len());
-    while start < end && bytes[start].is_ascii_whitespace() {
-        start += 1;
-    }
-    while end > start && bytes[end - 1].is_ascii_whitespace() {
-        end -= 1;
-    }
-    assert!(end - start == 64, "HARMONIC_FW_MAVLINK_KEY: not 64 hex digits");
-    let mut key = [0u8; 32];
-    let mut i = 0;
-    while i < 32 {
-        key[i] = hex_digit(bytes[start + 2 * i]) << 4 | hex_digit(bytes[start + 2 * i + 1]);
-        i += 1;
-    }
-    key
-}
-
+/// The built-in key, read at compile time for [`MAVLINK_KEY`] by the same parser as
+/// `--mavlink-key` files ([`SecretKey::from_hex`]); a bad one stops the build.
 #[allow(
     clippy::panic,
-    reason = "evaluated only for the MAVLINK_KEY constant: the panic is a build error naming the bad key"
+    reason = "evaluated only for the MAVLINK_KEY constant: the panic is a build error naming the variable"
 )]
-const fn hex_digit(c: u8) -> u8 {
-    match c {
-        b'0'..=b'9' => c - b'0',
-        b'a'..=b'f' => c - b'a' + 10,
-        b'A'..=b'F' => c - b'A' + 10,
-        _ => panic!("HARMONIC_FW_MAVLINK_KEY: not 64 hex digits"),
+const fn built_in_key(hex: &str) -> SecretKey {
+    match SecretKey::from_hex(hex) {
+        Ok(key) => key,
+        Err(_) => panic!("HARMONIC_FW_MAVLINK_KEY: not 64 hex digits"),
     }
 }
 
@@ -830,11 +805,11 @@ mod tests {
 
     #[test]
     fn the_build_time_key_reads_as_hex_and_signing_time_follows_the_autopilot() {
-        let key = parse_key("  000102030405060708090a0b0c0d0e0f101112131415161718191A1B1C1D1E1F\n");
-        assert_eq!(key[0], 0);
-        assert_eq!(key[10], 10);
-        assert_eq!(key[31], 31);
-        let mut signing = Signing::new(SecretKey::new(key));
+        let key = built_in_key("  000102030405060708090a0b0c0d0e0f101112131415161718191A1B1C1D1E1F\n");
+        let mut bytes = [0u8; 32];
+        bytes.iter_mut().enumerate().for_each(|(i, b)| *b = i as u8);
+        assert_eq!(key.as_bytes(), &bytes);
+        let mut signing = Signing::new(key);
         assert_eq!(
             signing.now(1500),
             150_000,

@@ -604,45 +604,16 @@ impl<'b> DepthLink<'b> {
                     link::best_rows_per_chunk(width, self.back.ber, self.max_rows_per_chunk);
             }
         }
-        let wire_err = |e: link::LinkError| format!("depth link encoder: {e:?}");
         let frame = DepthFrame::new(sent.intrinsics, &sent.depth).map_err(|e| format!("{e:?}"))?;
-        let mut frames: Vec<Vec<u8>> = Vec::new();
-        let mut scratch = std::mem::take(&mut self.scratch);
-        let mut chunks = 0u32;
-        let mut result = Ok(());
-        if request.wants_pose() {
-            result = self
-                .encoder
-                .encode(&Message::Pose(sent.pose), &mut scratch)
-                .map(|n| frames.push(scratch[..n].to_vec()));
-        }
-        if request.wants_intrinsics() && result.is_ok() {
-            result = self
-                .encoder
-                .encode(&Message::Intrinsics(sent.intrinsics), &mut scratch)
-                .map(|n| frames.push(scratch[..n].to_vec()));
-        }
-        for &rows in request.rows() {
-            if result.is_err() {
-                break;
-            }
-            result = self
-                .encoder
-                .encode_rows(
-                    sent.frame_id,
-                    &frame,
-                    rows,
-                    self.rows_per_chunk,
-                    &mut scratch,
-                    |f| {
-                        chunks += 1;
-                        frames.push(f.to_vec())
-                    },
-                )
-                .map(|_| ());
-        }
-        self.scratch = scratch;
-        result.map_err(wire_err)?;
+        let (frames, chunks) = encode_answer(
+            &mut self.encoder,
+            &mut self.scratch,
+            request,
+            &frame,
+            &sent.pose,
+            self.rows_per_chunk,
+        )
+        .map_err(|e| format!("depth link encoder: {e:?}"))?;
         self.back.chunks_resent += chunks;
         self.back.bytes_resent += frames.iter().map(|f| f.len() as u64).sum::<u64>();
         self.stage_all(&frames);
@@ -814,6 +785,37 @@ impl<'b> DepthLink<'b> {
             ber_estimate: f64::from(self.back.ber),
         }
     }
+}
+
+/// A camera side's answer to `request` for the image `frame` it sent with `pose`: the pose and
+/// the intrinsics if asked for, then the rows asked for in chunks of `rows_per_chunk`, each an
+/// encoded link frame; and how many of them are depth chunks. Used by [`DepthLink`] and by the
+/// processor-in-the-loop camera (`crate::run::pil`).
+pub(crate) fn encode_answer(
+    encoder: &mut LinkEncoder,
+    scratch: &mut [u8],
+    request: &ResendRequest,
+    frame: &DepthFrame<'_>,
+    pose: &link::Pose,
+    rows_per_chunk: u16,
+) -> Result<(Vec<Vec<u8>>, u32), link::LinkError> {
+    let mut frames = Vec::new();
+    if request.wants_pose() {
+        let n = encoder.encode(&Message::Pose(*pose), scratch)?;
+        frames.push(scratch[..n].to_vec());
+    }
+    if request.wants_intrinsics() {
+        let n = encoder.encode(&Message::Intrinsics(*frame.intrinsics()), scratch)?;
+        frames.push(scratch[..n].to_vec());
+    }
+    let mut chunks = 0u32;
+    for &rows in request.rows() {
+        encoder.encode_rows(request.frame_id(), frame, rows, rows_per_chunk, scratch, |f| {
+            chunks += 1;
+            frames.push(f.to_vec());
+        })?;
+    }
+    Ok((frames, chunks))
 }
 
 /// The camera side's bit error rate after the first request (or acknowledgement) for `sent`:

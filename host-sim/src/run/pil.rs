@@ -508,22 +508,11 @@ impl Autopilot {
         };
         self.operator_events.push(OperatorEvent {
             time_s: now_ms as f64 * 1e-3,
-            command: asked.filter(|c| operator_mav_cmd(*c) == command),
+            command: asked.filter(|c| crate::vehicle::autopilot::command_long(*c).0 == command),
             result,
             // The state the firmware announced with the answer (or its latest HEARTBEAT's).
             state: self.operator_state.unwrap_or(OperatorState::Exploring),
         });
-    }
-}
-
-/// The MAV_CMD a ground station sends for `command`.
-fn operator_mav_cmd(command: OperatorCommand) -> harmonic_core::mavlink::common::MavCmd {
-    use harmonic_core::mavlink::common::MavCmd;
-    match command {
-        OperatorCommand::Start => MavCmd::MAV_CMD_MISSION_START,
-        OperatorCommand::Pause | OperatorCommand::Resume => MavCmd::MAV_CMD_DO_PAUSE_CONTINUE,
-        OperatorCommand::Abort => MavCmd::MAV_CMD_NAV_LOITER_UNLIM,
-        OperatorCommand::ReturnHome => MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH,
     }
 }
 
@@ -640,27 +629,17 @@ impl Camera {
         pose: &link::Pose,
     ) -> Result<Vec<u8>, SimError> {
         self.arq.requests_received += 1;
+        let (frames, chunks) = crate::link::depth_link::encode_answer(
+            &mut self.encoder,
+            &mut self.scratch,
+            request,
+            frame,
+            pose,
+            self.rows_per_chunk,
+        )
+        .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
         let mut wire = Vec::new();
-        if request.wants_pose() {
-            self.put(&link::Message::Pose(*pose), &mut wire)?;
-        }
-        if request.wants_intrinsics() {
-            self.put(&link::Message::Intrinsics(*frame.intrinsics()), &mut wire)?;
-        }
-        let mut frames = Vec::new();
-        for &rows in request.rows() {
-            self.encoder
-                .encode_rows(
-                    request.frame_id(),
-                    frame,
-                    rows,
-                    self.rows_per_chunk,
-                    &mut self.scratch,
-                    |b| frames.push(b.to_vec()),
-                )
-                .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
-        }
-        self.arq.chunks_resent += frames.len() as u32;
+        self.arq.chunks_resent += chunks;
         self.arq.bytes_resent += frames.iter().map(|f| f.len() as u64).sum::<u64>();
         for f in frames {
             self.put_frame(&f, &mut wire);

@@ -281,6 +281,17 @@ pub(crate) struct GroundStation {
     signing: Option<LinkSigning>,
 }
 
+/// The MAV_CMD and param1 of the COMMAND_LONG a ground station sends for `command`.
+pub(crate) fn command_long(command: OperatorCommand) -> (common::MavCmd, f32) {
+    match command {
+        OperatorCommand::Start => (common::MavCmd::MAV_CMD_MISSION_START, 0.0),
+        OperatorCommand::Pause => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0),
+        OperatorCommand::Resume => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0),
+        OperatorCommand::Abort => (common::MavCmd::MAV_CMD_NAV_LOITER_UNLIM, 0.0),
+        OperatorCommand::ReturnHome => (common::MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0),
+    }
+}
+
 /// The ground station's ids: QGroundControl's system and MAV_COMP_ID_MISSIONPLANNER.
 const GROUND_STATION: (u8, u8) = (255, 190);
 
@@ -309,13 +320,7 @@ impl GroundStation {
                 break;
             }
             self.next += 1;
-            let (cmd, param1) = match command {
-                OperatorCommand::Start => (common::MavCmd::MAV_CMD_MISSION_START, 0.0),
-                OperatorCommand::Pause => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 0.0),
-                OperatorCommand::Resume => (common::MavCmd::MAV_CMD_DO_PAUSE_CONTINUE, 1.0),
-                OperatorCommand::Abort => (common::MavCmd::MAV_CMD_NAV_LOITER_UNLIM, 0.0),
-                OperatorCommand::ReturnHome => (common::MavCmd::MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0),
-            };
+            let (cmd, param1) = command_long(command);
             let message = MavMessage::COMMAND_LONG(common::COMMAND_LONG_DATA {
                 param1,
                 command: cmd,
