@@ -53,7 +53,9 @@ use serde::Serialize;
 use crate::link::depth_link::LinkReport;
 use crate::link::fault::FaultInjector;
 use crate::run::metrics::GroundTruth;
-use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
+use crate::run::sim::{
+    Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle, CLEARANCE_CAP_M,
+};
 use crate::vehicle::autopilot::{GroundStation, MavlinkReport, OperatorEvent, TrafficReport};
 use crate::vehicle::flight::{FlightEmulator, LinkSigning};
 use crate::world::scenario::Scenario;
@@ -842,6 +844,10 @@ pub fn run(
     };
     let mut depth = Vec::new();
     let (mut path, mut collisions) = (0.0f64, Vec::new());
+    let mut min_clearance = (
+        scenario.world.clearance(&vehicle.position, CLEARANCE_CAP_M),
+        vehicle.position.coords.into(),
+    );
     let mut steps = Vec::new();
     let mut instructions = Vec::new();
     let mut plan_cycles = Vec::new();
@@ -975,6 +981,9 @@ pub fn run(
                 )?;
                 path += leg.distance;
                 collisions.extend(leg.collisions);
+                if leg.min_clearance.0 < min_clearance.0 {
+                    min_clearance = leg.min_clearance;
+                }
             }
         }
         if step == cfg.max_scans && return_start.is_some() {
@@ -1068,6 +1077,8 @@ pub fn run(
         scans: last.frames,
         collisions: collisions.len() as u32,
         collision_points: collisions,
+        min_clearance_m: min_clearance.0,
+        min_clearance_at: min_clearance.1,
         integration_ops: last.integration_ops,
         planning_ops: last.planning_ops,
         flight_time_s: now_ms as f64 * 1e-3,
@@ -1158,7 +1169,10 @@ fn fly(
     cfg: &SimConfig,
     scenario: &Scenario,
 ) -> Result<Leg, SimError> {
-    let mut leg = Leg::default();
+    let mut leg = Leg {
+        min_clearance: (CLEARANCE_CAP_M, vehicle.position.coords.into()),
+        ..Leg::default()
+    };
     let step_len = cfg.max_speed * cfg.dt;
     let yaw_step = cfg.max_yaw_rate * cfg.dt;
     let dt_ms = (f64::from(cfg.dt) * 1e3).round() as u64;
@@ -1194,6 +1208,8 @@ struct Leg {
     distance: f64,
     time: f64,
     collisions: Vec<[f32; 3]>,
+    /// Closest the body's centre came to a surface, metres, and where.
+    min_clearance: (f32, [f32; 3]),
 }
 
 /// Counts collision events: the body sphere *entering* an obstacle, not every step inside it.
@@ -1213,6 +1229,10 @@ impl CollisionWatch {
             leg.collisions.push(p.coords.into());
         }
         self.colliding = now;
+        let c = world.clearance(p, leg.min_clearance.0);
+        if c < leg.min_clearance.0 {
+            leg.min_clearance = (c, p.coords.into());
+        }
     }
 }
 

@@ -422,6 +422,11 @@ pub struct Report {
     pub collisions: u32,
     /// Where each collision began, map frame.
     pub collision_points: Vec<[f32; 3]>,
+    /// Closest the body's centre came to a surface over the run (the exploration and any way
+    /// home), metres, at most [`CLEARANCE_CAP_M`]: less than the body radius is a collision.
+    pub min_clearance_m: f32,
+    /// Where the body's centre was at its closest, map frame.
+    pub min_clearance_at: [f32; 3],
     /// Voxel updates by integration.
     pub integration_ops: u64,
     /// Solver cell updates.
@@ -604,9 +609,15 @@ struct Track {
     distance: f64,
     collisions: Vec<[f32; 3]>,
     colliding: bool,
+    /// Closest the body's centre came to a surface, metres (capped at [`CLEARANCE_CAP_M`]),
+    /// and where.
+    min_clearance: (f32, [f32; 3]),
     /// True positions, one every [`TRACK_SAMPLE_M`] of flight.
     path: Vec<[f32; 3]>,
 }
+
+/// Clearances above this are not measured (the report's `min_clearance_m` is at most this).
+pub const CLEARANCE_CAP_M: f32 = 1.0;
 
 /// Spacing of the recorded true path, metres.
 const TRACK_SAMPLE_M: f32 = 0.05;
@@ -617,6 +628,7 @@ impl Track {
             distance: 0.0,
             collisions: Vec::new(),
             colliding: world.sphere_collides(p, radius),
+            min_clearance: (world.clearance(p, CLEARANCE_CAP_M), p.coords.into()),
             path: vec![p.coords.into()],
         }
     }
@@ -635,6 +647,10 @@ impl Track {
             self.collisions.push(p.coords.into());
         }
         self.colliding = now;
+        let c = world.clearance(p, self.min_clearance.0);
+        if c < self.min_clearance.0 {
+            self.min_clearance = (c, p.coords.into());
+        }
     }
 }
 
@@ -1641,6 +1657,8 @@ pub fn run_observed(
         return_home,
         collisions: track.collisions.len() as u32,
         collision_points: track.collisions,
+        min_clearance_m: track.min_clearance.0,
+        min_clearance_at: track.min_clearance.1,
         integration_ops: status.integration_ops,
         planning_ops: status.planning_ops,
         flight_time_s: rig.t_s,

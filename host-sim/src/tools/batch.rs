@@ -66,10 +66,13 @@ pub struct RunRow {
     pub start: [f32; 3],
     /// Start yaw, degrees.
     pub start_yaw_deg: f32,
+    /// Closest the body's centre came to a surface, metres (`None` in rows written before it
+    /// was recorded).
+    pub min_clearance_m: Option<f64>,
 }
 
 /// The CSV header of `runs.csv`.
-pub const CSV_HEADER: &str = "scenario,planner,seed,termination,path_length_m,scans,coverage_free,coverage_surface,coverage_observed,collisions,integration_ops,planning_ops,planning_ms_per_step,map_accuracy,wall_time_s,start_x,start_y,start_z,start_yaw_deg";
+pub const CSV_HEADER: &str = "scenario,planner,seed,termination,path_length_m,scans,coverage_free,coverage_surface,coverage_observed,collisions,integration_ops,planning_ops,planning_ms_per_step,map_accuracy,wall_time_s,start_x,start_y,start_z,start_yaw_deg,min_clearance_m";
 
 fn clean(s: &str) -> String {
     s.replace([',', '\n', '"'], ";")
@@ -101,13 +104,14 @@ impl RunRow {
             wall_time_s: report.wall_time_s,
             start: scenario.start_position.coords.into(),
             start_yaw_deg: scenario.start_yaw.to_degrees(),
+            min_clearance_m: Some(f64::from(report.min_clearance_m)),
         }
     }
 
     /// The row as a CSV line (no newline).
     pub fn to_csv(&self) -> String {
         format!(
-            "{},{},{},{},{:.3},{},{:.6},{:.6},{:.6},{},{},{},{:.4},{},{:.3},{:.2},{:.2},{:.2},{:.1}",
+            "{},{},{},{},{:.3},{},{:.6},{:.6},{:.6},{},{},{},{:.4},{},{:.3},{:.2},{:.2},{:.2},{:.1},{}",
             clean(&self.scenario),
             clean(&self.planner),
             self.seed,
@@ -127,6 +131,9 @@ impl RunRow {
             self.start[1],
             self.start[2],
             self.start_yaw_deg,
+            self.min_clearance_m
+                .map(|c| format!("{c:.4}"))
+                .unwrap_or_default(),
         )
     }
 
@@ -179,6 +186,11 @@ impl RunRow {
                 num("start_z", get("start_z")?)?,
             ],
             start_yaw_deg: num("start_yaw_deg", get("start_yaw_deg")?)?,
+            // Rows written before the column existed have none.
+            min_clearance_m: match get("min_clearance_m").map(str::trim) {
+                Ok("") | Err(_) => None,
+                Ok(c) => Some(num("min_clearance_m", c)?),
+            },
         })
     }
 }
@@ -836,6 +848,7 @@ mod tests {
             wall_time_s: 1.0,
             start: [1.0, 2.0, 1.0],
             start_yaw_deg: 45.0,
+            min_clearance_m: Some(0.2125),
         }
     }
 
@@ -848,6 +861,12 @@ mod tests {
         let back = RunRow::from_csv(&header, &r.to_csv()).unwrap();
         assert_eq!(back, r);
         assert!(RunRow::from_csv(&header, "a,b").is_err());
+        // Rows from before the clearance column still read, without it.
+        let old: Vec<&str> = header[..header.len() - 1].to_vec();
+        let line = r.to_csv();
+        let older = RunRow::from_csv(&old, line.rsplit_once(',').unwrap().0).unwrap();
+        assert_eq!(older.min_clearance_m, None);
+        assert_eq!(older.path_length_m, r.path_length_m);
     }
 
     #[test]

@@ -168,6 +168,29 @@ impl World {
             || self.first_mesh_within(center, radius).is_some()
     }
 
+    /// Distance from `p` to the nearest surface — box, mesh or the bounds' walls — or `cap`
+    /// if nothing is nearer (0 inside an obstacle or outside the bounds). Meshes are measured
+    /// by bisection on [`World::first_mesh_within`] to 1 mm, so the cap bounds the work.
+    pub fn clearance(&self, p: &Point3<f32>, cap: f32) -> f32 {
+        let to_bounds = (0..3)
+            .map(|i| (p[i] - self.bounds.min[i]).min(self.bounds.max[i] - p[i]))
+            .fold(f32::INFINITY, f32::min);
+        let mut d = self.distance_to_nearest_box(p).min(to_bounds).min(cap).max(0.0);
+        if !self.meshes.is_empty() && d > 0.0 && self.first_mesh_within(p, d).is_some() {
+            let (mut lo, mut hi) = (0.0f32, d);
+            while hi - lo > 1e-3 {
+                let mid = 0.5 * (lo + hi);
+                if self.first_mesh_within(p, mid).is_some() {
+                    hi = mid;
+                } else {
+                    lo = mid;
+                }
+            }
+            d = lo;
+        }
+        d
+    }
+
     /// True if the sphere lies entirely inside `bounds` (touching counts as inside).
     pub fn sphere_inside_bounds(&self, center: &Point3<f32>, radius: f32) -> bool {
         (0..3).all(|i| center[i] - radius >= self.bounds.min[i] && center[i] + radius <= self.bounds.max[i])
@@ -283,6 +306,22 @@ mod tests {
         assert!(w.sphere_collides(&Point3::new(0.2, 1.0, 1.0), 0.5));
         assert!(w.sphere_collides(&Point3::new(1.25, 2.25, 0.8), 0.5));
         assert_eq!(w.first_box_within(&Point3::new(2.7, 1.0, 1.0), 0.5), Some(0));
+    }
+
+    #[test]
+    fn clearance_is_the_distance_to_the_nearest_surface() {
+        let w = room();
+        // Boxes and bounds as in `sphere_collides_with_boxes_and_bounds`.
+        for p in [
+            Point3::new(2.0, 1.0, 1.0),
+            Point3::new(1.25, 2.25, 0.8),
+            Point3::new(0.2, 1.0, 1.0),
+        ] {
+            let d = w.clearance(&p, 10.0);
+            assert!(!w.sphere_collides(&p, d - 1e-3), "{p}: {d}");
+            assert!(w.sphere_collides(&p, d + 1e-3), "{p}: {d}");
+        }
+        assert_eq!(w.clearance(&Point3::new(2.0, 1.0, 1.0), 0.05), 0.05);
     }
 
     #[test]
