@@ -384,6 +384,45 @@ pub fn pull_taut(geometry: &MapGeometry, labels: &[Label], waypoints: &mut [Poin
     visited
 }
 
+/// How close (metres) a vehicle following a path must come to a waypoint before the next one
+/// is its setpoint, on a straight stretch; where the path turns, [`advance_radius`] is less.
+pub const WAYPOINT_ADVANCE_M: f32 = 0.1;
+/// How far a turn's corner may be cut by streaming the next waypoint early, metres: the path
+/// turns round obstacles, so the inside of a corner is where they are.
+pub const CORNER_CUT_M: f32 = 0.02;
+/// Least advance radius at a sharp turn, metres: a real autopilot holds a setpoint to a few
+/// centimetres, and a radius below that would never be met.
+pub const MIN_ADVANCE_M: f32 = 0.03;
+
+/// How close the vehicle must come to `waypoints[i]` before the next waypoint is
+/// the setpoint: [`WAYPOINT_ADVANCE_M`] where the path runs straight on, less where it turns by θ,
+/// so that flying straight at the next waypoint cuts the corner by at most
+/// [`CORNER_CUT_M`] (≈ radius · sin θ; a turn of more than 90° counts as sin θ = 1), and never
+/// less than [`MIN_ADVANCE_M`].
+pub fn advance_radius(waypoints: &[Point3<f32>], i: usize) -> f32 {
+    let (Some(prev), Some(here), Some(next)) = (
+        i.checked_sub(1).and_then(|j| waypoints.get(j)),
+        waypoints.get(i),
+        waypoints.get(i + 1),
+    ) else {
+        return WAYPOINT_ADVANCE_M;
+    };
+    let (din, dout) = (here - prev, next - here);
+    let (lin, lout) = (din.norm(), dout.norm());
+    if lin < 1e-6 || lout < 1e-6 {
+        return WAYPOINT_ADVANCE_M;
+    }
+    let sin = if din.dot(&dout) < 0.0 {
+        1.0
+    } else {
+        din.cross(&dout).norm() / (lin * lout)
+    };
+    if sin * WAYPOINT_ADVANCE_M <= CORNER_CUT_M {
+        WAYPOINT_ADVANCE_M
+    } else {
+        (CORNER_CUT_M / sin).max(MIN_ADVANCE_M)
+    }
+}
 /// True if ψ rises from `a` to `b` by more than rounding: a few ulps of `a`. A dead-end pocket
 /// carries no flux, so its ψ equals its entrance's up to rounding; stepping into it on a
 /// one-ulp "rise" would strand the tracer on a plateau with no way up.
@@ -558,6 +597,30 @@ mod tests {
         let kept = short.clone();
         pull_taut(&g, &labels[..10], &mut short);
         assert_eq!(short, kept);
+    }
+
+    #[test]
+    fn the_next_waypoint_is_taken_early_only_where_that_cuts_no_corner() {
+        let p = |x: f32, y: f32| Point3::new(x, y, 1.0);
+        // Straight on, a gentle bend, a right angle, a hairpin; the ends.
+        let straight = [p(0.0, 0.0), p(0.1, 0.0), p(0.2, 0.0)];
+        assert_eq!(advance_radius(&straight, 1), WAYPOINT_ADVANCE_M);
+        assert_eq!(advance_radius(&straight, 0), WAYPOINT_ADVANCE_M);
+        assert_eq!(advance_radius(&straight, 2), WAYPOINT_ADVANCE_M);
+        let gentle = [p(0.0, 0.0), p(0.1, 0.0), p(0.2, 0.01)];
+        assert_eq!(advance_radius(&gentle, 1), WAYPOINT_ADVANCE_M);
+        let right = [p(0.0, 0.0), p(1.0, 0.0), p(1.0, 1.0)];
+        assert!((advance_radius(&right, 1) - MIN_ADVANCE_M).abs() < 1e-6);
+        let hairpin = [p(0.0, 0.0), p(1.0, 0.0), p(0.0, 0.1)];
+        assert!((advance_radius(&hairpin, 1) - MIN_ADVANCE_M).abs() < 1e-6);
+        // 30°: sin = 0.5, so the radius that cuts 2 cm is 4 cm.
+        let thirty = [p(0.0, 0.0), p(1.0, 0.0), p(1.0 + 0.866_025_4, 0.5)];
+        assert!((advance_radius(&thirty, 1) - 0.04).abs() < 1e-4);
+        // Repeated points do not divide by zero.
+        assert_eq!(
+            advance_radius(&[p(0.0, 0.0), p(0.0, 0.0), p(1.0, 0.0)], 1),
+            WAYPOINT_ADVANCE_M
+        );
     }
 
     #[test]

@@ -40,7 +40,7 @@ use harmonic_core::mavlink::{
 use harmonic_core::operator::OperatorState;
 use harmonic_core::signing::{SecretKey, Signer, Verifier, VerifierCounters};
 use harmonic_core::solve::Bf16;
-use harmonic_core::streamline::Waypoints;
+use harmonic_core::streamline::{advance_radius, Waypoints};
 use nalgebra::Point3;
 
 /// Voxels along x of the firmware's grid.
@@ -234,7 +234,8 @@ pub enum Event {
 }
 
 /// Follows a plan's waypoints one setpoint at a time: the first waypoint the vehicle is not yet
-/// within [`Follower::ADVANCE_M`] of, with the heading of travel towards it, and at the last
+/// within [`advance_radius`](harmonic_core::streamline::advance_radius) of (less where the path
+/// turns, so corners are not cut), with the heading of travel towards it, and at the last
 /// one the goal's yaw.
 #[derive(Debug, Clone, Default)]
 pub struct Follower {
@@ -247,9 +248,6 @@ pub struct Follower {
 }
 
 impl Follower {
-    /// How close (metres) the vehicle must come to a waypoint before the next is streamed.
-    pub const ADVANCE_M: f32 = 0.1;
-
     /// Starts following `waypoints` to `goal`.
     pub fn follow(&mut self, waypoints: &[Point3<f32>], goal: &Goal) {
         self.waypoints.clear();
@@ -283,7 +281,7 @@ impl Follower {
             && self
                 .waypoints
                 .get(self.next)
-                .is_some_and(|w| (w - position).norm() < Self::ADVANCE_M)
+                .is_some_and(|w| (w - position).norm() < advance_radius(&self.waypoints, self.next))
         {
             self.next += 1;
         }

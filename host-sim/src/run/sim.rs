@@ -24,7 +24,7 @@
 //!
 //! With [`SimConfig::mavlink`] the vehicle is not handed the waypoints. The core's `Bridge`
 //! streams them as MAVLink setpoints (the next waypoint along the plan, advancing within
-//! [`WAYPOINT_ADVANCE_M`]) to the autopilot ([`crate::vehicle::autopilot`]): the in-process
+//! [`advance_radius`]) to the autopilot ([`crate::vehicle::autopilot`]): the in-process
 //! flight-stack emulator, which the vehicle follows, or a real autopilot over UDP, which flies
 //! the vehicle itself (time is then the wall clock, and the vehicle is wherever the autopilot
 //! says). The explorer plans from, and the depth frames are stamped with, the pose the bridge
@@ -74,12 +74,10 @@ use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
 use crate::vehicle::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::world::scenario::Scenario;
 use crate::world::World;
+use harmonic_core::streamline::advance_radius;
 
 /// Steps in a row without a depth frame after which the run gives up (`stuck:link`).
 pub const LINK_DEAD_STEPS: u32 = 100;
-/// How close (metres) the believed position must come to a waypoint before the next one is
-/// streamed.
-pub const WAYPOINT_ADVANCE_M: f32 = 0.1;
 /// Against a remote autopilot: how long to wait for a fresh pose before giving up, s.
 pub const REMOTE_POSE_TIMEOUT_S: f64 = 15.0;
 /// Against a remote autopilot: a leg in which the vehicle makes no progress for this long
@@ -983,7 +981,7 @@ impl Rig<'_> {
     }
 
     /// Flies one leg over MAVLink: streams the next waypoint along `waypoints` as the setpoint
-    /// (advancing when the bridge's pose is within [`WAYPOINT_ADVANCE_M`] of it), lets the
+    /// (advancing when the bridge's pose is within [`advance_radius`] of it), lets the
     /// vehicle follow the autopilot for at most `budget` metres, and on reaching the end turns
     /// to the goal yaw. At the end of the budget the setpoint becomes the believed position.
     fn fly_mavlink(
@@ -1020,7 +1018,7 @@ impl Rig<'_> {
             while next + 1 < waypoints.len()
                 && waypoints
                     .get(next)
-                    .is_some_and(|w| (w - position).norm() < WAYPOINT_ADVANCE_M)
+                    .is_some_and(|w| (w - position).norm() < advance_radius(waypoints, next))
             {
                 next += 1;
             }
