@@ -137,6 +137,8 @@ pub struct CellResult {
     pub coverage_free: f64,
     /// Collision events (must be 0).
     pub collisions: u32,
+    /// Closest the body's centre came to a surface, metres.
+    pub min_clearance_m: f32,
     /// Depth frames sent by the camera side.
     pub frames_sent: u32,
     /// Depth frames the core integrated.
@@ -189,6 +191,7 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
                 termination: format!("error: {e}"),
                 coverage_free: 0.0,
                 collisions: 0,
+                min_clearance_m: f32::NAN,
                 frames_sent: 0,
                 frames_integrated: 0,
                 frames_lost: 0,
@@ -248,6 +251,7 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
         termination: report.termination,
         coverage_free: report.coverage_free,
         collisions: report.collisions,
+        min_clearance_m: report.min_clearance_m,
         frames_sent: report.link.depth_frames_sent,
         frames_integrated: report.link.depth_frames_integrated,
         frames_lost: report.link.depth_frames_lost,
@@ -261,7 +265,7 @@ fn summarise(cell: Cell, report: Result<sim::Report, SimError>) -> CellResult {
 /// The results as a Markdown table (the one in docs/RELIABILITY.md).
 pub fn table(results: &[CellResult]) -> String {
     let mut out = String::from(
-        "| cell | termination | free coverage | collisions | frames sent / integrated / lost | integrated partial (rows missing) | resend requests / chunks resent | STATUSTEXTs | non-zero error counters |\n|---|---|---|---|---|---|---|---|---|\n",
+        "| cell | termination | free coverage | collisions | closest approach | frames sent / integrated / lost | integrated partial (rows missing) | resend requests / chunks resent | STATUSTEXTs | non-zero error counters |\n|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in results {
         let counters = r
@@ -271,11 +275,12 @@ pub fn table(results: &[CellResult]) -> String {
             .collect::<Vec<_>>()
             .join(", ");
         out.push_str(&format!(
-            "| {} | {} | {:.2} % | {} | {} / {} / {} | {} ({}) | {} / {} | {} | {} |\n",
+            "| {} | {} | {:.2} % | {} | {:.3} m | {} / {} / {} | {} ({}) | {} / {} | {} | {} |\n",
             r.cell.name,
             r.termination,
             r.coverage_free * 100.0,
             r.collisions,
+            r.min_clearance_m,
             r.frames_sent,
             r.frames_integrated,
             r.frames_lost,
