@@ -20,9 +20,12 @@
 //!    horizontally with a running sum.
 //! 3. **Winner takes all** over `d ∈ 0..num_disparities` (fewer near the left border, where
 //!    the right window would leave the image).
-//! 4. **Texture**: the mean horizontal gradient `|I(x+1) − I(x−1)|` of the (prefiltered) left
-//!    image over the centre window must reach [`StereoParams::min_texture`]; flat regions are
-//!    invalid rather than garbage.
+//! 4. **Texture** (off by default): the mean horizontal gradient `|I(x+1) − I(x−1)|` of the
+//!    (prefiltered) left image over the centre window must reach [`StereoParams::min_texture`].
+//!    Flat regions are invalid rather than garbage without it: their costs tie across
+//!    disparities, so the uniqueness test (5) rejects them. A threshold of even one grey level
+//!    after the DoG rejected a fifth of a real pair's pixels, most of them matched right
+//!    (docs: BENCHMARKS.md, "Stereo matcher").
 //! 5. **Uniqueness** (thesis Eq. 3.29): the best cost `C1` and the best cost `C2` not adjacent
 //!    to it must satisfy `C2 > C1 · (1 + uniqueness_percent / 100)`.
 //! 6. **Sub-pixel**: a parabola through the minimum and its two neighbours.
@@ -161,7 +164,7 @@ pub struct StereoParams {
     /// Left–right check tolerance, pixels; `None` turns the check off.
     pub lr_max_diff: Option<u8>,
     /// Minimum mean horizontal gradient of the (prefiltered) left image over the centre
-    /// window, grey levels; 0 turns the test off.
+    /// window, grey levels; 0 (the default) turns the test off.
     pub min_texture: u8,
     /// Blobs of at most this many pixels are removed; 0 turns speckle removal off.
     pub speckle_size: u16,
@@ -173,8 +176,8 @@ pub struct StereoParams {
 
 impl StereoParams {
     /// Defaults for a `width × height` pair: 11 × 11 windows, 10 % uniqueness, left–right
-    /// tolerance 1 px, minimum texture 2 grey levels, speckles up to 1/256 of the image
-    /// (20–2000 px) within 1 px, DoG σ 1.0/1.6.
+    /// tolerance 1 px, no texture threshold, speckles up to 1/256 of the image (20–2000 px)
+    /// within 1 px, DoG σ 1.0/1.6.
     pub fn new(width: u16, height: u16, num_disparities: u16) -> Self {
         let pixels = u32::from(width) * u32::from(height);
         Self {
@@ -184,7 +187,7 @@ impl StereoParams {
             window: 11,
             uniqueness_percent: 10,
             lr_max_diff: Some(1),
-            min_texture: 2,
+            min_texture: 0,
             speckle_size: (pixels >> 8).clamp(20, 2000) as u16,
             speckle_range: DISPARITY_SCALE as u16,
             prefilter: Prefilter::DEFAULT_DOG,

@@ -262,10 +262,18 @@ fn textureless_regions_are_invalid_not_garbage() {
             pair.right[y * pair.w + x - 6] = 128;
         }
     }
-    for prefilter in [Prefilter::None, Prefilter::DEFAULT_DOG] {
+    for (prefilter, min_texture) in [
+        (Prefilter::None, 0),
+        (Prefilter::DEFAULT_DOG, 0),
+        (Prefilter::None, 2),
+        (Prefilter::DEFAULT_DOG, 2),
+    ] {
+        // The defaults (no texture threshold): the band's costs tie across disparities and
+        // the uniqueness test rejects it; with a threshold, the texture test does first.
         let params = StereoParams {
             prefilter,
             window: 7,
+            min_texture,
             ..StereoParams::new(96, 64, 16)
         };
         let (disparity, stats) = run(params, &pair);
@@ -279,8 +287,13 @@ fn textureless_regions_are_invalid_not_garbage() {
                 }
             }
         }
-        assert_eq!(valid, 0, "{prefilter:?}: {stats:?}");
-        assert!(stats.textureless > 0);
+        assert_eq!(valid, 0, "{prefilter:?}, texture {min_texture}: {stats:?}");
+        if min_texture > 0 {
+            assert!(stats.textureless > 0, "{stats:?}");
+        } else {
+            assert_eq!(stats.textureless, 0);
+            assert!(stats.ambiguous > 0, "{stats:?}");
+        }
     }
 }
 
