@@ -126,7 +126,7 @@ impl Prefilter {
     };
 
     /// Kernel radius, or 0 without a prefilter.
-    fn radius(&self) -> Result<usize, StereoError> {
+    pub fn radius(&self) -> Result<usize, StereoError> {
         match *self {
             Prefilter::None => Ok(0),
             Prefilter::DoG {
@@ -197,6 +197,14 @@ impl StereoParams {
     /// Half the window side, `r`.
     fn half(&self) -> usize {
         usize::from(self.window >> 1)
+    }
+
+    /// Rows above and below an output row that its disparity depends on: the match
+    /// footprint's `2r` plus the prefilter's radius. A band of rows matched on its own with
+    /// this many more rows on each side (clipped to the image) gets exactly the disparities
+    /// the whole image gives those rows, before speckle removal.
+    pub fn context_rows(&self) -> Result<usize, StereoError> {
+        Ok(2 * self.half() + self.prefilter.radius()?)
     }
 
     /// Checks every parameter.
@@ -344,6 +352,8 @@ pub struct StereoMatcher<'a> {
     rows_in: usize,
     rows_filtered: usize,
     stats: StereoStats,
+    /// Output rows `[from, to)` the statistics count ([`StereoMatcher::count_rows`]).
+    counted: (usize, usize),
 }
 
 impl<'a> StereoMatcher<'a> {
@@ -416,6 +426,7 @@ impl<'a> StereoMatcher<'a> {
             rows_in: 0,
             rows_filtered: 0,
             stats: StereoStats::default(),
+            counted: (0, usize::MAX),
         }
         .reset())
     }
@@ -440,6 +451,20 @@ impl<'a> StereoMatcher<'a> {
     /// The parameters.
     pub fn params(&self) -> &StereoParams {
         &self.params
+    }
+
+    /// Counts only output rows `from..to` in the statistics (all rows by default). For a band
+    /// of a larger image matched on its own — its rows plus [`StereoParams::context_rows`] above
+    /// and below, which give the band's rows exactly the whole image's disparities — the
+    /// overlap rows belong to the neighbouring bands, so counting only the band's own rows
+    /// makes the bands' statistics add up to the whole image's (speckles and `valid` apart,
+    /// which the caller takes from one speckle pass over the joined image).
+    pub fn count_rows(&mut self, from: usize, to: usize) {
+        self.counted = (from, to);
+    }
+
+    fn counts(&self, row: usize) -> bool {
+        row >= self.counted.0 && row < self.counted.1
     }
 
     /// Rows of the disparity image written so far (all rows above this one are final, except
@@ -505,8 +530,9 @@ impl<'a> StereoMatcher<'a> {
         let first = self.h.saturating_sub(2 * self.r);
         if let Some(tail) = disparity.get_mut(first * self.w..) {
             tail.fill(INVALID_DISPARITY);
-            self.stats.border += tail.len() as u32;
         }
+        let counted_tail = (first..self.h).filter(|&row| self.counts(row)).count();
+        self.stats.border += (counted_tail * self.w) as u32;
         let removed = filter_speckles(
             disparity,
             self.params.width,
@@ -516,7 +542,12 @@ impl<'a> StereoMatcher<'a> {
             self.speckle,
         )?;
         self.stats.speckles = removed;
-        self.stats.valid = disparity.iter().filter(|&&d| d >= 0).count() as u32;
+        self.stats.valid = disparity
+            .chunks_exact(self.w)
+            .enumerate()
+            .filter(|&(row, _)| self.counts(row))
+            .map(|(_, row)| row.iter().filter(|&&d| d >= 0).count() as u32)
+            .sum();
         Ok(self.stats)
     }
 
@@ -618,11 +649,15 @@ impl<'a> StereoMatcher<'a> {
         let Some(out) = disparity.get_mut(y * w..(y + 1) * w) else {
             return;
         };
+        let before = self.stats;
         if y < 2 * r {
             out.fill(INVALID_DISPARITY);
             self.stats.border += w as u32;
         } else {
             self.match_row(out);
+        }
+        if !self.counts(y) {
+            self.stats = before;
         }
     }
 

@@ -78,6 +78,10 @@ pub struct StereoArgs {
     /// Middlebury non-occlusion mask (PNG, 255 = visible in both views): evaluate only there.
     #[arg(long, requires = "gt")]
     mask: Option<PathBuf>,
+    /// Match in this many horizontal bands at once, one per thread (0: one per core). The
+    /// result is the same for any number.
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
     #[command(flatten)]
     matcher: MatcherArgs,
 }
@@ -148,16 +152,21 @@ pub fn run_match(args: &StereoArgs) -> Result<(), String> {
         return Err(format!("left is {w}x{h}, right is {wr}x{hr}"));
     }
     let params = args.matcher.params(w, h);
-    let mut buffers = st::MatcherBuffers::new(&params)?;
-    // One match, timed as it is (fresh memory included): what a user's process pays.
+    let bands = if args.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        args.threads
+    };
+    // One match, timed as it is (fresh memory and the threads' start included): what a
+    // user's process pays.
     let t0 = std::time::Instant::now();
-    let (disparity, stats) = st::match_pair(params, &left, &right, &mut buffers)?;
+    let (disparity, stats) = st::match_pair_bands(params, &left, &right, bands)?;
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     let disparity = st::disparity_to_f32(&disparity);
     st::write_disparity(&args.out, w, h, &disparity)?;
     let n = f64::from(w) * f64::from(h);
     println!(
-        "{w}x{h}, {} disparities, window {}: {:.1} ms ({:.2} ns per pixel-disparity); {:.1} % of pixels matched",
+        "{w}x{h}, {} disparities, window {}: {:.1} ms on {bands} thread(s) ({:.2} ns per pixel-disparity); {:.1} % of pixels matched",
         params.num_disparities,
         params.window,
         ms,
