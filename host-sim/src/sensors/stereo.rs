@@ -825,22 +825,22 @@ mod tests {
         assert_eq!((masked.evaluated, masked.valid), (2, 2));
     }
 
-    #[test]
-    fn bands_give_exactly_the_whole_image_result() {
-        let scenario = Scenario::builtin("office").unwrap();
+    /// The default rig's pair from a built-in scenario's start, with `noise` grey levels.
+    fn pair_at_start(scenario: &str, noise: f32, seed: u64) -> StereoPair {
+        let scenario = Scenario::builtin(scenario).unwrap();
         let rig = StereoRig::default();
         let k = rig
             .render_intrinsics(&crate::sensors::camera::DepthCamera::default_thesis().intrinsics)
             .unwrap();
+        assert_eq!((k.width(), k.height()), (200, 200));
         let pose = crate::sensors::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
-        let pair = render_pair(
-            &scenario.world,
-            &k,
-            &pose,
-            rig.baseline_m,
-            1.0,
-            &mut ChaCha8Rng::seed_from_u64(9),
-        );
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        render_pair(&scenario.world, &k, &pose, rig.baseline_m, noise, &mut rng)
+    }
+
+    #[test]
+    fn bands_give_exactly_the_whole_image_result() {
+        let pair = pair_at_start("office", 1.0, 9);
         for (prefilter, window) in [
             (Prefilter::DEFAULT_DOG, 7),
             (Prefilter::None, 11),
@@ -875,15 +875,7 @@ mod tests {
 
     #[test]
     fn rendered_pairs_are_textured_and_shifted_by_the_true_disparity() {
-        let scenario = Scenario::builtin("apartment").unwrap();
-        let rig = StereoRig::default();
-        let k = rig
-            .render_intrinsics(&crate::sensors::camera::DepthCamera::default_thesis().intrinsics)
-            .unwrap();
-        assert_eq!((k.width(), k.height()), (200, 200));
-        let pose = crate::sensors::camera::camera_pose(&scenario.start_position, scenario.start_yaw);
-        let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let pair = render_pair(&scenario.world, &k, &pose, rig.baseline_m, 0.0, &mut rng);
+        let pair = pair_at_start("apartment", 0.0, 3);
         // Texture: neighbouring pixels differ.
         let steps = pair.left.windows(2).filter(|p| p[0] != p[1]).count();
         assert!(steps > pair.left.len() / 2, "{steps}");
