@@ -146,6 +146,68 @@ impl GroundTruth {
     }
 }
 
+/// Clearances above this are not measured (a report's `min_clearance_m` is at most this), metres.
+pub const CLEARANCE_CAP_M: f32 = 1.0;
+
+/// What the true world says of a moving body, position by position: collision events (the body
+/// sphere *entering* an obstacle, not every step inside it) and its closest approach. One
+/// [`World::clearance`] per position answers both; only within 2 mm of touching does the
+/// collision test look again with [`World::sphere_collides`], so that a mesh's clearance,
+/// bisected to 1 mm, cannot decide it.
+#[derive(Debug, Clone)]
+pub struct Contact<'w> {
+    world: &'w World,
+    radius: f32,
+    colliding: bool,
+    /// Where each collision began, map frame.
+    pub collisions: Vec<[f32; 3]>,
+    /// Closest the body's centre came to a surface, metres (at most [`CLEARANCE_CAP_M`]), and
+    /// where.
+    pub closest: (f32, [f32; 3]),
+}
+
+impl<'w> Contact<'w> {
+    /// A body of `radius` starting at `p` in `world` (already touching counts as no new
+    /// collision).
+    pub fn start(world: &'w World, p: &Point3<f32>, radius: f32) -> Self {
+        let c = world.clearance(p, CLEARANCE_CAP_M.max(radius + TOUCH_MARGIN_M));
+        Self {
+            world,
+            radius,
+            colliding: touching(world, p, radius, c),
+            collisions: Vec::new(),
+            closest: (c.min(CLEARANCE_CAP_M), p.coords.into()),
+        }
+    }
+
+    /// The body is now at `p`.
+    pub fn observe(&mut self, p: &Point3<f32>) {
+        // Nearer than the closest so far, or touching, is all that needs an exact distance.
+        let c = self
+            .world
+            .clearance(p, self.closest.0.max(self.radius + TOUCH_MARGIN_M));
+        let now = touching(self.world, p, self.radius, c);
+        if now && !self.colliding {
+            self.collisions.push(p.coords.into());
+        }
+        self.colliding = now;
+        if c < self.closest.0 {
+            self.closest = (c, p.coords.into());
+        }
+    }
+}
+
+/// Within this of the body radius, [`Contact`] decides a collision with the exact sphere test.
+const TOUCH_MARGIN_M: f32 = 2e-3;
+
+fn touching(world: &World, p: &Point3<f32>, radius: f32, clearance: f32) -> bool {
+    if (clearance - radius).abs() < TOUCH_MARGIN_M {
+        world.sphere_collides(p, radius)
+    } else {
+        clearance < radius
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

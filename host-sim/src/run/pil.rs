@@ -52,10 +52,8 @@ use serde::Serialize;
 
 use crate::link::depth_link::LinkReport;
 use crate::link::fault::FaultInjector;
-use crate::run::metrics::GroundTruth;
-use crate::run::sim::{
-    Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle, CLEARANCE_CAP_M,
-};
+use crate::run::metrics::{Contact, GroundTruth};
+use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
 use crate::vehicle::autopilot::{GroundStation, MavlinkReport, OperatorEvent, TrafficReport};
 use crate::vehicle::flight::{FlightEmulator, LinkSigning};
 use crate::world::scenario::Scenario;
@@ -843,11 +841,8 @@ pub fn run(
         cfg.replan_distance
     };
     let mut depth = Vec::new();
-    let (mut path, mut collisions) = (0.0f64, Vec::new());
-    let mut min_clearance = (
-        scenario.world.clearance(&vehicle.position, CLEARANCE_CAP_M),
-        vehicle.position.coords.into(),
-    );
+    let mut path = 0.0f64;
+    let mut contact = Contact::start(&scenario.world, &vehicle.position, cfg.body_radius);
     let mut steps = Vec::new();
     let mut instructions = Vec::new();
     let mut plan_cycles = Vec::new();
@@ -977,13 +972,9 @@ pub fn run(
                     &mut now_ms,
                     budget,
                     cfg,
-                    scenario,
+                    &mut contact,
                 )?;
                 path += leg.distance;
-                collisions.extend(leg.collisions);
-                if leg.min_clearance.0 < min_clearance.0 {
-                    min_clearance = leg.min_clearance;
-                }
             }
         }
         if step == cfg.max_scans && return_start.is_some() {
@@ -1075,10 +1066,10 @@ pub fn run(
         free_marked_occupied: coverage.free_marked_occupied,
         path_length_m: explored_path,
         scans: last.frames,
-        collisions: collisions.len() as u32,
-        collision_points: collisions,
-        min_clearance_m: min_clearance.0,
-        min_clearance_at: min_clearance.1,
+        collisions: contact.collisions.len() as u32,
+        collision_points: contact.collisions,
+        min_clearance_m: contact.closest.0,
+        min_clearance_at: contact.closest.1,
         integration_ops: last.integration_ops,
         planning_ops: last.planning_ops,
         flight_time_s: now_ms as f64 * 1e-3,
@@ -1160,6 +1151,7 @@ struct PilReturnStart {
 
 /// Flies one leg: ticks until the vehicle has flown `budget` metres, or stands at the
 /// firmware's setpoint facing its yaw, or [`MAX_TICKS_PER_LEG`] passed.
+/// `contact` watches the body on the way.
 fn fly(
     board: &mut Board,
     autopilot: &mut Autopilot,
@@ -1167,16 +1159,12 @@ fn fly(
     now_ms: &mut u64,
     budget: f32,
     cfg: &SimConfig,
-    scenario: &Scenario,
+    contact: &mut Contact<'_>,
 ) -> Result<Leg, SimError> {
-    let mut leg = Leg {
-        min_clearance: (CLEARANCE_CAP_M, vehicle.position.coords.into()),
-        ..Leg::default()
-    };
+    let mut leg = Leg::default();
     let step_len = cfg.max_speed * cfg.dt;
     let yaw_step = cfg.max_yaw_rate * cfg.dt;
     let dt_ms = (f64::from(cfg.dt) * 1e3).round() as u64;
-    let mut watch = CollisionWatch::start(&scenario.world, &vehicle.position, cfg.body_radius);
     let mut travelled = 0.0f32;
     let mut previous = None;
     for _ in 0..MAX_TICKS_PER_LEG {
@@ -1197,7 +1185,7 @@ fn fly(
         vehicle.slew_yaw(sp.yaw, yaw_step);
         *now_ms += dt_ms;
         leg.time += f64::from(cfg.dt);
-        watch.check(&scenario.world, &vehicle.position, cfg.body_radius, &mut leg);
+        contact.observe(&vehicle.position);
     }
     Ok(leg)
 }
@@ -1207,33 +1195,6 @@ fn fly(
 struct Leg {
     distance: f64,
     time: f64,
-    collisions: Vec<[f32; 3]>,
-    /// Closest the body's centre came to a surface, metres, and where.
-    min_clearance: (f32, [f32; 3]),
-}
-
-/// Counts collision events: the body sphere *entering* an obstacle, not every step inside it.
-struct CollisionWatch {
-    colliding: bool,
-}
-
-impl CollisionWatch {
-    fn start(world: &crate::world::World, p: &nalgebra::Point3<f32>, radius: f32) -> Self {
-        Self {
-            colliding: world.sphere_collides(p, radius),
-        }
-    }
-    fn check(&mut self, world: &crate::world::World, p: &nalgebra::Point3<f32>, radius: f32, leg: &mut Leg) {
-        let now = world.sphere_collides(p, radius);
-        if now && !self.colliding {
-            leg.collisions.push(p.coords.into());
-        }
-        self.colliding = now;
-        let c = world.clearance(p, leg.min_clearance.0);
-        if c < leg.min_clearance.0 {
-            leg.min_clearance = (c, p.coords.into());
-        }
-    }
 }
 
 /// The scenario's world must lie inside the firmware's grid, at its resolution.

@@ -67,7 +67,7 @@ use serde::Serialize;
 use crate::link::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, HostStorage, Planner, PlannerKind};
-use crate::run::metrics::{Coverage, GroundTruth};
+use crate::run::metrics::{Contact, Coverage, GroundTruth};
 use crate::sensors::camera::DepthCamera;
 use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
 use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
@@ -421,7 +421,8 @@ pub struct Report {
     /// Where each collision began, map frame.
     pub collision_points: Vec<[f32; 3]>,
     /// Closest the body's centre came to a surface over the run (the exploration and any way
-    /// home), metres, at most [`CLEARANCE_CAP_M`]: less than the body radius is a collision.
+    /// home), metres, at most [`CLEARANCE_CAP_M`](crate::run::metrics::CLEARANCE_CAP_M): less
+    /// than the body radius is a collision.
     pub min_clearance_m: f32,
     /// Where the body's centre was at its closest, map frame.
     pub min_clearance_at: [f32; 3],
@@ -601,37 +602,27 @@ fn travel_heading(seg: &nalgebra::Vector3<f32>) -> Option<f32> {
     (horizontal > 0.2 * seg.norm()).then(|| seg.y.atan2(seg.x))
 }
 
-/// The vehicle's track over the run: distance flown and collision events (the body sphere
-/// *entering* an obstacle, not every step inside it).
-struct Track {
+/// The vehicle's track over the run: distance flown, collisions and closest approach.
+struct Track<'w> {
     distance: f64,
-    collisions: Vec<[f32; 3]>,
-    colliding: bool,
-    /// Closest the body's centre came to a surface, metres (capped at [`CLEARANCE_CAP_M`]),
-    /// and where.
-    min_clearance: (f32, [f32; 3]),
+    contact: Contact<'w>,
     /// True positions, one every [`TRACK_SAMPLE_M`] of flight.
     path: Vec<[f32; 3]>,
 }
 
-/// Clearances above this are not measured (the report's `min_clearance_m` is at most this).
-pub const CLEARANCE_CAP_M: f32 = 1.0;
-
 /// Spacing of the recorded true path, metres.
 const TRACK_SAMPLE_M: f32 = 0.05;
 
-impl Track {
-    fn start(world: &World, p: &Point3<f32>, radius: f32) -> Self {
+impl<'w> Track<'w> {
+    fn start(world: &'w World, p: &Point3<f32>, radius: f32) -> Self {
         Self {
             distance: 0.0,
-            collisions: Vec::new(),
-            colliding: world.sphere_collides(p, radius),
-            min_clearance: (world.clearance(p, CLEARANCE_CAP_M), p.coords.into()),
+            contact: Contact::start(world, p, radius),
             path: vec![p.coords.into()],
         }
     }
 
-    fn moved(&mut self, world: &World, p: &Point3<f32>, radius: f32, distance: f32) {
+    fn moved(&mut self, p: &Point3<f32>, distance: f32) {
         self.distance += f64::from(distance);
         if self
             .path
@@ -640,22 +631,8 @@ impl Track {
         {
             self.path.push(p.coords.into());
         }
-        let now = world.sphere_collides(p, radius);
-        if now && !self.colliding {
-            self.collisions.push(p.coords.into());
-        }
-        self.colliding = now;
-        let c = world.clearance(p, self.min_clearance.0);
-        if c < self.min_clearance.0 {
-            self.min_clearance = (c, p.coords.into());
-        }
+        self.contact.observe(p);
     }
-}
-
-/// What the flight helpers read: the settings and the true world.
-struct Scene<'a> {
-    cfg: &'a SimConfig,
-    world: &'a World,
 }
 
 /// Where the way home began: the exploration's numbers at that moment.
@@ -768,7 +745,7 @@ impl Rig<'_> {
     fn capture(
         &mut self,
         vehicle: &mut Vehicle,
-        scene: &Scene<'_>,
+        cfg: &SimConfig,
         track: &mut Track,
     ) -> Result<Capture, SimError> {
         if self.mav.is_none() {
@@ -784,7 +761,7 @@ impl Rig<'_> {
         let start = self.t_s;
         let pose = loop {
             self.pull(vehicle)?;
-            let believed = self.believed_pose(vehicle, scene, track)?;
+            let believed = self.believed_pose(vehicle, track)?;
             let Some(mav) = self.mav.as_ref() else {
                 return Err(SimError::Mavlink("no MAVLink link".into()));
             };
@@ -798,13 +775,13 @@ impl Rig<'_> {
                     timing: None,
                 });
             };
-            let limit = scene.cfg.explorer.max_frame_yaw_rate;
+            let limit = cfg.explorer.max_frame_yaw_rate;
             let turning = pose.yaw_rate.is_some_and(|r| r.abs() > limit);
             if !turning || self.t_s - start >= SETTLE_S {
                 break pose;
             }
             let moved = self.exchange(vehicle, 0.0, 0.0)?;
-            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+            track.moved(&vehicle.position, moved);
             self.advance()?;
         };
         let now = self.now_ms();
@@ -895,7 +872,6 @@ impl Rig<'_> {
     fn believed_pose(
         &mut self,
         vehicle: &mut Vehicle,
-        scene: &Scene<'_>,
         track: &mut Track,
     ) -> Result<(Point3<f32>, f32), SimError> {
         let start = self.t_s;
@@ -910,7 +886,7 @@ impl Rig<'_> {
                 Err(e) if self.t_s - start > REMOTE_POSE_TIMEOUT_S => return Err(SimError::Mavlink(e)),
                 Err(_) => {
                     let moved = self.exchange(vehicle, 0.0, 0.0)?;
-                    track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+                    track.moved(&vehicle.position, moved);
                     self.advance()?;
                     if self.wall.is_some() {
                         crate::vehicle::autopilot::nap();
@@ -925,14 +901,14 @@ impl Rig<'_> {
     fn wait_for_link(
         &mut self,
         vehicle: &mut Vehicle,
-        scene: &Scene<'_>,
+        cfg: &SimConfig,
         track: &mut Track,
     ) -> Result<(), SimError> {
-        let step = scene.cfg.max_speed * scene.cfg.dt;
-        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
+        let step = cfg.max_speed * cfg.dt;
+        let yaw_step = cfg.max_yaw_rate * cfg.dt;
         while self.link.sending() {
             let moved = self.exchange(vehicle, step, yaw_step)?;
-            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+            track.moved(&vehicle.position, moved);
             self.advance()?;
         }
         self.link.settle().map_err(SimError::Link)
@@ -946,11 +922,11 @@ impl Rig<'_> {
         waypoints: &[Point3<f32>],
         goal: &Goal,
         budget: f32,
-        scene: &Scene<'_>,
+        cfg: &SimConfig,
         track: &mut Track,
     ) -> Result<(), SimError> {
-        let step_len = scene.cfg.max_speed * scene.cfg.dt;
-        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
+        let step_len = cfg.max_speed * cfg.dt;
+        let yaw_step = cfg.max_yaw_rate * cfg.dt;
         let mut travelled = 0.0f32;
         for w in waypoints {
             loop {
@@ -966,7 +942,7 @@ impl Rig<'_> {
                 }
                 let s = vehicle.step_towards(w, step_len.min(budget - travelled));
                 travelled += s;
-                track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, s);
+                track.moved(&vehicle.position, s);
                 self.advance()?;
             }
         }
@@ -990,11 +966,11 @@ impl Rig<'_> {
         waypoints: &[Point3<f32>],
         goal: &Goal,
         budget: f32,
-        scene: &Scene<'_>,
+        cfg: &SimConfig,
         track: &mut Track,
     ) -> Result<(), SimError> {
-        let step_len = scene.cfg.max_speed * scene.cfg.dt;
-        let yaw_step = scene.cfg.max_yaw_rate * scene.cfg.dt;
+        let step_len = cfg.max_speed * cfg.dt;
+        let yaw_step = cfg.max_yaw_rate * cfg.dt;
         let mut travelled = 0.0f32;
         let mut next = 0usize;
         // Yaw of the current setpoint: along the segment towards the waypoint, as fixed when
@@ -1055,7 +1031,7 @@ impl Rig<'_> {
             if travelled > last_progress.1 + 0.01 {
                 last_progress = (self.t_s, travelled);
             }
-            track.moved(scene.world, &vehicle.position, scene.cfg.body_radius, moved);
+            track.moved(&vehicle.position, moved);
             self.advance()?;
         }
         Ok(())
@@ -1228,7 +1204,6 @@ pub fn run_observed(
         yaw: scenario.start_yaw,
     };
     let world = &scenario.world;
-    let scene = Scene { cfg, world };
     let mut depth = Vec::new();
     let mut link_buffer = vec![0u16; cfg.camera.intrinsics.pixel_count()];
     let link = DepthLink::open(&cfg.link, &cfg.camera.intrinsics, &mut link_buffer, cfg.seed)
@@ -1269,7 +1244,7 @@ pub fn run_observed(
     rig.exchange(&mut vehicle, 0.0, 0.0)?;
     if remote {
         // The vehicle starts wherever the autopilot says.
-        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &mut track)?;
         vehicle.position = position;
         vehicle.yaw = yaw;
         track = Track::start(world, &vehicle.position, cfg.body_radius);
@@ -1300,7 +1275,7 @@ pub fn run_observed(
         taken = step;
         // The camera sees the world from where the vehicle truly is at the frame's instant; the
         // frame is stamped with the pose the core believes for that instant.
-        let capture = rig.capture(&mut vehicle, &scene, &mut track)?;
+        let capture = rig.capture(&mut vehicle, cfg, &mut track)?;
         let (position, yaw) = match &drift {
             Some(d) => d.believed(&capture.believed.0, capture.believed.1),
             None => capture.believed,
@@ -1323,11 +1298,11 @@ pub fn run_observed(
         rig.link
             .send_image(step, &frame, &forward_camera_pose(&position, yaw))
             .map_err(SimError::Link)?;
-        rig.wait_for_link(&mut vehicle, &scene, &mut track)?;
+        rig.wait_for_link(&mut vehicle, cfg, &mut track)?;
         // Selective retransmission: ask for what is missing while rounds are left, then take
         // the image with the rows that came.
         while rig.link.request_missing(step).map_err(SimError::Link)? {
-            rig.wait_for_link(&mut vehicle, &scene, &mut track)?;
+            rig.wait_for_link(&mut vehicle, cfg, &mut track)?;
         }
         rig.link.finish_frame();
 
@@ -1377,7 +1352,7 @@ pub fn run_observed(
         }
 
         // Plan from where the vehicle is now (it may have drifted while the frame was sent).
-        let (position, yaw) = rig.believed_pose(&mut vehicle, &scene, &mut track)?;
+        let (position, yaw) = rig.believed_pose(&mut vehicle, &mut track)?;
         let (position, yaw) = match &drift {
             Some(d) => d.believed(&position, yaw),
             None => (position, yaw),
@@ -1501,9 +1476,9 @@ pub fn run_observed(
                     escape: false,
                 };
                 if rig.mav.is_some() {
-                    rig.fly_mavlink(&mut vehicle, &[position], &turn, budget, &scene, &mut track)?;
+                    rig.fly_mavlink(&mut vehicle, &[position], &turn, budget, cfg, &mut track)?;
                 } else {
-                    rig.fly_direct(&mut vehicle, &[], &turn, budget, &scene, &mut track)?;
+                    rig.fly_direct(&mut vehicle, &[], &turn, budget, cfg, &mut track)?;
                 }
                 continue;
             }
@@ -1575,9 +1550,9 @@ pub fn run_observed(
                     goal.yaw = d.to_true_yaw(goal.yaw);
                 }
                 if rig.mav.is_some() {
-                    rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
+                    rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, cfg, &mut track)?;
                 } else {
-                    rig.fly_direct(&mut vehicle, &waypoints, &goal, budget, &scene, &mut track)?;
+                    rig.fly_direct(&mut vehicle, &waypoints, &goal, budget, cfg, &mut track)?;
                 }
             }
         }
@@ -1653,10 +1628,10 @@ pub fn run_observed(
         scans: status.frames,
         steps_taken: explored_steps,
         return_home,
-        collisions: track.collisions.len() as u32,
-        collision_points: track.collisions,
-        min_clearance_m: track.min_clearance.0,
-        min_clearance_at: track.min_clearance.1,
+        collisions: track.contact.collisions.len() as u32,
+        min_clearance_m: track.contact.closest.0,
+        min_clearance_at: track.contact.closest.1,
+        collision_points: track.contact.collisions,
         integration_ops: status.integration_ops,
         planning_ops: status.planning_ops,
         flight_time_s: rig.t_s,
