@@ -23,9 +23,9 @@
 //! 4. **Texture** (off by default): the mean horizontal gradient `|I(x+1) − I(x−1)|` of the
 //!    (prefiltered) left image over the centre window must reach [`StereoParams::min_texture`].
 //!    Flat regions are invalid rather than garbage without it: their costs tie across
-//!    disparities, so the uniqueness test (5) rejects them. A threshold of even one grey level
-//!    after the DoG rejected a fifth of a real pair's pixels, most of them matched right
-//!    (docs: BENCHMARKS.md, "Stereo matcher").
+//!    disparities, so the uniqueness test (5) rejects them. The old default of 2 grey levels
+//!    after the DoG rejected a sixth of a real pair's pixels, most of them matched right
+//!    (BENCHMARKS.md, "A real pair: Middlebury 2014 motorcycle").
 //! 5. **Uniqueness** (thesis Eq. 3.29): the best cost `C1` and the best cost `C2` not adjacent
 //!    to it must satisfy `C2 > C1 · (1 + uniqueness_percent / 100)`.
 //! 6. **Sub-pixel**: a parabola through the minimum and its two neighbours.

@@ -137,7 +137,8 @@ pub struct CellResult {
     pub coverage_free: f64,
     /// Collision events (must be 0).
     pub collisions: u32,
-    /// Closest the body's centre came to a surface, metres.
+    /// Closest the body's centre came to a surface, metres (NaN, `null` in JSON, if the cell
+    /// could not run).
     pub min_clearance_m: f32,
     /// Depth frames sent by the camera side.
     pub frames_sent: u32,
@@ -275,12 +276,17 @@ pub fn table(results: &[CellResult]) -> String {
             .collect::<Vec<_>>()
             .join(", ");
         out.push_str(&format!(
-            "| {} | {} | {:.2} % | {} | {:.3} m | {} / {} / {} | {} ({}) | {} / {} | {} | {} |\n",
+            "| {} | {} | {:.2} % | {} | {} | {} / {} / {} | {} ({}) | {} / {} | {} | {} |\n",
             r.cell.name,
             r.termination,
             r.coverage_free * 100.0,
             r.collisions,
-            r.min_clearance_m,
+            // A cell that could not run has no closest approach.
+            if r.min_clearance_m.is_finite() {
+                format!("{:.3} m", r.min_clearance_m)
+            } else {
+                "–".into()
+            },
             r.frames_sent,
             r.frames_integrated,
             r.frames_lost,
