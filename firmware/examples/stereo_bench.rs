@@ -25,8 +25,8 @@ mod bench {
     const H: usize = 100;
     const NDISP: u16 = 64;
     /// Scratch for the largest configuration measured (11 × 11 windows, DoG of radius 5).
-    const BYTES: usize = 2 * (4 * 5 + 2) * W;
-    const HALFWORDS: usize = 6 * W * NDISP as usize + NDISP as usize + 4 * 11 * W;
+    const BYTES: usize = 2 * (3 * 5 + 2) * W;
+    const HALFWORDS: usize = 12 * W * NDISP as usize + 4 * 11 * W;
     const WORDS: usize = NDISP as usize + 5 * W + 2 * (W * H).div_ceil(32) + 2000 + 1;
     /// Instructions per tick of the board timer under `-icount shift=0`.
     const INSTRUCTIONS_PER_TICK: u64 = 40;

@@ -15,9 +15,10 @@
 //!    large window. The footprint of one match is therefore `2·window − 1` pixels square
 //!    (21 × 21 for the default 11 × 11 windows).
 //!    Window sums are running box sums, so the work is O(width · height · disparities) for any
-//!    window size: per row, three vertical running sums (for the window rows centred at
-//!    `y − r`, `y` and `y + r`) are updated by one row in and one row out, then summed
-//!    horizontally with a running sum.
+//!    window size: per row, one vertical running sum over the last `2r + 1` rows is updated by
+//!    one row in and one row out and summed horizontally with a running sum into a ring of the
+//!    last `2r + 1` rows of window sums, from which the centre window (rows centred at `y`) and
+//!    the neighbours (centred at `y ± r`) are read.
 //! 3. **Winner takes all** over `d ∈ 0..num_disparities` (fewer near the left border, where
 //!    the right window would leave the image).
 //! 4. **Texture** (off by default): the mean horizontal gradient `|I(x+1) − I(x−1)|` of the
@@ -47,20 +48,20 @@
 //! ## Streaming and memory
 //!
 //! [`StereoMatcher::push_row`] takes one left and one right row at a time; the matcher keeps
-//! only a ring of `4r + 2` prefiltered rows (plus `2k + 1` rows per Gaussian of radius `k`
+//! only a ring of `3r + 2` prefiltered rows (plus `2k + 1` rows per Gaussian of radius `k`
 //! for the prefilter), so a microcontroller never holds whole images. Output row `y` is
 //! written into the caller's disparity image as soon as row `y + 2r` (plus the prefilter's
 //! `k`) has arrived; [`StereoMatcher::finish`] writes the last rows and removes speckles.
 //! All storage is borrowed ([`StereoScratch`], sized by [`scratch_size`]):
 //!
-//! - `u16`: `6 · W · D + D` for the three vertical and three horizontal window sums, plus
-//!   `4 · (2k + 1) · W` with the DoG prefilter;
-//! - `u8`: `2 · (4r + 2) · W` for the row rings;
+//! - `u16`: `(2r + 2) · W · D` for the vertical window sums and the ring of `2r + 1` rows of
+//!   window sums, plus `4 · (2k + 1) · W` with the DoG prefilter;
+//! - `u8`: `2 · (3r + 2) · W` for the row rings;
 //! - `u32`: `D + 3 · W` per-row work (`+ 2 · W` with the prefilter), plus
 //!   `2 · ⌈W·H/32⌉ + speckle_size + 1` for speckle removal (two bits per pixel; 0 without it).
 //!
 //! With `W` the width and `D` the disparity range: 100 × 100 px, 64 disparities, 11 × 11
-//! windows and DoG (σ 1.0/1.6, k = 5) need 93 KiB; without the speckle bitmaps, which grow
+//! windows and DoG (σ 1.0/1.6, k = 5) need 169 KiB; without the speckle bitmaps, which grow
 //! with the height, the matcher's memory is `O(W · D)`.
 
 pub mod prefilter;
@@ -268,8 +269,8 @@ pub fn scratch_size(params: &StereoParams) -> Result<ScratchSize, StereoError> {
         0
     };
     Ok(ScratchSize {
-        bytes: 2 * (4 * r + 2) * w,
-        halfwords: 6 * w * d + d + filter,
+        bytes: 2 * (3 * r + 2) * w,
+        halfwords: (2 * r + 2) * w * d + filter,
         words: d + 3 * w + dog + speckle,
     })
 }
@@ -332,11 +333,11 @@ pub struct StereoMatcher<'a> {
     r: usize,
     ring_rows: usize,
     kernels: Option<(Kernel, Kernel, usize)>,
-    /// Vertical window sums at rows `y − r`, `y`, `y + r` (`[x][d]`).
-    vsum: [&'a mut [u16]; 3],
-    /// Their horizontal box sums.
-    boxes: [&'a mut [u16]; 3],
-    acc: &'a mut [u16],
+    /// Vertical window sums over the last `2r + 1` rows (`[x][d]`).
+    vsum: &'a mut [u16],
+    /// Ring of `2r + 1` rows of window sums (`[row][x][d]`): the vertical sums summed
+    /// horizontally, the row being the window's top row.
+    boxes: &'a mut [u16],
     /// Prefilter rings: left small, left large, right small, right large.
     filter: [&'a mut [u16]; 4],
     ring_left: &'a mut [u8],
@@ -372,7 +373,7 @@ impl<'a> StereoMatcher<'a> {
             usize::from(params.num_disparities),
         );
         let r = params.half();
-        let ring_rows = 4 * r + 2;
+        let ring_rows = 3 * r + 2;
         let k = params.prefilter.radius()?;
         let kernels = match params.prefilter {
             Prefilter::None => None,
@@ -397,17 +398,8 @@ impl<'a> StereoMatcher<'a> {
             r,
             ring_rows,
             kernels,
-            vsum: [
-                take(&mut hw, w * nd)?,
-                take(&mut hw, w * nd)?,
-                take(&mut hw, w * nd)?,
-            ],
-            boxes: [
-                take(&mut hw, w * nd)?,
-                take(&mut hw, w * nd)?,
-                take(&mut hw, w * nd)?,
-            ],
-            acc: take(&mut hw, nd)?,
+            vsum: take(&mut hw, w * nd)?,
+            boxes: take(&mut hw, (2 * r + 1) * w * nd)?,
             filter: [
                 take(&mut hw, frows)?,
                 take(&mut hw, frows)?,
@@ -439,9 +431,7 @@ impl<'a> StereoMatcher<'a> {
 
     /// Starts a new image pair in place.
     pub fn restart(&mut self) {
-        for v in self.vsum.iter_mut() {
-            v.fill(0);
-        }
+        self.vsum.fill(0);
         self.texture.fill(0);
         self.rows_in = 0;
         self.rows_filtered = 0;
@@ -566,20 +556,15 @@ impl<'a> StereoMatcher<'a> {
             (&**rs, &**rl, self.ring_right.get_mut(slot..slot + w)),
         ] {
             let Some(out) = out else { continue };
-            self.dog_small.fill(0);
-            self.dog_large.fill(0);
-            for (i, (&ws, &wl)) in small.taps().iter().zip(large.taps()).enumerate() {
-                let src = (p + i).saturating_sub(k).min(h - 1);
-                let at = ring_slot(src, frows) * w;
-                for (acc, ring, weight) in [
-                    (&mut *self.dog_small, ring_small, ws),
-                    (&mut *self.dog_large, ring_large, wl),
-                ] {
-                    let row = ring.get(at..at + w).unwrap_or(&[]);
-                    for (a, &v) in acc.iter_mut().zip(row) {
-                        *a += u32::from(weight) * u32::from(v);
-                    }
-                }
+            for (kernel, ring, acc) in [
+                (&small, ring_small, &mut *self.dog_small),
+                (&large, ring_large, &mut *self.dog_large),
+            ] {
+                let rows = |i: usize| {
+                    let at = ring_slot((p + i).saturating_sub(k).min(h - 1), frows) * w;
+                    ring.get(at..at + w).unwrap_or(&[])
+                };
+                prefilter::vertical(kernel, rows, acc);
             }
             for (o, (&a, &b)) in out
                 .iter_mut()
@@ -613,23 +598,25 @@ impl<'a> StereoMatcher<'a> {
     fn ingest(&mut self, p: usize, disparity: &mut [i16]) {
         let (w, nd, r, rr) = (self.w, self.nd, self.r, self.ring_rows);
         let win = 2 * r + 1;
-        // Vertical sums: top (rows y−2r..=y), mid (y−r..=y+r), bottom (y..=y+2r), y = p − 2r.
-        for (vsum, lag) in self.vsum.iter_mut().zip([2 * r, r, 0]) {
-            let Some(add) = p.checked_sub(lag) else { continue };
-            let sub = add.checked_sub(win);
-            let (ln, rn) = (
-                Self::ring_row(self.ring_left, add, rr, w),
-                Self::ring_row(self.ring_right, add, rr, w),
-            );
-            match sub {
-                None => add_row(vsum, nd, ln, rn),
-                Some(sub) => {
-                    let (lo, ro) = (
-                        Self::ring_row(self.ring_left, sub, rr, w),
-                        Self::ring_row(self.ring_right, sub, rr, w),
-                    );
-                    slide_row(vsum, nd, ln, rn, lo, ro);
-                }
+        // Vertical sums over rows p − 2r..=p, then the window sums of that band of rows.
+        let (ln, rn) = (
+            Self::ring_row(self.ring_left, p, rr, w),
+            Self::ring_row(self.ring_right, p, rr, w),
+        );
+        match p.checked_sub(win) {
+            None => add_row(self.vsum, nd, ln, rn),
+            Some(sub) => {
+                let (lo, ro) = (
+                    Self::ring_row(self.ring_left, sub, rr, w),
+                    Self::ring_row(self.ring_right, sub, rr, w),
+                );
+                slide_row(self.vsum, nd, ln, rn, lo, ro);
+            }
+        }
+        if let Some(top) = p.checked_sub(2 * r) {
+            let slot = ring_slot(top, win) * w * nd;
+            if let Some(boxes) = self.boxes.get_mut(slot..slot + w * nd) {
+                box_row(self.vsum, boxes, w, nd, r);
             }
         }
         // Texture: vertical sums of the left gradient over the centre window's rows.
@@ -654,20 +641,23 @@ impl<'a> StereoMatcher<'a> {
             out.fill(INVALID_DISPARITY);
             self.stats.border += w as u32;
         } else {
-            self.match_row(out);
+            self.match_row(y, out);
         }
         if !self.counts(y) {
             self.stats = before;
         }
     }
 
-    /// Matches one row from the three vertical sums.
-    fn match_row(&mut self, out: &mut [i16]) {
+    /// Matches output row `y` (`2r ≤ y`) from the ring of window sums: the centre windows are
+    /// row `y − r`'s sums, the neighbours rows `y − 2r` and `y`'s.
+    fn match_row(&mut self, y: usize, out: &mut [i16]) {
         let (w, nd, r) = (self.w, self.nd, self.r);
         let win = 2 * r + 1;
-        for (v, s) in self.vsum.iter().zip(self.boxes.iter_mut()) {
-            box_row(v, s, self.acc, w, nd, r);
-        }
+        let row = |top: usize| {
+            let slot = ring_slot(top, win) * w * nd;
+            self.boxes.get(slot..slot + w * nd).unwrap_or(&[])
+        };
+        let (top, mid, bottom) = (row(y - 2 * r), row(y - r), row(y));
         out.fill(INVALID_DISPARITY);
         self.right_best.fill(u32::MAX);
         self.left_best.fill(NO_MATCH);
@@ -676,7 +666,6 @@ impl<'a> StereoMatcher<'a> {
         let uniq = u64::from(self.params.uniqueness_percent) + 100;
         // Texture of the centre window at x: running horizontal sum of the vertical sums.
         let mut tex: u32 = self.texture.iter().skip(r).take(2 * r).sum();
-        let [top, mid, bottom] = &self.boxes;
         for x in 2 * r..w - 2 * r {
             tex = tex
                 .wrapping_add(self.texture.get(x + r).copied().unwrap_or(0))
@@ -711,12 +700,10 @@ impl<'a> StereoMatcher<'a> {
                 self.stats.textureless += 1;
                 continue;
             }
-            let c2 = costs
-                .iter()
-                .enumerate()
-                .filter(|&(d, _)| d + 1 < d1 || d > d1 + 1)
-                .map(|(_, &c)| c)
-                .min();
+            // The best cost not adjacent to d1: below d1 − 1 and above d1 + 1.
+            let below = costs.get(..d1.saturating_sub(1)).unwrap_or(&[]);
+            let above = costs.get(d1 + 2..).unwrap_or(&[]);
+            let c2 = below.iter().chain(above).copied().min();
             if c2.is_some_and(|c2| u64::from(c2) * 100 <= u64::from(c1) * uniq) {
                 self.stats.ambiguous += 1;
                 continue;
@@ -778,12 +765,11 @@ fn gradient(row: &[u8], x: usize) -> u32 {
     }
 }
 
-/// Sum of the two smallest of four.
+/// Sum of the two smallest of four: the cheapest pair is `a, b`, `c, d`, or the smaller of
+/// each.
 #[inline(always)]
 fn best_two(a: u32, b: u32, c: u32, d: u32) -> u32 {
-    let (lo1, hi1) = (a.min(b), a.max(b));
-    let (lo2, hi2) = (c.min(d), c.max(d));
-    lo1.min(lo2) + lo1.max(lo2).min(hi1.min(hi2))
+    (a + b).min(c + d).min(a.min(b) + c.min(d))
 }
 
 /// `vsum[x][d] += |L[x] − R[x − d]|` for `d ≤ x`.
@@ -808,27 +794,29 @@ fn slide_row(vsum: &mut [u16], nd: usize, left: &[u8], right: &[u8], old_left: &
 }
 
 /// Horizontal running box sums of width `2r + 1`: `boxes[c] = Σ vsum[c−r..=c+r]` for
-/// `c ∈ r..w−r` (wrapping arithmetic is exact: true sums fit in `u16`).
-fn box_row(vsum: &[u16], boxes: &mut [u16], acc: &mut [u16], w: usize, nd: usize, r: usize) {
-    acc.fill(0);
+/// `c ∈ r..w−r`, each column from the one before it (wrapping arithmetic is exact: true sums
+/// fit in `u16`).
+fn box_row(vsum: &[u16], boxes: &mut [u16], w: usize, nd: usize, r: usize) {
+    let Some(first) = boxes.get_mut(r * nd..(r + 1) * nd) else {
+        return;
+    };
+    first.fill(0);
     for c in 0..2 * r + 1 {
-        for (a, &v) in acc.iter_mut().zip(column(vsum, c, nd)) {
+        for (a, &v) in first.iter_mut().zip(column(vsum, c, nd)) {
             *a = a.wrapping_add(v);
         }
     }
-    if let Some(b) = boxes.get_mut(r * nd..(r + 1) * nd) {
-        b.copy_from_slice(acc);
-    }
     for c in r + 1..w - r {
-        for ((a, &add), &sub) in acc
-            .iter_mut()
-            .zip(column(vsum, c + r, nd))
-            .zip(column(vsum, c - r - 1, nd))
+        let (done, rest) = boxes.split_at_mut(c * nd);
+        let prev = done.get(done.len() - nd..).unwrap_or(&[]);
+        let cur = rest.get_mut(..nd).unwrap_or(&mut []);
+        for (((b, &p), &add), &sub) in
+            cur.iter_mut()
+                .zip(prev)
+                .zip(column(vsum, c + r, nd))
+                .zip(column(vsum, c - r - 1, nd))
         {
-            *a = a.wrapping_add(add).wrapping_sub(sub);
-        }
-        if let Some(b) = boxes.get_mut(c * nd..(c + 1) * nd) {
-            b.copy_from_slice(acc);
+            *b = p.wrapping_sub(sub).wrapping_add(add);
         }
     }
 }
