@@ -8,6 +8,11 @@
 //! slanted background plane (disparity 12 px at the top to 28 px at the bottom) and a square
 //! at 40 px in front of it, both with smooth random texture. Under `-icount shift=0` one
 //! board tick is 40 instructions.
+//!
+//! Each configuration is matched twice: with the DSP instructions (`UQSUB8`, `UXTAB16`; the
+//! core's `dsp` feature, which the firmware turns on), timed, and with the portable code,
+//! timed too; the two disparity images must be identical (`identical=1`), and the core's
+//! own check of the two cost updates on random rows must pass (`dsp_agrees=1`).
 #![cfg_attr(target_os = "none", no_std)]
 #![cfg_attr(target_os = "none", no_main)]
 
@@ -15,8 +20,8 @@
 mod bench {
     use cortex_m_rt::entry;
     use harmonic_core::stereo::{
-        disparity_to_depth_mm, scratch_size, Prefilter, StereoGeometry, StereoMatcher, StereoParams,
-        StereoScratch,
+        disparity_to_depth_mm, dsp_agrees, scratch_size, Prefilter, StereoGeometry, StereoMatcher,
+        StereoParams, StereoScratch,
     };
     use harmonic_fw::board::halt;
     use harmonic_fw::board::timer::Ticks;
@@ -26,8 +31,9 @@ mod bench {
     const NDISP: u16 = 64;
     /// Scratch for the largest configuration measured (11 × 11 windows, DoG of radius 5).
     const BYTES: usize = 2 * (3 * 5 + 2) * W;
-    const HALFWORDS: usize = 12 * W * NDISP as usize + 4 * 11 * W;
-    const WORDS: usize = NDISP as usize + 5 * W + 2 * (W * H).div_ceil(32) + 2000 + 1;
+    const HALFWORDS: usize = 4 * 11 * W;
+    const WORDS: usize =
+        12 * W * NDISP as usize / 2 + NDISP as usize + 5 * W + 2 * (W * H).div_ceil(32) + 2000 + 1;
     /// Instructions per tick of the board timer under `-icount shift=0`.
     const INSTRUCTIONS_PER_TICK: u64 = 40;
     /// The square in front: columns and rows 30..70 of the left image, disparity 40 px.
@@ -100,6 +106,8 @@ mod bench {
         right: [u8; W * H],
         truth: [i16; W * H],
         disparity: [i16; W * H],
+        /// The same match by the portable code.
+        portable: [i16; W * H],
         depth: [u16; W * H],
     }
 
@@ -117,6 +125,7 @@ mod bench {
             right: [0; W * H],
             truth: [0; W * H],
             disparity: [0; W * H],
+            portable: [0; W * H],
             depth: [0; W * H],
         };
         static mut SCRATCH: Scratch = Scratch {
@@ -129,6 +138,7 @@ mod bench {
             right,
             truth,
             disparity,
+            portable,
             depth,
         } = FRAME;
         let Scratch {
@@ -140,6 +150,7 @@ mod bench {
         // SAFETY: the only user of timer 0.
         let ticks = unsafe { Ticks::start() };
         synthesize(left, right, truth);
+        semihosting::println!("stereo_check dsp_agrees={}", u8::from(dsp_agrees()));
         let Ok(geometry) = StereoGeometry::new(130.3, 0.12) else {
             halt(2)
         };
@@ -180,6 +191,16 @@ mod bench {
             let (Ok(stats), true, Ok(())) = (stats, pushed, converted) else {
                 halt(3)
             };
+            // The same frame by the portable cost update.
+            let t3 = ticks.now();
+            matcher.restart();
+            matcher.use_dsp(false);
+            for (l, r) in left.chunks_exact(W).zip(right.chunks_exact(W)) {
+                pushed &= matcher.push_row(l, r, &mut portable[..]).is_ok();
+            }
+            let portable_stats = matcher.finish(&mut portable[..]);
+            let t4 = ticks.now();
+            let identical = pushed && portable_stats == Ok(stats) && portable[..] == disparity[..];
             // Accuracy on the pixels the right camera sees.
             let (mut known, mut valid, mut bad1) = (0u32, 0u32, 0u32);
             for (&d, &t) in disparity.iter().zip(truth.iter()) {
@@ -193,7 +214,7 @@ mod bench {
                 }
             }
             semihosting::println!(
-                "stereo width={} height={} ndisp={} window={} prefilter={} scratch_bytes={} match_instructions={} depth_instructions={} valid={} known={} bad1={}",
+                "stereo width={} height={} ndisp={} window={} prefilter={} scratch_bytes={} match_instructions={} depth_instructions={} valid={} known={} bad1={} portable_instructions={} identical={}",
                 W,
                 H,
                 NDISP,
@@ -204,7 +225,9 @@ mod bench {
                 (t2 - t1) * INSTRUCTIONS_PER_TICK,
                 valid,
                 known,
-                bad1
+                bad1,
+                (t4 - t3) * INSTRUCTIONS_PER_TICK,
+                u8::from(identical)
             );
             let _ = stats;
         }

@@ -64,9 +64,11 @@
 //! windows and DoG (σ 1.0/1.6, k = 5) need 169 KiB; without the speckle bitmaps, which grow
 //! with the height, the matcher's memory is `O(W · D)`.
 
+mod lanes;
 pub mod prefilter;
 pub mod speckle;
 
+pub use lanes::dsp_agrees;
 pub use speckle::{filter_speckles, speckle_scratch_words};
 
 use prefilter::Kernel;
@@ -268,10 +270,11 @@ pub fn scratch_size(params: &StereoParams) -> Result<ScratchSize, StereoError> {
     } else {
         0
     };
+    let lanes = lanes::lanes(d);
     Ok(ScratchSize {
         bytes: 2 * (3 * r + 2) * w,
-        halfwords: (2 * r + 2) * w * d + filter,
-        words: d + 3 * w + dog + speckle,
+        halfwords: filter,
+        words: (2 * r + 2) * w * (lanes >> 1) + lanes + 3 * w + dog + speckle,
     })
 }
 
@@ -333,11 +336,15 @@ pub struct StereoMatcher<'a> {
     r: usize,
     ring_rows: usize,
     kernels: Option<(Kernel, Kernel, usize)>,
-    /// Vertical window sums over the last `2r + 1` rows (`[x][d]`).
-    vsum: &'a mut [u16],
-    /// Ring of `2r + 1` rows of window sums (`[row][x][d]`): the vertical sums summed
+    /// Words per column of packed sums ([`lanes`]).
+    cw: usize,
+    /// Vertical window sums over the last `2r + 1` rows (`[x][lanes]`).
+    vsum: &'a mut [u32],
+    /// Ring of `2r + 1` rows of window sums (`[row][x][lanes]`): the vertical sums summed
     /// horizontally, the row being the window's top row.
-    boxes: &'a mut [u16],
+    boxes: &'a mut [u32],
+    /// Use the DSP instructions where the build has them.
+    dsp: bool,
     /// Prefilter rings: left small, left large, right small, right large.
     filter: [&'a mut [u16]; 4],
     ring_left: &'a mut [u8],
@@ -389,7 +396,9 @@ impl<'a> StereoMatcher<'a> {
         let (mut b, mut hw, mut wd) = (scratch.bytes, scratch.halfwords, scratch.words);
         let frows = if k > 0 { (2 * k + 1) * w } else { 0 };
         let dog = if k > 0 { w } else { 0 };
-        let speckle_words = need.words - (nd + 3 * w + 2 * dog);
+        let lanes = lanes::lanes(nd);
+        let cw = lanes >> 1;
+        let speckle_words = need.words - ((2 * r + 2) * w * cw + lanes + 3 * w + 2 * dog);
         Ok(Self {
             params,
             w,
@@ -398,8 +407,10 @@ impl<'a> StereoMatcher<'a> {
             r,
             ring_rows,
             kernels,
-            vsum: take(&mut hw, w * nd)?,
-            boxes: take(&mut hw, (2 * r + 1) * w * nd)?,
+            cw,
+            vsum: take(&mut wd, w * cw)?,
+            boxes: take(&mut wd, (2 * r + 1) * w * cw)?,
+            dsp: true,
             filter: [
                 take(&mut hw, frows)?,
                 take(&mut hw, frows)?,
@@ -408,7 +419,7 @@ impl<'a> StereoMatcher<'a> {
             ],
             ring_left: take(&mut b, ring_rows * w)?,
             ring_right: take(&mut b, ring_rows * w)?,
-            pixel_costs: take(&mut wd, nd)?,
+            pixel_costs: take(&mut wd, lanes)?,
             right_best: take(&mut wd, w)?,
             left_best: take(&mut wd, w)?,
             texture: take(&mut wd, w)?,
@@ -436,6 +447,14 @@ impl<'a> StereoMatcher<'a> {
         self.rows_in = 0;
         self.rows_filtered = 0;
         self.stats = StereoStats::default();
+    }
+
+    /// Chooses the Cortex-M4/M7 DSP instructions for the per-row cost update (the default, in
+    /// builds with the `dsp` feature for an Arm target) or the portable code (`false`; the
+    /// only path elsewhere). Both give the same disparities, bit for bit; this is for checking
+    /// that on the target.
+    pub fn use_dsp(&mut self, on: bool) {
+        self.dsp = on;
     }
 
     /// The parameters.
@@ -596,7 +615,7 @@ impl<'a> StereoMatcher<'a> {
     /// Prefiltered row `p` is in the rings: update the running sums and write output row
     /// `p − 2r`.
     fn ingest(&mut self, p: usize, disparity: &mut [i16]) {
-        let (w, nd, r, rr) = (self.w, self.nd, self.r, self.ring_rows);
+        let (w, cw, r, rr) = (self.w, self.cw, self.r, self.ring_rows);
         let win = 2 * r + 1;
         // Vertical sums over rows p − 2r..=p, then the window sums of that band of rows.
         let (ln, rn) = (
@@ -604,19 +623,19 @@ impl<'a> StereoMatcher<'a> {
             Self::ring_row(self.ring_right, p, rr, w),
         );
         match p.checked_sub(win) {
-            None => add_row(self.vsum, nd, ln, rn),
+            None => lanes::add_row(self.vsum, cw, ln, rn),
             Some(sub) => {
                 let (lo, ro) = (
                     Self::ring_row(self.ring_left, sub, rr, w),
                     Self::ring_row(self.ring_right, sub, rr, w),
                 );
-                slide_row(self.vsum, nd, ln, rn, lo, ro);
+                lanes::slide_row(self.vsum, cw, [ln, rn, lo, ro], self.dsp);
             }
         }
         if let Some(top) = p.checked_sub(2 * r) {
-            let slot = ring_slot(top, win) * w * nd;
-            if let Some(boxes) = self.boxes.get_mut(slot..slot + w * nd) {
-                box_row(self.vsum, boxes, w, nd, r);
+            let slot = ring_slot(top, win) * w * cw;
+            if let Some(boxes) = self.boxes.get_mut(slot..slot + w * cw) {
+                lanes::box_row(self.vsum, boxes, w, cw, r);
             }
         }
         // Texture: vertical sums of the left gradient over the centre window's rows.
@@ -651,11 +670,11 @@ impl<'a> StereoMatcher<'a> {
     /// Matches output row `y` (`2r ≤ y`) from the ring of window sums: the centre windows are
     /// row `y − r`'s sums, the neighbours rows `y − 2r` and `y`'s.
     fn match_row(&mut self, y: usize, out: &mut [i16]) {
-        let (w, nd, r) = (self.w, self.nd, self.r);
+        let (w, nd, r, cw) = (self.w, self.nd, self.r, self.cw);
         let win = 2 * r + 1;
         let row = |top: usize| {
-            let slot = ring_slot(top, win) * w * nd;
-            self.boxes.get(slot..slot + w * nd).unwrap_or(&[])
+            let slot = ring_slot(top, win) * w * cw;
+            self.boxes.get(slot..slot + w * cw).unwrap_or(&[])
         };
         let (top, mid, bottom) = (row(y - 2 * r), row(y - r), row(y));
         out.fill(INVALID_DISPARITY);
@@ -675,24 +694,24 @@ impl<'a> StereoMatcher<'a> {
                     0
                 });
             let dmax = (nd - 1).min(x - 2 * r);
-            // Five-window costs for d = 0..=dmax, and the right image's winners.
-            let costs = self.pixel_costs.get_mut(..=dmax).unwrap_or(&mut []);
-            let parts = column(mid, x, nd)
-                .iter()
-                .zip(column(top, x - r, nd))
-                .zip(column(top, x + r, nd))
-                .zip(column(bottom, x - r, nd))
-                .zip(column(bottom, x + r, nd));
+            // Five-window costs for d = 0..=dmax (whole groups of four lanes; the lanes past
+            // dmax are never read), then the winner and the right image's winners.
+            let groups = (dmax >> 2) + 1;
+            let parts = [
+                column(mid, x, cw),
+                column(top, x - r, cw),
+                column(top, x + r, cw),
+                column(bottom, x - r, cw),
+                column(bottom, x + r, cw),
+            ];
+            lanes::combine(parts, self.pixel_costs, groups, win, self.dsp);
+            let costs = self.pixel_costs.get(..=dmax).unwrap_or(&[]);
             let mut best = u32::MAX;
-            for (d, (c, ((((&m, &a), &b), &e), &f))) in costs.iter_mut().zip(parts).enumerate() {
-                let cost = u32::from(m) + best_two(u32::from(a), u32::from(b), u32::from(e), u32::from(f));
-                *c = cost;
-                best = best.min((cost << DISP_BITS) | d as u32);
-            }
-            if let Some(rb) = self.right_best.get_mut(x - dmax..=x) {
-                for (slot, (d, &c)) in rb.iter_mut().rev().zip(costs.iter().enumerate()) {
-                    *slot = (*slot).min((c << DISP_BITS) | d as u32);
-                }
+            let right = self.right_best.get_mut(x - dmax..=x).unwrap_or(&mut []);
+            for (d, (&c, slot)) in costs.iter().zip(right.iter_mut().rev()).enumerate() {
+                let packed = (c << DISP_BITS) | d as u32;
+                best = best.min(packed);
+                *slot = (*slot).min(packed);
             }
             let d1 = (best & DISP_MASK) as usize;
             let c1 = best >> DISP_BITS;
@@ -745,16 +764,10 @@ impl<'a> StereoMatcher<'a> {
     }
 }
 
-/// The `nd` sums of column `c` in a `[x][d]` buffer.
+/// Column `c` of a row of packed sums, `cw` words a column.
 #[inline(always)]
-fn column(sums: &[u16], c: usize, nd: usize) -> &[u16] {
-    sums.get(c * nd..(c + 1) * nd).unwrap_or(&[])
-}
-
-/// `|a − b|` for bytes.
-#[inline(always)]
-fn absdiff(a: u8, b: u8) -> u16 {
-    u16::from(a.abs_diff(b))
+fn column(sums: &[u32], c: usize, cw: usize) -> &[u32] {
+    sums.get(c * cw..(c + 1) * cw).unwrap_or(&[])
 }
 
 /// `|I(x+1) − I(x−1)|`, 0 at the image edge.
@@ -770,55 +783,6 @@ fn gradient(row: &[u8], x: usize) -> u32 {
 #[inline(always)]
 fn best_two(a: u32, b: u32, c: u32, d: u32) -> u32 {
     (a + b).min(c + d).min(a.min(b) + c.min(d))
-}
-
-/// `vsum[x][d] += |L[x] − R[x − d]|` for `d ≤ x`.
-fn add_row(vsum: &mut [u16], nd: usize, left: &[u8], right: &[u8]) {
-    for (x, (v, &l)) in vsum.chunks_exact_mut(nd).zip(left).enumerate() {
-        let rs = right.get(..=x).unwrap_or(&[]);
-        for (s, &rv) in v.iter_mut().zip(rs.iter().rev()) {
-            *s = s.wrapping_add(absdiff(l, rv));
-        }
-    }
-}
-
-/// `vsum[x][d] += |L[x] − R[x − d]| − |L'[x] − R'[x − d]|` for `d ≤ x`: one row in, one out.
-fn slide_row(vsum: &mut [u16], nd: usize, left: &[u8], right: &[u8], old_left: &[u8], old_right: &[u8]) {
-    for (x, ((v, &l), &lo)) in vsum.chunks_exact_mut(nd).zip(left).zip(old_left).enumerate() {
-        let rs = right.get(..=x).unwrap_or(&[]);
-        let ros = old_right.get(..=x).unwrap_or(&[]);
-        for ((s, &rv), &ro) in v.iter_mut().zip(rs.iter().rev()).zip(ros.iter().rev()) {
-            *s = s.wrapping_add(absdiff(l, rv)).wrapping_sub(absdiff(lo, ro));
-        }
-    }
-}
-
-/// Horizontal running box sums of width `2r + 1`: `boxes[c] = Σ vsum[c−r..=c+r]` for
-/// `c ∈ r..w−r`, each column from the one before it (wrapping arithmetic is exact: true sums
-/// fit in `u16`).
-fn box_row(vsum: &[u16], boxes: &mut [u16], w: usize, nd: usize, r: usize) {
-    let Some(first) = boxes.get_mut(r * nd..(r + 1) * nd) else {
-        return;
-    };
-    first.fill(0);
-    for c in 0..2 * r + 1 {
-        for (a, &v) in first.iter_mut().zip(column(vsum, c, nd)) {
-            *a = a.wrapping_add(v);
-        }
-    }
-    for c in r + 1..w - r {
-        let (done, rest) = boxes.split_at_mut(c * nd);
-        let prev = done.get(done.len() - nd..).unwrap_or(&[]);
-        let cur = rest.get_mut(..nd).unwrap_or(&mut []);
-        for (((b, &p), &add), &sub) in
-            cur.iter_mut()
-                .zip(prev)
-                .zip(column(vsum, c + r, nd))
-                .zip(column(vsum, c - r - 1, nd))
-        {
-            *b = p.wrapping_sub(sub).wrapping_add(add);
-        }
-    }
 }
 
 /// Matches a whole image pair (`width × height` each, row-major) into `disparity` through

@@ -55,22 +55,32 @@ impl Kernel {
 
 /// Horizontal pass of one row: `out[x] = Σ w_i · row[clamp(x + i − r)]` (value·256).
 ///
-/// The weights are symmetric (`w_i = w_{2r−i}`, [`Kernel::gaussian`]), so away from the
-/// edges each pair of pixels the same distance from `x` is added before it is weighted: half
-/// the multiplies, and no clamping in the inner loop. Exactly the sum above.
+/// The weights are symmetric (`w_i = w_{2r−i}`, [`Kernel::gaussian`]) and sum to 256, so away
+/// from the edges the pass adds, for each distance `j`, `w_{r−j} · (row[x − j] + row[x + j])`
+/// over the whole row at once into `out` (which cannot overflow: at most 255 · 256): half the
+/// multiplies, and no clamping or indexing in the inner loops. Exactly the sum above.
 pub(crate) fn horizontal(kernel: &Kernel, row: &[u8], out: &mut [u16]) {
     let r = kernel.radius;
     let taps = kernel.taps();
-    let centre = u32::from(taps.get(r).copied().unwrap_or(0));
-    let interior = row.len().saturating_sub(2 * r);
-    for (win, o) in row.windows(2 * r + 1).zip(out.iter_mut().skip(r)).take(interior) {
-        let mut acc = centre * u32::from(win.get(r).copied().unwrap_or(0));
-        for ((&a, &b), &w) in win.iter().zip(win.iter().rev()).zip(taps).take(r) {
-            acc += u32::from(w) * (u32::from(a) + u32::from(b));
+    let w = row.len().min(out.len());
+    if w > 2 * r {
+        let centre = taps.get(r).copied().unwrap_or(0);
+        let inner = out.get_mut(r..w - r).unwrap_or(&mut []);
+        for (o, &v) in inner.iter_mut().zip(row.get(r..).unwrap_or(&[])) {
+            *o = centre.wrapping_mul(u16::from(v));
         }
-        *o = acc.min(u32::from(u16::MAX)) as u16;
+        for j in 1..=r {
+            let weight = taps.get(r - j).copied().unwrap_or(0);
+            let (left, right) = (
+                row.get(r - j..w - r - j).unwrap_or(&[]),
+                row.get(r + j..w - r + j).unwrap_or(&[]),
+            );
+            for ((o, &a), &b) in inner.iter_mut().zip(left).zip(right) {
+                *o = o.wrapping_add(weight.wrapping_mul(u16::from(a) + u16::from(b)));
+            }
+        }
     }
-    let (near, far) = (r.min(out.len()), (r + interior).min(out.len()));
+    let (near, far) = (r.min(out.len()), w.saturating_sub(r).max(r.min(out.len())));
     for x in (0..near).chain(far..out.len()) {
         if let Some(o) = out.get_mut(x) {
             *o = clamped(taps, row, x);

@@ -453,17 +453,18 @@ fn reference(params: &StereoParams, left: &[u8], right: &[u8]) -> Vec<i16> {
 #[test]
 fn running_sums_match_the_obvious_implementation() {
     let pair = render(64, 40, |x, _| 3.0 + 0.1 * x, Some((30, 12, 14, 9.0)));
-    for window in [3, 5, 7] {
+    // 13 and 15 disparities leave part of the last group of four lanes unused.
+    for (window, nd) in [(3, 16), (5, 16), (7, 16), (5, 13), (3, 15)] {
         let params = StereoParams {
             window,
             prefilter: Prefilter::None,
             speckle_size: 0,
-            ..StereoParams::new(64, 40, 16)
+            ..StereoParams::new(64, 40, nd)
         };
         let (fast, _) = run(params, &pair);
         let slow = reference(&params, &pair.left, &pair.right);
         let differ = fast.iter().zip(&slow).filter(|(a, b)| a != b).count();
-        assert_eq!(differ, 0, "window {window}");
+        assert_eq!(differ, 0, "window {window}, {nd} disparities");
         assert!(fast.iter().filter(|&&d| d >= 0).count() > 500);
     }
 }
@@ -627,15 +628,19 @@ fn bad_parameters_are_errors() {
 fn scratch_size_matches_the_documented_formula() {
     let p = StereoParams::new(100, 100, 64);
     let s = scratch_size(&p).unwrap();
-    // r = 5, k = 5: rings 2·17·100 bytes; sums (1 + 11)·100·64 + 4·11·100 halfwords;
-    // 64 + 300 + 200 + 2·313 + speckle + 1 words (speckle 10 000 / 256 = 39).
+    // r = 5, k = 5: rings 2·17·100 bytes; the prefilter's 4·11·100 halfwords; window sums
+    // (1 + 11)·100·32 words (two disparities a word), 64 + 300 + 200 + 2·313 + speckle + 1
+    // (speckle 10 000 / 256 = 39).
     assert_eq!(s.bytes, 3400);
-    assert_eq!(s.halfwords, 12 * 6400 + 4400);
+    assert_eq!(s.halfwords, 4400);
     assert_eq!(
         s.words,
-        64 + 300 + 200 + 2 * 313 + usize::from(p.speckle_size) + 1
+        12 * 3200 + 64 + 300 + 200 + 2 * 313 + usize::from(p.speckle_size) + 1
     );
     assert!(s.total_bytes() < 170 * 1024, "{}", s.total_bytes());
+    // Disparity ranges that are not a multiple of four take whole groups of four lanes.
+    let odd = scratch_size(&StereoParams::new(100, 100, 61)).unwrap();
+    assert_eq!(odd.words, s.words);
 }
 
 #[test]
