@@ -237,3 +237,29 @@ fn signed_firmware_takes_operator_commands_and_flies_home_under_qemu() {
         "{firmware_side:?}"
     );
 }
+
+/// The stereo matcher's Cortex-M4 DSP path (`UQSUB8`, `UXTAB16`, `UADD16`, `SEL`, the core's
+/// `dsp` feature) gives the portable code's disparities on the emulated MCU, bit for bit, in
+/// every configuration `fw-budget --stereo` measures; and the core's own check of the two
+/// kernels on random rows passes there.
+#[test]
+fn stereo_dsp_path_matches_the_portable_code_under_qemu() {
+    let qemu = qemu();
+    firmware();
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/no-std-check");
+    let elf = pil::build_firmware_example("stereo_bench", Some(&dir)).expect("stereo_bench builds");
+    let out = pil::run_semihosted(&qemu, &elf, std::time::Duration::from_secs(600))
+        .expect("stereo_bench runs under QEMU");
+    assert!(
+        out.lines().any(|l| l.trim() == "stereo_check dsp_agrees=1"),
+        "the DSP kernels disagree with the portable ones (or the check did not run):\n{out}"
+    );
+    let rows: Vec<&str> = out.lines().filter(|l| l.starts_with("stereo ")).collect();
+    assert_eq!(rows.len(), 4, "one line per configuration:\n{out}");
+    for row in rows {
+        assert!(
+            row.split_whitespace().any(|kv| kv == "identical=1"),
+            "DSP and portable disparities differ: {row}"
+        );
+    }
+}
