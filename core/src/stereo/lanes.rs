@@ -239,19 +239,24 @@ mod dsp {
     /// [`super::combine`] two lanes at a time; the caller keeps windows at 11 pixels or less,
     /// so that the sum of two window sums (at most 2 · 121 · 255) fits a halfword.
     pub(super) fn combine(parts: [&[u32]; 5], costs: &mut [u32], groups: usize) {
-        let [m, a, b, e, f] = parts;
-        let words = m.iter().zip(a).zip(b).zip(e).zip(f);
-        // Word k of a group holds disparities d₀ + k (low) and d₀ + k + 2 (high).
-        for (i, ((((&m, &a), &b), &e), &f)) in words.enumerate().take(2 * groups) {
-            let cross = uadd16(umin16(a, b), umin16(e, f));
-            let best = umin16(umin16(uadd16(a, b), uadd16(e, f)), cross);
-            let lo = 4 * (i >> 1) + (i & 1);
-            if let Some([low, _, high]) = costs
-                .get_mut(lo..lo + 3)
-                .and_then(|c| <&mut [u32; 3]>::try_from(c).ok())
+        let best = |a: u32, b: u32, e: u32, f: u32| {
+            umin16(
+                umin16(uadd16(a, b), uadd16(e, f)),
+                uadd16(umin16(a, b), umin16(e, f)),
+            )
+        };
+        let [m, a, b, e, f] = parts.map(|p| p.chunks_exact(2));
+        let words = m.zip(a).zip(b).zip(e).zip(f);
+        // Word k of a group holds disparities d₀ + k (low half) and d₀ + k + 2 (high half).
+        for (quad, ((((m, a), b), e), f)) in costs.chunks_exact_mut(4).zip(words).take(groups) {
+            if let ([m0, m1], [a0, a1], [b0, b1], [e0, e1], [f0, f1], [c0, c1, c2, c3]) =
+                (m, a, b, e, f, quad)
             {
-                *low = (m & 0xffff) + (best & 0xffff);
-                *high = (m >> 16) + (best >> 16);
+                let (s0, s1) = (best(*a0, *b0, *e0, *f0), best(*a1, *b1, *e1, *f1));
+                *c0 = (m0 & 0xffff) + (s0 & 0xffff);
+                *c2 = (m0 >> 16) + (s0 >> 16);
+                *c1 = (m1 & 0xffff) + (s1 & 0xffff);
+                *c3 = (m1 >> 16) + (s1 >> 16);
             }
         }
     }

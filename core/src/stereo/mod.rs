@@ -350,6 +350,8 @@ pub struct StereoMatcher<'a> {
     ring_left: &'a mut [u8],
     ring_right: &'a mut [u8],
     pixel_costs: &'a mut [u32],
+    /// The right image's best packed cost per pixel, right to left: `[w − 1 − x_r]`, so that
+    /// a left pixel's disparities run forwards through it.
     right_best: &'a mut [u32],
     left_best: &'a mut [u32],
     texture: &'a mut [u32],
@@ -707,8 +709,9 @@ impl<'a> StereoMatcher<'a> {
             lanes::combine(parts, self.pixel_costs, groups, win, self.dsp);
             let costs = self.pixel_costs.get(..=dmax).unwrap_or(&[]);
             let mut best = u32::MAX;
-            let right = self.right_best.get_mut(x - dmax..=x).unwrap_or(&mut []);
-            for (d, (&c, slot)) in costs.iter().zip(right.iter_mut().rev()).enumerate() {
+            let from = w - 1 - x;
+            let right = self.right_best.get_mut(from..=from + dmax).unwrap_or(&mut []);
+            for (d, (&c, slot)) in costs.iter().zip(right.iter_mut()).enumerate() {
                 let packed = (c << DISP_BITS) | d as u32;
                 best = best.min(packed);
                 *slot = (*slot).min(packed);
@@ -722,7 +725,9 @@ impl<'a> StereoMatcher<'a> {
             // The best cost not adjacent to d1: below d1 − 1 and above d1 + 1.
             let below = costs.get(..d1.saturating_sub(1)).unwrap_or(&[]);
             let above = costs.get(d1 + 2..).unwrap_or(&[]);
-            let c2 = below.iter().chain(above).copied().min();
+            let rival = |m: u32, &c: &u32| m.min(c);
+            let c2 = (below.len() + above.len() > 0)
+                .then(|| above.iter().fold(below.iter().fold(u32::MAX, rival), rival));
             if c2.is_some_and(|c2| u64::from(c2) * 100 <= u64::from(c1) * uniq) {
                 self.stats.ambiguous += 1;
                 continue;
@@ -754,7 +759,7 @@ impl<'a> StereoMatcher<'a> {
             }
             let dr = self
                 .right_best
-                .get(x - d1 as usize)
+                .get(w - 1 - (x - d1 as usize))
                 .map_or(u32::MAX, |&p| p & DISP_MASK);
             if dr.abs_diff(d1) > u32::from(tolerance) {
                 *o = INVALID_DISPARITY;
