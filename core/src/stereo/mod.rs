@@ -18,7 +18,11 @@
 //!    window size: per row, one vertical running sum over the last `2r + 1` rows is updated by
 //!    one row in and one row out and summed horizontally with a running sum into a ring of the
 //!    last `2r + 1` rows of window sums, from which the centre window (rows centred at `y`) and
-//!    the neighbours (centred at `y ± r`) are read.
+//!    the neighbours (centred at `y ± r`) are read. The sums are packed two disparities to a
+//!    32-bit word (`lanes`), so one add updates two; with the `dsp` feature on an Arm target
+//!    (Cortex-M4/M7) the cost update takes four disparities per `UQSUB8`/`UXTAB16` step and
+//!    the five-window combination two per `UADD16`/`USUB16`/`SEL` step, giving the portable
+//!    code's sums and costs exactly ([`StereoMatcher::use_dsp`], [`dsp_agrees`]).
 //! 3. **Winner takes all** over `d ∈ 0..num_disparities` (fewer near the left border, where
 //!    the right window would leave the image).
 //! 4. **Texture** (off by default): the mean horizontal gradient `|I(x+1) − I(x−1)|` of the
@@ -54,15 +58,18 @@
 //! `k`) has arrived; [`StereoMatcher::finish`] writes the last rows and removes speckles.
 //! All storage is borrowed ([`StereoScratch`], sized by [`scratch_size`]):
 //!
-//! - `u16`: `(2r + 2) · W · D` for the vertical window sums and the ring of `2r + 1` rows of
-//!   window sums, plus `4 · (2k + 1) · W` with the DoG prefilter;
-//! - `u8`: `2 · (3r + 2) · W` for the row rings;
-//! - `u32`: `D + 3 · W` per-row work (`+ 2 · W` with the prefilter), plus
-//!   `2 · ⌈W·H/32⌉ + speckle_size + 1` for speckle removal (two bits per pixel; 0 without it).
+//! - `u32`: `(2r + 2) · W · D₄ / 2` for the vertical window sums and the ring of `2r + 1`
+//!   rows of window sums (`D₄`: the disparity range rounded up to a multiple of four, two to a
+//!   word), `D₄ + 3 · W` per-row work (`+ 2 · W` with the prefilter), plus
+//!   `2 · ⌈W·H/32⌉ + speckle_size + 1` for speckle removal (two bits per pixel; 0 without it);
+//! - `u16`: `4 · (2k + 1) · W` with the DoG prefilter;
+//! - `u8`: `2 · (3r + 2) · W` for the row rings.
 //!
 //! With `W` the width and `D` the disparity range: 100 × 100 px, 64 disparities, 11 × 11
-//! windows and DoG (σ 1.0/1.6, k = 5) need 169 KiB; without the speckle bitmaps, which grow
-//! with the height, the matcher's memory is `O(W · D)`.
+//! windows and DoG (σ 1.0/1.6, k = 5) need 167 KiB (7 × 7 windows: 116 KiB); without the
+//! speckle bitmaps, which grow with the height, the matcher's memory is `O(r · W · D)`. (Until
+//! 2026-12-03 three vertical and three horizontal sums took `6 · W · D` halfwords, 93 KiB here,
+//! and twice the work: the ring trades 74 KiB for half the instructions.)
 
 mod lanes;
 pub mod prefilter;
@@ -238,9 +245,9 @@ impl StereoParams {
 pub struct ScratchSize {
     /// `u8` elements: the rings of prefiltered rows.
     pub bytes: usize,
-    /// `u16` elements: window sums and the prefilter's rows.
+    /// `u16` elements: the prefilter's rows.
     pub halfwords: usize,
-    /// `u32` elements: per-row work and speckle removal.
+    /// `u32` elements: window sums (two disparities a word), per-row work and speckle removal.
     pub words: usize,
 }
 
