@@ -151,78 +151,49 @@ pub(crate) fn combine(parts: [&[u32]; 5], costs: &mut [u32], groups: usize, wind
 mod dsp {
     use core::arch::asm;
 
-    /// Per byte, `a − b` saturated at 0.
-    #[inline(always)]
-    fn uqsub8(a: u32, b: u32) -> u32 {
-        let r: u32;
-        // SAFETY: a register-only instruction of the Armv7E-M DSP extension.
-        unsafe {
-            asm!("uqsub8 {r}, {a}, {b}", r = lateout(reg) r, a = in(reg) a, b = in(reg) b,
-                 options(pure, nomem, nostack, preserves_flags));
-        }
-        r
+    /// One Armv7E-M DSP instruction on registers as a function (`$insn` writes `{r}` from
+    /// `{a}` and, if given, `{b}`), with the asm options it needs.
+    macro_rules! dsp_op {
+        ($(#[$doc:meta])* $name:ident($($arg:ident),+) = $insn:literal, $($opt:ident),+) => {
+            $(#[$doc])*
+            #[inline(always)]
+            fn $name($($arg: u32),+) -> u32 {
+                let r: u32;
+                // SAFETY: a register-only instruction of the DSP extension; it touches no
+                // memory, and the GE flags `uadd16` sets are read by nothing (`umin16` sets and
+                // reads them within one block).
+                unsafe {
+                    asm!($insn, r = lateout(reg) r, $($arg = in(reg) $arg),+, options($($opt),+));
+                }
+                r
+            }
+        };
     }
 
-    /// `acc` plus bytes 0 and 2 of `x` into its low and high halves.
-    #[inline(always)]
-    fn uxtab16(acc: u32, x: u32) -> u32 {
-        let r: u32;
-        // SAFETY: as above.
-        unsafe {
-            asm!("uxtab16 {r}, {acc}, {x}", r = lateout(reg) r, acc = in(reg) acc, x = in(reg) x,
-                 options(pure, nomem, nostack, preserves_flags));
-        }
-        r
-    }
-
-    /// `acc` plus bytes 1 and 3 of `x` into its low and high halves.
-    #[inline(always)]
-    fn uxtab16_ror8(acc: u32, x: u32) -> u32 {
-        let r: u32;
-        // SAFETY: as above.
-        unsafe {
-            asm!("uxtab16 {r}, {acc}, {x}, ror #8", r = lateout(reg) r, acc = in(reg) acc, x = in(reg) x,
-                 options(pure, nomem, nostack, preserves_flags));
-        }
-        r
-    }
-
-    /// Bytes 0 and 2 of `x` as halfwords.
-    #[inline(always)]
-    fn uxtb16(x: u32) -> u32 {
-        let r: u32;
-        // SAFETY: as above.
-        unsafe {
-            asm!("uxtb16 {r}, {x}", r = lateout(reg) r, x = in(reg) x,
-                 options(pure, nomem, nostack, preserves_flags));
-        }
-        r
-    }
-
-    /// Bytes 1 and 3 of `x` as halfwords.
-    #[inline(always)]
-    fn uxtb16_ror8(x: u32) -> u32 {
-        let r: u32;
-        // SAFETY: as above.
-        unsafe {
-            asm!("uxtb16 {r}, {x}, ror #8", r = lateout(reg) r, x = in(reg) x,
-                 options(pure, nomem, nostack, preserves_flags));
-        }
-        r
-    }
-
-    /// Per halfword, `a + b` (no carry between the halves).
-    #[inline(always)]
-    fn uadd16(a: u32, b: u32) -> u32 {
-        let r: u32;
-        // SAFETY: a register-only instruction of the Armv7E-M DSP extension (it sets the GE
-        // flags, which nothing reads across asm blocks).
-        unsafe {
-            asm!("uadd16 {r}, {a}, {b}", r = lateout(reg) r, a = in(reg) a, b = in(reg) b,
-                 options(pure, nomem, nostack));
-        }
-        r
-    }
+    dsp_op!(
+        /// Per byte, `a − b` saturated at 0.
+        uqsub8(a, b) = "uqsub8 {r}, {a}, {b}", pure, nomem, nostack, preserves_flags
+    );
+    dsp_op!(
+        /// `a` plus bytes 0 and 2 of `b` into its low and high halves.
+        uxtab16(a, b) = "uxtab16 {r}, {a}, {b}", pure, nomem, nostack, preserves_flags
+    );
+    dsp_op!(
+        /// `a` plus bytes 1 and 3 of `b` into its low and high halves.
+        uxtab16_ror8(a, b) = "uxtab16 {r}, {a}, {b}, ror #8", pure, nomem, nostack, preserves_flags
+    );
+    dsp_op!(
+        /// Bytes 0 and 2 of `a` as halfwords.
+        uxtb16(a) = "uxtb16 {r}, {a}", pure, nomem, nostack, preserves_flags
+    );
+    dsp_op!(
+        /// Bytes 1 and 3 of `a` as halfwords.
+        uxtb16_ror8(a) = "uxtb16 {r}, {a}, ror #8", pure, nomem, nostack, preserves_flags
+    );
+    dsp_op!(
+        /// Per halfword, `a + b` (no carry between the halves; sets the GE flags).
+        uadd16(a, b) = "uadd16 {r}, {a}, {b}", pure, nomem, nostack
+    );
 
     /// Per halfword, the smaller of `a` and `b`.
     #[inline(always)]
