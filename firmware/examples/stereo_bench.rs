@@ -9,10 +9,11 @@
 //! at 40 px in front of it, both with smooth random texture. Under `-icount shift=0` one
 //! board tick is 40 instructions.
 //!
-//! Each configuration is matched twice: with the DSP instructions (`UQSUB8`, `UXTAB16`; the
-//! core's `dsp` feature, which the firmware turns on), timed, and with the portable code,
-//! timed too; the two disparity images must be identical (`identical=1`), and the core's
-//! own check of the two cost updates on random rows must pass (`dsp_agrees=1`).
+//! Each configuration is matched twice: with the DSP instructions (`UQSUB8`/`UXTAB16` in the
+//! cost update, `UADD16`/`USUB16`/`SEL` in the five-window costs; the core's `dsp` feature,
+//! which the firmware turns on), timed, and with the portable code, timed too; the two
+//! disparity images must be identical (`identical=1`), and the core's own check of both
+//! kernels on random rows must pass (`dsp_agrees=1`).
 #![cfg_attr(target_os = "none", no_std)]
 #![cfg_attr(target_os = "none", no_main)]
 

@@ -161,6 +161,56 @@ fn cargo_build_firmware_env(
     Ok(target_dir)
 }
 
+/// One configuration's line of `stereo_bench`'s output (`stereo key=value …`).
+#[derive(Debug, Clone, Copy)]
+pub struct StereoBenchLine<'a>(&'a str);
+
+impl<'a> StereoBenchLine<'a> {
+    /// The value printed for `key`, or `?`.
+    pub fn field(&self, key: &str) -> &'a str {
+        self.0
+            .split_whitespace()
+            .find_map(|kv| kv.strip_prefix(key).and_then(|v| v.strip_prefix('=')))
+            .unwrap_or("?")
+    }
+
+    /// The value printed for `key` as a number (NaN if missing).
+    pub fn num(&self, key: &str) -> f64 {
+        self.field(key).parse().unwrap_or(f64::NAN)
+    }
+}
+
+/// The configuration lines `stereo_bench` (firmware/examples) printed, once its checks hold:
+/// the core's check of the DSP kernels against the portable ones on random rows ran and
+/// passed, and every configuration's DSP and portable disparities were identical.
+pub fn stereo_bench_lines(out: &str) -> Result<Vec<StereoBenchLine<'_>>, String> {
+    let lines: Vec<StereoBenchLine<'_>> = out
+        .lines()
+        .filter(|l| l.starts_with("stereo "))
+        .map(StereoBenchLine)
+        .collect();
+    if lines.is_empty() {
+        return Err(format!("stereo_bench printed no results:\n{out}"));
+    }
+    if !out.lines().any(|l| l.trim() == "stereo_check dsp_agrees=1") {
+        return Err(format!(
+            "the DSP kernels disagree with the portable ones on random rows (or the check did not run):\n{out}"
+        ));
+    }
+    let differ: Vec<String> = lines
+        .iter()
+        .filter(|l| l.field("identical") != "1")
+        .map(|l| format!("window {} prefilter {}", l.field("window"), l.field("prefilter")))
+        .collect();
+    if !differ.is_empty() {
+        return Err(format!(
+            "the DSP and portable matchers gave different disparities: {}",
+            differ.join(", ")
+        ));
+    }
+    Ok(lines)
+}
+
 /// Runs an image that talks only over semihosting (no UARTs) under QEMU with `-icount shift=0`
 /// until it exits, and returns what it printed. A non-zero exit status is an error.
 pub fn run_semihosted(qemu: &str, elf: &Path, timeout: Duration) -> Result<String, SimError> {
@@ -1260,6 +1310,30 @@ fn decode_log(elf: &Path, out: &Path) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn stereo_bench_output_passes_only_with_both_checks() {
+        let line = |window: u8, identical: u8| {
+            format!("stereo width=100 window={window} prefilter=dog match_instructions=24736720 identical={identical}")
+        };
+        let good = format!("stereo_check dsp_agrees=1\n{}\n{}\n", line(11, 1), line(7, 1));
+        let lines = stereo_bench_lines(&good).unwrap();
+        assert_eq!(lines.len(), 2);
+        assert_eq!(lines[0].field("window"), "11");
+        assert_eq!(lines[0].num("match_instructions"), 24_736_720.0);
+        assert!(lines[0].num("missing").is_nan());
+        let differ = format!("stereo_check dsp_agrees=1\n{}\n{}\n", line(11, 1), line(7, 0));
+        assert!(stereo_bench_lines(&differ)
+            .unwrap_err()
+            .contains("window 7 prefilter dog"));
+        let kernels = format!("stereo_check dsp_agrees=0\n{}\n", line(11, 1));
+        assert!(stereo_bench_lines(&kernels).is_err());
+        assert!(
+            stereo_bench_lines(&line(11, 1)).is_err(),
+            "the kernel check must have run"
+        );
+        assert!(stereo_bench_lines("stereo_check dsp_agrees=1\n").is_err());
+    }
 
     #[test]
     fn the_stack_high_water_is_the_deepest_the_log_reports() {
