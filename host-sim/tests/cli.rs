@@ -300,6 +300,7 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
     let err = one_line(&["bench", "--scenarios", "s1,atlantis"], "atlantis");
     assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     one_line(&["bench", "--shard", "3/2"], "1 <= I <= N");
+    one_line(&["bench", "--vehicle-radius", "0.7"], "between 0 and 0.6");
     let err = one_line(
         &["bench", "merge", "--out", "/tmp/unused", "/nonexistent-shard"],
         "/nonexistent-shard",

@@ -8,7 +8,7 @@ use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::run::sim::SimConfig;
 use harmonic_sim::tools::batch;
 
-use super::sim_args::{FieldArgs, SensingArgs};
+use super::sim_args::{BodyArgs, FieldArgs, SensingArgs};
 
 /// The flags of `bench`.
 #[derive(clap::Args)]
@@ -49,6 +49,8 @@ pub struct BenchArgs {
     sensing: SensingArgs,
     #[command(flatten)]
     field: FieldArgs,
+    #[command(flatten)]
+    body: BodyArgs,
     /// No per-run progress lines.
     #[arg(long)]
     quiet: bool,
@@ -84,6 +86,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
     args.sensing.check()?;
     args.sensing.apply(&mut sim);
     args.field.apply(&mut sim);
+    args.body.apply(&mut sim);
     sim.max_scans = args.max_scans;
     sim.follow_full_path = args.follow_full_path;
     let planners = PlannerKind::parse_list(&args.planners).map_err(|e| format!("--planners: {e}"))?;

@@ -20,10 +20,8 @@ use harmonic_sim::vehicle::flight::EmulatorTiming;
 use harmonic_sim::world::scenario::Scenario;
 use indicatif::{ProgressBar, ProgressStyle};
 
-use super::parse::{
-    self, parse_baud, parse_burst, parse_positive, parse_probability, parse_radius, OperatorScript,
-};
-use super::sim_args::{FieldArgs, SensingArgs};
+use super::parse::{self, parse_baud, parse_burst, parse_positive, parse_probability, OperatorScript};
+use super::sim_args::{BodyArgs, FieldArgs, SensingArgs};
 
 /// The flags of `explore`.
 #[derive(clap::Args)]
@@ -45,12 +43,8 @@ pub struct ExploreArgs {
     /// run k is `--start-seed k --seed k`).
     #[arg(long)]
     start_seed: Option<u64>,
-    /// Vehicle radius in metres: obstacles are inflated by this much for planning.
-    #[arg(long, default_value_t = 0.2, value_parser = parse_radius)]
-    vehicle_radius: f32,
-    /// Radius of the vehicle body for collision counting, metres.
-    #[arg(long, default_value_t = 0.15, value_parser = parse_positive)]
-    body_radius: f32,
+    #[command(flatten)]
+    body: BodyArgs,
     /// Distance flown between scans (receding horizon), metres.
     #[arg(long, default_value_t = 1.0, value_parser = parse_positive)]
     replan_distance: f32,
@@ -219,14 +213,13 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     args.field.apply(&mut cfg);
     cfg.seed = args.seed;
     cfg.planner = args.planner;
-    cfg.explorer.vehicle_radius = args.vehicle_radius;
+    args.body.apply(&mut cfg);
     cfg.explorer.solve.tolerance = args.tol;
     cfg.explorer.solver = if args.solver == "gs" {
         SolverKind::GaussSeidel
     } else {
         SolverKind::Multigrid
     };
-    cfg.body_radius = args.body_radius;
     cfg.replan_distance = args.replan_distance;
     cfg.follow_full_path = args.follow_full_path;
     cfg.max_speed = args.max_speed;

@@ -6,7 +6,7 @@ use harmonic_sim::run::sim::{self, SimConfig};
 use harmonic_sim::sensors::camera::StereoNoise;
 use harmonic_sim::sensors::sensing::DriftConfig;
 
-use super::parse::{parse_drift, parse_noise, parse_positive, parse_probability};
+use super::parse::{parse_drift, parse_noise, parse_positive, parse_probability, parse_radius};
 
 /// Imperfect sensing, for `explore` and `bench`.
 #[derive(clap::Args, Clone)]
@@ -50,6 +50,25 @@ pub struct SensingArgs {
     /// With `--depth-from stereo`: the matcher's window (odd, 3-15).
     #[arg(long, default_value_t = 7)]
     stereo_window: u8,
+}
+
+/// The vehicle's size: how far planning keeps from obstacles, and what counts as a collision.
+#[derive(clap::Args)]
+pub struct BodyArgs {
+    /// Vehicle radius in metres: obstacles are inflated by this much for planning.
+    #[arg(long, default_value_t = 0.2, value_parser = parse_radius)]
+    vehicle_radius: f32,
+    /// Radius of the vehicle body for collision counting, metres.
+    #[arg(long, default_value_t = 0.15, value_parser = parse_positive)]
+    body_radius: f32,
+}
+
+impl BodyArgs {
+    /// Puts the planning radius and the body radius into `cfg`.
+    pub fn apply(&self, cfg: &mut SimConfig) {
+        cfg.explorer.vehicle_radius = self.vehicle_radius;
+        cfg.body_radius = self.body_radius;
+    }
 }
 
 /// Settings of the `harmonic` planner's default field (harmonic_core::field).
