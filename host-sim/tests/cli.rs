@@ -301,6 +301,8 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
     assert_eq!(err.trim_end().lines().count(), 1, "{err}");
     one_line(&["bench", "--shard", "3/2"], "1 <= I <= N");
     one_line(&["bench", "--vehicle-radius", "0.7"], "between 0 and 0.6");
+    one_line(&["bench", "--grid-offset", "0.05,0"], "X,Y,Z");
+    one_line(&["explore", "--grid-offset", "0.1,0,0"], "grid offset 0.1 m");
     let err = one_line(
         &["bench", "merge", "--out", "/tmp/unused", "/nonexistent-shard"],
         "/nonexistent-shard",

@@ -51,6 +51,36 @@ fn each_baseline_completes_a_small_scenario() {
 }
 
 #[test]
+fn a_grid_offset_moves_the_map_against_the_world_and_exploration_still_completes() {
+    let scenario = Scenario::load(fixture("two-rooms")).unwrap();
+    let aligned = sim::scenario_geometry(&scenario, [0.0; 3]).unwrap();
+    let moved = sim::scenario_geometry(&scenario, [0.05, 0.0, 0.025]).unwrap();
+    let (a, m) = (aligned.dims(), moved.dims());
+    // One voxel more along each axis the grid moved, so it still covers the bounds.
+    assert_eq!([m.nx(), m.ny(), m.nz()], [a.nx() + 1, a.ny(), a.nz() + 1]);
+    let shift = aligned.origin() - moved.origin();
+    assert!(
+        (shift - nalgebra::Vector3::new(0.05, 0.0, 0.025)).norm() < 1e-6,
+        "{shift:?}"
+    );
+    for bad in [[0.1, 0.0, 0.0], [0.0, -0.01, 0.0], [0.0, 0.0, f32::NAN]] {
+        let err = sim::scenario_geometry(&scenario, bad).unwrap_err().to_string();
+        assert!(err.contains("grid offset"), "{err}");
+    }
+    // Exact depth explores the world as completely on a grid that does not line up with it.
+    let cfg = SimConfig {
+        grid_offset: [0.05; 3],
+        ..SimConfig::default()
+    };
+    let r = sim::run(&scenario, &cfg, |_| {}).unwrap();
+    assert_eq!(r.termination, "complete", "{:?}", r.errors);
+    assert!(r.coverage_free >= 0.97, "coverage {}", r.coverage_free);
+    assert_eq!(r.collisions, 0, "{:?}", r.collision_points);
+    let o = aligned.origin();
+    assert_eq!(r.grid_origin, [o.x - 0.05, o.y - 0.05, o.z - 0.05]);
+}
+
+#[test]
 fn tiny_bench_of_every_planner_shards_and_merges() {
     let dir = temp_dir("bench");
     let cfg = |shard| BenchConfig {
@@ -107,7 +137,7 @@ fn tiny_bench_of_every_planner_shards_and_merges() {
 /// The label grid of the explorer's final map, captured by the run observer.
 fn explore_recording(scenario: &Scenario, dir: &Path) -> (Vec<u8>, usize) {
     let cfg = SimConfig::default();
-    let g = sim::scenario_geometry(scenario).unwrap();
+    let g = sim::scenario_geometry(scenario, [0.0; 3]).unwrap();
     let lo = cfg.explorer.log_odds;
     let settings = MapSettings {
         origin: g.origin().coords.into(),
@@ -216,7 +246,7 @@ fn mesh_world_matches_the_same_world_built_from_boxes() {
     let meshes = Scenario::load(fixture("mesh-rooms")).unwrap();
     assert!(meshes.world.boxes.is_empty() && meshes.world.meshes.len() == 2);
     // Voxelised on the scenario grid, the OBJ and STL give exactly the boxes' voxels.
-    let g = sim::scenario_geometry(&boxes).unwrap();
+    let g = sim::scenario_geometry(&boxes, [0.0; 3]).unwrap();
     let (a, b) = (
         GroundTruth::new(&boxes.world, &g, &boxes.start_position),
         GroundTruth::new(&meshes.world, &g, &meshes.start_position),

@@ -329,7 +329,10 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     if args.core == "qemu" && (args.figures || args.record.is_some()) {
         return Err("--figures and --record need --core host".into());
     }
-    let geometry = sim::scenario_geometry(&scenario).map_err(|e| e.to_string())?;
+    if args.core == "qemu" && cfg.grid_offset != [0.0; 3] {
+        return Err("--grid-offset needs --core host (the firmware's grid is fixed)".into());
+    }
+    let geometry = sim::scenario_geometry(&scenario, cfg.grid_offset).map_err(|e| e.to_string())?;
     let mut recorder = match &args.record {
         Some(dir) => {
             let lo = cfg.explorer.log_odds;

@@ -67,6 +67,20 @@ pub fn parse_drift(s: &str) -> Result<DriftConfig, String> {
     })
 }
 
+/// `--grid-offset`: `X,Y,Z` in metres, each at least 0 (the scenario's voxel size bounds them
+/// from above; the run checks that).
+pub fn parse_grid_offset(s: &str) -> Result<[f32; 3], String> {
+    let bad = || format!("expected X,Y,Z (three numbers >= 0, metres), got `{s}`");
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f32>().map_err(|_| bad()))
+        .collect::<Result<_, _>>()?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite() && *c >= 0.0) => Ok([x, y, z]),
+        _ => Err(bad()),
+    }
+}
+
 /// A baud rate: a positive integer.
 pub fn parse_baud(s: &str) -> Result<u32, String> {
     match s.parse::<u32>() {

@@ -6,7 +6,9 @@ use harmonic_sim::run::sim::{self, SimConfig};
 use harmonic_sim::sensors::camera::StereoNoise;
 use harmonic_sim::sensors::sensing::DriftConfig;
 
-use super::parse::{parse_drift, parse_noise, parse_positive, parse_probability, parse_radius};
+use super::parse::{
+    parse_drift, parse_grid_offset, parse_noise, parse_positive, parse_probability, parse_radius,
+};
 
 /// Imperfect sensing, for `explore` and `bench`.
 #[derive(clap::Args, Clone)]
@@ -50,6 +52,12 @@ pub struct SensingArgs {
     /// With `--depth-from stereo`: the matcher's window (odd, 3-15).
     #[arg(long, default_value_t = 7)]
     stereo_window: u8,
+    /// Move the map's voxel grid `X,Y,Z` metres (each below the voxel size) against the world.
+    /// The built-in worlds put every surface on a voxel face, the best case for exact depth and
+    /// the worst for noisy depth (a return within σ of a face lands in either voxel); a real
+    /// map's grid lies anywhere. Runs start from the same poses.
+    #[arg(long, value_parser = parse_grid_offset)]
+    grid_offset: Option<[f32; 3]>,
 }
 
 /// The vehicle's size: how far planning keeps from obstacles, and what counts as a collision.
@@ -143,6 +151,7 @@ impl SensingArgs {
         cfg.camera.outliers = self.outliers as f32;
         cfg.camera.textureless = self.textureless;
         cfg.drift = self.drift;
+        cfg.grid_offset = self.grid_offset.unwrap_or([0.0; 3]);
         // Exact depth: no error (the camera's range unless --trusted-range).
         let (sigma_px, baseline_m) = self
             .noise

@@ -142,6 +142,10 @@ pub struct SimConfig {
     /// Where depth frames come from: the depth camera (default) or rendered stereo pairs
     /// matched by the core ([`use_stereo_depth`]).
     pub depth_source: DepthSource,
+    /// How far (metres, per axis, each below the voxel size) the map's grid origin lies below
+    /// the scenario's bounds; see [`scenario_geometry`]. Zero: every built-in world's surfaces lie
+    /// on voxel faces.
+    pub grid_offset: [f32; 3],
 }
 
 /// Where the depth frames of a run come from.
@@ -248,6 +252,7 @@ impl Default for SimConfig {
             mavlink: None,
             faults: SimFaults::default(),
             depth_source: DepthSource::Camera,
+            grid_offset: [0.0; 3],
         }
     }
 }
@@ -537,11 +542,25 @@ impl std::fmt::Display for SimError {
 impl std::error::Error for SimError {}
 
 /// The map geometry a scenario is explored on.
-pub fn scenario_geometry(scenario: &Scenario) -> Result<MapGeometry, SimError> {
+///
+/// `offset` (metres, each in `[0, resolution)`) moves the grid's origin that far below the
+/// scenario's bounds along each axis, with one more voxel along every axis it moves, so the grid
+/// still covers the bounds. The built-in worlds put every surface on a voxel face (multiples of
+/// the resolution from the bounds); a real map's grid lies anywhere against the walls, and an
+/// offset measures how much a result owes to that alignment (`explore --grid-offset`).
+pub fn scenario_geometry(scenario: &Scenario, offset: [f32; 3]) -> Result<MapGeometry, SimError> {
+    let r = scenario.resolution;
+    if let Some(bad) = offset.iter().find(|o| !(o.is_finite() && **o >= 0.0 && **o < r)) {
+        return Err(SimError::Config(format!(
+            "grid offset {bad} m: each component must lie in [0, {r}) m, the voxel size"
+        )));
+    }
     let [nx, ny, nz] = scenario.grid_dims();
+    let [nx, ny, nz] =
+        [(nx, offset[0]), (ny, offset[1]), (nz, offset[2])].map(|(n, o)| n + usize::from(o > 0.0));
     let dims = Dims::new(nx, ny, nz).map_err(|e| SimError::Grid(format!("{nx}×{ny}×{nz}: {e:?}")))?;
-    MapGeometry::new(dims, scenario.world.bounds.min, scenario.resolution)
-        .map_err(|e| SimError::Grid(format!("{e:?}")))
+    let origin = scenario.world.bounds.min - nalgebra::Vector3::from(offset);
+    MapGeometry::new(dims, origin, r).map_err(|e| SimError::Grid(format!("{e:?}")))
 }
 
 fn ms(ns: u64) -> f64 {
@@ -1145,7 +1164,7 @@ pub fn run_observed(
     mut observe: impl FnMut(&StepView<'_>),
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
-    let geometry = scenario_geometry(scenario)?;
+    let geometry = scenario_geometry(scenario, cfg.grid_offset)?;
     let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
     let mut storage = HostStorage::new(&geometry.dims());
     let mut planner = make_planner(cfg, geometry, &mut storage)?;
