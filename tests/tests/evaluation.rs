@@ -81,6 +81,23 @@ fn a_grid_offset_moves_the_map_against_the_world_and_exploration_still_completes
 }
 
 #[test]
+fn the_stereo_sensor_model_plans_with_a_wider_radius() {
+    let fx = 65.0;
+    let plans = |model: bool, given: Option<f32>| {
+        let mut cfg = SimConfig::default();
+        if let Some(r) = given {
+            cfg.explorer.vehicle_radius = r;
+        }
+        sim::integrate_noisy_depth(&mut cfg, 0.25, fx, 0.12, None, model);
+        cfg.explorer.vehicle_radius
+    };
+    // Surfaces mapped at their true thickness need the margin exact depth's grown ones gave.
+    assert_eq!(plans(false, None), 0.2);
+    assert_eq!(plans(true, None), sim::STEREO_MODEL_VEHICLE_RADIUS_M);
+    assert_eq!(plans(true, Some(0.35)), 0.35, "a wider radius is kept");
+}
+
+#[test]
 fn tiny_bench_of_every_planner_shards_and_merges() {
     let dir = temp_dir("bench");
     let cfg = |shard| BenchConfig {

@@ -63,18 +63,22 @@ pub struct SensingArgs {
 /// The vehicle's size: how far planning keeps from obstacles, and what counts as a collision.
 #[derive(clap::Args)]
 pub struct BodyArgs {
-    /// Vehicle radius in metres: obstacles are inflated by this much for planning.
-    #[arg(long, default_value_t = 0.2, value_parser = parse_radius)]
-    vehicle_radius: f32,
+    /// Vehicle radius in metres: obstacles are inflated by this much for planning [default:
+    /// 0.2; 0.25 with `--stereo-model`, which maps surfaces at their true thickness].
+    #[arg(long, value_parser = parse_radius)]
+    vehicle_radius: Option<f32>,
     /// Radius of the vehicle body for collision counting, metres.
     #[arg(long, default_value_t = 0.15, value_parser = parse_positive)]
     body_radius: f32,
 }
 
 impl BodyArgs {
-    /// Puts the planning radius and the body radius into `cfg`.
+    /// Puts the planning radius (if given; after [`SensingArgs::apply`], which may widen the
+    /// default) and the body radius into `cfg`.
     pub fn apply(&self, cfg: &mut SimConfig) {
-        cfg.explorer.vehicle_radius = self.vehicle_radius;
+        if let Some(r) = self.vehicle_radius {
+            cfg.explorer.vehicle_radius = r;
+        }
         cfg.body_radius = self.body_radius;
     }
 }
