@@ -538,11 +538,13 @@ fn print_summary(r: &Report) {
         rows.push((
             "map accuracy",
             format!(
-                "{:.2} % of all voxels, {:.2} % of observed ones match the noise-free map ({} false occupied, {} false free); {} reachable free voxels held occupied",
+                "{:.2} % of all voxels, {:.2} % of observed ones match the noise-free map ({} false occupied, {} false free, {} unseen, {} seen only here); {} reachable free voxels held occupied",
                 100.0 * a.all_voxels,
                 100.0 * a.observed_voxels,
                 a.false_occupied,
                 a.false_free,
+                a.unseen,
+                a.seen_only_here,
                 r.free_marked_occupied
             ),
         ));

@@ -111,6 +111,10 @@ pub struct MapAccuracy {
     pub false_occupied: usize,
     /// Voxels occupied in the reference but free in the map.
     pub false_free: usize,
+    /// Voxels the reference observed and the map did not (unknown in the map only).
+    pub unseen: usize,
+    /// Voxels the map observed and the reference did not.
+    pub seen_only_here: usize,
 }
 
 /// Compares `map` with `reference` voxel by voxel (same grid).
@@ -119,6 +123,7 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
     let n = map.dims().len();
     let (mut same, mut observed, mut same_observed, mut false_occupied, mut false_free) =
         (0usize, 0usize, 0usize, 0usize, 0usize);
+    let (mut unseen, mut seen_only_here) = (0usize, 0usize);
     for i in 0..n {
         let (a, b) = (map.occupancy(i), reference.occupancy(i));
         let seen = !(map.is_unknown(i) && reference.is_unknown(i));
@@ -136,6 +141,11 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
             (Free, Occupied) => false_free += 1,
             _ => {}
         }
+        match (map.is_unknown(i), reference.is_unknown(i)) {
+            (true, false) => unseen += 1,
+            (false, true) => seen_only_here += 1,
+            _ => {}
+        }
     }
     let frac = |a: usize, b: usize| if b == 0 { 1.0 } else { a as f64 / b as f64 };
     MapAccuracy {
@@ -143,12 +153,50 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
         observed_voxels: frac(same_observed, observed),
         false_occupied,
         false_free,
+        unseen,
+        seen_only_here,
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry};
+
+    #[test]
+    fn accuracy_counts_each_kind_of_mismatch() {
+        let dims = Dims::new(4, 1, 1).unwrap();
+        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let (mut lo_a, mut st_a) = (vec![0i8; 4], vec![0u32; touched_words(&dims)]);
+        let (mut lo_b, mut st_b) = (vec![0i8; 4], vec![0u32; touched_words(&dims)]);
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo_a, &mut st_a).unwrap();
+        let mut reference = VoxelMap::new(g, LogOddsParams::default(), &mut lo_b, &mut st_b).unwrap();
+        // Voxel 0: free in both. 1: occupied in the reference, free in the map. 2: seen by the
+        // reference only. 3: seen by the map only.
+        for (m, r) in [
+            (Some(false), Some(false)),
+            (Some(false), Some(true)),
+            (None, Some(true)),
+            (Some(true), None),
+        ]
+        .into_iter()
+        .enumerate()
+        .map(|(i, (m, r))| ((i, m), (i, r)))
+        {
+            for (v, (i, hit)) in [(&mut map, m), (&mut reference, r)] {
+                v.begin_frame();
+                match hit {
+                    Some(true) => assert!(v.apply_hit(i)),
+                    Some(false) => assert!(v.apply_miss(i)),
+                    None => {}
+                }
+            }
+        }
+        let a = accuracy(&map, &reference);
+        assert_eq!((a.false_free, a.false_occupied), (1, 0));
+        assert_eq!((a.unseen, a.seen_only_here), (1, 1));
+        assert_eq!(a.all_voxels, 0.25);
+    }
 
     #[test]
     fn drift_walks_and_maps_back() {
