@@ -50,17 +50,24 @@ pub fn parse_dims(s: &str) -> Result<Dims, String> {
     }
 }
 
+/// Exactly `N` comma-separated finite numbers >= 0, or `None`.
+fn non_negative<const N: usize>(s: &str) -> Option<[f32; N]> {
+    let mut out = [0.0; N];
+    let mut parts = s.split(',');
+    for o in &mut out {
+        let v: f32 = parts.next()?.trim().parse().ok()?;
+        if !(v.is_finite() && v >= 0.0) {
+            return None;
+        }
+        *o = v;
+    }
+    parts.next().is_none().then_some(out)
+}
+
 /// `--drift`: `SIGMA_POS_M,SIGMA_YAW_RAD`, two numbers >= 0.
 pub fn parse_drift(s: &str) -> Result<DriftConfig, String> {
-    let bad = || format!("expected SIGMA_POS_M,SIGMA_YAW_RAD (two numbers >= 0), got `{s}`");
-    let (p, y) = s.split_once(',').ok_or_else(bad)?;
-    let (p, y): (f32, f32) = (
-        p.trim().parse().map_err(|_| bad())?,
-        y.trim().parse().map_err(|_| bad())?,
-    );
-    if !(p.is_finite() && y.is_finite() && p >= 0.0 && y >= 0.0) {
-        return Err(bad());
-    }
+    let [p, y] = non_negative(s)
+        .ok_or_else(|| format!("expected SIGMA_POS_M,SIGMA_YAW_RAD (two numbers >= 0), got `{s}`"))?;
     Ok(DriftConfig {
         sigma_position_m: p,
         sigma_yaw_rad: y,
@@ -70,15 +77,7 @@ pub fn parse_drift(s: &str) -> Result<DriftConfig, String> {
 /// `--grid-offset`: `X,Y,Z` in metres, each at least 0 (the scenario's voxel size bounds them
 /// from above; the run checks that).
 pub fn parse_grid_offset(s: &str) -> Result<[f32; 3], String> {
-    let bad = || format!("expected X,Y,Z (three numbers >= 0, metres), got `{s}`");
-    let v: Vec<f32> = s
-        .split(',')
-        .map(|p| p.trim().parse::<f32>().map_err(|_| bad()))
-        .collect::<Result<_, _>>()?;
-    match v[..] {
-        [x, y, z] if v.iter().all(|c| c.is_finite() && *c >= 0.0) => Ok([x, y, z]),
-        _ => Err(bad()),
-    }
+    non_negative(s).ok_or_else(|| format!("expected X,Y,Z (three numbers >= 0, metres), got `{s}`"))
 }
 
 /// A baud rate: a positive integer.
@@ -215,6 +214,19 @@ pub fn parse_operator_script(s: &str) -> Result<OperatorScript, String> {
 mod tests {
     use super::*;
     use harmonic_core::operator::OperatorCommand as C;
+
+    #[test]
+    fn lists_of_non_negative_numbers_have_their_exact_length() {
+        assert_eq!(parse_grid_offset(" 0.05, 0,0.025").unwrap(), [0.05, 0.0, 0.025]);
+        let d = parse_drift("0.1,0.015").unwrap();
+        assert_eq!((d.sigma_position_m, d.sigma_yaw_rad), (0.1, 0.015));
+        for bad in ["0.05,0", "0,0,0,0", "0,-0.01,0", "0,nan,0", "0,,0", ""] {
+            assert!(parse_grid_offset(bad).unwrap_err().contains("X,Y,Z"), "{bad}");
+        }
+        for bad in ["0.1", "0.1,0.2,0.3", "-1,0", "inf,0"] {
+            assert!(parse_drift(bad).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn operator_scripts_parse_in_time_order_and_bad_ones_say_why() {

@@ -171,7 +171,7 @@ pub const STEREO_TRUSTED_SIGMA_PX: f32 = 0.2;
 /// given. The model maps a surface at its true thickness, where "the hit wins" of exact depth
 /// grows it by about a voxel; on worlds whose walls lie on voxel faces the default 0.2 m then
 /// puts the 0.15 m body's planned centres exactly 0.15 m from the wall, with nothing to spare.
-/// Measured (docs/RESULTS.md, "The stereo sensor model"): runs with a contact fell from 10 to 3
+/// Measured (docs/RESULTS.md, "Surfaces on voxel faces"): runs with a contact fell from 10 to 3
 /// of 36 (the harmonic planner's from 2 to 0), at the same coverage.
 pub const STEREO_MODEL_VEHICLE_RADIUS_M: f32 = 0.25;
 
@@ -199,12 +199,11 @@ pub fn integrate_noisy_depth(
     cfg.explorer.integration.max_range = range
         .min(cfg.camera.max_range)
         .max(cfg.explorer.integration.min_range + 0.1);
-    cfg.explorer.integration.depth_noise_per_m = if sensor_model && sigma_px > 0.0 {
+    let model = sensor_model && sigma_px > 0.0;
+    cfg.explorer.integration.depth_noise_per_m = if model { sigma_px / (fx * baseline_m) } else { 0.0 };
+    if model {
         cfg.explorer.vehicle_radius = cfg.explorer.vehicle_radius.max(STEREO_MODEL_VEHICLE_RADIUS_M);
-        sigma_px / (fx * baseline_m)
-    } else {
-        0.0
-    };
+    }
 }
 
 /// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than

@@ -126,7 +126,8 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
     let (mut unseen, mut seen_only_here) = (0usize, 0usize);
     for i in 0..n {
         let (a, b) = (map.occupancy(i), reference.occupancy(i));
-        let seen = !(map.is_unknown(i) && reference.is_unknown(i));
+        let (unknown_here, unknown_there) = (map.is_unknown(i), reference.is_unknown(i));
+        let seen = !(unknown_here && unknown_there);
         if a == b {
             same += 1;
             if seen {
@@ -141,11 +142,8 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
             (Free, Occupied) => false_free += 1,
             _ => {}
         }
-        match (map.is_unknown(i), reference.is_unknown(i)) {
-            (true, false) => unseen += 1,
-            (false, true) => seen_only_here += 1,
-            _ => {}
-        }
+        unseen += usize::from(unknown_here && !unknown_there);
+        seen_only_here += usize::from(!unknown_here && unknown_there);
     }
     let frac = |a: usize, b: usize| if b == 0 { 1.0 } else { a as f64 / b as f64 };
     MapAccuracy {
@@ -173,24 +171,15 @@ mod tests {
         let mut reference = VoxelMap::new(g, LogOddsParams::default(), &mut lo_b, &mut st_b).unwrap();
         // Voxel 0: free in both. 1: occupied in the reference, free in the map. 2: seen by the
         // reference only. 3: seen by the map only.
-        for (m, r) in [
-            (Some(false), Some(false)),
-            (Some(false), Some(true)),
-            (None, Some(true)),
-            (Some(true), None),
-        ]
-        .into_iter()
-        .enumerate()
-        .map(|(i, (m, r))| ((i, m), (i, r)))
-        {
-            for (v, (i, hit)) in [(&mut map, m), (&mut reference, r)] {
-                v.begin_frame();
-                match hit {
-                    Some(true) => assert!(v.apply_hit(i)),
-                    Some(false) => assert!(v.apply_miss(i)),
-                    None => {}
-                }
-            }
+        map.begin_frame();
+        reference.begin_frame();
+        for i in [0, 1] {
+            assert!(map.apply_miss(i));
+        }
+        assert!(map.apply_hit(3));
+        assert!(reference.apply_miss(0));
+        for i in [1, 2] {
+            assert!(reference.apply_hit(i));
         }
         let a = accuracy(&map, &reference);
         assert_eq!((a.false_free, a.false_occupied), (1, 0));
