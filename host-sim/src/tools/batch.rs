@@ -69,10 +69,13 @@ pub struct RunRow {
     /// Closest the body's centre came to a surface, metres (`None` in rows written before it
     /// was recorded).
     pub min_clearance_m: Option<f64>,
+    /// Simulated flight time of the exploration, s: flying, turning and waiting for frames
+    /// (`None` in rows written before it was recorded).
+    pub flight_time_s: Option<f64>,
 }
 
 /// The CSV header of `runs.csv`.
-pub const CSV_HEADER: &str = "scenario,planner,seed,termination,path_length_m,scans,coverage_free,coverage_surface,coverage_observed,collisions,integration_ops,planning_ops,planning_ms_per_step,map_accuracy,wall_time_s,start_x,start_y,start_z,start_yaw_deg,min_clearance_m";
+pub const CSV_HEADER: &str = "scenario,planner,seed,termination,path_length_m,scans,coverage_free,coverage_surface,coverage_observed,collisions,integration_ops,planning_ops,planning_ms_per_step,map_accuracy,wall_time_s,start_x,start_y,start_z,start_yaw_deg,min_clearance_m,flight_time_s";
 
 fn clean(s: &str) -> String {
     s.replace([',', '\n', '"'], ";")
@@ -105,13 +108,15 @@ impl RunRow {
             start: scenario.start_position.coords.into(),
             start_yaw_deg: scenario.start_yaw.to_degrees(),
             min_clearance_m: Some(f64::from(report.min_clearance_m)),
+            // The exploration's own time, without a way home flown after it.
+            flight_time_s: Some(report.flight_time_s - report.return_home.as_ref().map_or(0.0, |r| r.time_s)),
         }
     }
 
     /// The row as a CSV line (no newline).
     pub fn to_csv(&self) -> String {
         format!(
-            "{},{},{},{},{:.3},{},{:.6},{:.6},{:.6},{},{},{},{:.4},{},{:.3},{:.2},{:.2},{:.2},{:.1},{}",
+            "{},{},{},{},{:.3},{},{:.6},{:.6},{:.6},{},{},{},{:.4},{},{:.3},{:.2},{:.2},{:.2},{:.1},{},{}",
             clean(&self.scenario),
             clean(&self.planner),
             self.seed,
@@ -134,6 +139,7 @@ impl RunRow {
             self.min_clearance_m
                 .map(|c| format!("{c:.4}"))
                 .unwrap_or_default(),
+            self.flight_time_s.map(|t| format!("{t:.2}")).unwrap_or_default(),
         )
     }
 
@@ -190,6 +196,10 @@ impl RunRow {
             min_clearance_m: match get("min_clearance_m").map(str::trim) {
                 Ok("") | Err(_) => None,
                 Ok(c) => Some(num("min_clearance_m", c)?),
+            },
+            flight_time_s: match get("flight_time_s").map(str::trim) {
+                Ok("") | Err(_) => None,
+                Ok(t) => Some(num("flight_time_s", t)?),
             },
         })
     }
@@ -849,6 +859,7 @@ mod tests {
             start: [1.0, 2.0, 1.0],
             start_yaw_deg: 45.0,
             min_clearance_m: Some(0.2125),
+            flight_time_s: Some(412.5),
         }
     }
 
@@ -861,10 +872,18 @@ mod tests {
         let back = RunRow::from_csv(&header, &r.to_csv()).unwrap();
         assert_eq!(back, r);
         assert!(RunRow::from_csv(&header, "a,b").is_err());
-        // Rows from before the clearance column still read, without it.
-        let old: Vec<&str> = header[..header.len() - 1].to_vec();
+        // Rows from before the flight-time column, and from before the clearance column,
+        // still read, without them.
         let line = r.to_csv();
-        let older = RunRow::from_csv(&old, line.rsplit_once(',').unwrap().0).unwrap();
+        let without_time = line.rsplit_once(',').unwrap().0;
+        let old = RunRow::from_csv(&header[..header.len() - 1], without_time).unwrap();
+        assert_eq!(old.flight_time_s, None);
+        assert_eq!(old.min_clearance_m, r.min_clearance_m);
+        let older = RunRow::from_csv(
+            &header[..header.len() - 2],
+            without_time.rsplit_once(',').unwrap().0,
+        )
+        .unwrap();
         assert_eq!(older.min_clearance_m, None);
         assert_eq!(older.path_length_m, r.path_length_m);
     }
