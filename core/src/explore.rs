@@ -27,6 +27,14 @@
 //!    it pulled taut through the safe space ([`streamline::pull_taut`],
 //!    [`ExplorerConfig::taut_path`]): straight wherever the inflated free space allows.
 //!
+//! **Looking around on arrival** ([`ExplorerConfig::arrival_looks`]): once the vehicle stands at
+//! its goal, the next plans turn it on the spot instead of planning on — each time to the one of
+//! eight headings, 45° apart and not yet looked along there, whose view (a grid of rays over
+//! the camera's field of view, out to the maximum range) meets the most unexplored voxels before
+//! a surface; until no heading's view meets any, or the turns are used up. Turning costs time,
+//! not path; what a turn shows is space the next plans need not fly to (docs/RESULTS.md,
+//! "Looking around on arrival").
+//!
 //! Frontiers the camera cannot resolve from any reachable pose (for example unknown voxels
 //! inside the minimum range under the vehicle) would make the loop revisit the same place
 //! forever (or alternate between two such places). The explorer notices when the vehicle stands
@@ -44,7 +52,7 @@ use crate::camera::{DepthFrame, Intrinsics};
 use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label};
 use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
-use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, VoxelIndex, VoxelMap};
+use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
 use crate::streamline::{self, Field, StreamlineEnd, StreamlineError, StreamlineParams, Waypoints};
@@ -92,6 +100,12 @@ pub struct ExplorerConfig {
     pub view_range_m: f32,
     /// Fruitless visits to the same frontier before the unknown behind it is sealed.
     pub stall_visits: u8,
+    /// Look around on arrival: once the vehicle stands at its goal, before it plans the next
+    /// one, it turns on the spot up to this many times, each time to the heading (of eight,
+    /// 45° apart, not yet looked along from here) whose view holds the most unexplored voxels
+    /// in plain sight, while some heading's view holds any (see [`Explorer::plan`]). A turn
+    /// costs no path, only time. 0: no look-around.
+    pub arrival_looks: u8,
     /// Keep flying to the current goal, without re-solving, while its frontier voxel is still a
     /// frontier and the rest of its path is still free of (inflated) obstacles. Without this a
     /// receding-horizon caller can oscillate between two frontiers whose pull swaps as the
@@ -157,6 +171,7 @@ impl Default for ExplorerConfig {
             view_margin: 0.8,
             view_range_m: 1.5,
             stall_visits: 2,
+            arrival_looks: 7,
             commit_to_goal: true,
             taut_path: true,
             max_frame_jump_m: 2.0,
@@ -383,6 +398,9 @@ pub struct Status {
     pub plans: u32,
     /// Plans that kept the committed goal instead of re-solving.
     pub plans_kept: u32,
+    /// Plans that turned the vehicle on the spot to look around on arrival
+    /// ([`ExplorerConfig::arrival_looks`]) instead of re-solving.
+    pub arrival_looks: u32,
     /// Total voxel updates by integration ("integration ops").
     pub integration_ops: u64,
     /// Total solver cell updates ("planning ops").
@@ -477,6 +495,8 @@ pub struct Explorer<'a> {
     go_near: bool,
     /// Where the vehicle was at the last plan.
     last_plan_position: Option<Point3<f32>>,
+    /// The look-around on arrival.
+    looks: ArrivalLooks,
     status: Status,
 }
 
@@ -559,6 +579,7 @@ impl<'a> Explorer<'a> {
             goal_from_afar: false,
             go_near: false,
             last_plan_position: None,
+            looks: ArrivalLooks::default(),
             kappa_voxel: match config.field {
                 PlanningField::Screened(p) => p.kappa_voxel(geometry.resolution()),
                 PlanningField::Harmonic => 0.0,
@@ -705,6 +726,10 @@ impl<'a> Explorer<'a> {
                 }
             }
         }
+        if let Some(turn) = self.arrival_look(position, yaw, clock) {
+            self.status.arrival_looks += 1;
+            return PlanOutcome::Goal(turn);
+        }
         self.waypoints.clear();
         let outcome = self.plan_inner(position, yaw, clock);
         self.status.record_plan(&outcome, &self.map);
@@ -714,6 +739,28 @@ impl<'a> Explorer<'a> {
             PlanOutcome::Complete => {}
         }
         outcome
+    }
+
+    /// The next turn of the look-around on arrival, if one is due ([`ArrivalLooks::next`]):
+    /// a goal that keeps the vehicle where it is (one waypoint, its position) and turns it. It
+    /// is not a plan: the last goal, the fruitless-visit bookkeeping and the field stay as they
+    /// were.
+    fn arrival_look(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> Option<Goal> {
+        let t0 = clock.ticks();
+        let turn = self.looks.next(
+            &self.map,
+            self.last_goal,
+            position,
+            yaw,
+            self.intrinsics.as_ref(),
+            self.config.arrival_looks,
+            self.config.integration.max_range,
+        );
+        self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
+        let turn = turn?;
+        self.waypoints.clear();
+        let _ = self.waypoints.push(*position);
+        Some(turn)
     }
 
     /// True (and the waypoints trimmed to start at the vehicle) if the committed goal still
@@ -1288,6 +1335,115 @@ fn heading(d: &Vector3<f32>, fallback: f32) -> f32 {
     } else {
         fallback
     }
+}
+
+/// The look-around on arrival ([`ExplorerConfig::arrival_looks`]), for any planner on the
+/// core's map: [`Explorer`] runs it, and the host's baseline planners can run it too (an
+/// ablation). It remembers, for the goal last arrived at, the headings already looked along
+/// there and the turns made.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ArrivalLooks {
+    state: Option<(Goal, u8, u8)>,
+}
+
+impl ArrivalLooks {
+    /// The next turn on the spot, if one is due: the vehicle stands at `arrived` (its last
+    /// goal, not an escape; within 1.5 voxels), has turned fewer than `max_turns` times there,
+    /// and some heading of eight, 45° apart, not yet looked along there (the one it faces
+    /// counts as looked along) sees an unexplored voxel ([`unexplored_in_view`], out to
+    /// `range`). The turn faces the heading that sees the most; it keeps the vehicle where it is
+    /// and names `arrived`'s frontier. `None` without intrinsics (no frame yet).
+    #[allow(clippy::too_many_arguments)]
+    pub fn next(
+        &mut self,
+        map: &VoxelMap<'_>,
+        arrived: Option<Goal>,
+        position: &Point3<f32>,
+        yaw: f32,
+        intrinsics: Option<&Intrinsics>,
+        max_turns: u8,
+        range: f32,
+    ) -> Option<Goal> {
+        let res = map.geometry().resolution();
+        let goal = arrived.filter(|g| !g.escape)?;
+        if max_turns == 0 || (goal.position - position).norm() > 1.5 * res {
+            return None;
+        }
+        // The same arrival while the goal is the same; a new goal is a new arrival.
+        let (mut looked, turns) = match self.state.filter(|(g, _, _)| *g == goal) {
+            Some((_, looked, turns)) => (looked, turns),
+            None => (0, 0),
+        };
+        looked |= 1 << octant(yaw);
+        self.state = Some((goal, looked, turns));
+        if turns >= max_turns {
+            return None;
+        }
+        let intrinsics = intrinsics?;
+        let mut best: Option<(u32, u8)> = None;
+        for k in (0..8u8).filter(|k| looked & (1 << k) == 0) {
+            let n = unexplored_in_view(map, position, octant_yaw(k), intrinsics, range);
+            if n > 0 && best.is_none_or(|(b, _)| n > b) {
+                best = Some((n, k));
+            }
+        }
+        let (_, k) = best?;
+        self.state = Some((goal, looked | (1 << k), turns + 1));
+        Some(Goal {
+            position: *position,
+            yaw: octant_yaw(k),
+            frontier: goal.frontier,
+            escape: false,
+        })
+    }
+}
+
+/// How many of [`LOOK_RAYS`]² rays spread evenly over the field of view of a level camera with
+/// `intrinsics` at `position`, looking along `heading`, meet an unexplored voxel (unknown, not
+/// sealed) within `range` before an occupied one.
+pub fn unexplored_in_view(
+    map: &VoxelMap<'_>,
+    position: &Point3<f32>,
+    heading: f32,
+    intrinsics: &Intrinsics,
+    range: f32,
+) -> u32 {
+    let geometry = *map.geometry();
+    let dims = geometry.dims();
+    let (half_h, half_v) = intrinsics.half_fov();
+    let mut seen = 0;
+    for i in 0..LOOK_RAYS {
+        let el = (2.0 * (i as f32 + 0.5) / LOOK_RAYS as f32 - 1.0) * half_v;
+        let (ce, se) = (libm::cosf(el), libm::sinf(el));
+        for j in 0..LOOK_RAYS {
+            let az = heading + (2.0 * (j as f32 + 0.5) / LOOK_RAYS as f32 - 1.0) * half_h;
+            let d = Vector3::new(libm::cosf(az) * ce, libm::sinf(az) * ce, se);
+            let mut found = false;
+            integrate::traverse(&geometry, position, &(position + d * range), |v| {
+                let i = dims.linear(v);
+                found = map.is_unexplored(i);
+                !found && map.occupancy(i) != Occupancy::Occupied
+            });
+            seen += u32::from(found);
+        }
+    }
+    seen
+}
+
+/// Rays per side of the grid [`unexplored_in_view`] casts over the field of view.
+const LOOK_RAYS: usize = 24;
+
+/// The octant (0–7, of 45° each, centred on `k`·45°) a yaw falls in; 0 for a non-finite yaw.
+fn octant(yaw: f32) -> u8 {
+    // A float-to-int cast saturates (NaN gives 0); rem_euclid then lies in 0..8.
+    let k = libm::roundf(yaw / core::f32::consts::FRAC_PI_4) as i32;
+    k.rem_euclid(8) as u8
+}
+
+/// The yaw of octant `k` (0–7), in (−π, π].
+fn octant_yaw(k: u8) -> f32 {
+    let k = if k > 4 { i16::from(k) - 8 } else { i16::from(k) };
+    f32::from(k) * core::f32::consts::FRAC_PI_4
 }
 
 /// Camera pose of a forward-looking camera on a vehicle at `position` with heading `yaw`:

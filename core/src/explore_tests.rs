@@ -541,3 +541,108 @@ fn the_way_to_a_goal_is_pulled_taut_through_the_safe_space_and_keeps_the_goal() 
         });
     }
 }
+
+/// A 4 × 4 × 1.2 m room seen free except its north strip (y ≥ 2.8 m), which is unexplored;
+/// the vehicle stands at its last goal in the south, facing east. Plans once per entry of
+/// `yaws` (the vehicle's yaw at each plan, as if it had turned as told) and returns the
+/// outcomes.
+fn arrive_beside_an_unexplored_strip(
+    arrival_looks: u8,
+    yaws: &[f32],
+) -> (Vec<PlanOutcome>, u32, Vec<Point3<f32>>) {
+    let dims = Dims::new(40, 40, 12).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig {
+        arrival_looks,
+        ..ExplorerConfig::default()
+    };
+    let mut e = b.explorer(dims, config);
+    e.intrinsics = Some(Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap());
+    e.map.begin_frame();
+    for i in 0..dims.len() {
+        if dims.voxel(i).y < 28 {
+            e.map.apply_miss(i);
+        }
+    }
+    let p = Point3::new(2.0, 1.0, 0.6);
+    let arrived = Goal {
+        position: p,
+        yaw: 0.0,
+        frontier: VoxelIndex::new(20, 27, 6),
+        escape: false,
+    };
+    e.last_goal = Some(arrived);
+    let mut outcomes = Vec::new();
+    let mut waypoints = Vec::new();
+    for &yaw in yaws {
+        outcomes.push(e.plan(&p, yaw));
+        waypoints = e.waypoints().to_vec();
+    }
+    (outcomes, e.status().arrival_looks, waypoints)
+}
+
+#[test]
+fn on_arrival_the_vehicle_turns_to_the_unexplored_side_before_planning_on() {
+    let p = Point3::new(2.0, 1.0, 0.6);
+    let (outcomes, turns, waypoints) = arrive_beside_an_unexplored_strip(1, &[0.0]);
+    let PlanOutcome::Goal(turn) = outcomes[0] else {
+        panic!("{outcomes:?}");
+    };
+    // It stays where it is and faces north, the heading whose view holds the most unexplored
+    // voxels; the goal it arrived at is not replaced.
+    assert_eq!(turns, 1);
+    assert_eq!(turn.position, p);
+    assert_eq!(waypoints, vec![p]);
+    assert!((turn.yaw - core::f32::consts::FRAC_PI_2).abs() < 1e-6, "{turn:?}");
+    assert_eq!(turn.frontier, VoxelIndex::new(20, 27, 6));
+    // With its one look made, the next plan is a plan: a goal towards the strip.
+    let (outcomes, turns, _) = arrive_beside_an_unexplored_strip(1, &[0.0, core::f32::consts::FRAC_PI_2]);
+    let PlanOutcome::Goal(next) = outcomes[1] else {
+        panic!("{outcomes:?}");
+    };
+    assert_eq!(turns, 1);
+    assert_ne!(next.frontier, VoxelIndex::new(20, 27, 6), "{next:?}");
+    // Without the look-around, the first plan is that plan.
+    let (outcomes, turns, _) = arrive_beside_an_unexplored_strip(0, &[0.0]);
+    assert_eq!(turns, 0);
+    assert!(
+        matches!(outcomes[0], PlanOutcome::Goal(g) if g.position != p),
+        "{outcomes:?}"
+    );
+}
+
+#[test]
+fn the_look_around_never_looks_twice_along_a_heading_and_stops_when_nothing_is_left_to_see() {
+    // Up to seven turns allowed: the headings whose view reaches the strip (north-east, north,
+    // north-west), each once, the most revealing first; the headings facing away from it see
+    // only the room's seen floor and the grid's edge, so the fourth plan is a plan.
+    let p = Point3::new(2.0, 1.0, 0.6);
+    let (outcomes, _, _) = arrive_beside_an_unexplored_strip(7, &[0.0; 4]);
+    let turned: Vec<u8> = outcomes
+        .iter()
+        .map_while(|o| match o {
+            PlanOutcome::Goal(g) if g.position == p && g.frontier == VoxelIndex::new(20, 27, 6) => {
+                Some(octant(g.yaw))
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(turned, vec![2, 1, 3], "{outcomes:?}");
+    assert!(
+        matches!(outcomes[3], PlanOutcome::Goal(g) if g.frontier != VoxelIndex::new(20, 27, 6)),
+        "{outcomes:?}"
+    );
+}
+
+#[test]
+fn octants_round_trip_and_a_bad_yaw_is_octant_zero() {
+    for k in 0..8u8 {
+        assert_eq!(octant(octant_yaw(k)), k);
+        assert_eq!(octant(octant_yaw(k) + 0.3), k);
+        assert_eq!(octant(octant_yaw(k) + core::f32::consts::TAU), k);
+        let y = octant_yaw(k);
+        assert!(y > -core::f32::consts::PI && y <= core::f32::consts::PI);
+    }
+    assert_eq!(octant(f32::NAN), 0);
+    assert_eq!(octant(f32::INFINITY), octant(f32::INFINITY));
+}
