@@ -101,11 +101,21 @@ pub struct FieldArgs {
     /// the frontier is in plain sight within this range (metres); 0 flies up to it.
     #[arg(long)]
     view_range: Option<f32>,
+    /// Look around on arrival: at each goal the core's planner turns on the spot up to this
+    /// many times, each to the heading (of eight) that sees the most unexplored space, before it
+    /// plans the next goal (default 7; 0: no look-around, the ablation).
+    #[arg(long)]
+    arrival_looks: Option<u8>,
     /// Ablation: closest and random frontier choose their goal by the core's view rule (the
     /// first point of the path from which the frontier is in plain sight within the view
     /// range) instead of the thesis's (fly up to it).
     #[arg(long)]
     baseline_views: bool,
+    /// Ablation: the baseline planners look around on arrival as the core's planner does
+    /// (`--arrival-looks` turns at each goal, to the headings that see the most unexplored
+    /// space) instead of planning on at once, as the thesis's do.
+    #[arg(long)]
+    baseline_looks: bool,
     /// Ablation: the core flies its streamline's own curve instead of pulling it taut through
     /// the safe space (same goal, same frontier).
     #[arg(long)]
@@ -125,7 +135,11 @@ impl FieldArgs {
         if let Some(r) = self.view_range {
             cfg.explorer.view_range_m = r.max(0.0);
         }
+        if let Some(n) = self.arrival_looks {
+            cfg.explorer.arrival_looks = n;
+        }
         cfg.baseline_views = self.baseline_views;
+        cfg.baseline_looks = self.baseline_looks;
         if self.raw_streamline {
             cfg.explorer.taut_path = false;
         }

@@ -39,8 +39,8 @@ use harmonic_core::camera::{DepthFrame, Intrinsics};
 use harmonic_core::domain::{self, DomainError, InflationStencil, Label};
 use harmonic_core::explore::Clock;
 use harmonic_core::explore::{
-    check_frame_timing, ConfigError, ExplorerConfig, ExplorerStorage, Fault, FrameTiming, Goal, PlanOutcome,
-    Status,
+    check_frame_timing, ArrivalLooks, ConfigError, ExplorerConfig, ExplorerStorage, Fault, FrameTiming, Goal,
+    PlanOutcome, Status,
 };
 use harmonic_core::integrate::{self, traverse};
 use harmonic_core::map::{MapGeometry, VoxelIndex, VoxelMap};
@@ -120,6 +120,8 @@ pub struct Baseline<'a> {
     unexplored_at_last_plan: Option<u32>,
     /// Frontier goals follow the core's view rule (see [`Baseline::with_core_views`]).
     core_views: bool,
+    /// The core's look-around on arrival (see [`Baseline::with_arrival_looks`]), if on.
+    looks: Option<ArrivalLooks>,
     /// The last goal looked at its frontier from afar.
     goal_from_afar: bool,
     /// The next frontier goal takes the near point (a look from afar taught nothing).
@@ -135,6 +137,15 @@ impl<'a> Baseline<'a> {
     /// frontier comes from its field or from this rule.
     pub fn with_core_views(mut self) -> Self {
         self.core_views = true;
+        self
+    }
+
+    /// Lets the baseline look around on arrival as the core's planner does
+    /// ([`ArrivalLooks`], up to [`ExplorerConfig::arrival_looks`] turns at each goal, to the
+    /// headings that see the most unexplored space). An ablation: it asks how much of the
+    /// harmonic planner's gain over the thesis's baselines the look-around gives by itself.
+    pub fn with_arrival_looks(mut self) -> Self {
+        self.looks = Some(ArrivalLooks::default());
         self
     }
 
@@ -180,6 +191,7 @@ impl<'a> Baseline<'a> {
             fruitless_visits: 0,
             unexplored_at_last_plan: None,
             core_views: false,
+            looks: None,
             goal_from_afar: false,
             go_near: false,
             status: Status::default(),
@@ -770,6 +782,24 @@ impl Planner for Baseline<'_> {
                 if let Some(c) = &self.commitment {
                     return PlanOutcome::Goal(c.goal);
                 }
+            }
+        }
+        if let Some(looks) = self.looks.as_mut() {
+            let t0 = clock.ticks();
+            let turn = looks.next(
+                &self.map,
+                self.commitment.as_ref().map(|c| c.goal),
+                position,
+                yaw,
+                self.intrinsics.as_ref(),
+                self.config.arrival_looks,
+                self.config.integration.max_range,
+            );
+            self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
+            if let Some(turn) = turn {
+                self.waypoints = vec![*position];
+                self.status.arrival_looks += 1;
+                return PlanOutcome::Goal(turn);
             }
         }
         self.waypoints.clear();

@@ -96,6 +96,9 @@ pub struct SimConfig {
     /// Closest and random frontier choose their goal by the core's view rule (an ablation; see
     /// [`Baseline::with_core_views`]).
     pub baseline_views: bool,
+    /// Closest, random frontier and the information-gain planners look around on arrival as
+    /// the core's planner does (an ablation; see [`Baseline::with_arrival_looks`]).
+    pub baseline_looks: bool,
     /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
     /// Depth camera.
@@ -244,6 +247,7 @@ impl Default for SimConfig {
         Self {
             planner: PlannerKind::Harmonic,
             baseline_views: false,
+            baseline_looks: false,
             explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
             body_radius: 0.15,
@@ -1147,11 +1151,16 @@ fn make_planner<'s>(
         kind => {
             let baseline =
                 Baseline::new(kind, geometry, cfg.explorer, storage.lend(), cfg.seed).map_err(config_err)?;
-            if cfg.baseline_views {
-                Box::new(baseline.with_core_views())
+            let baseline = if cfg.baseline_views {
+                baseline.with_core_views()
             } else {
-                Box::new(baseline)
-            }
+                baseline
+            };
+            Box::new(if cfg.baseline_looks {
+                baseline.with_arrival_looks()
+            } else {
+                baseline
+            })
         }
     })
 }
@@ -1433,7 +1442,8 @@ pub fn run_observed(
         };
         let status = *planner.status();
         let kept = status.plans_kept > status_before.plans_kept;
-        if let (Some(dir), Some(_), false) = (&cfg.dump_problem, &outcome, kept) {
+        let turned = status.arrival_looks > status_before.arrival_looks;
+        if let (Some(dir), Some(_), false) = (&cfg.dump_problem, &outcome, kept || turned) {
             dump_problem(dir, step, planner.as_ref(), &position, cfg)?;
         }
         let coverage = truth.coverage(planner.map());
@@ -1443,6 +1453,7 @@ pub fn run_observed(
             None => "no_frame".to_string(),
             Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
             Some(PlanOutcome::Goal(_)) if kept => "kept".to_string(),
+            Some(PlanOutcome::Goal(_)) if turned => "arrival_look".to_string(),
             Some(PlanOutcome::Goal(_)) => "goal".to_string(),
             Some(PlanOutcome::Complete) => "complete".to_string(),
             Some(PlanOutcome::Hold(f)) => format!("hold:{f:?}"),
