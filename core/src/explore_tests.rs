@@ -545,10 +545,12 @@ fn the_way_to_a_goal_is_pulled_taut_through_the_safe_space_and_keeps_the_goal() 
 /// A 4 × 4 × 1.2 m room seen free except its north strip (y ≥ 2.8 m), which is unexplored;
 /// the vehicle stands at its last goal in the south, facing east. Plans once per entry of
 /// `yaws` (the vehicle's yaw at each plan, as if it had turned as told) and returns the
-/// outcomes.
+/// outcomes. `teach`: each turn's view observes one voxel of the strip (without it, no turn
+/// teaches anything).
 fn arrive_beside_an_unexplored_strip(
     arrival_looks: u8,
     yaws: &[f32],
+    teach: bool,
 ) -> (Vec<PlanOutcome>, u32, Vec<Point3<f32>>) {
     let dims = Dims::new(40, 40, 12).unwrap();
     let mut b = Buffers::new(&dims);
@@ -574,9 +576,14 @@ fn arrive_beside_an_unexplored_strip(
     e.last_goal = Some(arrived);
     let mut outcomes = Vec::new();
     let mut waypoints = Vec::new();
-    for &yaw in yaws {
+    for (k, &yaw) in yaws.iter().enumerate() {
         outcomes.push(e.plan(&p, yaw));
         waypoints = e.waypoints().to_vec();
+        if teach {
+            e.map.begin_frame();
+            e.map
+                .apply_miss(dims.linear(VoxelIndex::new(30 + k as u16, 39, 6)));
+        }
     }
     (outcomes, e.status().arrival_looks, waypoints)
 }
@@ -584,7 +591,7 @@ fn arrive_beside_an_unexplored_strip(
 #[test]
 fn on_arrival_the_vehicle_turns_to_the_unexplored_side_before_planning_on() {
     let p = Point3::new(2.0, 1.0, 0.6);
-    let (outcomes, turns, waypoints) = arrive_beside_an_unexplored_strip(1, &[0.0]);
+    let (outcomes, turns, waypoints) = arrive_beside_an_unexplored_strip(1, &[0.0], true);
     let PlanOutcome::Goal(turn) = outcomes[0] else {
         panic!("{outcomes:?}");
     };
@@ -596,14 +603,15 @@ fn on_arrival_the_vehicle_turns_to_the_unexplored_side_before_planning_on() {
     assert!((turn.yaw - core::f32::consts::FRAC_PI_2).abs() < 1e-6, "{turn:?}");
     assert_eq!(turn.frontier, VoxelIndex::new(20, 27, 6));
     // With its one look made, the next plan is a plan: a goal towards the strip.
-    let (outcomes, turns, _) = arrive_beside_an_unexplored_strip(1, &[0.0, core::f32::consts::FRAC_PI_2]);
+    let (outcomes, turns, _) =
+        arrive_beside_an_unexplored_strip(1, &[0.0, core::f32::consts::FRAC_PI_2], true);
     let PlanOutcome::Goal(next) = outcomes[1] else {
         panic!("{outcomes:?}");
     };
     assert_eq!(turns, 1);
     assert_ne!(next.frontier, VoxelIndex::new(20, 27, 6), "{next:?}");
     // Without the look-around, the first plan is that plan.
-    let (outcomes, turns, _) = arrive_beside_an_unexplored_strip(0, &[0.0]);
+    let (outcomes, turns, _) = arrive_beside_an_unexplored_strip(0, &[0.0], true);
     assert_eq!(turns, 0);
     assert!(
         matches!(outcomes[0], PlanOutcome::Goal(g) if g.position != p),
@@ -617,21 +625,27 @@ fn the_look_around_never_looks_twice_along_a_heading_and_stops_when_nothing_is_l
     // north-west), each once, the most revealing first; the headings facing away from it see
     // only the room's seen floor and the grid's edge, so the fourth plan is a plan.
     let p = Point3::new(2.0, 1.0, 0.6);
-    let (outcomes, _, _) = arrive_beside_an_unexplored_strip(7, &[0.0; 4]);
-    let turned: Vec<u8> = outcomes
-        .iter()
-        .map_while(|o| match o {
-            PlanOutcome::Goal(g) if g.position == p && g.frontier == VoxelIndex::new(20, 27, 6) => {
-                Some(octant(g.yaw))
-            }
-            _ => None,
-        })
-        .collect();
-    assert_eq!(turned, vec![2, 1, 3], "{outcomes:?}");
-    assert!(
-        matches!(outcomes[3], PlanOutcome::Goal(g) if g.frontier != VoxelIndex::new(20, 27, 6)),
-        "{outcomes:?}"
-    );
+    let turns = |teach: bool| {
+        let (outcomes, _, _) = arrive_beside_an_unexplored_strip(7, &[0.0; 4], teach);
+        let turned: Vec<u8> = outcomes
+            .iter()
+            .map_while(|o| match o {
+                PlanOutcome::Goal(g) if g.position == p && g.frontier == VoxelIndex::new(20, 27, 6) => {
+                    Some(octant(g.yaw))
+                }
+                _ => None,
+            })
+            .collect();
+        let next = outcomes[turned.len()];
+        assert!(
+            matches!(next, PlanOutcome::Goal(g) if g.frontier != VoxelIndex::new(20, 27, 6)),
+            "{outcomes:?}"
+        );
+        turned
+    };
+    assert_eq!(turns(true), vec![2, 1, 3]);
+    // A turn whose view taught nothing ends the look-around.
+    assert_eq!(turns(false), vec![2]);
 }
 
 #[test]

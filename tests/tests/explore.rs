@@ -375,3 +375,50 @@ fn without_retransmission_each_row_that_arrives_still_counts() {
         .iter()
         .all(|s| (s.outcome == "no_frame") == (s.frames_integrated == 0)));
 }
+
+#[test]
+fn looking_around_on_arrival_turns_without_moving_and_for_both_kinds_of_planner() {
+    // The opt-in look-around: after each goal the vehicle turns on the spot to headings that
+    // see unexplored space. A turn never moves it, and closest frontier runs the same rule
+    // when asked (the ablation).
+    let scenario = Scenario::builtin("kitchen").expect("built-in scenario");
+    for (planner, baseline_looks) in [
+        (PlannerKind::Harmonic, false),
+        (PlannerKind::ClosestFrontier, true),
+    ] {
+        let mut cfg = SimConfig {
+            planner,
+            baseline_looks,
+            max_scans: 60,
+            ..SimConfig::default()
+        };
+        cfg.explorer.arrival_looks = 7;
+        let r = sim::run(&scenario, &cfg, |_| {}).expect("run starts");
+        let looks: Vec<_> = r.steps.iter().filter(|s| s.outcome == "arrival_look").collect();
+        assert!(looks.len() >= 3, "{planner:?}: {} looks", looks.len());
+        for s in &looks {
+            let goal = s.goal.expect("a look has a goal");
+            let moved = (0..3)
+                .map(|k| (goal[k] - s.position[k]).powi(2))
+                .sum::<f32>()
+                .sqrt();
+            assert!(
+                moved < 1e-4,
+                "{planner:?}: a look moved the vehicle {moved} m at step {}",
+                s.step
+            );
+        }
+        assert_eq!(r.collisions, 0);
+    }
+    // Off by default: the same run plans on at once.
+    let r = sim::run(
+        &scenario,
+        &SimConfig {
+            max_scans: 60,
+            ..SimConfig::default()
+        },
+        |_| {},
+    )
+    .expect("run starts");
+    assert!(r.steps.iter().all(|s| s.outcome != "arrival_look"));
+}

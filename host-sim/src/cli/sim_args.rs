@@ -103,7 +103,8 @@ pub struct FieldArgs {
     view_range: Option<f32>,
     /// Look around on arrival: at each goal the core's planner turns on the spot up to this
     /// many times, each to the heading (of eight) that sees the most unexplored space, before it
-    /// plans the next goal (default 7; 0: no look-around, the ablation).
+    /// plans the next goal (default 0: none). Shorter paths, much longer flights (see
+    /// docs/RESULTS.md, "Looking around on arrival").
     #[arg(long)]
     arrival_looks: Option<u8>,
     /// Ablation: closest and random frontier choose their goal by the core's view rule (the

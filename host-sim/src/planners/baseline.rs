@@ -793,7 +793,10 @@ impl Planner for Baseline<'_> {
                 yaw,
                 self.intrinsics.as_ref(),
                 self.config.arrival_looks,
-                self.config.integration.max_range,
+                (
+                    self.config.integration.min_range,
+                    self.config.integration.max_range,
+                ),
             );
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
             if let Some(turn) = turn {
