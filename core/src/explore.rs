@@ -752,15 +752,11 @@ impl<'a> Explorer<'a> {
         let t0 = clock.ticks();
         let turn = self.looks.next(
             &self.map,
+            &self.config,
+            self.intrinsics.as_ref(),
             self.last_goal,
             position,
             yaw,
-            self.intrinsics.as_ref(),
-            self.config.arrival_looks,
-            (
-                self.config.integration.min_range,
-                self.config.integration.max_range,
-            ),
         );
         self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
         let turn = turn?;
@@ -1353,26 +1349,26 @@ pub struct ArrivalLooks {
 }
 
 impl ArrivalLooks {
-    /// The next turn on the spot, if one is due: the vehicle stands at `arrived` (its last
-    /// goal, not an escape; within 1.5 voxels), has turned fewer than `max_turns` times there,
-    /// its last turn there (if any) taught something (the map's unexplored voxels, unknown and
-    /// not sealed, fell since), and some heading of eight, 45° apart, not yet looked along there
-    /// (the one it faces counts as looked along) sees an unexplored voxel the camera can
-    /// resolve ([`unexplored_in_view`], from `min_range` out to `range`). The turn faces the
-    /// heading that sees the most; it keeps the vehicle where it is and names `arrived`'s
-    /// frontier. `None` without intrinsics (no frame yet). Costs one pass over the map's
-    /// voxels and up to seven views of rays.
-    #[allow(clippy::too_many_arguments)]
+    /// The next turn on the spot, if one is due: the vehicle (at `position`, facing `yaw`)
+    /// stands at `arrived` (its last goal, not an escape; within 1.5 voxels), has turned fewer
+    /// than `config.arrival_looks` times there, its last turn there (if any) taught something
+    /// (the map's unexplored voxels, unknown and not sealed, fell since), and some heading of
+    /// eight, 45° apart, not yet looked along there (the one it faces counts as looked along)
+    /// sees an unexplored voxel the camera can resolve ([`unexplored_in_view`], within the
+    /// integration's range). The turn faces the heading that sees the most; it keeps the
+    /// vehicle where it is and names `arrived`'s frontier. `None` without intrinsics (no frame
+    /// yet). Costs one pass over the map's voxels and up to seven views of rays.
     pub fn next(
         &mut self,
         map: &VoxelMap<'_>,
+        config: &ExplorerConfig,
+        intrinsics: Option<&Intrinsics>,
         arrived: Option<Goal>,
         position: &Point3<f32>,
         yaw: f32,
-        intrinsics: Option<&Intrinsics>,
-        max_turns: u8,
-        (min_range, range): (f32, f32),
     ) -> Option<Goal> {
+        let max_turns = config.arrival_looks;
+        let (min_range, range) = (config.integration.min_range, config.integration.max_range);
         let res = map.geometry().resolution();
         let goal = arrived.filter(|g| !g.escape)?;
         if max_turns == 0 || (goal.position - position).norm() > 1.5 * res {

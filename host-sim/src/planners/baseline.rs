@@ -786,17 +786,14 @@ impl Planner for Baseline<'_> {
         }
         if let Some(looks) = self.looks.as_mut() {
             let t0 = clock.ticks();
+            let arrived = self.commitment.as_ref().map(|c| c.goal);
             let turn = looks.next(
                 &self.map,
-                self.commitment.as_ref().map(|c| c.goal),
+                &self.config,
+                self.intrinsics.as_ref(),
+                arrived,
                 position,
                 yaw,
-                self.intrinsics.as_ref(),
-                self.config.arrival_looks,
-                (
-                    self.config.integration.min_range,
-                    self.config.integration.max_range,
-                ),
             );
             self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
             if let Some(turn) = turn {
