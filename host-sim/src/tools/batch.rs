@@ -713,6 +713,9 @@ pub struct Summary {
     pub path: (f64, f64),
     /// Scans mean, std.
     pub scans: (f64, f64),
+    /// Simulated flight time mean, std (s); `None` if a row has none (written before it was
+    /// recorded).
+    pub flight_time: Option<(f64, f64)>,
     /// Free coverage at termination, mean (0–1).
     pub coverage: f64,
     /// Integration ops, mean.
@@ -751,6 +754,12 @@ pub fn summarize(rows: &[RunRow], scenario: &str) -> Vec<Summary> {
                 complete: rs.iter().filter(|r| r.termination == "complete").count(),
                 path: mean_std(&col(&|r| r.path_length_m)),
                 scans: mean_std(&col(&|r| f64::from(r.scans))),
+                flight_time: rs
+                    .iter()
+                    .map(|r| r.flight_time_s)
+                    .collect::<Option<Vec<f64>>>()
+                    .filter(|t| !t.is_empty())
+                    .map(|t| mean_std(&t)),
                 coverage: mean_std(&col(&|r| r.coverage_free)).0,
                 integration_ops: mean_std(&col(&|r| r.integration_ops as f64)).0,
                 planning_ops: mean_std(&col(&|r| r.planning_ops as f64)).0,
@@ -770,9 +779,10 @@ fn sci(x: f64) -> String {
     }
 }
 
-/// One markdown table per scenario: mean ± std path length, scans, coverage and map accuracy at
-/// termination, completed runs, integration and planning ops, planning time per step, the ratio
-/// of each planner's mean path to closest frontier's, and the thesis's path length.
+/// One markdown table per scenario: mean ± std path length, scans, flight time, coverage and
+/// map accuracy at termination, completed runs, integration and planning ops, planning time per
+/// step, the ratios of each planner's mean path and mean flight time to closest frontier's, and
+/// the thesis's path length.
 pub fn markdown(rows: &[RunRow]) -> String {
     let mut scenarios: Vec<&str> = rows.iter().map(|r| r.scenario.as_str()).collect();
     scenarios.sort_by_key(|s| {
@@ -785,26 +795,30 @@ pub fn markdown(rows: &[RunRow]) -> String {
     let mut md = String::new();
     for scenario in scenarios {
         let summaries = summarize(rows, scenario);
-        let closest = summaries
-            .iter()
-            .find(|s| s.planner == "closest-frontier")
-            .map(|s| s.path.0);
+        let closest = summaries.iter().find(|s| s.planner == "closest-frontier");
+        let closest_time = closest.and_then(|s| s.flight_time).map(|t| t.0);
+        let closest = closest.map(|s| s.path.0);
         let with_accuracy = summaries.iter().any(|s| s.accuracy.is_some());
         let _ = writeln!(md, "### {scenario}\n");
         let _ = writeln!(
             md,
-            "| planner | runs | complete | path (m) | ÷ closest | thesis path (m) | scans | coverage{} | collisions | integration ops | planning ops | planning ms/step |",
+            "| planner | runs | complete | path (m) | ÷ closest | thesis path (m) | scans | flight time (s) | ÷ closest | coverage{} | collisions | integration ops | planning ops | planning ms/step |",
             if with_accuracy { " | map accuracy" } else { "" }
         );
         let _ = writeln!(
             md,
-            "|---|---|---|---|---|---|---|---|---|---|---|---{}|",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---{}|",
             if with_accuracy { "|---" } else { "" }
         );
         for s in &summaries {
             let ratio = closest.map_or("–".to_string(), |c| format!("{:.2}", s.path.0 / c));
             let thesis = thesis_path(scenario, &s.planner)
                 .map_or("–".to_string(), |(m, sd)| format!("{m:.1} ± {sd:.1}"));
+            let (time, time_ratio) = match (s.flight_time, closest_time) {
+                (Some((m, sd)), Some(c)) => (format!("{m:.0} ± {sd:.0}"), format!("{:.2}", m / c)),
+                (Some((m, sd)), None) => (format!("{m:.0} ± {sd:.0}"), "–".to_string()),
+                (None, _) => ("–".to_string(), "–".to_string()),
+            };
             let accuracy = match (with_accuracy, s.accuracy) {
                 (true, Some(a)) => format!(" | {:.1} %", 100.0 * a),
                 (true, None) => " | –".to_string(),
@@ -812,7 +826,7 @@ pub fn markdown(rows: &[RunRow]) -> String {
             };
             let _ = writeln!(
                 md,
-                "| {} | {} | {} | {:.1} ± {:.1} | {} | {} | {:.0} ± {:.0} | {:.1} %{} | {} | {} | {} | {:.1} |",
+                "| {} | {} | {} | {:.1} ± {:.1} | {} | {} | {:.0} ± {:.0} | {} | {} | {:.1} %{} | {} | {} | {} | {:.1} |",
                 s.planner,
                 s.runs,
                 s.complete,
@@ -822,6 +836,8 @@ pub fn markdown(rows: &[RunRow]) -> String {
                 thesis,
                 s.scans.0,
                 s.scans.1,
+                time,
+                time_ratio,
                 100.0 * s.coverage,
                 accuracy,
                 s.collisions,
@@ -930,6 +946,22 @@ mod tests {
             "{md}"
         );
         assert!(md.contains("2.00e6"), "{md}");
+        // Flight time and its ratio to closest frontier's, after the scans.
+        assert!(md.contains("| 10 ± 0 | 412 ± 0 | 1.00 |"), "{md}");
+        // Rows written before flight time was recorded show none.
+        let mut old = rows.clone();
+        old[2].flight_time_s = None;
+        let md = markdown(&old);
+        assert!(
+            md.contains(
+                "| closest-frontier | 2 | 2 | 11.0 ± 1.4 | 1.00 | 9.8 ± 1.7 | 10 ± 0 | 412 ± 0 | 1.00 |"
+            ),
+            "{md}"
+        );
+        assert!(
+            md.contains("| harmonic | 2 | 2 | 11.0 ± 2.8 | 1.00 | 9.3 ± 2.4 | 10 ± 0 | – | – |"),
+            "{md}"
+        );
     }
 
     #[test]
