@@ -83,6 +83,12 @@ fn explore_writes_a_report_with_the_documented_fields() {
         stdout.contains("coverage (free)"),
         "summary table missing: {stdout}"
     );
+    // The flight's simulated time, as report.json has it (no way home after a scan limit).
+    let time = report["flight_time_s"].as_f64().unwrap();
+    assert!(
+        time > 0.0 && stdout.contains(&format!("flight time          {time:.0} s (simulated)")),
+        "flight time {time} s missing: {stdout}"
+    );
     let _ = std::fs::remove_dir_all(dir);
 }
 

@@ -476,7 +476,7 @@ fn write_run_figures(
 
 /// The end-of-run summary: one aligned line per quantity of the report.
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 16] = [
+    let rows: [(&str, String); 17] = [
         ("scenario", r.scenario.clone()),
         ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
@@ -491,6 +491,10 @@ fn print_summary(r: &Report) {
         ),
         ("path length", format!("{:.1} m", r.path_length_m)),
         ("scans", r.scans.to_string()),
+        (
+            "flight time",
+            format!("{:.0} s (simulated)", r.exploration_time_s()),
+        ),
         (
             "return home",
             match &r.return_home {

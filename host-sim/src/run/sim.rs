@@ -492,6 +492,14 @@ pub struct Report {
     pub steps: Vec<StepRecord>,
 }
 
+impl Report {
+    /// The exploration's simulated time, s: [`Report::flight_time_s`] without a way home flown
+    /// after it.
+    pub fn exploration_time_s(&self) -> f64 {
+        self.flight_time_s - self.return_home.as_ref().map_or(0.0, |h| h.time_s)
+    }
+}
+
 /// A depth frame the planner integrated, with the camera pose it was integrated at.
 #[derive(Debug, Clone)]
 pub struct IntegratedFrame {

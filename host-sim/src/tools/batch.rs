@@ -108,8 +108,7 @@ impl RunRow {
             start: scenario.start_position.coords.into(),
             start_yaw_deg: scenario.start_yaw.to_degrees(),
             min_clearance_m: Some(f64::from(report.min_clearance_m)),
-            // The exploration's own time, without a way home flown after it.
-            flight_time_s: Some(report.flight_time_s - report.return_home.as_ref().map_or(0.0, |r| r.time_s)),
+            flight_time_s: Some(report.exploration_time_s()),
         }
     }
 
