@@ -5,6 +5,9 @@
 //! 10 × 10 patch of frontier voxels against the far wall of the last room. A *warm* re-solve
 //! models the next planning step after one scan: the vehicle has moved 1 m (10 voxels) and the
 //! frontier patch has shifted by three voxels; the solve starts from the previous solution.
+//! For the screened field, whose vehicle is an ordinary voxel, a *scan* re-solve models a
+//! smaller change: the scan resolved one edge row of the frontier patch (ten of its voxels
+//! become interior, the wall behind them seen) and nothing else moved.
 
 use std::time::Instant;
 
@@ -80,6 +83,25 @@ pub fn rooms_with_doors(dims: Dims, step: usize) -> Problem {
     Problem { dims, labels }
 }
 
+/// [`rooms_with_doors`] at `step` 0 after a scan that resolved the frontier patch's lowest row
+/// (z): its ten voxels become interior. The rest of the problem is unchanged.
+pub fn rooms_after_a_scan(dims: Dims) -> Problem {
+    let mut p = rooms_with_doors(dims, 0);
+    let lowest = p
+        .labels
+        .iter()
+        .enumerate()
+        .filter(|(_, l)| **l == Label::Frontier)
+        .map(|(i, _)| dims.voxel(i).z)
+        .min();
+    for (i, l) in p.labels.iter_mut().enumerate() {
+        if *l == Label::Frontier && Some(dims.voxel(i).z) == lowest {
+            *l = Label::Interior;
+        }
+    }
+    p
+}
+
 /// One benchmark measurement.
 #[derive(Debug, Clone, Serialize)]
 pub struct SolveRow {
@@ -91,7 +113,7 @@ pub struct SolveRow {
     pub frontier: usize,
     /// "mg (pcg)", "mg (v-cycle)" or "gs".
     pub solver: String,
-    /// "cold" or "warm".
+    /// "cold", "zero", "warm" or (screened field) "scan".
     pub start: String,
     /// Cycles, CG iterations or sweeps.
     pub iterations: u32,
@@ -137,7 +159,9 @@ impl BenchSolver {
 /// solve from ψ = 0 without full multigrid, to show what each start is worth.
 ///
 /// `screening` 0 solves the seed's Laplace problem; above 0 (κ²h²) the explorer's default
-/// field: the frontier-sourced screened field, the vehicle an ordinary interior voxel.
+/// field: the frontier-sourced screened field, the vehicle an ordinary interior voxel, and then
+/// `scan` too: the cold solution re-solved after a scan that resolved one row of the frontier
+/// ([`rooms_after_a_scan`]).
 pub fn measure(
     dims: Dims,
     solver: BenchSolver,
@@ -145,10 +169,16 @@ pub fn measure(
     repeat: usize,
     screening: f32,
 ) -> Vec<SolveRow> {
-    let (mut cold, mut warm) = (rooms_with_doors(dims, 0), rooms_with_doors(dims, 1));
-    if screening > 0.0 {
+    let (mut cold, mut warm, mut scan) = (
+        rooms_with_doors(dims, 0),
+        rooms_with_doors(dims, 1),
+        rooms_after_a_scan(dims),
+    );
+    let screened = screening > 0.0;
+    if screened {
         harmonic_core::field::release_source(&mut cold.labels);
         harmonic_core::field::release_source(&mut warm.labels);
+        harmonic_core::field::release_source(&mut scan.labels);
     }
     let size = scratch_size(&dims);
     let mut values = vec![0.0f32; size.values];
@@ -194,8 +224,10 @@ pub fn measure(
         error_estimate: stats.error_estimate,
     };
     let is_mg = matches!(solver, BenchSolver::Multigrid(_));
-    let (mut cold_times, mut zero_times, mut warm_times) = (Vec::new(), Vec::new(), Vec::new());
-    let (mut cold_stats, mut zero_stats, mut warm_stats) = (
+    let (mut cold_times, mut zero_times, mut warm_times, mut scan_times) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut cold_stats, mut zero_stats, mut warm_stats, mut scan_stats) = (
+        SolveStats::default(),
         SolveStats::default(),
         SolveStats::default(),
         SolveStats::default(),
@@ -211,6 +243,12 @@ pub fn measure(
         let t = Instant::now();
         cold_stats = run(&cold.labels, &mut psi, false, true);
         cold_times.push(t.elapsed().as_secs_f64() * 1e3);
+        if screened {
+            let mut after = psi.clone();
+            let t = Instant::now();
+            scan_stats = run(&scan.labels, &mut after, true, true);
+            scan_times.push(t.elapsed().as_secs_f64() * 1e3);
+        }
         let t = Instant::now();
         warm_stats = run(&warm.labels, &mut psi, true, true);
         warm_times.push(t.elapsed().as_secs_f64() * 1e3);
@@ -220,6 +258,9 @@ pub fn measure(
         rows.push(row(&cold, "zero", zero_stats, median(zero_times)));
     }
     rows.push(row(&warm, "warm", warm_stats, median(warm_times)));
+    if screened {
+        rows.push(row(&scan, "scan", scan_stats, median(scan_times)));
+    }
     rows
 }
 
@@ -235,6 +276,29 @@ mod tests {
         assert_eq!(p.labels.iter().filter(|l| **l == Label::Source).count(), 1);
         let q = rooms_with_doors(Dims::new(64, 64, 32).unwrap(), 1);
         assert_ne!(p.labels, q.labels, "a scan changes the problem");
+    }
+
+    #[test]
+    fn a_scan_resolves_one_row_of_the_frontier_patch() {
+        let dims = Dims::new(64, 64, 32).unwrap();
+        let (p, q) = (rooms_with_doors(dims, 0), rooms_after_a_scan(dims));
+        assert_eq!(q.frontier(), 90);
+        assert_eq!(q.unknowns(), p.unknowns() + 10);
+        let changed = p.labels.iter().zip(&q.labels).filter(|(a, b)| a != b).count();
+        assert_eq!(changed, 10);
+    }
+
+    #[test]
+    fn a_screened_re_solve_after_a_scan_starts_from_the_last_solution_and_converges() {
+        let dims = Dims::new(32, 32, 16).unwrap();
+        let rows = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-5, 1, 0.09);
+        let get = |start: &str| rows.iter().find(|r| r.start == start).unwrap();
+        let (zero, scan) = (get("zero"), get("scan"));
+        assert!(zero.converged && scan.converged, "{rows:?}");
+        assert!(scan.iterations < zero.iterations, "{rows:?}");
+        // Laplace's problem has no scan row (its vehicle moves with every scan).
+        let laplace = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-6, 1, 0.0);
+        assert!(laplace.iter().all(|r| r.start != "scan"), "{laplace:?}");
     }
 
     #[test]
