@@ -1374,32 +1374,37 @@ impl ArrivalLooks {
         if max_turns == 0 || (goal.position - position).norm() > 1.5 * res {
             return None;
         }
+        // The same arrival while the goal is the same; a new goal is a new arrival.
+        let (mut looked, mut turns, before) = match self.state.filter(|(g, ..)| *g == goal) {
+            Some((_, looked, turns, before)) => (looked, turns, Some(before)),
+            None => (0, 0, None),
+        };
+        if turns >= max_turns {
+            return None;
+        }
         let counts = map.counts();
         let unexplored = counts.unknown.saturating_sub(counts.sealed);
-        // The same arrival while the goal is the same; a new goal is a new arrival.
-        let (mut looked, mut turns) = match self.state.filter(|(g, ..)| *g == goal) {
-            // A turn that taught nothing ends the look-around: the views left would not either.
-            Some((_, looked, turns, before)) if turns > 0 && unexplored >= before => (looked, max_turns),
-            Some((_, looked, turns, _)) => (looked, turns),
-            None => (0, 0),
-        };
         looked |= 1 << octant(yaw);
-        let intrinsics = intrinsics.filter(|_| turns < max_turns);
-        let best = intrinsics.and_then(|intrinsics| {
-            (0..8u8)
+        // A turn that taught nothing ends the look-around: the views left would not either.
+        let taught_nothing = turns > 0 && before.is_some_and(|b| unexplored >= b);
+        let best = match intrinsics {
+            Some(intrinsics) if !taught_nothing => (0..8u8)
                 .filter(|k| looked & (1 << k) == 0)
                 .map(|k| {
-                    (
-                        unexplored_in_view(map, position, octant_yaw(k), intrinsics, (min_range, range)),
-                        k,
-                    )
+                    let view =
+                        unexplored_in_view(map, position, octant_yaw(k), intrinsics, (min_range, range));
+                    (view, k)
                 })
                 .filter(|(n, _)| *n > 0)
                 .fold(None, |best: Option<(u32, u8)>, (n, k)| match best {
                     Some((b, _)) if b >= n => best,
                     _ => Some((n, k)),
-                })
-        });
+                }),
+            _ => None,
+        };
+        if taught_nothing {
+            turns = max_turns;
+        }
         if let Some((_, k)) = best {
             looked |= 1 << k;
             turns += 1;

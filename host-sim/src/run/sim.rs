@@ -1157,18 +1157,15 @@ fn make_planner<'s>(
             ))
         }
         kind => {
-            let baseline =
+            let mut baseline =
                 Baseline::new(kind, geometry, cfg.explorer, storage.lend(), cfg.seed).map_err(config_err)?;
-            let baseline = if cfg.baseline_views {
-                baseline.with_core_views()
-            } else {
-                baseline
-            };
-            Box::new(if cfg.baseline_looks {
-                baseline.with_arrival_looks()
-            } else {
-                baseline
-            })
+            if cfg.baseline_views {
+                baseline = baseline.with_core_views();
+            }
+            if cfg.baseline_looks {
+                baseline = baseline.with_arrival_looks();
+            }
+            Box::new(baseline)
         }
     })
 }

@@ -164,6 +164,13 @@ impl RunRow {
                 .parse()
                 .map_err(|_| format!("column `{name}`: bad number `{s}`"))
         }
+        // Columns added later: rows written before them have none.
+        let optional = |name: &str| -> Result<Option<f64>, String> {
+            match get(name).map(str::trim) {
+                Ok("") | Err(_) => Ok(None),
+                Ok(v) => num(name, v).map(Some),
+            }
+        };
         let accuracy = get("map_accuracy")?;
         Ok(Self {
             scenario: get("scenario")?.to_string(),
@@ -191,15 +198,8 @@ impl RunRow {
                 num("start_z", get("start_z")?)?,
             ],
             start_yaw_deg: num("start_yaw_deg", get("start_yaw_deg")?)?,
-            // Rows written before the column existed have none.
-            min_clearance_m: match get("min_clearance_m").map(str::trim) {
-                Ok("") | Err(_) => None,
-                Ok(c) => Some(num("min_clearance_m", c)?),
-            },
-            flight_time_s: match get("flight_time_s").map(str::trim) {
-                Ok("") | Err(_) => None,
-                Ok(t) => Some(num("flight_time_s", t)?),
-            },
+            min_clearance_m: optional("min_clearance_m")?,
+            flight_time_s: optional("flight_time_s")?,
         })
     }
 }
