@@ -46,6 +46,25 @@ impl Buffers {
     fn explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Explorer<'_> {
         self.try_explorer(dims, config).unwrap()
     }
+    /// An explorer with the thesis's camera (its vertical field of view decides which points
+    /// see a frontier) whose map holds the voxels `seen` picks as observed free, the rest
+    /// unknown.
+    fn seen_explorer(
+        &mut self,
+        dims: Dims,
+        config: ExplorerConfig,
+        seen: impl Fn(VoxelIndex) -> bool,
+    ) -> Explorer<'_> {
+        let mut e = self.explorer(dims, config);
+        e.intrinsics = Some(Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap());
+        e.map.begin_frame();
+        for i in 0..dims.len() {
+            if seen(dims.voxel(i)) {
+                e.map.apply_miss(i);
+            }
+        }
+        e
+    }
     fn try_explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Result<Explorer<'_>, ConfigError> {
         let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
         Explorer::new(
@@ -377,15 +396,7 @@ fn plan_in_a_half_seen_corridor(view_range_m: f32) -> (Goal, Point3<f32>, Point3
         view_range_m,
         ..ExplorerConfig::default()
     };
-    let mut e = b.explorer(dims, config);
-    // The thesis's camera (its vertical field of view decides which points see a frontier).
-    e.intrinsics = Some(Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap());
-    e.map.begin_frame();
-    for i in 0..dims.len() {
-        if dims.voxel(i).x < 25 {
-            e.map.apply_miss(i);
-        }
-    }
+    let mut e = b.seen_explorer(dims, config, |v| v.x < 25);
     let p = Point3::new(0.6, 1.2, 0.6);
     let PlanOutcome::Goal(goal) = e.plan(&p, 0.0) else {
         panic!("no goal: {:?}", e.status());
@@ -558,14 +569,7 @@ fn arrive_beside_an_unexplored_strip(
         arrival_looks,
         ..ExplorerConfig::default()
     };
-    let mut e = b.explorer(dims, config);
-    e.intrinsics = Some(Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap());
-    e.map.begin_frame();
-    for i in 0..dims.len() {
-        if dims.voxel(i).y < 28 {
-            e.map.apply_miss(i);
-        }
-    }
+    let mut e = b.seen_explorer(dims, config, |v| v.y < 28);
     let p = Point3::new(2.0, 1.0, 0.6);
     let arrived = Goal {
         position: p,
