@@ -18,6 +18,10 @@
 //! Every face between a domain voxel and a non-domain voxel is a wall with zero flux: the
 //! cell-centred finite-volume Laplacian simply omits it (see [`crate::solve`]).
 //!
+//! Before a planner ends an exploration it may build the domain once more with weakly seen
+//! occupied voxels taken for free space ([`build_doubting`]): if that reaches a frontier, noise
+//! closed a passage, and [`Reopening`] has the planner look at those voxels again.
+//!
 //! The flood fill uses a caller-provided ring queue of any capacity. When the queue is full,
 //! reached voxels are marked pending and collected by a later sweep over the grid, so a small
 //! queue costs time, never correctness.
@@ -25,7 +29,9 @@
 use heapless::Vec as HVec;
 use nalgebra::Point3;
 
-use crate::map::{stored_blocks, stored_observed, Dims, Occupancy, VoxelIndex, VoxelMap, UNKNOWN};
+use crate::map::{
+    stored_blocks, stored_observed, Dims, Occupancy, VoxelIndex, VoxelMap, LOG_ODDS_SCALE, SEALED, UNKNOWN,
+};
 
 /// Role of a voxel in the Laplace problem. After [`build`] only `Outside`, `Interior`,
 /// `Frontier` and `Source` remain; the other variants are transient states of the build.
@@ -153,6 +159,125 @@ fn cube_distance_sq(d: [i32; 3]) -> f32 {
         .sum()
 }
 
+/// Occupied voxels whose evidence a planner may doubt: observed occupied (or uncertain) with a
+/// log-odds below a threshold, and not forgotten before ([`Reopening`]). Sealed voxels are never
+/// doubtful.
+#[derive(Debug, Clone, Copy)]
+pub struct Doubt<'d> {
+    /// Stored (fixed-point) log-odds below which an occupied voxel is doubtful; 0: none is.
+    below: i8,
+    /// Voxels forgotten once already: their evidence stands.
+    confirmed: &'d [u32],
+}
+
+impl Doubt<'_> {
+    /// Nothing is doubtful: the ordinary domain.
+    pub const NONE: Doubt<'static> = Doubt {
+        below: 0,
+        confirmed: &[],
+    };
+
+    /// True if voxel `i`, stored value `lo`, keeps the vehicle its radius away.
+    #[inline(always)]
+    fn blocks(&self, i: usize, lo: i8) -> bool {
+        stored_blocks(lo) && (lo == SEALED || lo >= self.below || self.confirmed.contains(&(i as u32)))
+    }
+
+    /// True for a doubtful voxel: one the ordinary domain keeps the vehicle away from and this
+    /// doubt does not.
+    fn passable(&self, map: &VoxelMap<'_>, i: usize) -> bool {
+        map.stored()
+            .get(i)
+            .is_some_and(|&lo| stored_blocks(lo) && !self.blocks(i, lo))
+    }
+}
+
+/// Most voxels one exploration forgets as doubtful ([`Reopening`]).
+pub const REOPEN_CAPACITY: usize = 64;
+
+/// "Doorways must not close under noise": before a planner ends an exploration for want of a
+/// reachable frontier, it asks whether one is cut off only by *doubtful* occupied voxels — seen
+/// occupied, but with a log-odds below a threshold, as a noisy stereo return leaves in the middle
+/// of a narrow hall. If so, it finds where its path to that frontier, planned through the
+/// doubtful voxels ([`build_doubting`]), first leaves the ordinary safe space (the *gate*), and
+/// forgets the doubtful voxels within the vehicle radius of it ([`Reopening::forget_around`]):
+/// they become unknown, so the ordinary domain gains a frontier there and the planner flies to
+/// look at them again. A wall re-observed occupied stays; a voxel re-observed free opens the
+/// passage. The vehicle never flies through a doubtful voxel: until a new frame clears it,
+/// unknown space keeps the same radius as occupied space.
+///
+/// Every voxel is forgotten at most once, and at most [`REOPEN_CAPACITY`] in all, so the
+/// rule cannot keep an exploration going: once a forgotten voxel is seen occupied again it
+/// counts as certain. Sealed voxels (unknown space the planner gave up on) are not doubted.
+#[derive(Debug, Clone, Default)]
+pub struct Reopening {
+    forgotten: HVec<u32, REOPEN_CAPACITY>,
+}
+
+impl Reopening {
+    /// The stored log-odds threshold for `log_odds` units (0 or less, or not finite: 0, off).
+    pub fn threshold(log_odds: f32) -> i8 {
+        if log_odds.is_finite() && log_odds > 0.0 {
+            libm::roundf(log_odds * LOG_ODDS_SCALE).clamp(1.0, 127.0) as i8
+        } else {
+            0
+        }
+    }
+
+    /// The doubt for a build: occupied voxels below `below` (stored units,
+    /// [`Self::threshold`]) that were not forgotten before.
+    pub fn doubt(&self, below: i8) -> Doubt<'_> {
+        Doubt {
+            below,
+            confirmed: &self.forgotten,
+        }
+    }
+
+    /// Voxels forgotten so far.
+    pub fn forgotten(&self) -> usize {
+        self.forgotten.len()
+    }
+
+    /// True once no more voxels can be forgotten.
+    pub fn is_full(&self) -> bool {
+        self.forgotten.is_full()
+    }
+
+    /// Forgets (makes unknown, [`VoxelMap::forget`]) the doubtful voxels at `gate` and within
+    /// the vehicle radius of it: those that make it unsafe. Returns how many; 0 if there were
+    /// none or no room is left.
+    pub fn forget_around(
+        &mut self,
+        map: &mut VoxelMap<'_>,
+        stencil: &InflationStencil,
+        gate: VoxelIndex,
+        below: i8,
+    ) -> u32 {
+        let dims = map.dims();
+        let mut forgotten = 0;
+        for d in core::iter::once([0, 0, 0]).chain(stencil.offsets()) {
+            let Some(v) = dims.offset(gate, d) else { continue };
+            let i = dims.linear(v);
+            if !self.forgotten.is_full() && self.doubt(below).passable(map, i) && map.forget(i) {
+                let _ = self.forgotten.push(i as u32);
+                forgotten += 1;
+            }
+        }
+        forgotten
+    }
+}
+
+/// The first of `voxels` (a path from the vehicle, in order) that the vehicle's centre may not
+/// pass in the ordinary domain ([`is_safe`]): where a path planned through doubtful voxels
+/// leaves the safe space.
+pub fn first_unsafe(
+    map: &VoxelMap<'_>,
+    stencil: &InflationStencil,
+    voxels: impl IntoIterator<Item = VoxelIndex>,
+) -> Option<VoxelIndex> {
+    voxels.into_iter().find(|&v| !is_safe(map, stencil, v))
+}
+
 /// What a domain build found.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -182,6 +307,22 @@ pub fn build(
     labels: &mut [Label],
     queue: &mut [u32],
 ) -> Result<DomainStats, DomainError> {
+    build_doubting(map, stencil, vehicle, labels, queue, &Doubt::NONE)
+}
+
+/// [`build`] with the occupied voxels `doubt` calls doubtful taken for free space: they
+/// neither inflate nor leave the domain, and only frontiers the ordinary domain would have
+/// (were it connected to them) stay frontiers. With [`Doubt::NONE`] this is [`build`].
+/// Planners use it only to ask whether a frontier is cut off by doubtful evidence alone
+/// ([`Reopening`]); they never fly through its extra voxels.
+pub fn build_doubting(
+    map: &VoxelMap<'_>,
+    stencil: &InflationStencil,
+    vehicle: VoxelIndex,
+    labels: &mut [Label],
+    queue: &mut [u32],
+    doubt: &Doubt<'_>,
+) -> Result<DomainStats, DomainError> {
     let dims = map.dims();
     let n = dims.len();
     if labels.len() < n || queue.is_empty() {
@@ -189,13 +330,13 @@ pub fn build(
     }
     let labels = labels.get_mut(..n).ok_or(DomainError::StorageTooSmall)?;
     let mut stats = DomainStats {
-        free: safe_voxels(map, stencil, labels),
+        free: safe_voxels(map, stencil, labels, doubt),
         ..Default::default()
     };
     let vehicle_i = dims.linear(vehicle);
     match labels.get(vehicle_i) {
         Some(Label::Candidate) => {}
-        _ if map.is_free(vehicle_i) => {
+        _ if map.is_free(vehicle_i) || doubt.passable(map, vehicle_i) => {
             return Err(DomainError::VehicleInInflatedSpace);
         }
         _ => return Err(DomainError::VehicleNotFree),
@@ -260,7 +401,43 @@ pub fn build(
         }
     }
     stats.inflated = stats.free - stats.interior - stats.frontier - stats.excluded - stats.fringe - 1;
+    if doubt.below > 0 {
+        // Only frontiers that doubt did not make: a voxel next to a doubtful wall is a frontier
+        // here merely because the wall no longer inflates (the band along every grazing
+        // surface). What a planner asks of this domain is whether a frontier the ordinary
+        // domain would have is cut off from the vehicle, so the others leave the domain.
+        for (i, l) in labels.iter_mut().enumerate() {
+            if *l == Label::Frontier && !is_certain_frontier(map, stencil, dims.voxel(i)) {
+                *l = Label::Outside;
+                stats.frontier -= 1;
+            }
+        }
+    }
     Ok(stats)
+}
+
+/// A frontier voxel of the ordinary domain, connection aside: safe ([`is_safe`]), with a face
+/// neighbour that is unexplored or fringe (free but not safe, and clear of every occupied,
+/// uncertain or sealed voxel and of the grid edge by the vehicle radius: within the radius of
+/// unexplored space only).
+fn is_certain_frontier(map: &VoxelMap<'_>, stencil: &InflationStencil, v: VoxelIndex) -> bool {
+    let dims = map.dims();
+    let clear_of_blocks = |n: VoxelIndex| {
+        clear_of_grid_edges(&dims, stencil, n)
+            && stencil.offsets().all(|d| {
+                dims.offset(n, d).is_none_or(|m| {
+                    map.stored()
+                        .get(dims.linear(m))
+                        .is_none_or(|&lo| !stored_blocks(lo))
+                })
+            })
+    };
+    let mut fringe = false;
+    dims.for_each_face_neighbour(v, |i| {
+        let n = dims.voxel(i);
+        fringe |= map.is_unexplored(i) || (map.is_free(i) && !is_safe(map, stencil, n) && clear_of_blocks(n));
+    });
+    fringe && is_safe(map, stencil, v)
 }
 
 /// A safe voxel borders the unknown if a face neighbour is fringe or itself unexplored.
@@ -314,7 +491,7 @@ fn on_unknown_boundary(map: &VoxelMap<'_>, v: VoxelIndex, i: usize, inner: bool)
 /// One pass over the grid in storage order: a voxel's own stamp is the only thing it adds, and
 /// the result does not depend on the order (`Outside` overrides, `Fringe` only replaces
 /// `Candidate`), so the two kinds of stamp share the pass.
-fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) {
+fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label], doubt: &Doubt<'_>) {
     let dims = map.dims();
     let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
     let stored = map.stored();
@@ -379,7 +556,7 @@ fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label])
                     } else {
                         NONE
                     }
-                } else if stored_blocks(lo) {
+                } else if doubt.blocks(start + x, lo) {
                     OUTSIDE
                 } else {
                     NONE
@@ -431,20 +608,24 @@ fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label])
 /// The grid edge is a wall: the space beyond it is not the vehicle's to fly in, so candidates
 /// and fringe voxels nearer an edge than the vehicle radius leave the domain.
 fn clear_grid_edges(dims: &Dims, stencil: &InflationStencil, labels: &mut [Label]) {
+    for (i, l) in labels.iter_mut().enumerate() {
+        if matches!(*l, Label::Candidate | Label::Fringe)
+            && !clear_of_grid_edges(dims, stencil, dims.voxel(i))
+        {
+            *l = Label::Outside;
+        }
+    }
+}
+
+/// True if voxel `v` is at least the vehicle radius from every face of the grid.
+fn clear_of_grid_edges(dims: &Dims, stencil: &InflationStencil, v: VoxelIndex) -> bool {
     let r2 = stencil.radius_voxels * stencil.radius_voxels;
     let edge_clear = |c: u16, n: usize| {
         let near = f32::from(c) + 0.5;
         let far = n as f32 - f32::from(c) - 0.5;
         near * near >= r2 && far * far >= r2
     };
-    for (i, l) in labels.iter_mut().enumerate() {
-        if matches!(*l, Label::Candidate | Label::Fringe) {
-            let v = dims.voxel(i);
-            if !(edge_clear(v.x, dims.nx()) && edge_clear(v.y, dims.ny()) && edge_clear(v.z, dims.nz())) {
-                *l = Label::Outside;
-            }
-        }
-    }
+    edge_clear(v.x, dims.nx()) && edge_clear(v.y, dims.ny()) && edge_clear(v.z, dims.nz())
 }
 
 struct Fill<'q> {
@@ -489,17 +670,22 @@ impl Fill<'_> {
 
 /// Labels every observed free voxel `Candidate`, then removes the unsafe ones ([`inflate`]):
 /// afterwards `Candidate` means "the vehicle's centre may be here". Returns the free count.
-fn safe_voxels(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) -> u32 {
+fn safe_voxels(
+    map: &VoxelMap<'_>,
+    stencil: &InflationStencil,
+    labels: &mut [Label],
+    doubt: &Doubt<'_>,
+) -> u32 {
     let mut free = 0;
-    for (i, l) in labels.iter_mut().enumerate() {
-        *l = if map.is_free(i) {
+    for ((i, l), &lo) in labels.iter_mut().enumerate().zip(map.stored()) {
+        *l = if stored_observed(lo) && !doubt.blocks(i, lo) {
             free += 1;
             Label::Candidate
         } else {
             Label::Outside
         };
     }
-    inflate(map, stencil, labels);
+    inflate(map, stencil, labels, doubt);
     free
 }
 
@@ -627,7 +813,7 @@ pub fn escape_target(
     if queue.is_empty() {
         return None;
     }
-    safe_voxels(map, stencil, labels);
+    safe_voxels(map, stencil, labels, &Doubt::NONE);
     let start = dims.linear(vehicle);
     // The vehicle is there, so its voxel is passable whatever the map holds.
     if labels.get(start) == Some(&Label::Candidate) {
@@ -740,6 +926,120 @@ pub(crate) mod tests {
             !map.is_frontier(VoxelIndex::new(0, 1, 0)),
             "sealed unknown makes no frontier"
         );
+    }
+
+    /// A hall: walls seen in four frames (log-odds 3.4, certain), one voxel `d` in the hall seen
+    /// occupied once (0.85, doubtful at the default 1.0), unknown space at its far end.
+    fn hall_with_a_doubtful_voxel<'a>(lo: &'a mut [i8], st: &'a mut [u32], d_hits: usize) -> VoxelMap<'a> {
+        let layers: &[&[&str]] = &[&["#######", "#..#..?", "#######"]];
+        let mut map = map_from_layers(layers, lo, st);
+        let dims = map.dims();
+        let d = dims.linear(VoxelIndex::new(3, 1, 0));
+        for frame in 0..3 {
+            map.begin_frame();
+            for i in 0..dims.len() {
+                let v = dims.voxel(i);
+                if (v.y != 1 || v.x == 0) && frame < 3 || (i == d && frame + 1 < d_hits) {
+                    map.apply_hit(i);
+                }
+            }
+        }
+        map
+    }
+
+    #[test]
+    fn a_frontier_cut_off_by_a_doubtful_voxel_alone_is_reopened_once() {
+        let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
+        let mut map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 1);
+        let dims = map.dims();
+        let stencil = InflationStencil::new(0.0, 1.0).unwrap();
+        let (mut labels, mut queue) = ([Label::Outside; 21], [0u32; 8]);
+        let vehicle = VoxelIndex::new(1, 1, 0);
+        let below = Reopening::threshold(1.0);
+        let mut reopening = Reopening::default();
+
+        let plain = build(&map, &stencil, vehicle, &mut labels, &mut queue).unwrap();
+        assert_eq!(
+            plain.frontier, 0,
+            "the ordinary domain ends at the doubtful voxel"
+        );
+        let doubting = build_doubting(
+            &map,
+            &stencil,
+            vehicle,
+            &mut labels,
+            &mut queue,
+            &reopening.doubt(below),
+        )
+        .unwrap();
+        assert_eq!(doubting.frontier, 1, "taken for free space, it hides a frontier");
+        assert_eq!(labels[dims.linear(VoxelIndex::new(5, 1, 0))], Label::Frontier);
+
+        let path = (1..=5).map(|x| VoxelIndex::new(x, 1, 0));
+        let gate = first_unsafe(&map, &stencil, path).unwrap();
+        assert_eq!(gate, VoxelIndex::new(3, 1, 0));
+        assert_eq!(reopening.forget_around(&mut map, &stencil, gate, below), 1);
+        assert!(map.is_unexplored(dims.linear(gate)));
+        let reopened = build(&map, &stencil, vehicle, &mut labels, &mut queue).unwrap();
+        assert_eq!(
+            reopened.frontier, 1,
+            "the planner now has the forgotten voxel to look at"
+        );
+        assert_eq!(labels[dims.linear(VoxelIndex::new(2, 1, 0))], Label::Frontier);
+
+        // Seen occupied again: the evidence stands; the exploration may end.
+        map.begin_frame();
+        map.apply_hit(dims.linear(gate));
+        let again = build_doubting(
+            &map,
+            &stencil,
+            vehicle,
+            &mut labels,
+            &mut queue,
+            &reopening.doubt(below),
+        )
+        .unwrap();
+        assert_eq!(again.frontier, 0);
+        assert_eq!(reopening.forget_around(&mut map, &stencil, gate, below), 0);
+        assert_eq!(reopening.forgotten(), 1);
+    }
+
+    #[test]
+    fn certain_or_sealed_evidence_and_a_zero_threshold_are_not_doubted() {
+        let stencil = InflationStencil::new(0.0, 1.0).unwrap();
+        let (mut labels, mut queue) = ([Label::Outside; 21], [0u32; 8]);
+        let vehicle = VoxelIndex::new(1, 1, 0);
+        let reopening = Reopening::default();
+        // Hit in two frames: 1.7, above the threshold.
+        let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
+        let map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 2);
+        let doubt = reopening.doubt(Reopening::threshold(1.0));
+        assert_eq!(
+            build_doubting(&map, &stencil, vehicle, &mut labels, &mut queue, &doubt)
+                .unwrap()
+                .frontier,
+            0
+        );
+        // Doubtful, but doubting is off.
+        let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
+        let map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 1);
+        assert_eq!(Reopening::threshold(0.0), 0);
+        assert_eq!(Reopening::threshold(f32::NAN), 0);
+        let off = reopening.doubt(Reopening::threshold(0.0));
+        assert_eq!(
+            build_doubting(&map, &stencil, vehicle, &mut labels, &mut queue, &off)
+                .unwrap()
+                .frontier,
+            0
+        );
+        // Sealed unknown space is given up on, not doubted.
+        let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
+        let mut map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 4);
+        let d = map.dims().linear(VoxelIndex::new(3, 1, 0));
+        assert!(map.forget(d) && map.seal(d));
+        let doubt = reopening.doubt(Reopening::threshold(3.0));
+        let built = build_doubting(&map, &stencil, vehicle, &mut labels, &mut queue, &doubt).unwrap();
+        assert_eq!(built.frontier, 0);
     }
 
     #[test]
@@ -943,7 +1243,7 @@ pub(crate) mod tests {
                 .collect()
         };
         let (mut fast, mut reference) = (fresh(), fresh());
-        inflate(map, stencil, &mut fast);
+        inflate(map, stencil, &mut fast, &Doubt::NONE);
         inflate_reference(map, stencil, &mut reference);
         clear_grid_edges(&dims, stencil, &mut reference);
         assert!(fast == reference, "{case}");

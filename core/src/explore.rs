@@ -49,7 +49,7 @@
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::camera::{DepthFrame, Intrinsics};
-use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label};
+use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label, Reopening};
 use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
@@ -109,6 +109,13 @@ pub struct ExplorerConfig {
     /// the paths of the thesis's worlds by 15–23 % and multiply the flight time by 2.3–2.6;
     /// closest frontier given the same turns gains as much.
     pub arrival_looks: u8,
+    /// Doorways must not close under noise ([`Reopening`]): occupied voxels with a log-odds
+    /// below this (log-odds units) are doubtful. Before the exploration ends for want of a
+    /// reachable frontier, a frontier cut off by doubtful voxels alone is reopened: the doubtful
+    /// voxels where the way to it leaves the safe space are forgotten, so the planner looks at
+    /// them again. 0 (or less): off. Default 1.0: a voxel hit once, or hit twice and missed
+    /// twice, is doubtful; one hit more and it is not.
+    pub doubtful_log_odds: f32,
     /// Keep flying to the current goal, without re-solving, while its frontier voxel is still a
     /// frontier and the rest of its path is still free of (inflated) obstacles. Without this a
     /// receding-horizon caller can oscillate between two frontiers whose pull swaps as the
@@ -175,6 +182,7 @@ impl Default for ExplorerConfig {
             view_range_m: 1.5,
             stall_visits: 2,
             arrival_looks: 0,
+            doubtful_log_odds: 1.0,
             commit_to_goal: true,
             taut_path: true,
             max_frame_jump_m: 2.0,
@@ -312,6 +320,10 @@ pub struct ErrorCounters {
     /// Screened-field streamlines that stalled (u unresolved far from every frontier) and
     /// were traced again on a field with half the κ.
     pub screening_retries: u32,
+    /// Times the exploration would have ended while a frontier was cut off by doubtful
+    /// occupied voxels alone, and the doubtful voxels in the way were forgotten to be looked
+    /// at again instead ([`Reopening`]).
+    pub reopenings: u32,
 }
 
 /// How exploration stands.
@@ -500,6 +512,8 @@ pub struct Explorer<'a> {
     last_plan_position: Option<Point3<f32>>,
     /// The look-around on arrival.
     looks: ArrivalLooks,
+    /// The doubtful voxels forgotten so far ([`ExplorerConfig::doubtful_log_odds`]).
+    reopening: Reopening,
     status: Status,
 }
 
@@ -583,6 +597,7 @@ impl<'a> Explorer<'a> {
             go_near: false,
             last_plan_position: None,
             looks: ArrivalLooks::default(),
+            reopening: Reopening::default(),
             kappa_voxel: match config.field {
                 PlanningField::Screened(p) => p.kappa_voxel(geometry.resolution()),
                 PlanningField::Harmonic => 0.0,
@@ -861,6 +876,10 @@ impl<'a> Explorer<'a> {
                     self.status.errors.clearances += 1;
                     continue;
                 }
+                if self.reopen_doubtful(vehicle, position, clock) {
+                    self.status.errors.reopenings += 1;
+                    continue;
+                }
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
             }
@@ -931,6 +950,66 @@ impl<'a> Explorer<'a> {
         }
         self.status.errors.streamline_failures += 1;
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
+    }
+
+    /// Before an exploration ends ([`ExplorerConfig::doubtful_log_odds`], [`Reopening`]): builds
+    /// the domain with doubtful voxels taken for free space, follows the field's streamline
+    /// from the vehicle towards a frontier there, and forgets the doubtful voxels around the
+    /// first voxel of it the ordinary domain holds unsafe. True if any were forgotten: the
+    /// caller builds the ordinary domain again, which now has a frontier where they were.
+    /// Leaves the labels and ψ describing no usable domain when it returns false.
+    fn reopen_doubtful(
+        &mut self,
+        vehicle: VoxelIndex,
+        position: &Point3<f32>,
+        clock: &mut impl Clock,
+    ) -> bool {
+        let below = Reopening::threshold(self.config.doubtful_log_odds);
+        if below == 0 || self.reopening.is_full() {
+            return false;
+        }
+        let t0 = clock.ticks();
+        let doubt = self.reopening.doubt(below);
+        let built =
+            domain::build_doubting(&self.map, &self.stencil, vehicle, self.labels, self.queue, &doubt);
+        let t1 = clock.ticks();
+        self.status.phase_ticks.domain += t1.saturating_sub(t0);
+        if !built.is_ok_and(|s| s.frontier > 0) {
+            return false;
+        }
+        let Ok(t2) = self.solve_counted(vehicle, t1, clock) else {
+            return false;
+        };
+        let geometry = *self.map.geometry();
+        let field = Field {
+            geometry: &geometry,
+            labels: self.labels,
+            phi: self.phi,
+        };
+        let traced = streamline::trace(&field, position, &self.config.streamline, &mut self.waypoints);
+        let mut gate = None;
+        if traced.is_ok() {
+            let mut from = *position;
+            for w in self.waypoints.iter() {
+                integrate::traverse(&geometry, &from, w, |v| {
+                    if !domain::is_safe(&self.map, &self.stencil, v) {
+                        gate = Some(v);
+                    }
+                    gate.is_none()
+                });
+                if gate.is_some() {
+                    break;
+                }
+                from = *w;
+            }
+        }
+        self.waypoints.clear();
+        self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
+        gate.is_some_and(|g| {
+            self.reopening
+                .forget_around(&mut self.map, &self.stencil, g, below)
+                > 0
+        })
     }
 
     /// Solves the planning field over the domain just built (see [`crate::field`]). For the

@@ -449,6 +449,20 @@ impl<'a> VoxelMap<'a> {
         }
     }
 
+    /// Forgets an occupied or uncertain voxel: it becomes unknown, as if never observed, so the
+    /// planner treats it as unexplored space and looks at it again (see
+    /// [`Reopening`](crate::domain::Reopening)). Free, unknown and sealed voxels are left
+    /// alone. Returns whether it changed.
+    pub fn forget(&mut self, i: usize) -> bool {
+        match self.log_odds.get_mut(i) {
+            Some(lo) if *lo >= 0 => {
+                *lo = UNKNOWN;
+                true
+            }
+            _ => false,
+        }
+    }
+
     /// Seals an unknown voxel so it no longer makes frontiers. Returns whether it changed.
     pub fn seal(&mut self, i: usize) -> bool {
         match self.log_odds.get_mut(i) {
