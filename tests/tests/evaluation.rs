@@ -4,6 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
+use harmonic_core::explore::ExplorerConfig;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::run::record::{self, MapSettings, Recorder, ReplayConfig};
 use harmonic_sim::run::sim::{self, SimConfig};
@@ -360,4 +361,46 @@ fn million_triangle_mesh_loads_in_seconds() {
         load.as_secs_f64()
     );
     let _ = std::fs::remove_dir_all(dir);
+}
+
+/// "Doorways must not close under noise": in the thesis's apartment, start 9 of the noise
+/// table (σ = 1 px, the stereo sensor model, 0.25 m radius), noisy returns leave weakly seen
+/// occupied voxels in the 0.9 m hall and the vehicle's safe space ends there. Without the
+/// reopening rule the run ends `complete` at 39 % of the free space; with it (the default) the
+/// explorer looks at those voxels again, finds the hall open and explores the rest (90 %
+/// measured), without a collision.
+#[test]
+fn a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end() {
+    use harmonic_sim::sensors::camera::StereoNoise;
+    let scenario = Scenario::builtin("apartment-thesis")
+        .unwrap()
+        .with_random_start(9);
+    let run = |doubtful_log_odds: f32| {
+        let mut cfg = SimConfig {
+            seed: 9,
+            ..SimConfig::default()
+        };
+        let noise = StereoNoise::default();
+        cfg.camera = cfg.camera.with_noise(Some(noise));
+        let fx = cfg.camera.intrinsics.fx();
+        sim::integrate_noisy_depth(
+            &mut cfg,
+            noise.filtered_sigma_px(),
+            fx,
+            noise.baseline_m,
+            None,
+            true,
+        );
+        cfg.explorer.doubtful_log_odds = doubtful_log_odds;
+        sim::run(&scenario, &cfg, |_| {}).unwrap()
+    };
+    let closed = run(0.0);
+    assert_eq!(closed.termination, "complete");
+    assert!(closed.coverage_free < 0.5, "{}", closed.coverage_free);
+    assert_eq!(closed.errors.reopenings, 0);
+    let reopened = run(ExplorerConfig::default().doubtful_log_odds);
+    assert_eq!(reopened.termination, "complete");
+    assert!(reopened.errors.reopenings > 0, "{:?}", reopened.errors);
+    assert!(reopened.coverage_free > 0.85, "{}", reopened.coverage_free);
+    assert_eq!(reopened.collisions, 0, "{:?}", reopened.collision_points);
 }

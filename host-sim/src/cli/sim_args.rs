@@ -70,6 +70,12 @@ pub struct BodyArgs {
     /// Radius of the vehicle body for collision counting, metres.
     #[arg(long, default_value_t = 0.15, value_parser = parse_positive)]
     body_radius: f32,
+    /// Doorways stay open under noise: occupied voxels with a log-odds below this are doubtful,
+    /// and before an exploration ends, a frontier cut off by doubtful voxels alone has them
+    /// forgotten and looked at again (every planner; harmonic_core::domain::Reopening). 0 turns
+    /// it off [default: 1.0].
+    #[arg(long)]
+    doubtful_log_odds: Option<f32>,
 }
 
 impl BodyArgs {
@@ -80,6 +86,9 @@ impl BodyArgs {
             cfg.explorer.vehicle_radius = r;
         }
         cfg.body_radius = self.body_radius;
+        if let Some(d) = self.doubtful_log_odds {
+            cfg.explorer.doubtful_log_odds = d;
+        }
     }
 }
 

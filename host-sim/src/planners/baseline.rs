@@ -36,7 +36,7 @@
 //! If no candidate sees any frontier voxel, the gain planners fall back to the closest frontier.
 
 use harmonic_core::camera::{DepthFrame, Intrinsics};
-use harmonic_core::domain::{self, DomainError, InflationStencil, Label};
+use harmonic_core::domain::{self, DomainError, InflationStencil, Label, Reopening};
 use harmonic_core::explore::Clock;
 use harmonic_core::explore::{
     check_frame_timing, ArrivalLooks, ConfigError, ExplorerConfig, ExplorerStorage, Fault, FrameTiming, Goal,
@@ -126,6 +126,8 @@ pub struct Baseline<'a> {
     goal_from_afar: bool,
     /// The next frontier goal takes the near point (a look from afar taught nothing).
     go_near: bool,
+    /// The doubtful voxels forgotten so far ([`ExplorerConfig::doubtful_log_odds`]).
+    reopening: Reopening,
     status: Status,
 }
 
@@ -194,6 +196,7 @@ impl<'a> Baseline<'a> {
             looks: None,
             goal_from_afar: false,
             go_near: false,
+            reopening: Reopening::default(),
             status: Status::default(),
         })
     }
@@ -240,6 +243,12 @@ impl<'a> Baseline<'a> {
                 // is not done.
                 if domain::clear_if_walled_in(&mut self.map, &stats, position, self.config.vehicle_radius) {
                     self.status.errors.clearances += 1;
+                    continue;
+                }
+                // As the explorer does: a frontier cut off by doubtful voxels alone is looked
+                // at again first.
+                if self.reopen_doubtful(vehicle, vehicle_i) {
+                    self.status.errors.reopenings += 1;
                     continue;
                 }
                 self.status.streamline = None;
@@ -301,6 +310,38 @@ impl<'a> Baseline<'a> {
         }
         self.status.errors.streamline_failures += 1;
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
+    }
+
+    /// The explorer's rule for doorways closed by noise ([`Reopening`]), with this planner's
+    /// path: the shortest way to the nearest frontier through the domain that takes doubtful
+    /// voxels for free space, and the doubtful voxels forgotten around its first unsafe voxel.
+    /// True if any were.
+    fn reopen_doubtful(&mut self, vehicle: VoxelIndex, vehicle_i: usize) -> bool {
+        let below = Reopening::threshold(self.config.doubtful_log_odds);
+        if below == 0 || self.reopening.is_full() {
+            return false;
+        }
+        let doubt = self.reopening.doubt(below);
+        let built =
+            domain::build_doubting(&self.map, &self.stencil, vehicle, self.labels, self.queue, &doubt);
+        if !built.is_ok_and(|s| s.frontier > 0) {
+            return false;
+        }
+        let labels = &*self.labels;
+        let Some(f) = self
+            .search
+            .nearest(labels, vehicle_i, |i| labels[i] == Label::Frontier)
+        else {
+            return false;
+        };
+        let dims = self.map.dims();
+        let path = self.search.path(f);
+        let gate = domain::first_unsafe(&self.map, &self.stencil, path.iter().map(|&i| dims.voxel(i)));
+        gate.is_some_and(|g| {
+            self.reopening
+                .forget_around(&mut self.map, &self.stencil, g, below)
+                > 0
+        })
     }
 
     /// A* through the safe space to `home`, smoothed as the exploring paths are.
