@@ -957,22 +957,26 @@ pub(crate) mod tests {
         let vehicle = VoxelIndex::new(1, 1, 0);
         let below = Reopening::threshold(1.0);
         let mut reopening = Reopening::default();
+        let doubting = |map: &VoxelMap<'_>, reopening: &Reopening, labels: &mut [Label]| {
+            let mut queue = [0u32; 8];
+            build_doubting(
+                map,
+                &stencil,
+                vehicle,
+                labels,
+                &mut queue,
+                &reopening.doubt(below),
+            )
+            .unwrap()
+        };
 
         let plain = build(&map, &stencil, vehicle, &mut labels, &mut queue).unwrap();
         assert_eq!(
             plain.frontier, 0,
             "the ordinary domain ends at the doubtful voxel"
         );
-        let doubting = build_doubting(
-            &map,
-            &stencil,
-            vehicle,
-            &mut labels,
-            &mut queue,
-            &reopening.doubt(below),
-        )
-        .unwrap();
-        assert_eq!(doubting.frontier, 1, "taken for free space, it hides a frontier");
+        let doubted = doubting(&map, &reopening, &mut labels);
+        assert_eq!(doubted.frontier, 1, "taken for free space, it hides a frontier");
         assert_eq!(labels[dims.linear(VoxelIndex::new(5, 1, 0))], Label::Frontier);
 
         let path = (1..=5).map(|x| VoxelIndex::new(x, 1, 0));
@@ -990,16 +994,7 @@ pub(crate) mod tests {
         // Seen occupied again: the evidence stands; the exploration may end.
         map.begin_frame();
         map.apply_hit(dims.linear(gate));
-        let again = build_doubting(
-            &map,
-            &stencil,
-            vehicle,
-            &mut labels,
-            &mut queue,
-            &reopening.doubt(below),
-        )
-        .unwrap();
-        assert_eq!(again.frontier, 0);
+        assert_eq!(doubting(&map, &reopening, &mut labels).frontier, 0);
         assert_eq!(reopening.forget_around(&mut map, &stencil, gate, below), 0);
         assert_eq!(reopening.forgotten(), 1);
     }
@@ -1007,39 +1002,40 @@ pub(crate) mod tests {
     #[test]
     fn certain_or_sealed_evidence_and_a_zero_threshold_are_not_doubted() {
         let stencil = InflationStencil::new(0.0, 1.0).unwrap();
-        let (mut labels, mut queue) = ([Label::Outside; 21], [0u32; 8]);
-        let vehicle = VoxelIndex::new(1, 1, 0);
         let reopening = Reopening::default();
+        let frontiers_past = |map: &VoxelMap<'_>, log_odds: f32| {
+            let (mut labels, mut queue) = ([Label::Outside; 21], [0u32; 8]);
+            let doubt = reopening.doubt(Reopening::threshold(log_odds));
+            build_doubting(
+                map,
+                &stencil,
+                VoxelIndex::new(1, 1, 0),
+                &mut labels,
+                &mut queue,
+                &doubt,
+            )
+            .unwrap()
+            .frontier
+        };
         // Hit in two frames: 1.7, above the threshold.
         let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
-        let map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 2);
-        let doubt = reopening.doubt(Reopening::threshold(1.0));
         assert_eq!(
-            build_doubting(&map, &stencil, vehicle, &mut labels, &mut queue, &doubt)
-                .unwrap()
-                .frontier,
+            frontiers_past(&hall_with_a_doubtful_voxel(&mut lo, &mut st, 2), 1.0),
             0
         );
         // Doubtful, but doubting is off.
-        let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
-        let map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 1);
         assert_eq!(Reopening::threshold(0.0), 0);
         assert_eq!(Reopening::threshold(f32::NAN), 0);
-        let off = reopening.doubt(Reopening::threshold(0.0));
-        assert_eq!(
-            build_doubting(&map, &stencil, vehicle, &mut labels, &mut queue, &off)
-                .unwrap()
-                .frontier,
-            0
-        );
+        let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
+        let map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 1);
+        assert_eq!(frontiers_past(&map, 1.0), 1);
+        assert_eq!(frontiers_past(&map, 0.0), 0);
         // Sealed unknown space is given up on, not doubted.
         let (mut lo, mut st) = ([0i8; 21], [0u32; 1]);
         let mut map = hall_with_a_doubtful_voxel(&mut lo, &mut st, 4);
         let d = map.dims().linear(VoxelIndex::new(3, 1, 0));
         assert!(map.forget(d) && map.seal(d));
-        let doubt = reopening.doubt(Reopening::threshold(3.0));
-        let built = build_doubting(&map, &stencil, vehicle, &mut labels, &mut queue, &doubt).unwrap();
-        assert_eq!(built.frontier, 0);
+        assert_eq!(frontiers_past(&map, 3.0), 0);
     }
 
     #[test]
