@@ -168,6 +168,8 @@ pub struct Doubt<'d> {
     below: i8,
     /// Voxels forgotten once already: their evidence stands.
     confirmed: &'d [u32],
+    /// Which frontiers the doubting domain keeps ([`Doubt::lenient`]).
+    lenient: bool,
 }
 
 impl Doubt<'_> {
@@ -175,7 +177,19 @@ impl Doubt<'_> {
     pub const NONE: Doubt<'static> = Doubt {
         below: 0,
         confirmed: &[],
+        lenient: false,
     };
+
+    /// The same doubt, keeping more frontiers in [`build_doubting`]: a frontier whose fringe is
+    /// near doubtful voxels too (a doorway whose frame noise has thickened), not only those
+    /// clear of every occupied voxel. It also keeps part of the band along weakly seen walls,
+    /// so planners ask it only when the strict doubt finds nothing to reopen.
+    pub fn lenient(self) -> Self {
+        Self {
+            lenient: true,
+            ..self
+        }
+    }
 
     /// True if voxel `i`, stored value `lo`, keeps the vehicle its radius away.
     #[inline(always)]
@@ -206,6 +220,10 @@ pub const REOPEN_CAPACITY: usize = 64;
 /// passage. The vehicle never flies through a doubtful voxel: until a new frame clears it,
 /// unknown space keeps the same radius as occupied space.
 ///
+/// Planners ask twice: first keeping only frontiers whose fringe is clear of every occupied
+/// voxel, then, if that found nothing to reopen, with [`Doubt::lenient`], which also keeps a
+/// doorway whose frame noise has thickened with doubtful voxels.
+///
 /// Every voxel is forgotten at most once, and at most [`REOPEN_CAPACITY`] in all, so the
 /// rule cannot keep an exploration going: once a forgotten voxel is seen occupied again it
 /// counts as certain. Sealed voxels (unknown space the planner gave up on) are not doubted.
@@ -230,6 +248,7 @@ impl Reopening {
         Doubt {
             below,
             confirmed: &self.forgotten,
+            lenient: false,
         }
     }
 
@@ -407,7 +426,7 @@ pub fn build_doubting(
         // surface). What a planner asks of this domain is whether a frontier the ordinary
         // domain would have is cut off from the vehicle, so the others leave the domain.
         for (i, l) in labels.iter_mut().enumerate() {
-            if *l == Label::Frontier && !is_certain_frontier(map, stencil, dims.voxel(i)) {
+            if *l == Label::Frontier && !is_certain_frontier(map, stencil, dims.voxel(i), doubt) {
                 *l = Label::Outside;
                 stats.frontier -= 1;
             }
@@ -417,27 +436,35 @@ pub fn build_doubting(
 }
 
 /// A frontier voxel of the ordinary domain, connection aside: safe ([`is_safe`]), with a face
-/// neighbour that is unexplored or fringe (free but not safe, and clear of every occupied,
-/// uncertain or sealed voxel and of the grid edge by the vehicle radius: within the radius of
-/// unexplored space only).
-fn is_certain_frontier(map: &VoxelMap<'_>, stencil: &InflationStencil, v: VoxelIndex) -> bool {
+/// neighbour that is unexplored or fringe — free, clear of the grid edge by the vehicle radius,
+/// within it of unexplored space and of no occupied, uncertain or sealed voxel (with a lenient
+/// `doubt`, of none that `doubt` does not doubt).
+fn is_certain_frontier(
+    map: &VoxelMap<'_>,
+    stencil: &InflationStencil,
+    v: VoxelIndex,
+    doubt: &Doubt<'_>,
+) -> bool {
     let dims = map.dims();
-    let clear_of_blocks = |n: VoxelIndex| {
-        clear_of_grid_edges(&dims, stencil, n)
-            && stencil.offsets().all(|d| {
-                dims.offset(n, d).is_none_or(|m| {
-                    map.stored()
-                        .get(dims.linear(m))
-                        .is_none_or(|&lo| !stored_blocks(lo))
-                })
-            })
+    let fringe = |n: VoxelIndex| {
+        let (mut blocked, mut unexplored) = (false, false);
+        for m in stencil.offsets().filter_map(|d| dims.offset(n, d)) {
+            let i = dims.linear(m);
+            let lo = map.stored().get(i).copied().unwrap_or(UNKNOWN);
+            blocked |= if doubt.lenient {
+                doubt.blocks(i, lo)
+            } else {
+                stored_blocks(lo)
+            };
+            unexplored |= lo == UNKNOWN;
+        }
+        clear_of_grid_edges(&dims, stencil, n) && !blocked && unexplored
     };
-    let mut fringe = false;
+    let mut frontier = false;
     dims.for_each_face_neighbour(v, |i| {
-        let n = dims.voxel(i);
-        fringe |= map.is_unexplored(i) || (map.is_free(i) && !is_safe(map, stencil, n) && clear_of_blocks(n));
+        frontier |= map.is_unexplored(i) || (map.is_free(i) && fringe(dims.voxel(i)));
     });
-    fringe && is_safe(map, stencil, v)
+    frontier && is_safe(map, stencil, v)
 }
 
 /// A safe voxel borders the unknown if a face neighbour is fringe or itself unexplored.

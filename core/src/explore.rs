@@ -876,7 +876,9 @@ impl<'a> Explorer<'a> {
                     self.status.errors.clearances += 1;
                     continue;
                 }
-                if self.reopen_doubtful(vehicle, position, clock) {
+                if self.reopen_doubtful(vehicle, position, false, clock)
+                    || self.reopen_doubtful(vehicle, position, true, clock)
+                {
                     self.status.errors.reopenings += 1;
                     continue;
                 }
@@ -957,11 +959,14 @@ impl<'a> Explorer<'a> {
     /// from the vehicle towards a frontier there, and forgets the doubtful voxels around the
     /// first voxel of it the ordinary domain holds unsafe. True if any were forgotten: the
     /// caller builds the ordinary domain again, which now has a frontier where they were.
-    /// Leaves the labels and ψ describing no usable domain when it returns false.
+    /// `lenient` keeps the frontiers [`Doubt::lenient`](domain::Doubt::lenient) keeps; the
+    /// caller asks it after the strict doubt found nothing. Leaves the labels and ψ describing
+    /// no usable domain when it returns false.
     fn reopen_doubtful(
         &mut self,
         vehicle: VoxelIndex,
         position: &Point3<f32>,
+        lenient: bool,
         clock: &mut impl Clock,
     ) -> bool {
         let below = Reopening::threshold(self.config.doubtful_log_odds);
@@ -970,6 +975,7 @@ impl<'a> Explorer<'a> {
         }
         let t0 = clock.ticks();
         let doubt = self.reopening.doubt(below);
+        let doubt = if lenient { doubt.lenient() } else { doubt };
         let built =
             domain::build_doubting(&self.map, &self.stencil, vehicle, self.labels, self.queue, &doubt);
         let t1 = clock.ticks();

@@ -363,21 +363,23 @@ fn million_triangle_mesh_loads_in_seconds() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
-/// "Doorways must not close under noise": in the thesis's apartment, start 9 of the noise
-/// table (σ = 1 px, the stereo sensor model, 0.25 m radius), noisy returns leave weakly seen
-/// occupied voxels in the 0.9 m hall and the vehicle's safe space ends there. Without the
-/// reopening rule the run ends `complete` at 39 % of the free space; with it (the default) the
-/// explorer looks at those voxels again, finds the hall open and explores the rest (90 %
-/// measured), without a collision.
+/// "Doorways must not close under noise": in the thesis's apartment, starts 9 and 2 of the
+/// noise table (σ = 1 px, the stereo sensor model, 0.25 m radius), noisy returns leave weakly
+/// seen occupied voxels in the 0.9 m hall (start 9) and on a door's frame (start 2), and the
+/// vehicle's safe space ends there. Without the reopening rule the runs end `complete` at 39 %
+/// and 53 % of the free space; with it (the default) the explorer looks at those voxels again,
+/// finds the way open and explores the rest (90 % and 89 % measured), without a collision.
+/// Start 2 needs the lenient doubt (`Doubt::lenient`): the door's fringe lies near doubtful
+/// voxels too.
 #[test]
 fn a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end() {
     use harmonic_sim::sensors::camera::StereoNoise;
-    let scenario = Scenario::builtin("apartment-thesis")
-        .unwrap()
-        .with_random_start(9);
-    let run = |doubtful_log_odds: f32| {
+    let run = |start: u64, doubtful_log_odds: f32| {
+        let scenario = Scenario::builtin("apartment-thesis")
+            .unwrap()
+            .with_random_start(start);
         let mut cfg = SimConfig {
-            seed: 9,
+            seed: start,
             ..SimConfig::default()
         };
         let noise = StereoNoise::default();
@@ -394,13 +396,31 @@ fn a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end() {
         cfg.explorer.doubtful_log_odds = doubtful_log_odds;
         sim::run(&scenario, &cfg, |_| {}).unwrap()
     };
-    let closed = run(0.0);
-    assert_eq!(closed.termination, "complete");
-    assert!(closed.coverage_free < 0.5, "{}", closed.coverage_free);
-    assert_eq!(closed.errors.reopenings, 0);
-    let reopened = run(ExplorerConfig::default().doubtful_log_odds);
-    assert_eq!(reopened.termination, "complete");
-    assert!(reopened.errors.reopenings > 0, "{:?}", reopened.errors);
-    assert!(reopened.coverage_free > 0.85, "{}", reopened.coverage_free);
-    assert_eq!(reopened.collisions, 0, "{:?}", reopened.collision_points);
+    for start in [9, 2] {
+        let closed = run(start, 0.0);
+        assert_eq!(closed.termination, "complete");
+        assert!(
+            closed.coverage_free < 0.6,
+            "start {start}: {}",
+            closed.coverage_free
+        );
+        assert_eq!(closed.errors.reopenings, 0);
+        let reopened = run(start, ExplorerConfig::default().doubtful_log_odds);
+        assert_eq!(reopened.termination, "complete");
+        assert!(
+            reopened.errors.reopenings > 0,
+            "start {start}: {:?}",
+            reopened.errors
+        );
+        assert!(
+            reopened.coverage_free > 0.85,
+            "start {start}: {}",
+            reopened.coverage_free
+        );
+        assert_eq!(
+            reopened.collisions, 0,
+            "start {start}: {:?}",
+            reopened.collision_points
+        );
+    }
 }

@@ -247,7 +247,9 @@ impl<'a> Baseline<'a> {
                 }
                 // As the explorer does: a frontier cut off by doubtful voxels alone is looked
                 // at again first.
-                if self.reopen_doubtful(vehicle, vehicle_i) {
+                if self.reopen_doubtful(vehicle, vehicle_i, false)
+                    || self.reopen_doubtful(vehicle, vehicle_i, true)
+                {
                     self.status.errors.reopenings += 1;
                     continue;
                 }
@@ -316,12 +318,13 @@ impl<'a> Baseline<'a> {
     /// path: the shortest way to the nearest frontier through the domain that takes doubtful
     /// voxels for free space, and the doubtful voxels forgotten around its first unsafe voxel.
     /// True if any were.
-    fn reopen_doubtful(&mut self, vehicle: VoxelIndex, vehicle_i: usize) -> bool {
+    fn reopen_doubtful(&mut self, vehicle: VoxelIndex, vehicle_i: usize, lenient: bool) -> bool {
         let below = Reopening::threshold(self.config.doubtful_log_odds);
         if below == 0 || self.reopening.is_full() {
             return false;
         }
         let doubt = self.reopening.doubt(below);
+        let doubt = if lenient { doubt.lenient() } else { doubt };
         let built =
             domain::build_doubting(&self.map, &self.stencil, vehicle, self.labels, self.queue, &doubt);
         if !built.is_ok_and(|s| s.frontier > 0) {
