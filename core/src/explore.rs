@@ -876,11 +876,18 @@ impl<'a> Explorer<'a> {
                     self.status.errors.clearances += 1;
                     continue;
                 }
-                if self.reopen_doubtful(vehicle, position, false, clock)
-                    || self.reopen_doubtful(vehicle, position, true, clock)
-                {
-                    self.status.errors.reopenings += 1;
-                    continue;
+                if Reopening::threshold(self.config.doubtful_log_odds) > 0 && !self.reopening.is_full() {
+                    if self.reopen_doubtful(vehicle, position, false, clock)
+                        || self.reopen_doubtful(vehicle, position, true, clock)
+                    {
+                        self.status.errors.reopenings += 1;
+                        continue;
+                    }
+                    // The doubting builds overwrote the labels: the caller reads the ordinary
+                    // domain of the end (ψ is the last doubting solve's).
+                    let t0 = clock.ticks();
+                    let _ = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+                    self.status.phase_ticks.domain += clock.ticks().saturating_sub(t0);
                 }
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
@@ -960,8 +967,8 @@ impl<'a> Explorer<'a> {
     /// first voxel of it the ordinary domain holds unsafe. True if any were forgotten: the
     /// caller builds the ordinary domain again, which now has a frontier where they were.
     /// `lenient` keeps the frontiers [`Doubt::lenient`](domain::Doubt::lenient) keeps; the
-    /// caller asks it after the strict doubt found nothing. Leaves the labels and ψ describing
-    /// no usable domain when it returns false.
+    /// caller asks it after the strict doubt found nothing. Leaves the labels and ψ of the
+    /// doubting domain when it returns false (the caller builds the ordinary one again).
     fn reopen_doubtful(
         &mut self,
         vehicle: VoxelIndex,

@@ -247,11 +247,15 @@ impl<'a> Baseline<'a> {
                 }
                 // As the explorer does: a frontier cut off by doubtful voxels alone is looked
                 // at again first.
-                if self.reopen_doubtful(vehicle, vehicle_i, false)
-                    || self.reopen_doubtful(vehicle, vehicle_i, true)
-                {
-                    self.status.errors.reopenings += 1;
-                    continue;
+                if Reopening::threshold(self.config.doubtful_log_odds) > 0 && !self.reopening.is_full() {
+                    if self.reopen_doubtful(vehicle, vehicle_i, false)
+                        || self.reopen_doubtful(vehicle, vehicle_i, true)
+                    {
+                        self.status.errors.reopenings += 1;
+                        continue;
+                    }
+                    // The doubting builds overwrote the labels: end on the ordinary domain.
+                    let _ = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
                 }
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
