@@ -29,6 +29,8 @@
 use heapless::Vec as HVec;
 use nalgebra::Point3;
 
+use crate::integrate::traverse;
+
 use crate::map::{
     stored_blocks, stored_observed, Dims, Occupancy, VoxelIndex, VoxelMap, LOG_ODDS_SCALE, SEALED, UNKNOWN,
 };
@@ -286,15 +288,31 @@ impl Reopening {
     }
 }
 
-/// The first of `voxels` (a path from the vehicle, in order) that the vehicle's centre may not
-/// pass in the ordinary domain ([`is_safe`]): where a path planned through doubtful voxels
-/// leaves the safe space.
-pub fn first_unsafe(
+/// The first voxel the polyline from `from` through `points` crosses that the vehicle's centre
+/// may not pass ([`is_safe`]), if any: whether a kept path is still clear, or where a path
+/// planned through doubtful voxels leaves the safe space.
+pub fn first_unsafe_along(
     map: &VoxelMap<'_>,
     stencil: &InflationStencil,
-    voxels: impl IntoIterator<Item = VoxelIndex>,
+    from: &Point3<f32>,
+    points: impl IntoIterator<Item = Point3<f32>>,
 ) -> Option<VoxelIndex> {
-    voxels.into_iter().find(|&v| !is_safe(map, stencil, v))
+    let geometry = *map.geometry();
+    let mut unsafe_voxel = None;
+    let mut from = *from;
+    for to in points {
+        traverse(&geometry, &from, &to, |v| {
+            if !is_safe(map, stencil, v) {
+                unsafe_voxel = Some(v);
+            }
+            unsafe_voxel.is_none()
+        });
+        if unsafe_voxel.is_some() {
+            break;
+        }
+        from = to;
+    }
+    unsafe_voxel
 }
 
 /// What a domain build found.
@@ -1006,8 +1024,8 @@ pub(crate) mod tests {
         assert_eq!(doubted.frontier, 1, "taken for free space, it hides a frontier");
         assert_eq!(labels[dims.linear(VoxelIndex::new(5, 1, 0))], Label::Frontier);
 
-        let path = (1..=5).map(|x| VoxelIndex::new(x, 1, 0));
-        let gate = first_unsafe(&map, &stencil, path).unwrap();
+        let centre = |x: u16| map.geometry().center(VoxelIndex::new(x, 1, 0));
+        let gate = first_unsafe_along(&map, &stencil, &centre(1), (2..=5).map(centre)).unwrap();
         assert_eq!(gate, VoxelIndex::new(3, 1, 0));
         assert_eq!(reopening.forget_around(&mut map, &stencil, gate, below), 1);
         assert!(map.is_unexplored(dims.linear(gate)));

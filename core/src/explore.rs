@@ -808,17 +808,9 @@ impl<'a> Explorer<'a> {
             return false;
         }
         // Check the remaining path from the vehicle on.
-        let mut clear = true;
-        let mut from = *position;
-        for w in self.waypoints.iter().skip(k) {
-            integrate::traverse(&geometry, &from, w, |v| {
-                clear &= domain::is_safe(&self.map, &self.stencil, v);
-                clear
-            });
-            if !clear {
-                return false;
-            }
-            from = *w;
+        let rest_of_path = self.waypoints.iter().skip(k).copied();
+        if domain::first_unsafe_along(&self.map, &self.stencil, position, rest_of_path).is_some() {
+            return false;
         }
         // Drop the waypoints already passed; start from where the vehicle is. A sparse path
         // (a step-back goal is one straight segment) may leave only the vehicle: the goal
@@ -876,9 +868,10 @@ impl<'a> Explorer<'a> {
                     self.status.errors.clearances += 1;
                     continue;
                 }
-                if Reopening::threshold(self.config.doubtful_log_odds) > 0 && !self.reopening.is_full() {
-                    if self.reopen_doubtful(vehicle, position, false, clock)
-                        || self.reopen_doubtful(vehicle, position, true, clock)
+                let below = Reopening::threshold(self.config.doubtful_log_odds);
+                if below > 0 && !self.reopening.is_full() {
+                    if self.reopen_doubtful(vehicle, position, below, false, clock)
+                        || self.reopen_doubtful(vehicle, position, below, true, clock)
                     {
                         self.status.errors.reopenings += 1;
                         continue;
@@ -967,19 +960,17 @@ impl<'a> Explorer<'a> {
     /// first voxel of it the ordinary domain holds unsafe. True if any were forgotten: the
     /// caller builds the ordinary domain again, which now has a frontier where they were.
     /// `lenient` keeps the frontiers [`Doubt::lenient`](domain::Doubt::lenient) keeps; the
-    /// caller asks it after the strict doubt found nothing. Leaves the labels and ψ of the
-    /// doubting domain when it returns false (the caller builds the ordinary one again).
+    /// caller asks it after the strict doubt found nothing; `below` is the stored threshold
+    /// ([`Reopening::threshold`]). Leaves the labels and ψ of the doubting domain when it returns
+    /// false (the caller builds the ordinary one again).
     fn reopen_doubtful(
         &mut self,
         vehicle: VoxelIndex,
         position: &Point3<f32>,
+        below: i8,
         lenient: bool,
         clock: &mut impl Clock,
     ) -> bool {
-        let below = Reopening::threshold(self.config.doubtful_log_odds);
-        if below == 0 || self.reopening.is_full() {
-            return false;
-        }
         let t0 = clock.ticks();
         let doubt = self.reopening.doubt(below);
         let doubt = if lenient { doubt.lenient() } else { doubt };
@@ -1000,22 +991,10 @@ impl<'a> Explorer<'a> {
             phi: self.phi,
         };
         let traced = streamline::trace(&field, position, &self.config.streamline, &mut self.waypoints);
-        let mut gate = None;
-        if traced.is_ok() {
-            let mut from = *position;
-            for w in self.waypoints.iter() {
-                integrate::traverse(&geometry, &from, w, |v| {
-                    if !domain::is_safe(&self.map, &self.stencil, v) {
-                        gate = Some(v);
-                    }
-                    gate.is_none()
-                });
-                if gate.is_some() {
-                    break;
-                }
-                from = *w;
-            }
-        }
+        let gate = traced.ok().and_then(|_| {
+            let path = self.waypoints.iter().copied();
+            domain::first_unsafe_along(&self.map, &self.stencil, position, path)
+        });
         self.waypoints.clear();
         self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
         gate.is_some_and(|g| {

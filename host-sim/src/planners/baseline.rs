@@ -247,9 +247,10 @@ impl<'a> Baseline<'a> {
                 }
                 // As the explorer does: a frontier cut off by doubtful voxels alone is looked
                 // at again first.
-                if Reopening::threshold(self.config.doubtful_log_odds) > 0 && !self.reopening.is_full() {
-                    if self.reopen_doubtful(vehicle, vehicle_i, false)
-                        || self.reopen_doubtful(vehicle, vehicle_i, true)
+                let below = Reopening::threshold(self.config.doubtful_log_odds);
+                if below > 0 && !self.reopening.is_full() {
+                    if self.reopen_doubtful(vehicle, vehicle_i, below, false)
+                        || self.reopen_doubtful(vehicle, vehicle_i, below, true)
                     {
                         self.status.errors.reopenings += 1;
                         continue;
@@ -321,12 +322,8 @@ impl<'a> Baseline<'a> {
     /// The explorer's rule for doorways closed by noise ([`Reopening`]), with this planner's
     /// path: the shortest way to the nearest frontier through the domain that takes doubtful
     /// voxels for free space, and the doubtful voxels forgotten around its first unsafe voxel.
-    /// True if any were.
-    fn reopen_doubtful(&mut self, vehicle: VoxelIndex, vehicle_i: usize, lenient: bool) -> bool {
-        let below = Reopening::threshold(self.config.doubtful_log_odds);
-        if below == 0 || self.reopening.is_full() {
-            return false;
-        }
+    /// True if any were. `below` is the stored threshold ([`Reopening::threshold`]).
+    fn reopen_doubtful(&mut self, vehicle: VoxelIndex, vehicle_i: usize, below: i8, lenient: bool) -> bool {
         let doubt = self.reopening.doubt(below);
         let doubt = if lenient { doubt.lenient() } else { doubt };
         let built =
@@ -341,9 +338,13 @@ impl<'a> Baseline<'a> {
         else {
             return false;
         };
-        let dims = self.map.dims();
-        let path = self.search.path(f);
-        let gate = domain::first_unsafe(&self.map, &self.stencil, path.iter().map(|&i| dims.voxel(i)));
+        let (geometry, dims) = (*self.map.geometry(), self.map.dims());
+        let path = self
+            .search
+            .path(f)
+            .into_iter()
+            .map(|i| geometry.center(dims.voxel(i)));
+        let gate = domain::first_unsafe_along(&self.map, &self.stencil, &geometry.center(vehicle), path);
         gate.is_some_and(|g| {
             self.reopening
                 .forget_around(&mut self.map, &self.stencil, g, below)
@@ -736,17 +737,9 @@ impl<'a> Baseline<'a> {
         if d > 2.0 * res {
             return false;
         }
-        let mut clear = true;
-        let mut from = *position;
-        for w in &self.waypoints[k..] {
-            traverse(&geometry, &from, w, |v| {
-                clear &= domain::is_safe(&self.map, &self.stencil, v);
-                clear
-            });
-            if !clear {
-                return false;
-            }
-            from = *w;
+        let rest_of_path = self.waypoints[k..].iter().copied();
+        if domain::first_unsafe_along(&self.map, &self.stencil, position, rest_of_path).is_some() {
+            return false;
         }
         let rest: Vec<Point3<f32>> = std::iter::once(*position)
             .chain(self.waypoints[k..].iter().copied())
