@@ -741,3 +741,67 @@ fn a_doubtful_voxel_seen_occupied_again_is_believed() {
     assert_eq!(e.plan(&goal.position, goal.yaw), PlanOutcome::Complete);
     assert_eq!(e.status().errors.reopenings, 1, "each voxel is doubted once");
 }
+
+/// Plans from one end of a 6 × 1 × 1 m hall seen free except for 2 × 2 × 2-voxel pockets of
+/// unknown space with their low corners at `pockets` (voxel indices), under `config`.
+fn plan_to_pockets(config: ExplorerConfig, pockets: &[[u16; 3]]) -> (PlanOutcome, Status) {
+    let dims = Dims::new(60, 10, 10).unwrap();
+    let mut b = Buffers::new(&dims);
+    let in_pocket = |v: VoxelIndex| {
+        pockets.iter().any(|&[x, y, z]| {
+            (x..x + 2).contains(&v.x) && (y..y + 2).contains(&v.y) && (z..z + 2).contains(&v.z)
+        })
+    };
+    let mut e = b.seen_explorer(dims, config, |v| !in_pocket(v));
+    let outcome = e.plan(&Point3::new(0.25, 0.5, 0.5), 0.0);
+    (outcome, *e.status())
+}
+
+fn remnant_config(area_m2: f32) -> ExplorerConfig {
+    ExplorerConfig {
+        vehicle_radius: 0.05,
+        remnant_frontier_m2: area_m2,
+        ..ExplorerConfig::default()
+    }
+}
+
+#[test]
+fn a_far_remnant_is_sealed_and_a_near_one_is_flown_to() {
+    // All that is left is a pocket 5 m away: not worth the flight, it is sealed and the
+    // exploration ends.
+    let far = [[50, 4, 4]];
+    let (outcome, status) = plan_to_pockets(remnant_config(0.5), &far);
+    assert_eq!(outcome, PlanOutcome::Complete, "{status:?}");
+    assert_eq!(status.errors.remnants_sealed, 1);
+    assert_eq!(
+        status.errors.seals, 0,
+        "a remnant is not counted as a fruitless visit"
+    );
+    // The same pocket 1 m away is looked at.
+    let (outcome, status) = plan_to_pockets(remnant_config(0.5), &[[10, 4, 4]]);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?} {status:?}");
+    assert_eq!(status.errors.remnants_sealed, 0);
+    // With the rule off the far pocket is flown to as well.
+    let (outcome, status) = plan_to_pockets(remnant_config(0.0), &far);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
+    assert_eq!(status.errors.remnants_sealed, 0);
+    let length = status.streamline.map_or(0.0, |s| s.length);
+    assert!(length > 4.0, "{length} m");
+}
+
+#[test]
+fn a_far_target_is_flown_to_while_much_frontier_is_left() {
+    // Eight far pockets hold more frontier than a remnant area of one pocket's worth: the
+    // nearest is a target like any other.
+    let pockets: Vec<[u16; 3]> = (0..8).map(|k| [36 + 6 * (k % 4), 1 + 6 * (k / 4), 4]).collect();
+    let (_, one) = plan_to_pockets(remnant_config(0.0), &pockets[..1]);
+    let one_pocket_m2 = one.domain.frontier as f32 * 0.01;
+    let (outcome, status) = plan_to_pockets(remnant_config(one_pocket_m2), &pockets);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
+    assert_eq!(status.errors.remnants_sealed, 0);
+    // Taken for remnants all, seven are sealed and the last pass flies to the eighth: a plan
+    // never ends on seals alone.
+    let (outcome, status) = plan_to_pockets(remnant_config(100.0), &pockets);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?} {status:?}");
+    assert_eq!(status.errors.remnants_sealed, PLAN_PASSES as u32 - 1);
+}

@@ -532,8 +532,12 @@ fn print_summary(r: &Report) {
             (
                 "left unreachable",
                 format!(
-                    "{n} frontier voxels seen but out of reach (too narrow for the vehicle, behind a gap); {} unknown voxels sealed as unobservable{}",
+                    "{n} frontier voxels seen but out of reach (too narrow for the vehicle, behind a gap); {} unknown voxels sealed as unobservable or as far remnants{}{}",
                     r.sealed_voxels,
+                    match r.errors.remnants_sealed {
+                        0 => String::new(),
+                        k => format!(" ({k} far remnants sealed instead of flown to)"),
+                    },
                     match r.errors.reopenings {
                         0 => String::new(),
                         k => format!("; {k} passages closed by doubtful voxels reopened to look again"),

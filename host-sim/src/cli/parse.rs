@@ -126,6 +126,14 @@ pub fn parse_positive(s: &str) -> Result<f32, String> {
     }
 }
 
+/// A finite number ≥ 0 (0 usually turns a rule off).
+pub fn parse_non_negative(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => Err(format!("expected a number ≥ 0, got `{s}`")),
+    }
+}
+
 /// A vehicle radius: 0 to 0.6 m.
 pub fn parse_radius(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {

@@ -7,7 +7,8 @@ use harmonic_sim::sensors::camera::StereoNoise;
 use harmonic_sim::sensors::sensing::DriftConfig;
 
 use super::parse::{
-    parse_drift, parse_grid_offset, parse_noise, parse_positive, parse_probability, parse_radius,
+    parse_drift, parse_grid_offset, parse_noise, parse_non_negative, parse_positive, parse_probability,
+    parse_radius,
 };
 
 /// Imperfect sensing, for `explore` and `bench`.
@@ -126,6 +127,20 @@ pub struct FieldArgs {
     /// space) instead of planning on at once, as the thesis's do.
     #[arg(long)]
     baseline_looks: bool,
+    /// Remnants: while the vehicle's part of the map holds at most this much frontier (square
+    /// metres' worth of frontier voxels), a target farther than `--remnant-reach` along its path
+    /// is sealed instead of flown to (default 0.5; 0 turns it off, flying to every crumb).
+    #[arg(long, value_parser = parse_non_negative)]
+    remnant_area: Option<f32>,
+    /// Remnants: how far along its path (metres) a remnant target may be and still be flown to
+    /// (default 3).
+    #[arg(long, value_parser = parse_positive)]
+    remnant_reach: Option<f32>,
+    /// Ablation: closest, random frontier and the information-gain planners seal far remnants
+    /// as the core's planner does (`--remnant-area`, `--remnant-reach`) instead of flying to
+    /// every last frontier, as the thesis's do.
+    #[arg(long)]
+    baseline_remnants: bool,
     /// Ablation: the core flies its streamline's own curve instead of pulling it taut through
     /// the safe space (same goal, same frontier).
     #[arg(long)]
@@ -150,6 +165,13 @@ impl FieldArgs {
         }
         cfg.baseline_views = self.baseline_views;
         cfg.baseline_looks = self.baseline_looks;
+        cfg.baseline_remnants = self.baseline_remnants;
+        if let Some(a) = self.remnant_area {
+            cfg.explorer.remnant_frontier_m2 = a;
+        }
+        if let Some(d) = self.remnant_reach {
+            cfg.explorer.remnant_reach_m = d;
+        }
         if self.raw_streamline {
             cfg.explorer.taut_path = false;
         }

@@ -39,8 +39,8 @@ use harmonic_core::camera::{DepthFrame, Intrinsics};
 use harmonic_core::domain::{self, DomainError, InflationStencil, Label, Reopening};
 use harmonic_core::explore::Clock;
 use harmonic_core::explore::{
-    check_frame_timing, ArrivalLooks, ConfigError, ExplorerConfig, ExplorerStorage, Fault, FrameTiming, Goal,
-    PlanOutcome, Status,
+    check_frame_timing, is_far_remnant, ArrivalLooks, ConfigError, ExplorerConfig, ExplorerStorage, Fault,
+    FrameTiming, Goal, PlanOutcome, Status, PLAN_PASSES,
 };
 use harmonic_core::integrate::{self, traverse};
 use harmonic_core::map::{MapGeometry, VoxelIndex, VoxelMap};
@@ -122,6 +122,9 @@ pub struct Baseline<'a> {
     core_views: bool,
     /// The core's look-around on arrival (see [`Baseline::with_arrival_looks`]), if on.
     looks: Option<ArrivalLooks>,
+    /// Far remnants are sealed as the core's planner seals them (see
+    /// [`Baseline::with_remnants`]).
+    remnants: bool,
     /// The last goal looked at its frontier from afar.
     goal_from_afar: bool,
     /// The next frontier goal takes the near point (a look from afar taught nothing).
@@ -148,6 +151,16 @@ impl<'a> Baseline<'a> {
     /// harmonic planner's gain over the thesis's baselines the look-around gives by itself.
     pub fn with_arrival_looks(mut self) -> Self {
         self.looks = Some(ArrivalLooks::default());
+        self
+    }
+
+    /// Lets the baseline seal far remnants as the core's planner does
+    /// ([`ExplorerConfig::remnant_frontier_m2`]: with little frontier left, a target farther than
+    /// [`ExplorerConfig::remnant_reach_m`] along its path is sealed instead of flown to). An
+    /// ablation: it asks how much of the harmonic planner's gain is this rule rather than its
+    /// field.
+    pub fn with_remnants(mut self) -> Self {
+        self.remnants = true;
         self
     }
 
@@ -194,6 +207,7 @@ impl<'a> Baseline<'a> {
             unexplored_at_last_plan: None,
             core_views: false,
             looks: None,
+            remnants: false,
             goal_from_afar: false,
             go_near: false,
             reopening: Reopening::default(),
@@ -224,7 +238,7 @@ impl<'a> Baseline<'a> {
         self.unexplored_at_last_plan = Some(unexplored);
         let vehicle_i = geometry.dims().linear(vehicle);
 
-        for _ in 0..8 {
+        for pass in 0..PLAN_PASSES {
             let t0 = clock.ticks();
             let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
             let t1 = clock.ticks();
@@ -280,16 +294,26 @@ impl<'a> Baseline<'a> {
             };
             let path = self.search.path(target.voxel);
             self.waypoints = smooth(&geometry, self.labels, position, &path, &mut steps);
+            self.status.planning_ops += self.search.expansions - expansions0 + steps;
+            let length = polyline_length(&self.waypoints);
+            if self.remnants
+                && pass + 1 < PLAN_PASSES
+                && is_far_remnant(&self.config, &geometry, &stats, length)
+            {
+                self.seal_target(&target.watch);
+                self.status.errors.remnants_sealed += 1;
+                self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
+                continue;
+            }
             let revisit = self.is_fruitless_revisit(target.frontier, position, learned_nothing);
             let retry_near = self.core_views && revisit && last_from_afar;
             self.go_near = self.core_views && revisit && (last_from_afar || self.go_near);
             let goal = self.choose_goal(&target, yaw);
-            self.status.planning_ops += self.search.expansions - expansions0 + steps;
             self.status.streamline = Some(StreamlineEnd {
                 frontier: target.frontier,
                 end: goal.position,
                 direction: Vector3::new(goal.yaw.cos(), goal.yaw.sin(), 0.0),
-                length: polyline_length(&self.waypoints),
+                length,
                 steps: path.len() as u32,
                 fallback_steps: 0,
             });
@@ -300,9 +324,7 @@ impl<'a> Baseline<'a> {
                 self.fruitless_visits = self.fruitless_visits.saturating_add(1);
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
-                    for w in &target.watch {
-                        domain::seal_around(&mut self.map, *w, domain::frontier_reach(&self.stencil));
-                    }
+                    self.seal_target(&target.watch);
                     self.status.errors.seals += 1;
                     continue;
                 }
@@ -317,6 +339,13 @@ impl<'a> Baseline<'a> {
         }
         self.status.errors.streamline_failures += 1;
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
+    }
+
+    /// Seals the unknown voxels behind each frontier voxel a target watches.
+    fn seal_target(&mut self, watch: &[VoxelIndex]) {
+        for w in watch {
+            domain::seal_around(&mut self.map, *w, domain::frontier_reach(&self.stencil));
+        }
     }
 
     /// The explorer's rule for doorways closed by noise ([`Reopening`]), with this planner's
@@ -1026,6 +1055,48 @@ mod tests {
         }
         let seen = visible_frontier(&map, &p, &targets, &view, &mut steps);
         assert_eq!(seen.count, 1, "{seen:?}");
+    }
+
+    /// Closest frontier from one end of a 6 × 1 × 1 m hall seen free but for a pocket of
+    /// 2 × 2 × 2 unknown voxels at voxel x = `pocket_x`, with the remnant ablation on or off.
+    fn closest_frontier_to_a_pocket(pocket_x: u16, remnants: bool) -> (PlanOutcome, Status) {
+        let dims = Dims::new(60, 10, 10).unwrap();
+        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let mut storage = crate::planners::HostStorage::new(&dims);
+        let config = ExplorerConfig {
+            vehicle_radius: 0.05,
+            ..Default::default()
+        };
+        let mut planner = Baseline::new(PlannerKind::ClosestFrontier, g, config, storage.lend(), 1).unwrap();
+        if remnants {
+            planner = planner.with_remnants();
+        }
+        for i in 0..dims.len() {
+            let v = dims.voxel(i);
+            let in_pocket =
+                (pocket_x..pocket_x + 2).contains(&v.x) && (4..6).contains(&v.y) && (4..6).contains(&v.z);
+            if !in_pocket {
+                planner.map.apply_miss(i);
+            }
+        }
+        let outcome = planner.plan(&Point3::new(0.25, 0.5, 0.5), 0.0, &mut HostClock::new());
+        (outcome, planner.status)
+    }
+
+    #[test]
+    fn with_the_remnant_ablation_a_far_remnant_is_sealed_not_flown_to() {
+        // The thesis's closest frontier flies to the last crumb however far it is.
+        let (outcome, status) = closest_frontier_to_a_pocket(50, false);
+        assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
+        assert_eq!(status.errors.remnants_sealed, 0);
+        // With the core's rule it seals it, as the core's planner does, and is done.
+        let (outcome, status) = closest_frontier_to_a_pocket(50, true);
+        assert_eq!(outcome, PlanOutcome::Complete, "{status:?}");
+        assert_eq!(status.errors.remnants_sealed, 1);
+        // A near crumb is still looked at.
+        let (outcome, status) = closest_frontier_to_a_pocket(10, true);
+        assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
+        assert_eq!(status.errors.remnants_sealed, 0);
     }
 
     /// Shortest 26-connected path lengths (voxels) from `source` over in-domain voxels, by

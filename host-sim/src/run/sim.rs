@@ -99,6 +99,9 @@ pub struct SimConfig {
     /// Closest, random frontier and the information-gain planners look around on arrival as
     /// the core's planner does (an ablation; see [`Baseline::with_arrival_looks`]).
     pub baseline_looks: bool,
+    /// The baselines seal far remnants as the core's planner does (an ablation; see
+    /// [`Baseline::with_remnants`]).
+    pub baseline_remnants: bool,
     /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
     /// Depth camera.
@@ -248,6 +251,7 @@ impl Default for SimConfig {
             planner: PlannerKind::Harmonic,
             baseline_views: false,
             baseline_looks: false,
+            baseline_remnants: false,
             explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
             body_radius: 0.15,
@@ -1164,6 +1168,9 @@ fn make_planner<'s>(
             }
             if cfg.baseline_looks {
                 baseline = baseline.with_arrival_looks();
+            }
+            if cfg.baseline_remnants {
+                baseline = baseline.with_remnants();
             }
             Box::new(baseline)
         }
