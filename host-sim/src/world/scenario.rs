@@ -785,8 +785,16 @@ max = [4, 3, 0.1]
             ((x * 10.0) - (x * 10.0).round()).abs() < EPS
         }
 
+        /// The built-in worlds, and the held-out worlds of `scenarios/heldout/` (loaded by
+        /// path; written to check tuned constants on layouts no tuning saw), which follow the
+        /// same rules.
         pub(crate) fn builtins() -> impl Iterator<Item = Scenario> {
-            builtin_names().iter().map(|n| Scenario::builtin(n).unwrap())
+            let heldout =
+                ["clinic"].map(|n| format!("{}/scenarios/heldout/{n}.toml", env!("CARGO_MANIFEST_DIR")));
+            builtin_names()
+                .iter()
+                .map(|n| Scenario::builtin(n).unwrap())
+                .chain(heldout.into_iter().map(|p| Scenario::load(&p).unwrap()))
         }
 
         #[test]
