@@ -805,3 +805,27 @@ fn a_far_target_is_flown_to_while_much_frontier_is_left() {
     assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?} {status:?}");
     assert_eq!(status.errors.remnants_sealed, PLAN_PASSES as u32 - 1);
 }
+
+#[test]
+fn a_far_remnant_is_flown_to_while_safe_space_is_out_of_reach() {
+    // The hall of `plan_to_pockets` with a wall across it at x = 5.7 m and a seen, free room
+    // beyond: safe space the vehicle cannot reach (a passage closed, by noise perhaps). The far
+    // pocket might be the way there, so it is looked at, not sealed.
+    let dims = Dims::new(60, 10, 10).unwrap();
+    let mut b = Buffers::new(&dims);
+    let pocket = |v: VoxelIndex| (50..52).contains(&v.x) && (4..6).contains(&v.y) && (4..6).contains(&v.z);
+    let mut e = b.seen_explorer(dims, remnant_config(0.5), |v| !pocket(v) && v.x != 57);
+    for i in 0..dims.len() {
+        if dims.voxel(i).x == 57 {
+            for _ in 0..3 {
+                e.map.begin_frame();
+                e.map.apply_hit(i);
+            }
+        }
+    }
+    let outcome = e.plan(&Point3::new(0.25, 0.5, 0.5), 0.0);
+    let status = e.status();
+    assert!(status.domain.excluded > 50, "{:?}", status.domain);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?} {status:?}");
+    assert_eq!(status.errors.remnants_sealed, 0);
+}
