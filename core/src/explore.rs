@@ -193,7 +193,11 @@ pub const PLAN_PASSES: usize = 8;
 /// a passage it has seen through is closed, by noise (docs/RESULTS.md: the thesis apartment's
 /// 0.9 m hall, with a stereo camera) or by a gap: the crumbs of frontier on this side may be
 /// that passage, and looking at them from near may open it, so they are not sealed. Always
-/// false when the rule is off (area ≤ 0 or not finite).
+/// false when the rule is off (area ≤ 0 or not finite), and with noisy depth
+/// ([`IntegrationParams::depth_noise_per_m`] > 0, the stereo sensor model): there a crumb may be
+/// a passage the noise narrowed without any safe space beyond it seen yet, and once sealed the
+/// end's [`Reopening`] cannot open it (measured: the thesis apartment's hall under σ = 1 px,
+/// `tests/tests/evaluation.rs`, `a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end`).
 pub fn is_far_remnant(
     config: &ExplorerConfig,
     geometry: &MapGeometry,
@@ -202,6 +206,11 @@ pub fn is_far_remnant(
 ) -> bool {
     let area = config.remnant_frontier_m2;
     if !(area > 0.0 && area.is_finite()) {
+        return false;
+    }
+    // Noisy depth (the stereo sensor model): a crumb may be a passage that false occupied
+    // voxels narrowed, and the end's reopening (`Reopening`) cannot open it once it is sealed.
+    if config.integration.depth_noise_per_m > 0.0 {
         return false;
     }
     let voxels = area / (geometry.resolution() * geometry.resolution());

@@ -237,6 +237,15 @@ mod tests {
     }
 
     #[test]
+    fn a_rule_off_switch_takes_zero_and_refuses_what_is_not_a_number_at_or_above_it() {
+        assert_eq!(parse_non_negative("0").unwrap(), 0.0);
+        assert_eq!(parse_non_negative("0.5").unwrap(), 0.5);
+        for bad in ["-0.1", "nan", "inf", "", "half"] {
+            assert!(parse_non_negative(bad).unwrap_err().contains("≥ 0"), "{bad}");
+        }
+    }
+
+    #[test]
     fn operator_scripts_parse_in_time_order_and_bad_ones_say_why() {
         let s = parse_operator_script("resume@45, pause@30,start@0.5,abort@70").unwrap();
         assert_eq!(
