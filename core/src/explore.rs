@@ -49,8 +49,9 @@
 //! flown to: the unknown behind it is sealed as for a fruitless visit (counted in
 //! [`ErrorCounters::remnants_sealed`]) and the field solved again, so nearer remnants are still
 //! looked at and the exploration ends sooner. Not while the map holds safe free space the
-//! vehicle cannot reach ([`is_far_remnant`]): then a passage is closed, perhaps by noise, and
-//! the crumbs may be the way through. Measured in docs/RESULTS.md ("Now: far remnants sealed").
+//! vehicle cannot reach, nor with noisy depth ([`is_far_remnant`]): then a passage may be
+//! closed by noise, and the crumbs may be the way through. Measured in docs/RESULTS.md ("Now:
+//! far remnants sealed").
 //!
 //! Faults never panic: a plan that cannot be made returns [`PlanOutcome::Hold`] with the reason,
 //! and the reason's counter in [`ErrorCounters`] goes up; the caller keeps the last safe setpoint.
@@ -158,7 +159,7 @@ pub struct ExplorerConfig {
     /// worth of frontier voxels: their count × the voxel size²), and the map no more safe free
     /// space outside that component than as many voxels, a target whose streamline is longer
     /// than [`ExplorerConfig::remnant_reach_m`] is sealed instead of flown to
-    /// ([`is_far_remnant`]). Default 0.5 m² (50 voxels of 0.1 m): over 30 starts on each thesis
+    /// ([`is_far_remnant`]; never with noisy depth). Default 0.5 m² (50 voxels of 0.1 m): over 30 starts on each thesis
     /// world and on worlds the tuning never saw it shortens the mean path by 3–16 % and lowers
     /// free coverage by at most 0.04 points (docs/RESULTS.md, "Now: far remnants sealed"). 0: off.
     pub remnant_frontier_m2: f32,
