@@ -188,7 +188,8 @@ pub const STEREO_MODEL_VEHICLE_RADIUS_M: f32 = 0.25;
 /// `trusted_range` (default: where the error moves the depth by [`TRUSTED_DEPTH_ERROR_M`],
 /// [`crate::sensors::camera::trusted_range`]), farther returns only clearing free space up to it.
 /// The sensor model also widens the planning radius to at least
-/// [`STEREO_MODEL_VEHICLE_RADIUS_M`].
+/// [`STEREO_MODEL_VEHICLE_RADIUS_M`]. Noisy depth (`sigma_px` > 0) turns the sealing of far
+/// remnants off ([`ExplorerConfig::remnant_frontier_m2`] = 0; a later `--remnant-area` sets it).
 pub fn integrate_noisy_depth(
     cfg: &mut SimConfig,
     sigma_px: f32,
@@ -209,6 +210,13 @@ pub fn integrate_noisy_depth(
     cfg.explorer.integration.depth_noise_per_m = if model { sigma_px / (fx * baseline_m) } else { 0.0 };
     if model {
         cfg.explorer.vehicle_radius = cfg.explorer.vehicle_radius.max(STEREO_MODEL_VEHICLE_RADIUS_M);
+    }
+    // Far remnants are sealed only on trustworthy depth: on a noisy map a crumb may be a passage
+    // the noise narrowed (the core turns the rule off itself under the sensor model; with the
+    // exact-depth rules up to a trusted range it cannot tell, so the caller does). Measured in
+    // docs/RESULTS.md, "Now: far remnants sealed".
+    if sigma_px > 0.0 {
+        cfg.explorer.remnant_frontier_m2 = 0.0;
     }
 }
 
