@@ -189,7 +189,9 @@ pub const STEREO_MODEL_VEHICLE_RADIUS_M: f32 = 0.25;
 /// [`crate::sensors::camera::trusted_range`]), farther returns only clearing free space up to it.
 /// The sensor model also widens the planning radius to at least
 /// [`STEREO_MODEL_VEHICLE_RADIUS_M`]. Noisy depth (`sigma_px` > 0) turns the sealing of far
-/// remnants off ([`ExplorerConfig::remnant_frontier_m2`] = 0; a later `--remnant-area` sets it).
+/// remnants off ([`ExplorerConfig::remnant_frontier_m2`] = 0). A later `--remnant-area` turns it
+/// back on only without the sensor model: with it the core keeps the rule off itself
+/// ([`harmonic_core::explore::is_far_remnant`]).
 pub fn integrate_noisy_depth(
     cfg: &mut SimConfig,
     sigma_px: f32,
