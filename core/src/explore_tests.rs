@@ -23,6 +23,7 @@ struct Buffers {
     coarse_labels: Vec<Label>,
     faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
+    masks: Vec<u8>,
     jacobi: Vec<f32>,
 }
 
@@ -40,6 +41,7 @@ impl Buffers {
             coarse_labels: vec![Label::Outside; s.labels],
             faces: vec![[0; 4]; s.faces],
             krylov: vec![0.0; s.krylov],
+            masks: vec![0; s.masks],
             jacobi: Vec::new(),
         }
     }
@@ -80,6 +82,7 @@ impl Buffers {
                 coarse_labels: &mut self.coarse_labels,
                 coarse_faces: &mut self.faces,
                 krylov: &mut self.krylov,
+                masks: &mut self.masks,
                 jacobi: &mut self.jacobi,
             },
         )

@@ -117,12 +117,13 @@ fn solve_with(
 ) -> (Vec<f32>, SolveStats) {
     let s = scratch_size(&dims);
     let host = matches!(setup, Setup::Host(_));
-    let (mut values, mut halves, mut clabels, mut faces, mut krylov) = (
+    let (mut values, mut halves, mut clabels, mut faces, mut krylov, mut masks) = (
         vec![0.0f32; if setup == Setup::Firmware { 0 } else { s.values }],
         vec![Bf16::ZERO; if setup == Setup::Firmware { s.values } else { 0 }],
         vec![Label::Outside; s.labels],
         vec![[0u8; 4]; if host { s.faces } else { 0 }],
         vec![0.0f32; if host { s.krylov } else { 0 }],
+        vec![0u8; if host { s.masks } else { 0 }],
     );
     let storage = MultigridStorage {
         values: if setup == Setup::Firmware {
@@ -133,6 +134,7 @@ fn solve_with(
         labels: &mut clabels,
         faces: &mut faces,
         krylov: &mut krylov,
+        masks: &mut masks,
     };
     let method = match setup {
         Setup::Host(m) => m,

@@ -44,6 +44,7 @@ struct Solver {
     labels: Vec<Label>,
     faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
+    masks: Vec<u8>,
 }
 
 impl Solver {
@@ -54,6 +55,7 @@ impl Solver {
             labels: vec![Label::Outside; s.labels],
             faces: vec![[0; 4]; s.faces],
             krylov: vec![0.0; s.krylov],
+            masks: vec![0; s.masks],
         }
     }
     fn solve(&mut self, dims: Dims, labels: &[Label], method: Method) -> Vec<f32> {
@@ -62,6 +64,7 @@ impl Solver {
             labels: &mut self.labels,
             faces: &mut self.faces,
             krylov: &mut self.krylov,
+            masks: &mut self.masks,
         };
         let mut mg = Multigrid::new(dims, storage).unwrap();
         let mut psi = vec![0.0f32; dims.len()];

@@ -86,6 +86,7 @@ pub fn run(data: &[u8]) {
     let mut coarse_labels = vec![Label::Outside; scratch.labels];
     let mut coarse_faces = vec![[0u8; 4]; scratch.faces];
     let mut krylov = vec![0.0f32; scratch.krylov];
+    let mut masks = vec![0u8; scratch.masks];
     let storage = ExplorerStorage {
         log_odds: &mut log_odds,
         touched: &mut touched,
@@ -96,6 +97,7 @@ pub fn run(data: &[u8]) {
         coarse_labels: &mut coarse_labels,
         coarse_faces: &mut coarse_faces,
         krylov: &mut krylov,
+        masks: &mut masks,
         jacobi: &mut [],
     };
     let Ok(mut explorer) = Explorer::new(geometry, config, storage) else {

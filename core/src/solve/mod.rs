@@ -333,7 +333,7 @@ pub fn screened_residual(dims: &Dims, labels: &[Label], psi: &[f32], screening: 
         dims,
         &Active::all(dims),
         &Screen::new(screening),
-        labels,
+        (labels, &[]),
         psi,
         dirichlet_norm2(dims, labels),
     )
@@ -435,12 +435,12 @@ pub(crate) fn residual_with(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
-    labels: &[Label],
+    cells: (&[Label], &[u8]),
     psi: &[f32],
     b2: f64,
 ) -> Residual {
     let (mut r2, mut e2, mut max) = (0.0f64, 0.0f64, 0.0f32);
-    for_each_row(dims, active, screen, labels, psi, |st, row| {
+    for_each_row(dims, active, screen, cells, psi, |st, row| {
         let (mut row_r, mut row_e) = (0.0f32, 0.0f32);
         row_residuals(st, row, None, |x, r, n| {
             let c = row.at(x);
@@ -577,6 +577,8 @@ pub(crate) struct Stencil<'r, T = f32> {
     pub(crate) x1: usize,
     nl: [&'r [Label]; 4],
     nv: [&'r [T]; 4],
+    /// The row's [neighbour masks](neighbour_mask), or empty where none were lent.
+    masks: &'r [u8],
 }
 
 /// 1 / n for the neighbour counts a cell can have (0 for none: no update).
@@ -626,6 +628,7 @@ impl<'r, T: Stored> Stencil<'r, T> {
             labels: lrow(Some(start)),
             nl: [lrow(ym), lrow(yp), lrow(zm), lrow(zp)],
             nv: [vbefore(ym), vafter(yp), vbefore(zm), vafter(zp)],
+            masks: &[],
         }
     }
 
@@ -655,9 +658,19 @@ pub(crate) struct Inner<'r, T = f32> {
     pub(crate) l: &'r [Label],
     pub(crate) nl: [&'r [Label]; 4],
     pub(crate) nv: [&'r [T]; 4],
+    m: &'r [u8],
 }
 
 impl<'r, T: Stored> Stencil<'r, T> {
+    /// The same stencil with the row's [neighbour masks](neighbour_mask) taken from `masks`
+    /// (the level's, or empty: then the labels are tested).
+    #[inline(always)]
+    pub(crate) fn with_masks(mut self, masks: &'r [u8]) -> Self {
+        let nx = self.labels.len();
+        self.masks = masks.get(self.start..self.start + nx).unwrap_or(&[]);
+        self
+    }
+
     /// The same stencil with its cells limited to `xs` (within the row).
     #[inline(always)]
     pub(crate) fn within(mut self, xs: core::ops::Range<usize>) -> Self {
@@ -676,6 +689,7 @@ impl<'r, T: Stored> Stencil<'r, T> {
             l: self.labels,
             nl: self.nl,
             nv: self.nv,
+            m: self.masks,
         })
     }
 }
@@ -691,6 +705,7 @@ impl<'r, T: Stored> Inner<'r, T> {
             l: self.l.get(..nx)?,
             nl: [l0.get(..nx)?, l1.get(..nx)?, l2.get(..nx)?, l3.get(..nx)?],
             nv: [v0.get(..nx)?, v1.get(..nx)?, v2.get(..nx)?, v3.get(..nx)?],
+            m: self.m.get(..nx).unwrap_or(&[]),
         })
     }
 }
@@ -700,6 +715,8 @@ pub(crate) struct Cut<'r, T = f32> {
     pub(crate) l: &'r [Label],
     nl: [&'r [Label]; 4],
     nv: [&'r [T]; 4],
+    /// The row's [neighbour masks](neighbour_mask): `nx` of them, or empty.
+    pub(crate) m: &'r [u8],
 }
 
 impl<T: Stored> Cut<'_, T> {
@@ -767,6 +784,74 @@ impl<T: Stored> Cut<'_, T> {
     }
 }
 
+impl<T: Stored> Cut<'_, T> {
+    /// [`Cut::flux`] with the in-domain tests read from the cell's [neighbour
+    /// mask](neighbour_mask) `m` instead of six labels: the same sums in the same order.
+    #[inline(always)]
+    pub(crate) fn masked_flux<V: RowValues + ?Sized>(&self, row: &V, x: usize, c: f32, m: u8) -> (f32, u32) {
+        let mut flux = 0.0f32;
+        let mut add = |bit: u8, v: f32| {
+            flux += if m & bit != 0 { v - c } else { 0.0 };
+        };
+        add(1, row.at(x.wrapping_sub(1)));
+        add(2, row.at(x + 1));
+        for (k, v) in self.nv.iter().enumerate() {
+            add(4 << k, v.at(x));
+        }
+        (flux, (m & ALL_FACES).count_ones())
+    }
+}
+
+/// The [neighbour mask](neighbour_mask) bit of an interior cell.
+pub(crate) const MASK_INTERIOR: u8 = 1 << 6;
+/// The [neighbour mask](neighbour_mask) bits of the six faces.
+const ALL_FACES: u8 = MASK_INTERIOR - 1;
+/// The [neighbour mask](neighbour_mask) of an interior cell whose six neighbours are all in
+/// the domain.
+pub(crate) const MASK_OPEN: u8 = MASK_INTERIOR | ALL_FACES;
+
+/// A cell's neighbour mask: bits 0–5 say whether its −x, +x, −y, +y, −z, +z neighbours are in
+/// the domain, bit 6 whether it is interior. A solver lent a byte per cell writes them once
+/// per solve (for the rows of the active box); then each sweep reads one byte per cell instead
+/// of seven labels, and a cell whose mask is [`MASK_OPEN`] takes the branch-free sum.
+pub(crate) fn neighbour_mask(dims: &Dims, labels: &[Label], x: usize, y: usize, z: usize) -> u8 {
+    let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
+    let i = x + nx * (y + ny * z);
+    let at = |ok: bool, j: usize| ok && labels.get(j).is_some_and(|l| l.in_domain());
+    let faces = [
+        at(x > 0, i.wrapping_sub(1)),
+        at(x + 1 < nx, i + 1),
+        at(y > 0, i.wrapping_sub(nx)),
+        at(y + 1 < ny, i + nx),
+        at(z > 0, i.wrapping_sub(nx * ny)),
+        at(z + 1 < nz, i + nx * ny),
+    ];
+    let interior = u8::from(labels.get(i) == Some(&Label::Interior)) << 6;
+    faces
+        .iter()
+        .enumerate()
+        .fold(interior, |m, (k, &f)| m | (u8::from(f) << k))
+}
+
+/// Writes the [neighbour masks](neighbour_mask) of the active box's cells into `masks` (one
+/// per grid cell; nothing if it is shorter than the grid). Returns cells written.
+pub(crate) fn build_masks(dims: &Dims, active: &Active, labels: &[Label], masks: &mut [u8]) -> u64 {
+    let (nx, ny) = (dims.nx(), dims.ny());
+    if masks.len() < dims.len() {
+        return 0;
+    }
+    let mut written = 0u64;
+    active.rows(|y, z| {
+        for x in active.xs() {
+            if let Some(m) = masks.get_mut(x + nx * (y + ny * z)) {
+                *m = neighbour_mask(dims, labels, x, y, z);
+                written += 1;
+            }
+        }
+    });
+    written
+}
+
 /// Cells an [open run](Cut::open_run) spans.
 pub(crate) const OPEN_RUN: usize = 4;
 /// The label word of an open run's cells: four `Interior` bytes.
@@ -816,6 +901,23 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
     };
     let end = st.x1.min(nx - 1);
     let mut x = st.x0.max(1);
+    if cut.m.len() == nx {
+        for x in x..end {
+            let (Some(&m), Some(&c)) = (cut.m.get(x), row.get(x)) else {
+                break;
+            };
+            if m == MASK_OPEN {
+                let c = c.load();
+                f(x, bx(x) + cut.open_flux(row, x, c) - shift * c, 6);
+            } else if m & MASK_INTERIOR != 0 {
+                let c = c.load();
+                let (flux, n) = cut.masked_flux(row, x, c, m);
+                f(x, bx(x) + flux - shift * c, n);
+            }
+        }
+        edge(nx - 1, &mut f);
+        return;
+    }
     while x < end {
         if x + OPEN_RUN <= end && cut.open_run(x) {
             for x in x..x + OPEN_RUN {
@@ -934,7 +1036,7 @@ pub(crate) fn for_each_row<T: Stored>(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
-    labels: &[Label],
+    (labels, masks): (&[Label], &[u8]),
     values: &[T],
     mut f: impl FnMut(&Stencil<'_, T>, &[T]),
 ) {
@@ -947,7 +1049,9 @@ pub(crate) fn for_each_row<T: Stored>(
             values.get(start + nx..),
         ) {
             f(
-                &Stencil::new(dims, screen, y, z, labels, before, after).within(active.xs()),
+                &Stencil::new(dims, screen, y, z, labels, before, after)
+                    .with_masks(masks)
+                    .within(active.xs()),
                 row,
             );
         }
@@ -960,7 +1064,7 @@ pub(crate) fn for_each_row_mut<T: Stored>(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
-    labels: &[Label],
+    (labels, masks): (&[Label], &[u8]),
     values: &mut [T],
     mut f: impl FnMut(&Stencil<'_, T>, &[Cell<T>]),
 ) {
@@ -972,7 +1076,9 @@ pub(crate) fn for_each_row_mut<T: Stored>(
             let (row, after) = rest.split_at_mut(nx);
             let row = Cell::from_mut(row).as_slice_of_cells();
             f(
-                &Stencil::new(dims, screen, y, z, labels, before, after).within(active.xs()),
+                &Stencil::new(dims, screen, y, z, labels, before, after)
+                    .with_masks(masks)
+                    .within(active.xs()),
                 row,
             );
         }
@@ -1018,7 +1124,7 @@ pub fn gauss_seidel(
     }
     let active = Active::of(dims, labels);
     let screen = Screen::new(params.screening);
-    let mut res = residual_with(dims, &active, &screen, labels, phi, b2);
+    let mut res = residual_with(dims, &active, &screen, (labels, &[]), phi, b2);
     let mut stats = SolveStats {
         initial_residual: res.relative,
         ..Default::default()
@@ -1030,7 +1136,7 @@ pub fn gauss_seidel(
     };
     while !done(&res, &steps) && stats.iterations < params.max_iterations {
         let mut change = 0.0f32;
-        for_each_row_mut(dims, &active, &screen, labels, phi, |st, row| {
+        for_each_row_mut(dims, &active, &screen, (labels, &[]), phi, |st, row| {
             for (x, (l, cell)) in st.labels.iter().zip(row).enumerate() {
                 if *l != Label::Interior {
                     continue;
@@ -1050,7 +1156,7 @@ pub fn gauss_seidel(
         steps.push(change);
         stats.iterations += 1;
         if stats.iterations.is_multiple_of(CHECK_EVERY) || stats.iterations == params.max_iterations {
-            res = residual_with(dims, &active, &screen, labels, phi, b2);
+            res = residual_with(dims, &active, &screen, (labels, &[]), phi, b2);
         }
     }
     clamp_to_bounds(labels, phi);

@@ -130,7 +130,7 @@ fn sweep(dims: &Dims, active: &Active, labels: &[Label], from: &[f32], to: &mut 
         max_change: 0.0,
         updates: 0,
     };
-    for_each_row(dims, active, &screen, labels, from, |st, row| {
+    for_each_row(dims, active, &screen, (labels, &[]), from, |st, row| {
         let Some(out) = to.get_mut(st.start..st.start + nx) else {
             return;
         };
@@ -217,7 +217,7 @@ pub fn solve(
     start_psi(labels, psi);
     let active = Active::of(dims, labels);
     let b2 = dirichlet_norm2(dims, labels);
-    let initial = residual_with(dims, &active, &Screen::NONE, labels, psi, b2);
+    let initial = residual_with(dims, &active, &Screen::NONE, (labels, &[]), psi, b2);
     let mut stats = SolveStats {
         initial_residual: initial.relative,
         ..Default::default()
@@ -233,7 +233,7 @@ pub fn solve(
     stats.iterations = sweeps;
     stats.cell_updates = updates;
     clamp_to_bounds(labels, psi);
-    let end = residual_with(dims, &active, &Screen::NONE, labels, psi, b2);
+    let end = residual_with(dims, &active, &Screen::NONE, (labels, &[]), psi, b2);
     stats.residual = end.relative;
     stats.floor = end.floor;
     stats.converged = converged;

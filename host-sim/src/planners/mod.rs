@@ -181,12 +181,13 @@ pub struct HostStorage {
     coarse_labels: Vec<Label>,
     coarse_faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
+    masks: Vec<u8>,
     /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
     jacobi: Vec<f32>,
 }
 
 impl HostStorage {
-    /// Buffers for `dims`, with MGPCG storage.
+    /// Buffers for `dims`, with MGPCG storage and the fine level's neighbour masks.
     pub fn new(dims: &Dims) -> Self {
         let n = dims.len();
         let mg = multigrid::scratch_size(dims);
@@ -195,6 +196,7 @@ impl HostStorage {
             coarse_labels: vec![Label::Outside; mg.labels],
             coarse_faces: vec![[0; 4]; mg.faces],
             krylov: vec![0.0; mg.krylov],
+            masks: vec![0; mg.masks],
             log_odds: vec![0; n],
             touched: vec![0; map::touched_words(dims)],
             labels: vec![Label::Outside; n],
@@ -221,6 +223,7 @@ impl HostStorage {
             coarse_labels: &mut self.coarse_labels,
             coarse_faces: &mut self.coarse_faces,
             krylov: &mut self.krylov,
+            masks: &mut self.masks,
             jacobi: &mut self.jacobi,
         }
     }

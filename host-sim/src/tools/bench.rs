@@ -185,6 +185,7 @@ pub fn measure(
     let mut clabels = vec![Label::Outside; size.labels];
     let mut faces = vec![[0u8; 4]; size.faces];
     let mut krylov = vec![0.0f32; size.krylov];
+    let mut masks = vec![0u8; size.masks];
     let mut psi = vec![0.0f32; dims.len()];
     let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool, fmg: bool| -> SolveStats {
         let params = SolveParams {
@@ -201,6 +202,7 @@ pub fn measure(
                     labels: &mut clabels,
                     faces: &mut faces,
                     krylov: &mut krylov,
+                    masks: &mut masks,
                 };
                 let mut mg = Multigrid::new(dims, storage).expect("scratch sized by scratch_size");
                 mg.set_full_multigrid(fmg);

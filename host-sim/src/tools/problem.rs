@@ -170,17 +170,19 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
         SolverChoice::Multigrid | SolverChoice::VCycle => {
             let size = scratch_size(&dims);
-            let (mut values, mut clabels, mut faces, mut krylov) = (
+            let (mut values, mut clabels, mut faces, mut krylov, mut masks) = (
                 vec![0.0f32; size.values],
                 vec![Label::Outside; size.labels],
                 vec![[0u8; 4]; size.faces],
                 vec![0.0f32; size.krylov],
+                vec![0u8; size.masks],
             );
             let storage = MultigridStorage {
                 values: values.as_mut_slice().into(),
                 labels: &mut clabels,
                 faces: &mut faces,
                 krylov: &mut krylov,
+                masks: &mut masks,
             };
             let mut mg =
                 Multigrid::new(dims, storage).map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
