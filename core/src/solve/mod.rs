@@ -435,14 +435,31 @@ pub(crate) fn residual_with(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
-    cells: (&[Label], &[u8]),
+    (labels, masks): (&[Label], &[u8]),
+    psi: &[f32],
+    b2: f64,
+) -> Residual {
+    if masks.len() >= dims.len() {
+        residual_rows::<true>(dims, active, screen, (labels, masks), psi, b2)
+    } else {
+        residual_rows::<false>(dims, active, screen, (labels, &[]), psi, b2)
+    }
+}
+
+/// [`residual_with`], with the [neighbour masks](neighbour_mask) (`MASKS`) or the labels: one
+/// instance each, so the firmware's (labels) is the code it always was.
+fn residual_rows<const MASKS: bool>(
+    dims: &Dims,
+    active: &Active,
+    screen: &Screen,
+    (labels, masks): (&[Label], &[u8]),
     psi: &[f32],
     b2: f64,
 ) -> Residual {
     let (mut r2, mut e2, mut max) = (0.0f64, 0.0f64, 0.0f32);
-    for_each_row(dims, active, screen, cells, psi, |st, row| {
+    for_each_row(dims, active, screen, labels, psi, |st, row| {
         let (mut row_r, mut row_e) = (0.0f32, 0.0f32);
-        row_residuals(st, row, None, |x, r, n| {
+        let each = |x: usize, r: f32, n: u32| {
             let c = row.at(x);
             let n = n as f32;
             row_r += r * r;
@@ -450,7 +467,12 @@ pub(crate) fn residual_with(
             if r.abs() > max {
                 max = r.abs();
             }
-        });
+        };
+        if MASKS {
+            row_residuals_masked(st, row, None, st.masks_in(masks), each);
+        } else {
+            row_residuals(st, row, None, each);
+        }
         r2 += f64::from(row_r);
         e2 += f64::from(row_e) * f64::from(f32::EPSILON * f32::EPSILON) / 12.0;
     });
@@ -505,6 +527,9 @@ impl Bf16 {
 /// How the solvers store a value: `f32` everywhere, or [`Bf16`] on multigrid coarse levels.
 /// Arithmetic is always `f32`.
 pub(crate) trait Stored: Copy + Default + 'static {
+    /// True for `f32`, the fine level's storage: only there can [neighbour
+    /// masks](neighbour_mask) be lent, so other formats need no code for them.
+    const FINE: bool = false;
     /// The value as `f32`.
     fn load(self) -> f32;
     /// `v` in this format.
@@ -512,6 +537,7 @@ pub(crate) trait Stored: Copy + Default + 'static {
 }
 
 impl Stored for f32 {
+    const FINE: bool = true;
     #[inline(always)]
     fn load(self) -> f32 {
         self
@@ -577,8 +603,6 @@ pub(crate) struct Stencil<'r, T = f32> {
     pub(crate) x1: usize,
     nl: [&'r [Label]; 4],
     nv: [&'r [T]; 4],
-    /// The row's [neighbour masks](neighbour_mask), or empty where none were lent.
-    masks: &'r [u8],
 }
 
 /// 1 / n for the neighbour counts a cell can have (0 for none: no update).
@@ -628,7 +652,6 @@ impl<'r, T: Stored> Stencil<'r, T> {
             labels: lrow(Some(start)),
             nl: [lrow(ym), lrow(yp), lrow(zm), lrow(zp)],
             nv: [vbefore(ym), vafter(yp), vbefore(zm), vafter(zp)],
-            masks: &[],
         }
     }
 
@@ -658,17 +681,16 @@ pub(crate) struct Inner<'r, T = f32> {
     pub(crate) l: &'r [Label],
     pub(crate) nl: [&'r [Label]; 4],
     pub(crate) nv: [&'r [T]; 4],
-    m: &'r [u8],
 }
 
 impl<'r, T: Stored> Stencil<'r, T> {
-    /// The same stencil with the row's [neighbour masks](neighbour_mask) taken from `masks`
-    /// (the level's, or empty: then the labels are tested).
+    /// This row's [neighbour masks](neighbour_mask) in `masks` (a level's, one per cell;
+    /// empty if it has none).
     #[inline(always)]
-    pub(crate) fn with_masks(mut self, masks: &'r [u8]) -> Self {
-        let nx = self.labels.len();
-        self.masks = masks.get(self.start..self.start + nx).unwrap_or(&[]);
-        self
+    pub(crate) fn masks_in<'m>(&self, masks: &'m [u8]) -> &'m [u8] {
+        masks
+            .get(self.start..self.start + self.labels.len())
+            .unwrap_or(&[])
     }
 
     /// The same stencil with its cells limited to `xs` (within the row).
@@ -689,7 +711,6 @@ impl<'r, T: Stored> Stencil<'r, T> {
             l: self.labels,
             nl: self.nl,
             nv: self.nv,
-            m: self.masks,
         })
     }
 }
@@ -705,7 +726,6 @@ impl<'r, T: Stored> Inner<'r, T> {
             l: self.l.get(..nx)?,
             nl: [l0.get(..nx)?, l1.get(..nx)?, l2.get(..nx)?, l3.get(..nx)?],
             nv: [v0.get(..nx)?, v1.get(..nx)?, v2.get(..nx)?, v3.get(..nx)?],
-            m: self.m.get(..nx).unwrap_or(&[]),
         })
     }
 }
@@ -715,8 +735,6 @@ pub(crate) struct Cut<'r, T = f32> {
     pub(crate) l: &'r [Label],
     nl: [&'r [Label]; 4],
     nv: [&'r [T]; 4],
-    /// The row's [neighbour masks](neighbour_mask): `nx` of them, or empty.
-    pub(crate) m: &'r [u8],
 }
 
 impl<T: Stored> Cut<'_, T> {
@@ -901,23 +919,6 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
     };
     let end = st.x1.min(nx - 1);
     let mut x = st.x0.max(1);
-    if cut.m.len() == nx {
-        for x in x..end {
-            let (Some(&m), Some(&c)) = (cut.m.get(x), row.get(x)) else {
-                break;
-            };
-            if m == MASK_OPEN {
-                let c = c.load();
-                f(x, bx(x) + cut.open_flux(row, x, c) - shift * c, 6);
-            } else if m & MASK_INTERIOR != 0 {
-                let c = c.load();
-                let (flux, n) = cut.masked_flux(row, x, c, m);
-                f(x, bx(x) + flux - shift * c, n);
-            }
-        }
-        edge(nx - 1, &mut f);
-        return;
-    }
     while x < end {
         if x + OPEN_RUN <= end && cut.open_run(x) {
             for x in x..x + OPEN_RUN {
@@ -936,6 +937,53 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
             f(x, bx(x) + flux - shift * c, n);
         }
         x += 1;
+    }
+    edge(nx - 1, &mut f);
+}
+
+/// [`row_residuals`] for a row whose [neighbour masks](neighbour_mask) `masks` (`nx` of
+/// them) were lent: one byte per cell instead of seven labels, the same arithmetic. The host's
+/// path; the firmware lends no masks and never runs it. Rows at the grid's y/z edges, and a
+/// `masks` of the wrong length, take [`row_residuals`].
+#[inline(always)]
+pub(crate) fn row_residuals_masked<T: Stored, F: FnMut(usize, f32, u32)>(
+    st: &Stencil<'_, T>,
+    row: &[T],
+    b: Option<&[T]>,
+    masks: &[u8],
+    mut f: F,
+) {
+    let nx = row.len();
+    let cut = st
+        .inner()
+        .filter(|_| nx >= 3 && masks.len() == nx)
+        .and_then(|inner| inner.cut(nx));
+    let Some(cut) = cut else {
+        row_residuals(st, row, b, f);
+        return;
+    };
+    let shift = st.screen.shift;
+    let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
+    let edge = |x: usize, f: &mut F| {
+        if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
+            let c = c.load();
+            let (flux, n) = st.flux(row, x, c);
+            f(x, bx(x) + flux - shift * c, n);
+        }
+    };
+    edge(0, &mut f);
+    for x in st.x0.max(1)..st.x1.min(nx - 1) {
+        let (Some(&m), Some(&c)) = (masks.get(x), row.get(x)) else {
+            break;
+        };
+        if m == MASK_OPEN {
+            let c = c.load();
+            f(x, bx(x) + cut.open_flux(row, x, c) - shift * c, 6);
+        } else if m & MASK_INTERIOR != 0 {
+            let c = c.load();
+            let (flux, n) = cut.masked_flux(row, x, c, m);
+            f(x, bx(x) + flux - shift * c, n);
+        }
     }
     edge(nx - 1, &mut f);
 }
@@ -1036,7 +1084,7 @@ pub(crate) fn for_each_row<T: Stored>(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
-    (labels, masks): (&[Label], &[u8]),
+    labels: &[Label],
     values: &[T],
     mut f: impl FnMut(&Stencil<'_, T>, &[T]),
 ) {
@@ -1049,9 +1097,7 @@ pub(crate) fn for_each_row<T: Stored>(
             values.get(start + nx..),
         ) {
             f(
-                &Stencil::new(dims, screen, y, z, labels, before, after)
-                    .with_masks(masks)
-                    .within(active.xs()),
+                &Stencil::new(dims, screen, y, z, labels, before, after).within(active.xs()),
                 row,
             );
         }
@@ -1064,7 +1110,7 @@ pub(crate) fn for_each_row_mut<T: Stored>(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
-    (labels, masks): (&[Label], &[u8]),
+    labels: &[Label],
     values: &mut [T],
     mut f: impl FnMut(&Stencil<'_, T>, &[Cell<T>]),
 ) {
@@ -1076,9 +1122,7 @@ pub(crate) fn for_each_row_mut<T: Stored>(
             let (row, after) = rest.split_at_mut(nx);
             let row = Cell::from_mut(row).as_slice_of_cells();
             f(
-                &Stencil::new(dims, screen, y, z, labels, before, after)
-                    .with_masks(masks)
-                    .within(active.xs()),
+                &Stencil::new(dims, screen, y, z, labels, before, after).within(active.xs()),
                 row,
             );
         }
@@ -1136,7 +1180,7 @@ pub fn gauss_seidel(
     };
     while !done(&res, &steps) && stats.iterations < params.max_iterations {
         let mut change = 0.0f32;
-        for_each_row_mut(dims, &active, &screen, (labels, &[]), phi, |st, row| {
+        for_each_row_mut(dims, &active, &screen, labels, phi, |st, row| {
             for (x, (l, cell)) in st.labels.iter().zip(row).enumerate() {
                 if *l != Label::Interior {
                     continue;

@@ -1049,24 +1049,47 @@ fn residual_into(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
-    cells: (&[Label], &[u8]),
+    (labels, masks): (&[Label], &[u8]),
+    x: &[f32],
+    b: Option<&[f32]>,
+    out: &mut [f32],
+) {
+    if masks.len() >= dims.len() {
+        residual_rows_into::<true>(dims, active, screen, (labels, masks), x, b, out);
+    } else {
+        residual_rows_into::<false>(dims, active, screen, (labels, &[]), x, b, out);
+    }
+}
+
+/// [`residual_into`] with the [neighbour masks](super::neighbour_mask) (`MASKS`) or the
+/// labels: one instance each, so the firmware's (labels) is the code it always was.
+fn residual_rows_into<const MASKS: bool>(
+    dims: &Dims,
+    active: &Active,
+    screen: &Screen,
+    (labels, masks): (&[Label], &[u8]),
     x: &[f32],
     b: Option<&[f32]>,
     out: &mut [f32],
 ) {
     // Rows outside the active box hold no interior cell: their residual is 0.
     out.fill(0.0);
-    for_each_row(dims, active, screen, cells, x, |st, row| {
+    for_each_row(dims, active, screen, labels, x, |st, row| {
         let n = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + n));
         let Some(out_row) = out.get_mut(st.start..st.start + n) else {
             return;
         };
-        super::row_residuals(st, row, b_row, |x, r, _| {
+        let each = |x: usize, r: f32, _: u32| {
             if let Some(o) = out_row.get_mut(x) {
                 *o = r;
             }
-        });
+        };
+        if MASKS {
+            super::row_residuals_masked(st, row, b_row, st.masks_in(masks), each);
+        } else {
+            super::row_residuals(st, row, b_row, each);
+        }
     });
 }
 
@@ -1076,50 +1099,58 @@ fn relax<T: Stored>(v: &mut View<'_, T>, colour: usize) -> u64 {
     if let Some(faces) = v.faces {
         return relax_weighted(v, faces, colour);
     }
+    if T::FINE && v.masks.len() >= v.dims.len() {
+        relax_rows::<T, true>(v, colour)
+    } else {
+        relax_rows::<T, false>(v, colour)
+    }
+}
+
+/// [`relax`] with the [neighbour masks](super::neighbour_mask) (`MASKS`) or the labels: one
+/// instance each, so the firmware's (labels) is the code it always was.
+fn relax_rows<T: Stored, const MASKS: bool>(v: &mut View<'_, T>, colour: usize) -> u64 {
     let mut updates = 0u64;
     let b = v.b;
     let screen = v.screen;
-    for_each_row_mut(
-        &v.dims,
-        &v.active,
-        &screen,
-        (v.labels, v.masks),
-        v.x,
-        |st, row| {
-            let nx = row.len();
-            let b_row = b.and_then(|b| b.get(st.start..st.start + nx));
-            let first = (colour + st.y + st.z) & 1;
-            let end = st.x1.min(nx);
-            let mut one = |x: usize| {
-                if let (Some(Label::Interior), Some(cell)) = (st.labels.get(x), row.get(x)) {
-                    let c = cell.get().load();
-                    let (flux, n) = st.flux(row, x, c);
-                    let bx = b_row.map_or(0.0, |b| b.at(x));
-                    cell.set(T::store(c + (flux - screen.shift * c + bx) * screen.inv(n)));
-                    updates += u64::from(n > 0);
+    let masks = v.masks;
+    for_each_row_mut(&v.dims, &v.active, &screen, v.labels, v.x, |st, row| {
+        let nx = row.len();
+        let b_row = b.and_then(|b| b.get(st.start..st.start + nx));
+        let first = (colour + st.y + st.z) & 1;
+        let end = st.x1.min(nx);
+        let mut one = |x: usize| {
+            if let (Some(Label::Interior), Some(cell)) = (st.labels.get(x), row.get(x)) {
+                let c = cell.get().load();
+                let (flux, n) = st.flux(row, x, c);
+                let bx = b_row.map_or(0.0, |b| b.at(x));
+                cell.set(T::store(c + (flux - screen.shift * c + bx) * screen.inv(n)));
+                updates += u64::from(n > 0);
+            }
+        };
+        match st.inner() {
+            Some(inner) if nx >= 3 => {
+                if first == 0 && st.x0 == 0 {
+                    one(0);
                 }
-            };
-            match st.inner() {
-                Some(inner) if nx >= 3 => {
-                    if first == 0 && st.x0 == 0 {
-                        one(0);
-                    }
-                    if (nx - 1) & 1 == first && end == nx {
-                        one(nx - 1);
-                    }
-                    let start = first_of_colour(st.x0.max(1), first);
-                    updates += relax_inner(&inner, &screen, row, b_row, start, end);
+                if (nx - 1) & 1 == first && end == nx {
+                    one(nx - 1);
                 }
-                _ => {
-                    let mut x = first_of_colour(st.x0, first);
-                    while x < end {
-                        one(x);
-                        x += 2;
-                    }
+                let start = first_of_colour(st.x0.max(1), first);
+                updates += if MASKS {
+                    relax_masked(&inner, st.masks_in(masks), &screen, row, b_row, start, end)
+                } else {
+                    relax_inner(&inner, &screen, row, b_row, start, end)
+                };
+            }
+            _ => {
+                let mut x = first_of_colour(st.x0, first);
+                while x < end {
+                    one(x);
+                    x += 2;
                 }
             }
-        },
-    );
+        }
+    });
     updates
 }
 
@@ -1128,6 +1159,47 @@ fn relax<T: Stored>(v: &mut View<'_, T>, colour: usize) -> u64 {
 #[inline(always)]
 fn first_of_colour(from: usize, first: usize) -> usize {
     from + ((from ^ first) & 1)
+}
+
+/// [`relax_inner`] for a row whose [neighbour masks](super::neighbour_mask) `masks` were lent
+/// (the host's storage): one byte per cell instead of seven labels, the same arithmetic.
+#[inline(always)]
+fn relax_masked<T: Stored>(
+    inner: &super::Inner<'_, T>,
+    masks: &[u8],
+    screen: &Screen,
+    row: &[Cell<T>],
+    b: Option<&[T]>,
+    start: usize,
+    end: usize,
+) -> u64 {
+    let nx = row.len();
+    let (Some(cut), Some(masks)) = (inner.cut(nx), masks.get(..nx)) else {
+        return relax_inner(inner, screen, row, b, start, end);
+    };
+    let b = b.and_then(|b| b.get(..nx));
+    let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
+    let (mut x, end) = (start, end.min(nx - 1));
+    let inv6 = screen.inv(6);
+    let mut updates = 0u64;
+    while x < end {
+        let (Some(&m), Some(cell)) = (masks.get(x), row.get(x)) else {
+            break;
+        };
+        if m == MASK_OPEN {
+            let c = cell.get().load();
+            let flux = cut.open_flux(row, x, c);
+            cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * inv6));
+            updates += 1;
+        } else if m & MASK_INTERIOR != 0 {
+            let c = cell.get().load();
+            let (flux, n) = cut.masked_flux(row, x, c, m);
+            cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * screen.inv(n)));
+            updates += u64::from(n > 0);
+        }
+        x += 2;
+    }
+    updates
 }
 
 /// Relaxes cells `start, start + 2, …` below `end` and `nx − 1` of a row whose four neighbour
@@ -1151,27 +1223,6 @@ fn relax_inner<T: Stored>(
     let mut x = start;
     let end = end.min(nx - 1);
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
-    if cut.m.len() == nx {
-        let inv6 = screen.inv(6);
-        while x < end {
-            let (Some(&m), Some(cell)) = (cut.m.get(x), row.get(x)) else {
-                break;
-            };
-            if m == MASK_OPEN {
-                let c = cell.get().load();
-                let flux = cut.open_flux(row, x, c);
-                cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * inv6));
-                updates += 1;
-            } else if m & MASK_INTERIOR != 0 {
-                let c = cell.get().load();
-                let (flux, n) = cut.masked_flux(row, x, c, m);
-                cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * screen.inv(n)));
-                updates += u64::from(n > 0);
-            }
-            x += 2;
-        }
-        return updates;
-    }
     while x < end {
         // This colour's cells of an open run skip the label tests.
         if x + OPEN_RUN <= end && cut.open_run(x) {
@@ -1326,6 +1377,21 @@ fn fine_to_coarse_x(x: usize) -> (usize, usize) {
 // Not inlined: its stack rows must not sit in every frame of the recursive `vcycle`.
 #[inline(never)]
 fn restrict<T: Stored, U: Stored>(fine: &View<'_, T>, coarse: &Dims, clabels: &[Label], cb: &mut [U]) {
+    if T::FINE && fine.masks.len() >= fine.dims.len() {
+        restrict_rows::<T, U, true>(fine, coarse, clabels, cb);
+    } else {
+        restrict_rows::<T, U, false>(fine, coarse, clabels, cb);
+    }
+}
+
+/// [`restrict`] with the fine level's [neighbour masks](super::neighbour_mask) (`MASKS`) or its
+/// labels: one instance each, so the firmware's (labels) is the code it always was.
+fn restrict_rows<T: Stored, U: Stored, const MASKS: bool>(
+    fine: &View<'_, T>,
+    coarse: &Dims,
+    clabels: &[Label],
+    cb: &mut [U],
+) {
     let cnx = coarse.nx();
     let zeros: [U; 0] = [];
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
@@ -1387,10 +1453,13 @@ fn restrict<T: Stored, U: Stored>(fine: &View<'_, T>, coarse: &Dims, clabels: &[
                         return;
                     };
                     let st = super::Stencil::new(&fine.dims, &fine.screen, y, z, fine.labels, before, after)
-                        .with_masks(fine.masks)
                         .within(fine.active.xs());
                     let b_row = fine.b.and_then(|b| b.get(start..start + fnx));
-                    super::row_residuals(&st, row, b_row, scatter);
+                    if MASKS {
+                        super::row_residuals_masked(&st, row, b_row, st.masks_in(fine.masks), scatter);
+                    } else {
+                        super::row_residuals(&st, row, b_row, scatter);
+                    }
                 }
                 Some(faces) => {
                     for x in fine.active.xs() {

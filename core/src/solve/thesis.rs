@@ -130,7 +130,7 @@ fn sweep(dims: &Dims, active: &Active, labels: &[Label], from: &[f32], to: &mut 
         max_change: 0.0,
         updates: 0,
     };
-    for_each_row(dims, active, &screen, (labels, &[]), from, |st, row| {
+    for_each_row(dims, active, &screen, labels, from, |st, row| {
         let Some(out) = to.get_mut(st.start..st.start + nx) else {
             return;
         };
