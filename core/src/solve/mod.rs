@@ -900,13 +900,7 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
     let nx = row.len();
     let shift = st.screen.shift;
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
-    let edge = |x: usize, f: &mut F| {
-        if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
-            let c = c.load();
-            let (flux, n) = st.flux(row, x, c);
-            f(x, bx(x) + flux - shift * c, n);
-        }
-    };
+    let edge = |x: usize, f: &mut F| edge_residual(st, row, b, x, f);
     let Some(inner) = st.inner().filter(|_| nx >= 3) else {
         for x in st.x0..st.x1.min(nx) {
             edge(x, &mut f);
@@ -964,14 +958,7 @@ pub(crate) fn row_residuals_masked<T: Stored, F: FnMut(usize, f32, u32)>(
     };
     let shift = st.screen.shift;
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
-    let edge = |x: usize, f: &mut F| {
-        if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
-            let c = c.load();
-            let (flux, n) = st.flux(row, x, c);
-            f(x, bx(x) + flux - shift * c, n);
-        }
-    };
-    edge(0, &mut f);
+    edge_residual(st, row, b, 0, &mut f);
     for x in st.x0.max(1)..st.x1.min(nx - 1) {
         let (Some(&m), Some(&c)) = (masks.get(x), row.get(x)) else {
             break;
@@ -985,7 +972,24 @@ pub(crate) fn row_residuals_masked<T: Stored, F: FnMut(usize, f32, u32)>(
             f(x, bx(x) + flux - shift * c, n);
         }
     }
-    edge(nx - 1, &mut f);
+    edge_residual(st, row, b, nx - 1, &mut f);
+}
+
+/// Calls `f(x, r, n)` with the residual of cell `x` if it is interior, by the stencil's label
+/// tests: the row's two end cells, and every cell of the rows at the grid's y/z edges.
+#[inline(always)]
+fn edge_residual<T: Stored, F: FnMut(usize, f32, u32)>(
+    st: &Stencil<'_, T>,
+    row: &[T],
+    b: Option<&[T]>,
+    x: usize,
+    f: &mut F,
+) {
+    if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
+        let c = c.load();
+        let (flux, n) = st.flux(row, x, c);
+        f(x, b.map_or(0.0, |b| b.at(x)) + flux - st.screen.shift * c, n);
+    }
 }
 
 /// The box (`x`, `y`, `z` ranges) that holds the interior cells: the only cells a sweep,
