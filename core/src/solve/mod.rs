@@ -377,6 +377,22 @@ impl Screen {
         Self::new(self.shift * scale)
     }
 
+    /// The residual `b + flux − s·c` of a cell of value `c` whose neighbours' net flux into it
+    /// is `flux`: every residual path (labels, open runs, masks) computes it here, so they give
+    /// the same bits.
+    #[inline(always)]
+    pub(crate) fn residual(&self, c: f32, flux: f32, b: f32) -> f32 {
+        b + flux - self.shift * c
+    }
+
+    /// A Gauss-Seidel update of a cell of value `c`: `c + (flux − s·c + b) · inv`, `inv` being
+    /// [`Screen::inv`] of its neighbour count. Every sweep path (labels, open runs, masks)
+    /// updates here, so they give the same bits.
+    #[inline(always)]
+    pub(crate) fn relaxed(&self, c: f32, flux: f32, b: f32, inv: f32) -> f32 {
+        c + (flux - self.shift * c + b) * inv
+    }
+
     /// `1 / (n + s)` (0 for an isolated cell of the Laplace problem).
     #[inline(always)]
     pub(crate) fn inv(&self, n: u32) -> f32 {
@@ -898,7 +914,6 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
     mut f: F,
 ) {
     let nx = row.len();
-    let shift = st.screen.shift;
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
     let edge = |x: usize, f: &mut F| edge_residual(st, row, b, x, f);
     let Some(inner) = st.inner().filter(|_| nx >= 3) else {
@@ -917,7 +932,7 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
         if x + OPEN_RUN <= end && cut.open_run(x) {
             for x in x..x + OPEN_RUN {
                 let c = row.at(x);
-                f(x, bx(x) + cut.open_flux(row, x, c) - shift * c, 6);
+                f(x, st.screen.residual(c, cut.open_flux(row, x, c), bx(x)), 6);
             }
             x += OPEN_RUN;
             continue;
@@ -928,7 +943,7 @@ pub(crate) fn row_residuals<T: Stored, F: FnMut(usize, f32, u32)>(
         if lc == Label::Interior {
             let c = c.load();
             let (flux, n) = cut.flux(row, x, c);
-            f(x, bx(x) + flux - shift * c, n);
+            f(x, st.screen.residual(c, flux, bx(x)), n);
         }
         x += 1;
     }
@@ -956,7 +971,6 @@ pub(crate) fn row_residuals_masked<T: Stored, F: FnMut(usize, f32, u32)>(
         row_residuals(st, row, b, f);
         return;
     };
-    let shift = st.screen.shift;
     let bx = |x: usize| b.map_or(0.0, |b| b.at(x));
     edge_residual(st, row, b, 0, &mut f);
     for x in st.x0.max(1)..st.x1.min(nx - 1) {
@@ -965,11 +979,11 @@ pub(crate) fn row_residuals_masked<T: Stored, F: FnMut(usize, f32, u32)>(
         };
         if m == MASK_OPEN {
             let c = c.load();
-            f(x, bx(x) + cut.open_flux(row, x, c) - shift * c, 6);
+            f(x, st.screen.residual(c, cut.open_flux(row, x, c), bx(x)), 6);
         } else if m & MASK_INTERIOR != 0 {
             let c = c.load();
             let (flux, n) = cut.masked_flux(row, x, c, m);
-            f(x, bx(x) + flux - shift * c, n);
+            f(x, st.screen.residual(c, flux, bx(x)), n);
         }
     }
     edge_residual(st, row, b, nx - 1, &mut f);
@@ -988,7 +1002,7 @@ fn edge_residual<T: Stored, F: FnMut(usize, f32, u32)>(
     if let (Some(Label::Interior), Some(&c)) = (st.labels.get(x), row.get(x)) {
         let c = c.load();
         let (flux, n) = st.flux(row, x, c);
-        f(x, b.map_or(0.0, |b| b.at(x)) + flux - st.screen.shift * c, n);
+        f(x, st.screen.residual(c, flux, b.map_or(0.0, |b| b.at(x))), n);
     }
 }
 

@@ -255,8 +255,8 @@ pub struct MultigridStorage<'a> {
     pub krylov: &'a mut [f32],
     /// Either empty or at least [`ScratchSize::masks`] entries: each solve then writes every
     /// active cell's in-domain neighbours into a byte, which the fine level's sweeps and
-    /// residuals read instead of seven labels (the same arithmetic, so the same bits; about
-    /// twice as fast a sweep on the host). The firmware, short of 128 KiB, lends none.
+    /// residuals read instead of seven labels (the same arithmetic, so the same bits; about 15 %
+    /// off a host solve, BENCHMARKS.md). The firmware, short of 128 KiB, lends none.
     pub masks: &'a mut [u8],
 }
 
@@ -1123,7 +1123,7 @@ fn relax_rows<T: Stored, const MASKS: bool>(v: &mut View<'_, T>, colour: usize) 
                 let c = cell.get().load();
                 let (flux, n) = st.flux(row, x, c);
                 let bx = b_row.map_or(0.0, |b| b.at(x));
-                cell.set(T::store(c + (flux - screen.shift * c + bx) * screen.inv(n)));
+                cell.set(T::store(screen.relaxed(c, flux, bx, screen.inv(n))));
                 updates += u64::from(n > 0);
             }
         };
@@ -1189,12 +1189,12 @@ fn relax_masked<T: Stored>(
         if m == MASK_OPEN {
             let c = cell.get().load();
             let flux = cut.open_flux(row, x, c);
-            cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * inv6));
+            cell.set(T::store(screen.relaxed(c, flux, bx(x), inv6)));
             updates += 1;
         } else if m & MASK_INTERIOR != 0 {
             let c = cell.get().load();
             let (flux, n) = cut.masked_flux(row, x, c, m);
-            cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * screen.inv(n)));
+            cell.set(T::store(screen.relaxed(c, flux, bx(x), screen.inv(n))));
             updates += u64::from(n > 0);
         }
         x += 2;
@@ -1231,7 +1231,7 @@ fn relax_inner<T: Stored>(
                 if let Some(cell) = row.get(x) {
                     let c = cell.get().load();
                     let flux = cut.open_flux(row, x, c);
-                    cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * inv));
+                    cell.set(T::store(screen.relaxed(c, flux, bx(x), inv)));
                 }
             }
             updates += (OPEN_RUN >> 1) as u64;
@@ -1244,7 +1244,7 @@ fn relax_inner<T: Stored>(
         if lc == Label::Interior {
             let c = cell.get().load();
             let (flux, n) = cut.flux(row, x, c);
-            cell.set(T::store(c + (flux - screen.shift * c + bx(x)) * screen.inv(n)));
+            cell.set(T::store(screen.relaxed(c, flux, bx(x), screen.inv(n))));
             updates += u64::from(n > 0);
         }
         x += 2;
