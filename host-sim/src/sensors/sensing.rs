@@ -115,6 +115,15 @@ pub struct MapAccuracy {
     pub unseen: usize,
     /// Voxels the map observed and the reference did not.
     pub seen_only_here: usize,
+    /// [`MapAccuracy::false_occupied`] by where they lie: on a surface below them (a face
+    /// neighbour below is occupied in the reference: floors, table tops), under one above
+    /// (ceilings), beside one (walls; no occupied neighbour above or below), and away from
+    /// every surface of the reference. Grown surfaces are the first three.
+    pub false_occupied_where: [usize; 4],
+    /// [`MapAccuracy::false_free`] by where they lie: under free space (a face neighbour
+    /// above is free in the reference: floors, table tops), over it (ceilings), beside it
+    /// (walls), and inside obstacles (no free face neighbour in the reference).
+    pub false_free_where: [usize; 4],
 }
 
 /// Compares `map` with `reference` voxel by voxel (same grid).
@@ -124,6 +133,12 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
     let (mut same, mut observed, mut same_observed, mut false_occupied, mut false_free) =
         (0usize, 0usize, 0usize, 0usize, 0usize);
     let (mut unseen, mut seen_only_here) = (0usize, 0usize);
+    let mut false_occupied_where = [0usize; 4];
+    let dims = map.dims();
+    let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
+    let mut false_free_where = [0usize; 4];
+    let occupied_at = |i: Option<usize>| i.is_some_and(|i| i < n && reference.occupancy(i) == Occupied);
+    let free_at = |i: Option<usize>| i.is_some_and(|i| i < n && reference.occupancy(i) == Free);
     for i in 0..n {
         let (a, b) = (map.occupancy(i), reference.occupancy(i));
         let (unknown_here, unknown_there) = (map.is_unknown(i), reference.is_unknown(i));
@@ -138,8 +153,46 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
             observed += 1;
         }
         match (a, b) {
-            (Occupied, Free) => false_occupied += 1,
-            (Free, Occupied) => false_free += 1,
+            (Occupied, Free) => {
+                false_occupied += 1;
+                let (x, y, z) = (i % nx, (i / nx) % dims.ny(), i / nxy);
+                let below = occupied_at((z > 0).then(|| i - nxy));
+                let above = occupied_at((z + 1 < dims.nz()).then(|| i + nxy));
+                let side = occupied_at((x > 0).then(|| i - 1))
+                    || occupied_at((x + 1 < nx).then(|| i + 1))
+                    || occupied_at((y > 0).then(|| i - nx))
+                    || occupied_at((y + 1 < dims.ny()).then(|| i + nx));
+                let k = if below {
+                    0
+                } else if above {
+                    1
+                } else if side {
+                    2
+                } else {
+                    3
+                };
+                false_occupied_where[k] += 1;
+            }
+            (Free, Occupied) => {
+                false_free += 1;
+                let (x, y, z) = (i % nx, (i / nx) % dims.ny(), i / nxy);
+                let above = free_at((z + 1 < dims.nz()).then(|| i + nxy));
+                let below = free_at((z > 0).then(|| i - nxy));
+                let side = free_at((x > 0).then(|| i - 1))
+                    || free_at((x + 1 < nx).then(|| i + 1))
+                    || free_at((y > 0).then(|| i - nx))
+                    || free_at((y + 1 < dims.ny()).then(|| i + nx));
+                let k = if above {
+                    0
+                } else if below {
+                    1
+                } else if side {
+                    2
+                } else {
+                    3
+                };
+                false_free_where[k] += 1;
+            }
             _ => {}
         }
         unseen += usize::from(unknown_here && !unknown_there);
@@ -153,6 +206,8 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
         false_free,
         unseen,
         seen_only_here,
+        false_occupied_where,
+        false_free_where,
     }
 }
 
@@ -185,6 +240,39 @@ mod tests {
         assert_eq!((a.false_free, a.false_occupied), (1, 0));
         assert_eq!((a.unseen, a.seen_only_here), (1, 1));
         assert_eq!(a.all_voxels, 0.25);
+    }
+
+    #[test]
+    fn false_voxels_are_told_apart_by_the_surface_beside_them() {
+        // 3 × 1 × 3 voxels (x, z): the reference has a floor (z = 0), free space (z = 1) and a
+        // ceiling (z = 2). The map puts a voxel on the floor (grown floor), and misses one
+        // voxel of the floor and one of the ceiling.
+        let dims = Dims::new(3, 1, 3).unwrap();
+        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let (mut lo_a, mut st_a) = (vec![0i8; 9], vec![0u32; touched_words(&dims)]);
+        let (mut lo_b, mut st_b) = (vec![0i8; 9], vec![0u32; touched_words(&dims)]);
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo_a, &mut st_a).unwrap();
+        let mut reference = VoxelMap::new(g, LogOddsParams::default(), &mut lo_b, &mut st_b).unwrap();
+        map.begin_frame();
+        reference.begin_frame();
+        for i in [0, 1, 2, 6, 7, 8] {
+            assert!(reference.apply_hit(i));
+        }
+        for i in [3, 4, 5] {
+            assert!(reference.apply_miss(i));
+        }
+        assert!(map.apply_hit(3));
+        for i in [1, 7] {
+            assert!(map.apply_miss(i));
+        }
+        let a = accuracy(&map, &reference);
+        assert_eq!((a.false_occupied, a.false_free), (1, 2));
+        assert_eq!(a.false_occupied_where, [1, 0, 0, 0], "on the floor");
+        assert_eq!(
+            a.false_free_where,
+            [1, 1, 0, 0],
+            "the floor under free space, the ceiling over it"
+        );
     }
 
     #[test]
