@@ -260,8 +260,9 @@ impl Default for ExplorerConfig {
 ///
 /// [`ExplorerStorage::bytes`] adds it up: 1.125 bytes of map, 1 byte of labels and 4 bytes of ψ
 /// per voxel, plus the multigrid levels (about 1.3 bytes per voxel with `f32` coarse values,
-/// 0.7 with bfloat16) and the queue — 64 × 64 × 32 voxels with V-cycles, bfloat16 coarse levels
-/// and a 2048-entry queue need 883 KiB (957 KiB with `f32` ones).
+/// 0.7 with bfloat16, and 0.6 of coarse face conductances) and the queue — 64 × 64 × 32
+/// voxels with V-cycles, bfloat16 coarse levels and a 2048-entry queue need 956.6 KiB
+/// (1029.7 KiB with `f32` ones).
 pub struct ExplorerStorage<'a> {
     /// Map log-odds.
     pub log_odds: &'a mut [i8],
@@ -301,6 +302,7 @@ impl ExplorerStorage<'_> {
             + size_of_val(self.queue)
             + self.coarse_values.bytes()
             + size_of_val(self.coarse_labels)
+            + size_of_val(self.coarse_faces)
             + size_of_val(self.krylov)
             + size_of_val(self.masks)
             + size_of_val(self.jacobi)

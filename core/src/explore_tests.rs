@@ -839,3 +839,28 @@ fn a_far_remnant_is_flown_to_while_safe_space_is_out_of_reach() {
     assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?} {status:?}");
     assert_eq!(status.errors.remnants_sealed, 0);
 }
+
+#[test]
+fn storage_bytes_count_every_buffer() {
+    use crate::solve::Bf16;
+    let label = core::mem::size_of::<Label>();
+    let (mut lo, mut touched, mut labels, mut phi) = ([0i8; 10], [0u32; 1], [Label::default(); 3], [0f32; 2]);
+    let (mut queue, mut values, mut coarse_labels) =
+        ([0u32; 5], [Bf16::default(); 7], [Label::default(); 11]);
+    let (mut faces, mut krylov, mut masks, mut jacobi) = ([[0u8; 4]; 13], [0f32; 17], [0u8; 19], [0f32; 23]);
+    let storage = ExplorerStorage {
+        log_odds: &mut lo,
+        touched: &mut touched,
+        labels: &mut labels,
+        phi: &mut phi,
+        queue: &mut queue,
+        coarse_values: values.as_mut_slice().into(),
+        coarse_labels: &mut coarse_labels,
+        coarse_faces: &mut faces,
+        krylov: &mut krylov,
+        masks: &mut masks,
+        jacobi: &mut jacobi,
+    };
+    let want = 10 + 4 + 3 * label + 8 + 20 + 14 + 11 * label + 52 + 68 + 19 + 92;
+    assert_eq!(storage.bytes(), want);
+}
