@@ -133,12 +133,33 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
     let (mut same, mut observed, mut same_observed, mut false_occupied, mut false_free) =
         (0usize, 0usize, 0usize, 0usize, 0usize);
     let (mut unseen, mut seen_only_here) = (0usize, 0usize);
-    let mut false_occupied_where = [0usize; 4];
+    let (mut false_occupied_where, mut false_free_where) = ([0usize; 4], [0usize; 4]);
     let dims = map.dims();
     let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
-    let mut false_free_where = [0usize; 4];
-    let occupied_at = |i: Option<usize>| i.is_some_and(|i| i < n && reference.occupancy(i) == Occupied);
-    let free_at = |i: Option<usize>| i.is_some_and(|i| i < n && reference.occupancy(i) == Free);
+    // Where voxel `i` lies against the reference's voxels in state `state`: 0 or 1 if its face
+    // neighbour above (`up[k]`) or below is in that state (checked in that order), 2 if one
+    // beside it is, 3 if none is.
+    let beside = |i: usize, state, up: [bool; 2]| -> usize {
+        let is = |j: Option<usize>| j.is_some_and(|j| j < n && reference.occupancy(j) == state);
+        let (x, y, z) = (i % nx, (i / nx) % dims.ny(), i / nxy);
+        let vertical = |above: bool| {
+            if above {
+                is((z + 1 < dims.nz()).then(|| i + nxy))
+            } else {
+                is((z > 0).then(|| i - nxy))
+            }
+        };
+        let side = is((x > 0).then(|| i - 1))
+            || is((x + 1 < nx).then(|| i + 1))
+            || is((y > 0).then(|| i - nx))
+            || is((y + 1 < dims.ny()).then(|| i + nx));
+        match (vertical(up[0]), vertical(up[1]), side) {
+            (true, _, _) => 0,
+            (_, true, _) => 1,
+            (_, _, true) => 2,
+            _ => 3,
+        }
+    };
     for i in 0..n {
         let (a, b) = (map.occupancy(i), reference.occupancy(i));
         let (unknown_here, unknown_there) = (map.is_unknown(i), reference.is_unknown(i));
@@ -155,43 +176,13 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
         match (a, b) {
             (Occupied, Free) => {
                 false_occupied += 1;
-                let (x, y, z) = (i % nx, (i / nx) % dims.ny(), i / nxy);
-                let below = occupied_at((z > 0).then(|| i - nxy));
-                let above = occupied_at((z + 1 < dims.nz()).then(|| i + nxy));
-                let side = occupied_at((x > 0).then(|| i - 1))
-                    || occupied_at((x + 1 < nx).then(|| i + 1))
-                    || occupied_at((y > 0).then(|| i - nx))
-                    || occupied_at((y + 1 < dims.ny()).then(|| i + nx));
-                let k = if below {
-                    0
-                } else if above {
-                    1
-                } else if side {
-                    2
-                } else {
-                    3
-                };
-                false_occupied_where[k] += 1;
+                // On a surface below, under one above, beside one, away from all.
+                false_occupied_where[beside(i, Occupied, [false, true])] += 1;
             }
             (Free, Occupied) => {
                 false_free += 1;
-                let (x, y, z) = (i % nx, (i / nx) % dims.ny(), i / nxy);
-                let above = free_at((z + 1 < dims.nz()).then(|| i + nxy));
-                let below = free_at((z > 0).then(|| i - nxy));
-                let side = free_at((x > 0).then(|| i - 1))
-                    || free_at((x + 1 < nx).then(|| i + 1))
-                    || free_at((y > 0).then(|| i - nx))
-                    || free_at((y + 1 < dims.ny()).then(|| i + nx));
-                let k = if above {
-                    0
-                } else if below {
-                    1
-                } else if side {
-                    2
-                } else {
-                    3
-                };
-                false_free_where[k] += 1;
+                // Under free space, over it, beside it, inside an obstacle.
+                false_free_where[beside(i, Free, [true, false])] += 1;
             }
             _ => {}
         }
@@ -216,27 +207,42 @@ mod tests {
     use super::*;
     use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry};
 
-    #[test]
-    fn accuracy_counts_each_kind_of_mismatch() {
-        let dims = Dims::new(4, 1, 1).unwrap();
+    /// [`accuracy`] of a map against a reference over `dims`, each made of one frame's hits
+    /// and misses (voxel indices).
+    fn compare(
+        dims: Dims,
+        map_hits: &[usize],
+        map_misses: &[usize],
+        ref_hits: &[usize],
+        ref_misses: &[usize],
+    ) -> MapAccuracy {
         let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
-        let (mut lo_a, mut st_a) = (vec![0i8; 4], vec![0u32; touched_words(&dims)]);
-        let (mut lo_b, mut st_b) = (vec![0i8; 4], vec![0u32; touched_words(&dims)]);
+        let n = dims.len();
+        let (mut lo_a, mut st_a) = (vec![0i8; n], vec![0u32; touched_words(&dims)]);
+        let (mut lo_b, mut st_b) = (vec![0i8; n], vec![0u32; touched_words(&dims)]);
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo_a, &mut st_a).unwrap();
         let mut reference = VoxelMap::new(g, LogOddsParams::default(), &mut lo_b, &mut st_b).unwrap();
-        // Voxel 0: free in both. 1: occupied in the reference, free in the map. 2: seen by the
-        // reference only. 3: seen by the map only.
         map.begin_frame();
         reference.begin_frame();
-        for i in [0, 1] {
-            assert!(map.apply_miss(i));
+        for (m, hits, misses) in [
+            (&mut map, map_hits, map_misses),
+            (&mut reference, ref_hits, ref_misses),
+        ] {
+            for &i in hits {
+                assert!(m.apply_hit(i));
+            }
+            for &i in misses {
+                assert!(m.apply_miss(i));
+            }
         }
-        assert!(map.apply_hit(3));
-        assert!(reference.apply_miss(0));
-        for i in [1, 2] {
-            assert!(reference.apply_hit(i));
-        }
-        let a = accuracy(&map, &reference);
+        accuracy(&map, &reference)
+    }
+
+    #[test]
+    fn accuracy_counts_each_kind_of_mismatch() {
+        // Voxel 0: free in both. 1: occupied in the reference, free in the map. 2: seen by the
+        // reference only. 3: seen by the map only.
+        let a = compare(Dims::new(4, 1, 1).unwrap(), &[3], &[0, 1], &[1, 2], &[0]);
         assert_eq!((a.false_free, a.false_occupied), (1, 0));
         assert_eq!((a.unseen, a.seen_only_here), (1, 1));
         assert_eq!(a.all_voxels, 0.25);
@@ -247,25 +253,13 @@ mod tests {
         // 3 × 1 × 3 voxels (x, z): the reference has a floor (z = 0), free space (z = 1) and a
         // ceiling (z = 2). The map puts a voxel on the floor (grown floor), and misses one
         // voxel of the floor and one of the ceiling.
-        let dims = Dims::new(3, 1, 3).unwrap();
-        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
-        let (mut lo_a, mut st_a) = (vec![0i8; 9], vec![0u32; touched_words(&dims)]);
-        let (mut lo_b, mut st_b) = (vec![0i8; 9], vec![0u32; touched_words(&dims)]);
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo_a, &mut st_a).unwrap();
-        let mut reference = VoxelMap::new(g, LogOddsParams::default(), &mut lo_b, &mut st_b).unwrap();
-        map.begin_frame();
-        reference.begin_frame();
-        for i in [0, 1, 2, 6, 7, 8] {
-            assert!(reference.apply_hit(i));
-        }
-        for i in [3, 4, 5] {
-            assert!(reference.apply_miss(i));
-        }
-        assert!(map.apply_hit(3));
-        for i in [1, 7] {
-            assert!(map.apply_miss(i));
-        }
-        let a = accuracy(&map, &reference);
+        let a = compare(
+            Dims::new(3, 1, 3).unwrap(),
+            &[3],
+            &[1, 7],
+            &[0, 1, 2, 6, 7, 8],
+            &[3, 4, 5],
+        );
         assert_eq!((a.false_occupied, a.false_free), (1, 2));
         assert_eq!(a.false_occupied_where, [1, 0, 0, 0], "on the floor");
         assert_eq!(
