@@ -135,29 +135,23 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
     let (mut unseen, mut seen_only_here) = (0usize, 0usize);
     let (mut false_occupied_where, mut false_free_where) = ([0usize; 4], [0usize; 4]);
     let dims = map.dims();
-    let (nx, nxy) = (dims.nx(), dims.nx() * dims.ny());
-    // Where voxel `i` lies against the reference's voxels in state `state`: 0 or 1 if its face
-    // neighbour above (`up[k]`) or below is in that state (checked in that order), 2 if one
+    // Where voxel `i` lies against the reference's voxels in `state`: 0 if its face neighbour
+    // `first` voxel up (+1) or down (−1) is in that state, 1 if the opposite one is, 2 if one
     // beside it is, 3 if none is.
-    let beside = |i: usize, state, up: [bool; 2]| -> usize {
-        let is = |j: Option<usize>| j.is_some_and(|j| j < n && reference.occupancy(j) == state);
-        let (x, y, z) = (i % nx, (i / nx) % dims.ny(), i / nxy);
-        let vertical = |above: bool| {
-            if above {
-                is((z + 1 < dims.nz()).then(|| i + nxy))
-            } else {
-                is((z > 0).then(|| i - nxy))
-            }
+    let beside = |i: usize, state, first: i32| -> usize {
+        let v = dims.voxel(i);
+        let is = |d: [i32; 3]| {
+            dims.offset(v, d)
+                .is_some_and(|n| reference.occupancy(dims.linear(n)) == state)
         };
-        let side = is((x > 0).then(|| i - 1))
-            || is((x + 1 < nx).then(|| i + 1))
-            || is((y > 0).then(|| i - nx))
-            || is((y + 1 < dims.ny()).then(|| i + nx));
-        match (vertical(up[0]), vertical(up[1]), side) {
-            (true, _, _) => 0,
-            (_, true, _) => 1,
-            (_, _, true) => 2,
-            _ => 3,
+        if is([0, 0, first]) {
+            0
+        } else if is([0, 0, -first]) {
+            1
+        } else if [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0]].into_iter().any(is) {
+            2
+        } else {
+            3
         }
     };
     for i in 0..n {
@@ -177,12 +171,12 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
             (Occupied, Free) => {
                 false_occupied += 1;
                 // On a surface below, under one above, beside one, away from all.
-                false_occupied_where[beside(i, Occupied, [false, true])] += 1;
+                false_occupied_where[beside(i, Occupied, -1)] += 1;
             }
             (Free, Occupied) => {
                 false_free += 1;
                 // Under free space, over it, beside it, inside an obstacle.
-                false_free_where[beside(i, Free, [true, false])] += 1;
+                false_free_where[beside(i, Free, 1)] += 1;
             }
             _ => {}
         }
