@@ -286,6 +286,9 @@ pub struct ExplorerStorage<'a> {
     /// The fine cells' neighbour masks (optional, one byte per voxel; see
     /// [`MultigridStorage::masks`]): faster sweeps for 1 byte per voxel.
     pub masks: &'a mut [u8],
+    /// The map's per-voxel surface estimate for noisy depth (optional, one word per voxel; see
+    /// [`crate::integrate`]); empty, noisy frames are decided by the per-frame vote alone.
+    pub surface: &'a mut [[i32; 2]],
     /// The other sweep of the thesis's Jacobi solve ([`SolverKind::ThesisJacobi`] only: one
     /// entry per voxel then; otherwise it may be empty).
     pub jacobi: &'a mut [f32],
@@ -305,6 +308,7 @@ impl ExplorerStorage<'_> {
             + size_of_val(self.coarse_faces)
             + size_of_val(self.krylov)
             + size_of_val(self.masks)
+            + size_of_val(self.surface)
             + size_of_val(self.jacobi)
     }
 }
@@ -604,6 +608,7 @@ impl<'a> Explorer<'a> {
             coarse_faces,
             krylov,
             masks,
+            surface,
             jacobi,
         } = storage;
         if labels.len() < n || phi.len() < n || queue.is_empty() {
@@ -639,7 +644,9 @@ impl<'a> Explorer<'a> {
             SolverKind::ThesisJacobi => jacobi.get_mut(..n).unwrap_or_default(),
             _ => &mut [],
         };
-        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
+        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
+            .map_err(ConfigError::Map)?
+            .with_surface(surface);
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
         let (Some(labels), Some(phi)) = (labels.get_mut(..n), phi.get_mut(..n)) else {

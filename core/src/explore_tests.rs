@@ -83,6 +83,7 @@ impl Buffers {
                 coarse_faces: &mut self.faces,
                 krylov: &mut self.krylov,
                 masks: &mut self.masks,
+                surface: &mut [],
                 jacobi: &mut self.jacobi,
             },
         )
@@ -859,6 +860,7 @@ fn storage_bytes_count_every_buffer() {
         coarse_faces: &mut faces,
         krylov: &mut krylov,
         masks: &mut masks,
+        surface: &mut [],
         jacobi: &mut jacobi,
     };
     let want = 10 + 4 + 3 * label + 8 + 20 + 14 + 11 * label + 52 + 68 + 19 + 92;

@@ -54,6 +54,25 @@
 //!   live in caller scratch ([`integrate_with_scratch`], two `u32` per voxel the frame hits);
 //!   voxels that do not fit fall back to "the hit wins", counted in
 //!   [`IntegrationStats::vote_overflow`].
+//!
+//! ## A surface estimate across frames (optional, host-sized)
+//!
+//! One frame's vote cannot tell the voxel in front of a wall that lies on a voxel face (free)
+//! from a voxel the wall cuts through near its far face (occupied): both see about as many
+//! returns land inside as behind. Where the map has a surface estimate
+//! ([`VoxelMap::with_surface`], two words per voxel: the firmware has no RAM for it), every
+//! return with `σ ≤ h` whose pixel has a surface normal (from the 3D points
+//! [`NORMAL_SPAN_PX`] pixels either side, refused across depth edges and corners and near
+//! edge-on) adds to each voxel its ray crosses near the return the signed distance of the
+//! voxel's centre in front of that surface, along the normal, in half voxels, weighted
+//! `(h/σ)²`. The voxels a frame samples are decided by their mean over every frame so far:
+//! the log-odds is set to how many standard errors the mean lies below
+//! [`SURFACE_OCCUPIED`] (free above it); a voxel whose mean puts it behind the surface is left
+//! as it is. A return on a depth edge (a face neighbour far away in depth: the stereo
+//! pipeline's filter may mix the two sides into a return in mid-air) marks nothing; a return
+//! without a normal keeps the vote. Measured in docs/RESULTS.md ("A surface estimate kept
+//! across frames"): much more free space seen on grids aligned with the walls, but not yet a
+//! win everywhere, so it is opt-in.
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
@@ -228,27 +247,82 @@ pub fn integrate_with_scratch(
         &mut []
     });
 
+    let surface_mode = params.depth_noise_per_m > 0.0 && !map.surface().is_empty();
+    let h = geometry.resolution();
+
     // Pass 1: endpoints (with depth noise, the confident ones: a vote each).
-    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), false, |ray| {
-        let end = match ray {
-            PixelRay::Return { end } | PixelRay::Noisy { end, hit: true, .. } => end,
-            _ => return,
-        };
-        if let Some(v) = geometry.voxel_at(&end) {
-            let i = geometry.dims().linear(v);
-            let noisy = matches!(ray, PixelRay::Noisy { .. });
-            if noisy && votes.hit(i, map) {
-                return;
+    for_each_pixel_ray(
+        frame,
+        camera_pose,
+        params,
+        h,
+        Want::Surface(surface_mode),
+        |ray| {
+            if surface_mode {
+                if let PixelRay::Noisy {
+                    end,
+                    hit: true,
+                    sigma,
+                    normal: Some(n),
+                    ..
+                } = ray
+                {
+                    let to_end = end - origin;
+                    let range = to_end.norm();
+                    if range.is_nan() || range <= 0.0 {
+                        return;
+                    }
+                    let dir = to_end / range;
+                    // Distances in half voxels: a voxel's faces lie ±1 from its centre.
+                    let half = 0.5 * h;
+                    let cos = (-n.dot(&dir)).max(SURFACE_MIN_COS);
+                    let reach = (SURFACE_BAND * half + FREE_MARGIN_SIGMAS * sigma) / cos;
+                    let band_start = end - dir * reach.min(range);
+                    let band_end = end + dir * reach;
+                    let ratio = h / sigma.max(1e-6);
+                    let w = libm::roundf(ratio * ratio).clamp(1.0, SURFACE_MAX_SAMPLE_WEIGHT) as i32;
+                    let dims = geometry.dims();
+                    traverse(&geometry, &band_start, &band_end, |voxel| {
+                        let delta = (geometry.center(voxel) - end).dot(&n) / half;
+                        if delta < -SURFACE_BEHIND {
+                            return true;
+                        }
+                        let i = dims.linear(voxel);
+                        surface_add(map.surface_mut(), i, delta.min(SURFACE_BAND), w);
+                        if !votes.hit(i, map) {
+                            let occ = surface_mean(map.surface(), i).is_some_and(|m| m < SURFACE_OCCUPIED);
+                            let applied = if occ { map.apply_hit(i) } else { map.apply_miss(i) };
+                            if applied {
+                                stats.voxel_updates += 1;
+                                stats.vote_overflow += 1;
+                            }
+                        }
+                        true
+                    });
+                    return;
+                }
             }
-            if map.apply_hit(i) {
-                stats.voxel_updates += 1;
-                stats.vote_overflow += u32::from(noisy);
+            let end = match ray {
+                PixelRay::Noisy { edge: true, .. } => return,
+                PixelRay::Return { end } | PixelRay::Noisy { end, hit: true, .. } => end,
+                _ => return,
+            };
+            if let Some(v) = geometry.voxel_at(&end) {
+                let i = geometry.dims().linear(v);
+                let noisy = matches!(ray, PixelRay::Noisy { .. });
+                if noisy && votes.hit(i, map) {
+                    return;
+                }
+                if map.apply_hit(i) {
+                    stats.voxel_updates += 1;
+                    stats.vote_overflow += u32::from(noisy);
+                }
             }
-        }
-    });
+        },
+    );
 
     // Pass 2: free space along every usable ray, classifying pixels as we go.
-    for_each_pixel_ray(frame, camera_pose, params, geometry.resolution(), true, |ray| {
+    for_each_pixel_ray(frame, camera_pose, params, h, Want::FreeSpace, |ray| {
         stats.pixels += 1;
         let mut weak = false;
         let (end, endpoint) = match ray {
@@ -286,6 +360,7 @@ pub fn integrate_with_scratch(
                 hit,
                 beyond,
                 reach,
+                ..
             } => {
                 let v = geometry.voxel_at(&end);
                 if beyond {
@@ -335,11 +410,88 @@ pub fn integrate_with_scratch(
 
     // Pass 3: the votes.
     for (i, hits, passes) in votes.decided() {
-        map.apply_reserved(i, hits > passes);
+        let estimate = if surface_mode {
+            map.surface().get(i).copied().filter(|e| e[1] > 0)
+        } else {
+            None
+        };
+        if let Some([sum, weight]) = estimate {
+            let m = sum as f32 / (weight as f32 * SURFACE_SCALE);
+            if m < -SURFACE_HIDDEN {
+                continue;
+            }
+            // The evidence for "occupied": how many standard errors the mean lies below the
+            // threshold (a sample of weight w has the variance 4/w in half voxels, inflated
+            // for the correlation of neighbouring pixels).
+            let z = (SURFACE_OCCUPIED - m) * libm::sqrtf(weight as f32 / (4.0 * SURFACE_CORRELATION));
+            map.set_reserved(i, z * SURFACE_LOG_ODDS_PER_SE);
+        } else {
+            map.apply_reserved(i, hits > passes);
+        }
         stats.voxel_updates += 1;
         stats.voted += 1;
     }
     Ok(stats)
+}
+
+/// The surface estimate's distances are in half voxels along the surface's normal, positive
+/// in front of it: a voxel's faces lie ±1 from its centre, so the voxel in front of a wall on a
+/// voxel face is at +1 and the wall's voxel at −1. A return's sample reaches the voxels its ray
+/// crosses within this many (plus its `2σ`) of it, and is clamped to it in front.
+const SURFACE_BAND: f32 = 3.0;
+/// A voxel whose mean is below this is occupied. Below 1 (where the voxel's far face would
+/// touch the surface): the voxel in front of a wall on a voxel face sits exactly at 1, and the
+/// tilt of noisy normals shrinks every mean a little towards 0.
+const SURFACE_OCCUPIED: f32 = 0.6;
+/// A voxel whose mean is below minus this lies behind the surface, where exact depth would not
+/// observe it either: it is not updated.
+const SURFACE_HIDDEN: f32 = 1.1;
+/// Samples further behind the surface than this are not taken: a one-voxel wall's far side
+/// lies at −3 from its near surface.
+const SURFACE_BEHIND: f32 = 1.5;
+/// Smallest cosine of incidence the band along the ray is stretched for.
+const SURFACE_MIN_COS: f32 = 0.7;
+/// Largest weight of one sample, `(h/σ)²`: σ a quarter voxel.
+const SURFACE_MAX_SAMPLE_WEIGHT: f32 = 16.0;
+/// Pixels either side over which the surface normal is measured.
+const NORMAL_SPAN_PX: usize = 8;
+/// Smallest cosine between a normal and the ray: surfaces seen more edge-on have none.
+const NORMAL_MIN_COS: f32 = 0.3;
+/// A normal's centre pixel may lie this many `σ` (at least half a voxel) off the midpoints of
+/// its span; farther, the span crosses a depth edge or a corner.
+const NORMAL_BEND_SIGMAS: f32 = 3.0;
+/// A return whose face neighbour's depth differs by more than this many `σ` (at least two
+/// voxels) lies on a depth edge.
+const EDGE_JUMP_SIGMAS: f32 = 4.0;
+/// Variance inflation of a surface sample for the correlation between neighbouring pixels
+/// (the stereo pipeline's median window moves a patch's returns together).
+const SURFACE_CORRELATION: f32 = 10.0;
+/// Log-odds per standard error of a voxel's mean from [`SURFACE_OCCUPIED`].
+const SURFACE_LOG_ODDS_PER_SE: f32 = 1.0;
+/// Units of a half voxel in the stored sums.
+const SURFACE_SCALE: f32 = 256.0;
+/// Weight at which a voxel's sums are halved, so newer samples keep counting.
+const SURFACE_MAX_WEIGHT: i32 = 1 << 16;
+
+/// Adds a sample `delta` (half voxels) with weight `w` to voxel `i`'s surface estimate: the
+/// weighted sum of its samples (in 1/[`SURFACE_SCALE`]) and their weight.
+fn surface_add(surface: &mut [[i32; 2]], i: usize, delta: f32, w: i32) {
+    let Some([sum, weight]) = surface.get_mut(i) else {
+        return;
+    };
+    let x = libm::roundf(delta.clamp(-4.0, 4.0) * SURFACE_SCALE) as i32;
+    *sum = sum.saturating_add(x * w);
+    *weight = weight.saturating_add(w);
+    if *weight > SURFACE_MAX_WEIGHT {
+        *sum /= 2;
+        *weight /= 2;
+    }
+}
+
+/// Voxel `i`'s mean distance in front of the surface, half voxels (`None`: no samples).
+fn surface_mean(surface: &[[i32; 2]], i: usize) -> Option<f32> {
+    let [sum, weight] = *surface.get(i)?;
+    (weight > 0).then(|| sum as f32 / (weight as f32 * SURFACE_SCALE))
 }
 
 /// The per-frame hit/miss vote of the voxels a noisy frame hits: an open-addressing table in
@@ -444,18 +596,29 @@ enum PixelRay {
         hit: bool,
         beyond: bool,
         reach: f32,
+        sigma: f32,
+        normal: Option<Vector3<f32>>,
+        edge: bool,
     },
 }
 
-/// Calls `f` with every used pixel's ray. `free_space`: the caller wants where noisy rays'
-/// free space ends (`PixelRay::Noisy::free_to`, `reach`); the endpoints pass does not, and is
-/// spared the facing test of every return.
+/// What a pass needs of the noisy rays beyond their ends.
+#[derive(Clone, Copy, PartialEq)]
+enum Want {
+    /// Where their free space ends ([`PixelRay::Noisy`]'s `free_to`, `reach`: the slope test).
+    FreeSpace,
+    /// With `true`, their surface normals and depth edges (the surface estimate's samples).
+    Surface(bool),
+}
+
+/// Calls `f` with every used pixel's ray; `want` says which of a noisy ray's costlier fields
+/// the pass needs (the others are left at their defaults: no slope, no normal, no edge).
 fn for_each_pixel_ray(
     frame: &DepthFrame<'_>,
     pose: &Isometry3<f32>,
     params: &IntegrationParams,
     resolution: f32,
-    free_space: bool,
+    want: Want,
     mut f: impl FnMut(PixelRay),
 ) {
     let k = usize::from(params.pixel_stride.max(1));
@@ -480,11 +643,12 @@ fn for_each_pixel_ray(
                 } else if params.depth_noise_per_m > 0.0 {
                     let z = f32::from(d) * 1e-3;
                     let sigma = params.depth_noise_per_m * z * range;
-                    let slope2 = if free_space {
+                    let slope2 = if want == Want::FreeSpace {
                         surface_slope2(frame, u, v, z)
                     } else {
                         None
                     };
+                    let surface = want == Want::Surface(true);
                     let free = free_length(range, sigma, slope2, resolution)
                         .min(params.max_range)
                         .max(0.0);
@@ -495,6 +659,15 @@ fn for_each_pixel_ray(
                         hit: sigma <= resolution && !beyond,
                         beyond,
                         reach: range - free + VOTE_REACH_VOXELS * resolution,
+                        sigma,
+                        normal: if surface {
+                            let bend = (NORMAL_BEND_SIGMAS * sigma).max(0.5 * resolution);
+                            surface_normal(frame, u, v, pose, &dir, bend)
+                        } else {
+                            None
+                        },
+                        edge: surface
+                            && depth_edge(frame, u, v, z, (EDGE_JUMP_SIGMAS * sigma).max(2.0 * resolution)),
                     }
                 } else if range > params.max_range {
                     PixelRay::BeyondRange { end: clear_to }
@@ -524,19 +697,23 @@ fn free_length(range: f32, sigma: f32, slope2: Option<f32>, resolution: f32) -> 
     free.min(range)
 }
 
+/// The depth (m) of pixel `(u, v)`, if it is inside the frame and has one (`None` for a
+/// coordinate that under- or overflowed).
+fn depth_at(frame: &DepthFrame<'_>, u: Option<usize>, v: Option<usize>) -> Option<f32> {
+    let width = usize::from(frame.intrinsics().width());
+    let (u, v) = (u.filter(|&x| x < width)?, v?);
+    let d = *frame.depth_mm().get(v.checked_mul(width)?.checked_add(u)?)?;
+    (d > 0 && d != NOT_RECEIVED).then(|| f32::from(d) * 1e-3)
+}
+
 /// The squared slope of the surface seen at pixel `(u, v)`, depth `z` (m): the depth image's
 /// change over [`SLOPE_SPAN_PX`] pixels either way, in depth per lateral metre, along both image
 /// axes together (0 square to the camera, 1 at 45°). `None` near the image border or beside a
 /// pixel without depth.
 fn surface_slope2(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32) -> Option<f32> {
     let intr = frame.intrinsics();
-    let width = usize::from(intr.width());
     let s = SLOPE_SPAN_PX;
-    let depth = |uu: Option<usize>, vv: Option<usize>| -> Option<f32> {
-        let (uu, vv) = (uu.filter(|&x| x < width)?, vv?);
-        let d = *frame.depth_mm().get(vv.checked_mul(width)?.checked_add(uu)?)?;
-        (d > 0 && d != NOT_RECEIVED).then(|| f32::from(d) * 1e-3)
-    };
+    let depth = |uu, vv| depth_at(frame, uu, vv);
     let (Some(left), Some(right), Some(up), Some(down)) = (
         depth(u.checked_sub(s), Some(v)),
         depth(u.checked_add(s), Some(v)),
@@ -550,6 +727,63 @@ fn surface_slope2(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32) -> Option<
     let gu = (right - left) * intr.fx() / span;
     let gv = (down - up) * intr.fy() / span;
     Some(gu * gu + gv * gv)
+}
+
+/// The unit normal (map frame, facing the camera) of the surface seen at pixel `(u, v)`, from
+/// the 3D points [`NORMAL_SPAN_PX`] pixels either way; `None` near the border, beside a pixel
+/// without depth, where the centre lies more than `tolerance` (m) off the midpoints of the span
+/// (a depth edge or a corner between), or where the surface is seen nearly edge-on.
+fn surface_normal(
+    frame: &DepthFrame<'_>,
+    u: usize,
+    v: usize,
+    pose: &Isometry3<f32>,
+    dir: &Vector3<f32>,
+    tolerance: f32,
+) -> Option<Vector3<f32>> {
+    let intr = frame.intrinsics();
+    let s = NORMAL_SPAN_PX;
+    // `depth_at` has checked that the pixel lies in the frame, so its coordinates fit a u16.
+    let point = |uu: Option<usize>, vv: Option<usize>| -> Option<Vector3<f32>> {
+        let z = depth_at(frame, uu, vv)?;
+        Some(intr.ray(uu? as u16, vv? as u16) * z)
+    };
+    let left = point(u.checked_sub(s), Some(v))?;
+    let right = point(u.checked_add(s), Some(v))?;
+    let up = point(Some(u), v.checked_sub(s))?;
+    let down = point(Some(u), v.checked_add(s))?;
+    let centre = point(Some(u), Some(v))?;
+    // A depth edge between the points is no plane: the centre must lie near both midpoints.
+    let bend = ((left + right) * 0.5 - centre)
+        .norm()
+        .max(((up + down) * 0.5 - centre).norm());
+    if bend > tolerance {
+        return None;
+    }
+    let n = (right - left).cross(&(down - up));
+    let norm = n.norm();
+    if norm.is_nan() || norm <= 0.0 {
+        return None;
+    }
+    let mut n = pose.rotation * (n / norm);
+    if n.dot(dir) > 0.0 {
+        n = -n;
+    }
+    (-n.dot(dir) >= NORMAL_MIN_COS).then_some(n)
+}
+
+/// True if pixel `(u, v)` (depth `z`, m) lies on a depth edge: a face neighbour's depth differs
+/// from it by more than `jump` metres (its depth may mix the two sides: a flying pixel).
+fn depth_edge(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32, jump: f32) -> bool {
+    [
+        depth_at(frame, u.checked_sub(1), Some(v)),
+        depth_at(frame, u.checked_add(1), Some(v)),
+        depth_at(frame, Some(u), v.checked_sub(1)),
+        depth_at(frame, Some(u), v.checked_add(1)),
+    ]
+    .into_iter()
+    .flatten()
+    .any(|d| (d - z).abs() > jump)
 }
 
 /// Visits, in order, every voxel the segment `a → b` passes through inside the grid
@@ -1267,6 +1501,56 @@ mod tests {
         }
         // A large σ still wins where it is the longer margin.
         assert!((free_length(r, 0.2, Some(3.0), h) - (r - 0.4)).abs() < 1e-6);
+    }
+
+    /// A camera 1 m in front of a wall on a voxel face (x = 1.0 m), 20 frames of depth with
+    /// independent noise of 3 cm: with the surface estimate the voxel in front of the wall ends
+    /// free and the wall's voxel occupied, and the voxel behind it is never observed.
+    #[test]
+    fn the_surface_estimate_frees_the_voxel_in_front_of_a_wall_on_a_voxel_face() {
+        let g = cube16();
+        let (mut lo, mut st) = ([0i8; 4096], [0u32; 128]);
+        let mut surface = [[0i32; 2]; 4096];
+        let mut scratch = [0u32; 8192];
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st)
+            .unwrap()
+            .with_surface(&mut surface);
+        let side = 30u16;
+        let c = f32::from(side - 1) / 2.0;
+        let intr = Intrinsics::new(20.0, 20.0, c, c, side, side).unwrap();
+        let mut pose = looking_along_x();
+        pose.translation.vector.x = 0.0;
+        let noise = 0.03;
+        let params = IntegrationParams {
+            depth_noise_per_m: noise,
+            ..IntegrationParams::default()
+        };
+        // A fixed linear congruential generator; a sum of 12 uniforms is close to normal.
+        let mut seed = 12345u64;
+        let mut uniform = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as f32 / (1u64 << 31) as f32
+        };
+        let mut depth = [0u16; 900];
+        for _ in 0..20 {
+            for d in depth.iter_mut() {
+                let n: f32 = (0..12).map(|_| uniform()).sum::<f32>() - 6.0;
+                *d = libm::roundf((1.0 + noise * n) * 1000.0) as u16;
+            }
+            let frame = DepthFrame::new(intr, &depth).unwrap();
+            let s = integrate_with_scratch(&mut map, &frame, &pose, &params, &mut scratch).unwrap();
+            assert!(s.voted > 0, "{s:?}");
+        }
+        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
+        assert_eq!(map.occupancy(at(9)), Occupancy::Free);
+        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+        assert!(map.is_unknown(at(11)));
+        let front = surface_mean(map.surface(), at(9)).unwrap();
+        let wall = surface_mean(map.surface(), at(10)).unwrap();
+        assert!(front > SURFACE_OCCUPIED && front < 1.5, "{front}");
+        assert!(wall < 0.0 && wall > -SURFACE_HIDDEN, "{wall}");
     }
 
     #[test]

@@ -345,6 +345,7 @@ pub struct VoxelMap<'a> {
     params: FixedParams,
     log_odds: &'a mut [i8],
     touched: &'a mut [u32],
+    surface: &'a mut [[i32; 2]],
 }
 
 impl<'a> VoxelMap<'a> {
@@ -375,7 +376,29 @@ impl<'a> VoxelMap<'a> {
             params: FixedParams::from(&params),
             log_odds,
             touched,
+            surface: &mut [],
         })
+    }
+
+    /// Adds the per-voxel surface estimate noisy depth is integrated with (two words per voxel;
+    /// see [`crate::integrate`]). Shorter storage leaves the map without it: noisy frames are
+    /// then decided by the per-frame vote alone.
+    pub fn with_surface(mut self, surface: &'a mut [[i32; 2]]) -> Self {
+        let n = self.geometry.dims.len();
+        if let Some(s) = surface.get_mut(..n) {
+            s.fill([0, 0]);
+            self.surface = s;
+        }
+        self
+    }
+
+    /// The surface estimate's words (empty without one).
+    pub(crate) fn surface(&self) -> &[[i32; 2]] {
+        self.surface
+    }
+    /// The surface estimate's words, to update.
+    pub(crate) fn surface_mut(&mut self) -> &mut [[i32; 2]] {
+        self.surface
     }
 
     /// Geometry of the grid.
@@ -438,6 +461,15 @@ impl<'a> VoxelMap<'a> {
     /// Applies a hit (`true`) or a miss to a voxel [`reserve`](Self::reserve)d this frame.
     pub(crate) fn apply_reserved(&mut self, i: usize, hit: bool) {
         self.add(i, if hit { self.params.hit } else { self.params.miss });
+    }
+
+    /// Sets a voxel [`reserve`](Self::reserve)d this frame to log-odds `value`, clamped.
+    pub(crate) fn set_reserved(&mut self, i: usize, value: f32) {
+        let q = libm::roundf(value * LOG_ODDS_SCALE)
+            .clamp(f32::from(self.params.min), f32::from(self.params.max)) as i8;
+        if let Some(lo) = self.log_odds.get_mut(i) {
+            *lo = q;
+        }
     }
 
     /// Marks an unknown voxel free (space the vehicle's own body occupies). Observed voxels are

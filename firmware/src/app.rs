@@ -346,6 +346,7 @@ pub fn build_explorer<'a>(
             krylov: &mut [],
             // 128 KiB more than the budget has: sweeps test the labels instead.
             masks: &mut [],
+            surface: &mut [],
             // The thesis's Jacobi solve is a host-side ablation.
             jacobi: &mut [],
         },

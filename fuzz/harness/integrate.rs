@@ -98,6 +98,7 @@ pub fn run(data: &[u8]) {
         coarse_faces: &mut coarse_faces,
         krylov: &mut krylov,
         masks: &mut masks,
+        surface: &mut [],
         jacobi: &mut [],
     };
     let Ok(mut explorer) = Explorer::new(geometry, config, storage) else {

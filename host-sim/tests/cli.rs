@@ -331,6 +331,10 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
         &["explore", "--stereo-model"],
         "give --noise or --depth-from stereo",
     );
+    one_line(
+        &["explore", "--noise", "stereo", "--surface-estimate"],
+        "give --stereo-model",
+    );
     one_line(&["explore", "--drift", "0.1"], "SIGMA_POS_M,SIGMA_YAW_RAD");
     one_line(&["explore", "--planner", "greedy"], "unknown planner");
 }

@@ -26,6 +26,12 @@ pub struct SensingArgs {
     /// per voxel per frame instead of "the hit wins", and depth used to the camera's range.
     #[arg(long)]
     stereo_model: bool,
+    /// With `--stereo-model`: every planner's map also keeps a surface estimate across frames
+    /// (experimental, see docs/RESULTS.md, "A surface estimate kept across frames"): each voxel
+    /// near a confident return holds the weighted mean of its distance to the surface, along
+    /// normals from the depth image, and is decided by that mean; 8 bytes per voxel on the host.
+    #[arg(long)]
+    surface_estimate: bool,
     /// Range (m) up to which depth is integrated; farther returns only clear free space.
     /// Default with `--noise`: where a 1σ (filtered) disparity error moves the depth by 0.1 m
     /// (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered; 2.8 m with
@@ -187,6 +193,9 @@ impl SensingArgs {
                     .into(),
             );
         }
+        if self.surface_estimate && !self.stereo_model {
+            return Err("--surface-estimate is part of the stereo sensor model: give --stereo-model".into());
+        }
         if self.depth_from == "stereo" && (self.noise.is_some() || self.outliers > 0.0 || self.textureless) {
             return Err(
                 "--noise, --outliers and --textureless model the depth camera; with --depth-from stereo the matcher makes its own errors (textureless boxes render flat)".into(),
@@ -202,6 +211,7 @@ impl SensingArgs {
         cfg.camera.textureless = self.textureless;
         cfg.drift = self.drift;
         cfg.grid_offset = self.grid_offset.unwrap_or([0.0; 3]);
+        cfg.surface_estimate = self.surface_estimate;
         // Exact depth: no error (the camera's range unless --trusted-range).
         let (sigma_px, baseline_m) = self
             .noise

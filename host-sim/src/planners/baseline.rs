@@ -179,12 +179,15 @@ impl<'a> Baseline<'a> {
             touched,
             labels,
             queue,
+            surface,
             ..
         } = storage;
         if labels.len() < n || queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
         }
-        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
+        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
+            .map_err(ConfigError::Map)?
+            .with_surface(surface);
         let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
         let labels = &mut labels[..n];

@@ -182,6 +182,8 @@ pub struct HostStorage {
     coarse_faces: Vec<[u8; 4]>,
     krylov: Vec<f32>,
     masks: Vec<u8>,
+    /// The map's surface estimate: empty until [`HostStorage::with_surface`].
+    surface: Vec<[i32; 2]>,
     /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
     jacobi: Vec<f32>,
 }
@@ -197,6 +199,7 @@ impl HostStorage {
             coarse_faces: vec![[0; 4]; mg.faces],
             krylov: vec![0.0; mg.krylov],
             masks: vec![0; mg.masks],
+            surface: Vec::new(),
             log_odds: vec![0; n],
             touched: vec![0; map::touched_words(dims)],
             labels: vec![Label::Outside; n],
@@ -209,6 +212,12 @@ impl HostStorage {
     /// ([`SolverKind::ThesisJacobi`]); a no-op if it is there.
     pub fn with_jacobi(&mut self) -> &mut Self {
         self.jacobi.resize(self.phi.len(), 0.0);
+        self
+    }
+    /// Adds the map's surface estimate for noisy depth (two words per voxel; see
+    /// [`harmonic_core::integrate`]); a no-op if it is there.
+    pub fn with_surface(&mut self) -> &mut Self {
+        self.surface.resize(self.phi.len(), [0, 0]);
         self
     }
     /// Lends the buffers to an explorer.
@@ -224,6 +233,7 @@ impl HostStorage {
             coarse_faces: &mut self.coarse_faces,
             krylov: &mut self.krylov,
             masks: &mut self.masks,
+            surface: &mut self.surface,
             jacobi: &mut self.jacobi,
         }
     }

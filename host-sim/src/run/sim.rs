@@ -102,6 +102,10 @@ pub struct SimConfig {
     /// The baselines seal far remnants as the core's planner does (an ablation; see
     /// [`Baseline::with_remnants`]).
     pub baseline_remnants: bool,
+    /// Every planner's map keeps a surface estimate across frames for noisy depth (the host
+    /// lends the storage, two words per voxel; see [`harmonic_core::integrate`]). Only the
+    /// core's stereo sensor model uses it.
+    pub surface_estimate: bool,
     /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
     /// Depth camera.
@@ -262,6 +266,7 @@ impl Default for SimConfig {
             baseline_views: false,
             baseline_looks: false,
             baseline_remnants: false,
+            surface_estimate: false,
             explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
             body_radius: 0.15,
@@ -1150,6 +1155,9 @@ fn make_planner<'s>(
     storage: &'s mut HostStorage,
 ) -> Result<Box<dyn Planner + 's>, SimError> {
     let config_err = |e| SimError::Config(format!("{e:?}"));
+    if cfg.surface_estimate {
+        storage.with_surface();
+    }
     Ok(match cfg.planner {
         PlannerKind::Harmonic
         | PlannerKind::HarmonicLaplace
