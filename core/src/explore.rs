@@ -286,7 +286,7 @@ pub struct ExplorerStorage<'a> {
     /// The fine cells' neighbour masks (optional, one byte per voxel; see
     /// [`MultigridStorage::masks`]): faster sweeps for 1 byte per voxel.
     pub masks: &'a mut [u8],
-    /// The map's per-voxel surface estimate for noisy depth (optional, one word per voxel; see
+    /// The map's per-voxel surface estimate for noisy depth (optional, two words per voxel; see
     /// [`crate::integrate`]); empty, noisy frames are decided by the per-frame vote alone.
     pub surface: &'a mut [[i32; 2]],
     /// The other sweep of the thesis's Jacobi solve ([`SolverKind::ThesisJacobi`] only: one

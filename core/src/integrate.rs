@@ -256,7 +256,9 @@ pub fn integrate_with_scratch(
         camera_pose,
         params,
         h,
-        Want::Surface(surface_mode),
+        Want::Endpoints {
+            surface: surface_mode,
+        },
         |ray| {
             if surface_mode {
                 if let PixelRay::Noisy {
@@ -290,7 +292,8 @@ pub fn integrate_with_scratch(
                         let i = dims.linear(voxel);
                         surface_add(map.surface_mut(), i, delta.min(SURFACE_BAND), w);
                         if !votes.hit(i, map) {
-                            let occ = surface_mean(map.surface(), i).is_some_and(|m| m < SURFACE_OCCUPIED);
+                            let occ =
+                                surface_estimate(map.surface(), i).is_some_and(|(m, _)| m < SURFACE_OCCUPIED);
                             let applied = if occ { map.apply_hit(i) } else { map.apply_miss(i) };
                             if applied {
                                 stats.voxel_updates += 1;
@@ -411,19 +414,18 @@ pub fn integrate_with_scratch(
     // Pass 3: the votes.
     for (i, hits, passes) in votes.decided() {
         let estimate = if surface_mode {
-            map.surface().get(i).copied().filter(|e| e[1] > 0)
+            surface_estimate(map.surface(), i)
         } else {
             None
         };
-        if let Some([sum, weight]) = estimate {
-            let m = sum as f32 / (weight as f32 * SURFACE_SCALE);
+        if let Some((m, weight)) = estimate {
             if m < -SURFACE_HIDDEN {
                 continue;
             }
             // The evidence for "occupied": how many standard errors the mean lies below the
             // threshold (a sample of weight w has the variance 4/w in half voxels, inflated
             // for the correlation of neighbouring pixels).
-            let z = (SURFACE_OCCUPIED - m) * libm::sqrtf(weight as f32 / (4.0 * SURFACE_CORRELATION));
+            let z = (SURFACE_OCCUPIED - m) * libm::sqrtf(weight / (4.0 * SURFACE_CORRELATION));
             map.set_reserved(i, z * SURFACE_LOG_ODDS_PER_SE);
         } else {
             map.apply_reserved(i, hits > passes);
@@ -488,10 +490,11 @@ fn surface_add(surface: &mut [[i32; 2]], i: usize, delta: f32, w: i32) {
     }
 }
 
-/// Voxel `i`'s mean distance in front of the surface, half voxels (`None`: no samples).
-fn surface_mean(surface: &[[i32; 2]], i: usize) -> Option<f32> {
+/// Voxel `i`'s mean distance in front of the surface (half voxels) and the weight behind it
+/// (`None`: no samples).
+fn surface_estimate(surface: &[[i32; 2]], i: usize) -> Option<(f32, f32)> {
     let [sum, weight] = *surface.get(i)?;
-    (weight > 0).then(|| sum as f32 / (weight as f32 * SURFACE_SCALE))
+    (weight > 0).then(|| (sum as f32 / (weight as f32 * SURFACE_SCALE), weight as f32))
 }
 
 /// The per-frame hit/miss vote of the voxels a noisy frame hits: an open-addressing table in
@@ -589,7 +592,9 @@ enum PixelRay {
     Return { end: Point3<f32> },
     /// With depth noise, a return at `end`: clear the voxels left before `free_to`; `hit`: mark
     /// the endpoint (`σ` at most a voxel); `beyond`: the return lies beyond the maximum range;
-    /// `reach`: the ray votes against voxels hit this frame whose centre is this close to `end`.
+    /// `reach`: the ray votes against voxels hit this frame whose centre is this close to `end`;
+    /// `sigma`: its range error; `normal`: the surface's, facing the camera (map frame; only
+    /// for the surface estimate); `edge`: it lies on a depth edge and marks nothing (likewise).
     Noisy {
         end: Point3<f32>,
         free_to: Point3<f32>,
@@ -607,8 +612,9 @@ enum PixelRay {
 enum Want {
     /// Where their free space ends ([`PixelRay::Noisy`]'s `free_to`, `reach`: the slope test).
     FreeSpace,
-    /// With `true`, their surface normals and depth edges (the surface estimate's samples).
-    Surface(bool),
+    /// Their ends; with `surface`, also the normals and depth edges of the returns that may
+    /// mark a surface (the surface estimate's samples).
+    Endpoints { surface: bool },
 }
 
 /// Calls `f` with every used pixel's ray; `want` says which of a noisy ray's costlier fields
@@ -648,26 +654,30 @@ fn for_each_pixel_ray(
                     } else {
                         None
                     };
-                    let surface = want == Want::Surface(true);
+                    let beyond = range > params.max_range;
+                    let hit = sigma <= resolution && !beyond;
+                    // Only a return that may mark a surface needs a normal, and only one
+                    // without a normal the depth-edge test (the others never read them).
+                    let surface = hit && want == (Want::Endpoints { surface: true });
                     let free = free_length(range, sigma, slope2, resolution)
                         .min(params.max_range)
                         .max(0.0);
-                    let beyond = range > params.max_range;
+                    let normal = if surface {
+                        let bend = (NORMAL_BEND_SIGMAS * sigma).max(0.5 * resolution);
+                        surface_normal(frame, u, v, pose, &dir, bend)
+                    } else {
+                        None
+                    };
+                    let jump = (EDGE_JUMP_SIGMAS * sigma).max(2.0 * resolution);
                     PixelRay::Noisy {
                         end: origin + dir * range,
                         free_to: origin + dir * free,
-                        hit: sigma <= resolution && !beyond,
+                        hit,
                         beyond,
                         reach: range - free + VOTE_REACH_VOXELS * resolution,
                         sigma,
-                        normal: if surface {
-                            let bend = (NORMAL_BEND_SIGMAS * sigma).max(0.5 * resolution);
-                            surface_normal(frame, u, v, pose, &dir, bend)
-                        } else {
-                            None
-                        },
-                        edge: surface
-                            && depth_edge(frame, u, v, z, (EDGE_JUMP_SIGMAS * sigma).max(2.0 * resolution)),
+                        normal,
+                        edge: surface && normal.is_none() && depth_edge(frame, u, v, z, jump),
                     }
                 } else if range > params.max_range {
                     PixelRay::BeyondRange { end: clear_to }
@@ -1547,8 +1557,8 @@ mod tests {
         assert_eq!(map.occupancy(at(9)), Occupancy::Free);
         assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
         assert!(map.is_unknown(at(11)));
-        let front = surface_mean(map.surface(), at(9)).unwrap();
-        let wall = surface_mean(map.surface(), at(10)).unwrap();
+        let (front, _) = surface_estimate(map.surface(), at(9)).unwrap();
+        let (wall, _) = surface_estimate(map.surface(), at(10)).unwrap();
         assert!(front > SURFACE_OCCUPIED && front < 1.5, "{front}");
         assert!(wall < 0.0 && wall > -SURFACE_HIDDEN, "{wall}");
     }
