@@ -107,6 +107,18 @@ pub struct IntegrationParams {
     /// baseline): a return at depth `z` has the depth error `σ_z = depth_noise_per_m · z²`.
     /// 0 (the default) treats depth as exact; see the module doc for what changes otherwise.
     pub depth_noise_per_m: f32,
+    /// With depth noise: the width, in pixels of the depth frame, over which the depth pipeline
+    /// aggregates (a stereo matcher's window). On a surface slanted by `g` (depth per lateral
+    /// metre) the window spans `g·w·z/f` metres of depth, and a match may land anywhere in it:
+    /// the range error gains that span's standard deviation as a uniform spread (`1/√12` of it,
+    /// added in quadrature to the disparity error), so a grazing surface, where block matching
+    /// fails worst, neither marks voxels nor clears space near its returns. The window cannot
+    /// tell a thin or nearer object within its footprint from what lies behind it either, so a
+    /// return clears no deeper than 2σ short of the nearest depth within half the footprint
+    /// (the edge of a wall seen past, a post). A return whose slant cannot be measured (no
+    /// depth on a side, even one pixel away) is left out and counted
+    /// ([`IntegrationStats::unmeasured_slant`]). 0 (the default) adds nothing.
+    pub footprint_px: f32,
 }
 
 impl Default for IntegrationParams {
@@ -118,9 +130,14 @@ impl Default for IntegrationParams {
             pixel_stride: 1,
             no_return: NoReturn::ClearToMaxRange,
             depth_noise_per_m: 0.0,
+            footprint_px: 0.0,
         }
     }
 }
+
+/// The range error of a match that may land anywhere in its window's depth span, as a share of
+/// that span: the standard deviation of a uniform spread, `1/√12`.
+const FOOTPRINT_SIGMA: f32 = 0.288_675_13;
 
 /// Misses stop this many standard deviations of the range before a noisy return.
 const FREE_MARGIN_SIGMAS: f32 = 2.0;
@@ -169,6 +186,11 @@ pub struct IntegrationStats {
     /// With depth noise: voxels the frame hit that did not fit in the vote's scratch and were
     /// updated by "the hit wins" instead.
     pub vote_overflow: u32,
+    /// With a [footprint](IntegrationParams::footprint_px): returns whose slant, and so whose
+    /// error, cannot be measured (a neighbour two pixels away and one a pixel away without
+    /// depth): counted, not integrated (a matcher's worst errors lie at the edges of what it
+    /// could match).
+    pub unmeasured_slant: u32,
 }
 
 /// Why a frame was not integrated.
@@ -177,7 +199,8 @@ pub struct IntegrationStats {
 pub enum IntegrateError {
     /// The camera pose has a non-finite translation or rotation.
     BadPose,
-    /// The range limits are not finite or not `0 < min < max`.
+    /// The range limits are not finite or not `0 < min < max`, or the depth noise or the
+    /// footprint is negative or not finite.
     BadRange,
     /// The camera pose is farther from the previous frame's than
     /// [`ExplorerConfig::max_frame_jump_m`](crate::explore::ExplorerConfig::max_frame_jump_m)
@@ -233,7 +256,9 @@ pub fn integrate_with_scratch(
         && params.min_range >= 0.0
         && params.min_range < params.max_range
         && params.depth_noise_per_m.is_finite()
-        && params.depth_noise_per_m >= 0.0)
+        && params.depth_noise_per_m >= 0.0
+        && params.footprint_px.is_finite()
+        && params.footprint_px >= 0.0)
     {
         return Err(IntegrateError::BadRange);
     }
@@ -331,6 +356,10 @@ pub fn integrate_with_scratch(
         let (end, endpoint) = match ray {
             PixelRay::Invalid => {
                 stats.invalid += 1;
+                return;
+            }
+            PixelRay::UnmeasuredSlant => {
+                stats.unmeasured_slant += 1;
                 return;
             }
             PixelRay::NotReceived => {
@@ -582,6 +611,9 @@ impl<'s> Votes<'s> {
 enum PixelRay {
     /// Closer than the minimum range.
     Invalid,
+    /// A noisy return whose slant the [footprint](IntegrationParams::footprint_px) needs but
+    /// cannot be measured.
+    UnmeasuredSlant,
     /// Never received (a row lost on the link).
     NotReceived,
     /// Depth 0: clear to `end` (maximum range along the pixel's ray).
@@ -648,20 +680,48 @@ fn for_each_pixel_ray(
                     PixelRay::Invalid
                 } else if params.depth_noise_per_m > 0.0 {
                     let z = f32::from(d) * 1e-3;
-                    let sigma = params.depth_noise_per_m * z * range;
-                    let slope2 = if want == Want::FreeSpace {
-                        surface_slope2(frame, u, v, z)
+                    let footprint = params.footprint_px > 0.0;
+                    let slope2 = if footprint {
+                        surface_slope2(frame, u, v, z, SLOPE_SPAN_PX)
+                            .or_else(|| surface_slope2(frame, u, v, z, 1))
+                    } else if want == Want::FreeSpace {
+                        surface_slope2(frame, u, v, z, SLOPE_SPAN_PX)
                     } else {
                         None
+                    };
+                    if footprint && slope2.is_none() {
+                        f(PixelRay::UnmeasuredSlant);
+                        continue;
+                    }
+                    let disparity = params.depth_noise_per_m * z * range;
+                    let sigma = match slope2 {
+                        Some(g2) if footprint => {
+                            // A match anywhere in the window's depth span on this slant: the
+                            // standard deviation of a uniform spread, along the ray.
+                            // A flat surface adds 0 whatever the footprint (never ∞ · 0).
+                            let window = if g2 > 0.0 {
+                                FOOTPRINT_SIGMA * params.footprint_px * range * libm::sqrtf(g2) / intr.fx()
+                            } else {
+                                0.0
+                            };
+                            libm::sqrtf(disparity * disparity + window * window)
+                        }
+                        _ => disparity,
                     };
                     let beyond = range > params.max_range;
                     let hit = sigma <= resolution && !beyond;
                     // Only a return that may mark a surface needs a normal, and only one
                     // without a normal the depth-edge test (the others never read them).
                     let surface = hit && want == (Want::Endpoints { surface: true });
-                    let free = free_length(range, sigma, slope2, resolution)
-                        .min(params.max_range)
-                        .max(0.0);
+                    let mut free = free_length(range, sigma, slope2, resolution);
+                    if footprint && want == Want::FreeSpace {
+                        // The window cannot tell a thin or nearer object within its footprint
+                        // from what lies behind it: clear no deeper than the nearest depth there.
+                        let reach = (libm::ceilf(0.5 * params.footprint_px) as usize).min(width);
+                        let nearest = nearest_depth(frame, u, v, reach).unwrap_or(z);
+                        free = free.min(nearest * ray_len - FREE_MARGIN_SIGMAS * sigma);
+                    }
+                    let free = free.min(params.max_range).max(0.0);
                     let normal = if surface {
                         let bend = (NORMAL_BEND_SIGMAS * sigma).max(0.5 * resolution);
                         surface_normal(frame, u, v, pose, &dir, bend)
@@ -717,12 +777,12 @@ fn depth_at(frame: &DepthFrame<'_>, u: Option<usize>, v: Option<usize>) -> Optio
 }
 
 /// The squared slope of the surface seen at pixel `(u, v)`, depth `z` (m): the depth image's
-/// change over [`SLOPE_SPAN_PX`] pixels either way, in depth per lateral metre, along both image
+/// change over `s` pixels either way ([`SLOPE_SPAN_PX`], or 1 where a matcher's footprint needs
+/// a slant and the wider span has no depth), in depth per lateral metre, along both image
 /// axes together (0 square to the camera, 1 at 45°). `None` near the image border or beside a
 /// pixel without depth.
-fn surface_slope2(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32) -> Option<f32> {
+fn surface_slope2(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32, s: usize) -> Option<f32> {
     let intr = frame.intrinsics();
-    let s = SLOPE_SPAN_PX;
     let depth = |uu, vv| depth_at(frame, uu, vv);
     let (Some(left), Some(right), Some(up), Some(down)) = (
         depth(u.checked_sub(s), Some(v)),
@@ -737,6 +797,20 @@ fn surface_slope2(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32) -> Option<
     let gu = (right - left) * intr.fx() / span;
     let gv = (down - up) * intr.fy() / span;
     Some(gu * gu + gv * gv)
+}
+
+/// The nearest depth (m) within `reach` pixels of `(u, v)` either way, both axes (the square
+/// window), over the pixels that have one.
+fn nearest_depth(frame: &DepthFrame<'_>, u: usize, v: usize, reach: usize) -> Option<f32> {
+    let mut nearest: Option<f32> = None;
+    for vv in v.saturating_sub(reach)..=v.saturating_add(reach) {
+        for uu in u.saturating_sub(reach)..=u.saturating_add(reach) {
+            if let Some(d) = depth_at(frame, Some(uu), Some(vv)) {
+                nearest = Some(nearest.map_or(d, |n| n.min(d)));
+            }
+        }
+    }
+    nearest
 }
 
 /// The unit normal (map frame, facing the camera) of the surface seen at pixel `(u, v)`, from
@@ -1120,6 +1194,7 @@ mod tests {
             pixel_stride: 1,
             no_return: NoReturn::ClearToMaxRange,
             depth_noise_per_m: 0.0,
+            footprint_px: 0.0,
         };
         let d = g.dims();
         let at = |x| d.linear(VoxelIndex::new(x, 8, 8));
@@ -1446,7 +1521,8 @@ mod tests {
 
     /// The surface at pixel `(u, v)` faces the camera within 45°.
     fn faces_camera(frame: &DepthFrame<'_>, u: usize, v: usize, z: f32) -> bool {
-        surface_slope2(frame, u, v, z).is_some_and(|g2| g2 <= MAX_FACING_SLOPE * MAX_FACING_SLOPE)
+        surface_slope2(frame, u, v, z, SLOPE_SPAN_PX)
+            .is_some_and(|g2| g2 <= MAX_FACING_SLOPE * MAX_FACING_SLOPE)
     }
 
     #[test]
@@ -1563,6 +1639,103 @@ mod tests {
         assert!(wall < 0.0 && wall > -SURFACE_HIDDEN, "{wall}");
     }
 
+    /// The centre pixel's `(σ, free distance)` of a 5 × 5 `depth` image (f = 50 px) looking
+    /// along +x, with the stereo noise of [`noisy`] and a `footprint` (pixels).
+    fn centre_of(depth: &[u16; 25], footprint: f32) -> (f32, f32) {
+        let intr = Intrinsics::new(50.0, 50.0, 2.0, 2.0, 5, 5).unwrap();
+        let frame = DepthFrame::new(intr, depth).unwrap();
+        let params = IntegrationParams {
+            footprint_px: footprint,
+            ..noisy()
+        };
+        let pose = looking_along_x();
+        let mut centre = None;
+        let mut k = 0;
+        for_each_pixel_ray(&frame, &pose, &params, 0.1, Want::FreeSpace, |ray| {
+            if let (12, PixelRay::Noisy { sigma, free_to, .. }) = (k, ray) {
+                centre = Some((sigma, (free_to - Point3::from(pose.translation.vector)).norm()));
+            }
+            k += 1;
+        });
+        centre.unwrap()
+    }
+
+    /// [`centre_of`] a surface whose depth grows 4 cm a row (slant 2: depth per lateral metre).
+    fn centre_of_a_slant(footprint: f32) -> (f32, f32) {
+        let mut depth = [0u16; 25];
+        for (i, d) in depth.iter_mut().enumerate() {
+            *d = 1000 + 40 * (i / 5) as u16 - 80;
+        }
+        centre_of(&depth, footprint)
+    }
+
+    #[test]
+    fn a_slanted_surface_adds_the_spread_of_the_windows_depth_span_to_sigma() {
+        // Without a footprint: σ = 0.032 m at 1 m, and the misses stop half a voxel from the
+        // slanted surface, 0.05·√(1 + 2²) = 0.112 m short of the return.
+        let (sigma, free) = centre_of_a_slant(0.0);
+        assert!((sigma - 0.032).abs() < 1e-5, "{sigma}");
+        assert!((free - (1.0 - 0.05 * 5f32.sqrt())).abs() < 1e-4, "{free}");
+        // A 4-pixel window spans 4 · 1 m / 50 px · 2 = 0.16 m of depth: its standard deviation
+        // as a uniform spread, 0.16/√12 = 0.046 m, in quadrature; and the misses stop 2σ short
+        // of the nearest depth within the window's reach (two pixels: the row at 0.92 m).
+        let (sigma, free) = centre_of_a_slant(4.0);
+        let span = 0.16f32 / 12f32.sqrt();
+        let expected = (0.032f32 * 0.032 + span * span).sqrt();
+        assert!((sigma - expected).abs() < 1e-5, "{sigma}");
+        assert!((free - (0.92 - 2.0 * expected)).abs() < 1e-4, "{free}");
+    }
+
+    #[test]
+    fn a_far_return_beside_a_near_one_clears_no_deeper_than_the_near_one() {
+        // A wall 2 m away seen square on, and one pixel beside the centre a thin post at 1 m:
+        // the window cannot tell which of the two the centre's match belongs to.
+        let mut depth = [2000u16; 25];
+        depth[11] = 1000;
+        let free_of_centre = |footprint| centre_of(&depth, footprint);
+        // Without a footprint: 2σ short of the wall, a voxel further (it faces the camera).
+        let (sigma, free) = free_of_centre(0.0);
+        assert!((free - (2.0 - 2.0 * sigma + 0.1)).abs() < 1e-4, "{free}");
+        // With a 3.5-pixel window (two pixels either way): 2σ short of the post's depth.
+        let (sigma, free) = free_of_centre(3.5);
+        assert!((free - (1.0 - 2.0 * sigma)).abs() < 1e-4, "{free}");
+    }
+
+    #[test]
+    fn a_return_whose_slant_cannot_be_measured_is_counted_not_integrated() {
+        // One return with no neighbour: a stereo matcher's isolated match.
+        let intr = Intrinsics::new(50.0, 50.0, 1.0, 1.0, 3, 3).unwrap();
+        let mut depth = [0u16; 9];
+        depth[4] = 1000;
+        let frame = DepthFrame::new(intr, &depth).unwrap();
+        let stereo = IntegrationParams {
+            no_return: NoReturn::Unknown,
+            footprint_px: 3.5,
+            ..noisy()
+        };
+        let mut f = Fixture::new();
+        let mut map = f.map();
+        let mut scratch = [0u32; 64];
+        let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &stereo, &mut scratch).unwrap();
+        assert_eq!(
+            (s.unmeasured_slant, s.returns, s.voxel_updates),
+            (1, 0, 0),
+            "{s:?}"
+        );
+        assert!((0..cube16().dims().len()).all(|i| map.is_unknown(i)));
+        // Without a footprint the same return clears the row in front of it and marks it.
+        let mut g = Fixture::new();
+        let mut map = g.map();
+        let params = IntegrationParams {
+            footprint_px: 0.0,
+            ..stereo
+        };
+        let s = integrate_with_scratch(&mut map, &frame, &looking_along_x(), &params, &mut scratch).unwrap();
+        assert_eq!((s.unmeasured_slant, s.returns), (0, 1), "{s:?}");
+        assert_eq!(map.occupancy(on_row(5)), Occupancy::Free);
+        assert_eq!(map.occupancy(on_row(10)), Occupancy::Occupied);
+    }
+
     #[test]
     fn a_bad_depth_noise_is_rejected() {
         let mut f = Fixture::new();
@@ -1578,6 +1751,15 @@ mod tests {
                 integrate(&mut map, &frame, &looking_along_x(), &params),
                 Err(IntegrateError::BadRange),
                 "{bad}"
+            );
+            let params = IntegrationParams {
+                footprint_px: bad,
+                ..noisy()
+            };
+            assert_eq!(
+                integrate(&mut map, &frame, &looking_along_x(), &params),
+                Err(IntegrateError::BadRange),
+                "footprint {bad}"
             );
         }
     }

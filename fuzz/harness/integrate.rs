@@ -71,6 +71,11 @@ pub fn run(data: &[u8]) {
             } else {
                 input.float(FLOATS)
             },
+            footprint_px: if input.u8() % 2 == 0 {
+                0.0
+            } else {
+                input.float(FLOATS)
+            },
         };
     }
     config.solve.max_iterations = u32::from(input.u8() % 64) + 1;
