@@ -335,6 +335,21 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
         &["explore", "--noise", "stereo", "--surface-estimate"],
         "give --stereo-model",
     );
+    one_line(
+        &["explore", "--depth-rules", "surface"],
+        "give --noise or --depth-from stereo",
+    );
+    one_line(
+        &[
+            "bench",
+            "--depth-from",
+            "stereo",
+            "--depth-rules",
+            "exact",
+            "--stereo-model",
+        ],
+        "give one or the other",
+    );
     one_line(&["explore", "--drift", "0.1"], "SIGMA_POS_M,SIGMA_YAW_RAD");
     one_line(&["explore", "--planner", "greedy"], "unknown planner");
 }

@@ -20,22 +20,28 @@ pub struct SensingArgs {
     /// range where the depth error stays small (see `--trusted-range`), or with `--stereo-model`.
     #[arg(long, value_parser = parse_noise)]
     noise: Option<StereoNoise>,
-    /// With `--noise` or `--depth-from stereo`: integrate with the core's stereo sensor model
-    /// (experimental, see docs/RESULTS.md) — depth error σ_z = z²σ_d/(f·b), misses stop 2σ short
-    /// of a return, a return marks a surface only where σ is at most a voxel, a hit/miss vote
-    /// per voxel per frame instead of "the hit wins", and depth used to the camera's range.
+    /// How noisy depth is integrated: `exact` (the rules of exact depth, up to
+    /// `--trusted-range`), `model` (the core's stereo sensor model: depth error
+    /// σ_z = z²σ_d/(f·b), misses stop 2σ short of a return, a return marks a surface only where
+    /// σ is at most a voxel, a hit/miss vote per voxel per frame, depth used to the camera's
+    /// range; with `--depth-from stereo` also the matcher's window: slanted surfaces are less
+    /// certain, and returns whose slant cannot be measured are left out) or `surface` (the
+    /// model, and every planner's map keeps a surface estimate across frames: 8 bytes per voxel
+    /// on the host). Default: `surface` with `--depth-from stereo`, `exact` with `--noise`
+    /// (docs/RESULTS.md, "The stereo sensor model" and after).
+    #[arg(long, value_enum)]
+    depth_rules: Option<DepthRules>,
+    /// Same as `--depth-rules model` (with `--surface-estimate`: `--depth-rules surface`).
     #[arg(long)]
     stereo_model: bool,
-    /// With `--stereo-model`: every planner's map also keeps a surface estimate across frames
-    /// (experimental, see docs/RESULTS.md, "A surface estimate kept across frames"): each voxel
-    /// near a confident return holds the weighted mean of its distance to the surface, along
-    /// normals from the depth image, and is decided by that mean; 8 bytes per voxel on the host.
+    /// With `--stereo-model`: same as `--depth-rules surface`.
     #[arg(long)]
     surface_estimate: bool,
     /// Range (m) up to which depth is integrated; farther returns only clear free space.
     /// Default with `--noise`: where a 1σ (filtered) disparity error moves the depth by 0.1 m
     /// (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered; 2.8 m with
-    /// `--depth-from stereo`. Otherwise, and with `--stereo-model`, the camera's 10 m.
+    /// `--depth-from stereo --depth-rules exact`. Otherwise, and with the stereo model, the
+    /// camera's 10 m.
     #[arg(long, value_parser = parse_positive)]
     trusted_range: Option<f32>,
     /// Fraction of pixels (0-1) that return half their true depth (gross matching errors).
@@ -50,7 +56,7 @@ pub struct SensingArgs {
     /// Depth source: `camera` (the depth camera, with `--noise` if given) or `stereo` (a
     /// textured stereo pair rendered at each scan, 2x the camera's resolution with a 0.12 m
     /// baseline, matched by the core's block matcher; pixels without a match are unknown, not
-    /// free; returns integrated up to `--trusted-range`, default 2.8 m).
+    /// free; integrated with `--depth-rules surface` unless told otherwise).
     #[arg(long, default_value = "camera", value_parser = ["camera", "stereo"])]
     depth_from: String,
     /// With `--depth-from stereo`: rendering resolution as a multiple of the 100x100 camera.
@@ -67,11 +73,23 @@ pub struct SensingArgs {
     grid_offset: Option<[f32; 3]>,
 }
 
+/// How noisy depth is integrated (`--depth-rules`).
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthRules {
+    /// The rules of exact depth, up to the trusted range.
+    Exact,
+    /// The core's stereo sensor model.
+    Model,
+    /// The stereo sensor model with a surface estimate kept across frames.
+    Surface,
+}
+
 /// The vehicle's size: how far planning keeps from obstacles, and what counts as a collision.
 #[derive(clap::Args)]
 pub struct BodyArgs {
     /// Vehicle radius in metres: obstacles are inflated by this much for planning [default:
-    /// 0.2; 0.25 with `--stereo-model`, which maps surfaces at their true thickness].
+    /// 0.2; 0.25 with the stereo model (`--depth-rules model` or `surface`, the default with
+    /// `--depth-from stereo`), which maps surfaces at their true thickness].
     #[arg(long, value_parser = parse_radius)]
     vehicle_radius: Option<f32>,
     /// Radius of the vehicle body for collision counting, metres.
@@ -187,14 +205,21 @@ impl FieldArgs {
 impl SensingArgs {
     /// Refuse combinations of the sensing flags that do not go together.
     pub fn check(&self) -> Result<(), String> {
-        if self.stereo_model && self.noise.is_none() && self.depth_from != "stereo" {
+        if self.depth_rules.is_some() && (self.stereo_model || self.surface_estimate) {
             return Err(
-                "--stereo-model chooses how noisy depth is integrated: give --noise or --depth-from stereo"
+                "--stereo-model and --surface-estimate are short for --depth-rules: give one or the other"
                     .into(),
             );
         }
         if self.surface_estimate && !self.stereo_model {
             return Err("--surface-estimate is part of the stereo sensor model: give --stereo-model".into());
+        }
+        let noisy = self.noise.is_some() || self.depth_from == "stereo";
+        if self.rules() != DepthRules::Exact && !noisy {
+            return Err(
+                "--depth-rules (or --stereo-model) chooses how noisy depth is integrated: give --noise or --depth-from stereo"
+                    .into(),
+            );
         }
         if self.depth_from == "stereo" && (self.noise.is_some() || self.outliers > 0.0 || self.textureless) {
             return Err(
@@ -204,34 +229,94 @@ impl SensingArgs {
         Ok(())
     }
 
+    /// The depth rules the flags choose (`--depth-rules`, its short forms, or the default for
+    /// the depth source).
+    pub fn rules(&self) -> DepthRules {
+        match (self.depth_rules, self.stereo_model, self.surface_estimate) {
+            (Some(rules), _, _) => rules,
+            (None, true, true) => DepthRules::Surface,
+            (None, true, false) => DepthRules::Model,
+            (None, false, _) if self.depth_from == "stereo" => DepthRules::Surface,
+            (None, false, _) => DepthRules::Exact,
+        }
+    }
+
     /// Set the camera, pose drift and depth integration of `cfg` from the sensing flags.
     pub fn apply(&self, cfg: &mut SimConfig) {
+        let rules = self.rules();
+        let model = rules != DepthRules::Exact;
         cfg.camera = cfg.camera.with_noise(self.noise);
         cfg.camera.outliers = self.outliers as f32;
         cfg.camera.textureless = self.textureless;
         cfg.drift = self.drift;
         cfg.grid_offset = self.grid_offset.unwrap_or([0.0; 3]);
-        cfg.surface_estimate = self.surface_estimate;
+        cfg.surface_estimate = rules == DepthRules::Surface;
         // Exact depth: no error (the camera's range unless --trusted-range).
         let (sigma_px, baseline_m) = self
             .noise
             .map_or((0.0, 1.0), |n| (n.filtered_sigma_px(), n.baseline_m));
         let fx = cfg.camera.intrinsics.fx();
-        sim::integrate_noisy_depth(
-            cfg,
-            sigma_px,
-            fx,
-            baseline_m,
-            self.trusted_range,
-            self.stereo_model,
-        );
+        sim::integrate_noisy_depth(cfg, sigma_px, fx, baseline_m, self.trusted_range, model);
         if self.depth_from == "stereo" {
             let rig = harmonic_sim::sensors::stereo::StereoRig {
                 scale: self.stereo_scale,
                 window: self.stereo_window,
                 ..harmonic_sim::sensors::stereo::StereoRig::default()
             };
-            sim::use_stereo_depth(cfg, rig, self.trusted_range, self.stereo_model);
+            sim::use_stereo_depth(cfg, rig, self.trusted_range, model);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Args {
+        #[command(flatten)]
+        sensing: SensingArgs,
+    }
+
+    fn rules(args: &[&str]) -> DepthRules {
+        let a = Args::try_parse_from(std::iter::once("explore").chain(args.iter().copied())).unwrap();
+        a.sensing.check().unwrap();
+        a.sensing.rules()
+    }
+
+    #[test]
+    fn matched_stereo_defaults_to_the_surface_rules_and_the_depth_camera_to_exact_ones() {
+        assert_eq!(rules(&[]), DepthRules::Exact);
+        assert_eq!(rules(&["--noise", "stereo"]), DepthRules::Exact);
+        assert_eq!(rules(&["--depth-from", "stereo"]), DepthRules::Surface);
+        assert_eq!(
+            rules(&["--depth-from", "stereo", "--depth-rules", "exact"]),
+            DepthRules::Exact
+        );
+        // The short forms keep their meaning.
+        assert_eq!(
+            rules(&["--depth-from", "stereo", "--stereo-model"]),
+            DepthRules::Model
+        );
+        assert_eq!(
+            rules(&["--noise", "stereo", "--stereo-model", "--surface-estimate"]),
+            DepthRules::Surface
+        );
+        // The rules reach the simulator's configuration: the surface estimate's storage, the
+        // sensor model's depth noise and (matched stereo only) the matcher's window.
+        let mut cfg = SimConfig::default();
+        let a = Args::try_parse_from(["explore", "--depth-from", "stereo"]).unwrap();
+        a.sensing.apply(&mut cfg);
+        assert!(cfg.surface_estimate);
+        assert!(cfg.explorer.integration.depth_noise_per_m > 0.0);
+        assert_eq!(cfg.explorer.integration.footprint_px, 3.5);
+        let mut cfg = SimConfig::default();
+        let a =
+            Args::try_parse_from(["explore", "--depth-from", "stereo", "--depth-rules", "exact"]).unwrap();
+        a.sensing.apply(&mut cfg);
+        assert!(!cfg.surface_estimate);
+        assert_eq!(cfg.explorer.integration.depth_noise_per_m, 0.0);
+        assert_eq!(cfg.explorer.integration.footprint_px, 0.0);
     }
 }

@@ -229,11 +229,19 @@ pub fn integrate_noisy_depth(
 /// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than
 /// free space, and the matcher's depth is integrated as [`integrate_noisy_depth`] says, with a
 /// disparity error of [`STEREO_TRUSTED_SIGMA_PX`] (without `sensor_model` and `trusted_range`:
-/// up to 2.8 m for the default rig).
+/// up to 2.8 m for the default rig). With `sensor_model` the matcher's window is the model's
+/// footprint ([`IntegrationParams::footprint_px`](harmonic_core::integrate::IntegrationParams)):
+/// slanted surfaces are less certain, and returns whose slant cannot be measured are left out.
 pub fn use_stereo_depth(cfg: &mut SimConfig, rig: StereoRig, trusted_range: Option<f32>, sensor_model: bool) {
     cfg.depth_source = DepthSource::Stereo(rig);
     cfg.explorer.integration.no_return = harmonic_core::integrate::NoReturn::Unknown;
     let fx = cfg.camera.intrinsics.fx() * f32::from(rig.scale.max(1));
+    // The matcher's window at the depth frame's scale: the sensor model's slant term.
+    cfg.explorer.integration.footprint_px = if sensor_model {
+        f32::from(rig.window) / f32::from(rig.scale.max(1))
+    } else {
+        0.0
+    };
     integrate_noisy_depth(
         cfg,
         STEREO_TRUSTED_SIGMA_PX,
