@@ -695,15 +695,12 @@ fn for_each_pixel_ray(
                     }
                     let disparity = params.depth_noise_per_m * z * range;
                     let sigma = match slope2 {
-                        Some(g2) if footprint => {
-                            // A match anywhere in the window's depth span on this slant: the
-                            // standard deviation of a uniform spread, along the ray.
-                            // A flat surface adds 0 whatever the footprint (never ∞ · 0).
-                            let window = if g2 > 0.0 {
-                                FOOTPRINT_SIGMA * params.footprint_px * range * libm::sqrtf(g2) / intr.fx()
-                            } else {
-                                0.0
-                            };
+                        // A match anywhere in the window's depth span on this slant: the
+                        // standard deviation of a uniform spread, along the ray (a flat surface
+                        // adds nothing, whatever the footprint).
+                        Some(g2) if footprint && g2 > 0.0 => {
+                            let window =
+                                FOOTPRINT_SIGMA * params.footprint_px * range * libm::sqrtf(g2) / intr.fx();
                             libm::sqrtf(disparity * disparity + window * window)
                         }
                         _ => disparity,
