@@ -21,7 +21,9 @@ use harmonic_core::domain::{self, DomainError, DomainStats, InflationStencil, La
 use harmonic_core::integrate::traverse;
 use harmonic_core::map::{self, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
-use harmonic_core::solve::{gauss_seidel, SolveParams, SolveStats, PSI_FRONTIER, PSI_SOURCE};
+use harmonic_core::solve::{
+    gauss_seidel, Fork, Sequential, SolveParams, SolveStats, PSI_FRONTIER, PSI_SOURCE,
+};
 use harmonic_core::streamline::{trace, Field, StreamlineError, StreamlineParams, Waypoints};
 use nalgebra::{Point3, Vector3};
 use proptest::prelude::*;
@@ -162,9 +164,18 @@ fn scattered_world(
 /// Free space with a few random occupied and unknown boxes: rooms, walls with gaps, dead ends,
 /// large interiors and long paths (the hard cases for the solvers and the tracer).
 fn box_world() -> impl Strategy<Value = World> {
-    (6usize..=14, 6usize..=14, 1usize..=8).prop_flat_map(|(nx, ny, nz)| {
+    box_world_in(6..=14, 1..=8, 6)
+}
+
+/// [`box_world`] on a grid with the given axis ranges and up to `most` boxes.
+fn box_world_in(
+    xy: std::ops::RangeInclusive<usize>,
+    z: std::ops::RangeInclusive<usize>,
+    most: usize,
+) -> impl Strategy<Value = World> {
+    (xy.clone(), xy, z).prop_flat_map(move |(nx, ny, nz)| {
         let range = |n: usize| (0..n, 0..n).prop_map(|(a, b)| (a.min(b), a.max(b)));
-        let boxes = proptest::collection::vec((cell(), range(nx), range(ny), range(nz)), 1..=6);
+        let boxes = proptest::collection::vec((cell(), range(nx), range(ny), range(nz)), 1..=most);
         (boxes, 0..nx as u16, 0..ny as u16, 0..nz as u16).prop_map(move |(boxes, x, y, z)| {
             let mut cells = vec![Cell::Free; nx * ny * nz];
             for (kind, (x0, x1), (y0, y1), (z0, z1)) in boxes {
@@ -311,6 +322,89 @@ fn solve_mg_lent(
     let mut psi = vec![0.0f32; dims.len()];
     let params = SolveParams {
         tolerance,
+        max_iterations: 2000,
+        warm_start: false,
+        screening,
+        max_error: f32::INFINITY,
+    };
+    let s = mg
+        .solve(&b.labels, &mut psi, &params, method)
+        .expect("valid solve inputs");
+    (psi, s)
+}
+
+proptest! {
+    #![proptest_config(config(12))]
+
+    /// **Two threads change nothing but the speed:** a solve lent a [`Fork`] — one that runs
+    /// the halves on two threads, and [`Sequential`], the split without threads — gives every
+    /// ψ to the bit of one without, with the same iterations and cell updates: MGPCG and
+    /// V-cycles, Laplace's equation and the screened one, with and without the neighbour
+    /// masks. The worlds are large enough (20–30 voxels across) for the fine level and the
+    /// first coarse one to be split.
+    #[test]
+    fn a_fork_gives_the_same_bits(w in prop_oneof![scattered_world(20..=30, 12..=18), box_world_in(20..=32, 12..=18, 12)]) {
+        let b = build_with_frontier(&w)?;
+        let mut s = b.clone();
+        harmonic_core::field::release_source(&mut s.labels);
+        for (problem, screening) in [(&b, 0.0), (&s, SCREENING)] {
+            for method in [Method::Pcg, Method::VCycle] {
+                for masks in [true, false] {
+                    let (alone, z) = solve_mg_forked(problem, method, screening, masks, None);
+                    for fork in [&Threads as &dyn Fork, &Sequential] {
+                        let (split, a) = solve_mg_forked(problem, method, screening, masks, Some(fork));
+                        prop_assert_eq!((a.iterations, a.cell_updates), (z.iterations, z.cell_updates));
+                        let differ = split.iter().zip(&alone).filter(|(p, q)| p.to_bits() != q.to_bits()).count();
+                        prop_assert_eq!(differ, 0, "{:?}, screening {}, masks {}: {} values differ", method, screening, masks, differ);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A [`Fork`] on two threads of the standard library (a scoped thread per join).
+struct Threads;
+
+impl Fork for Threads {
+    fn join(&self, a: &mut (dyn FnMut() + Send), b: &mut (dyn FnMut() + Send)) {
+        std::thread::scope(|s| {
+            s.spawn(b);
+            a();
+        });
+    }
+}
+
+/// [`solve_mg_lent`] to 1e-6, with `fork` lent to the solver.
+fn solve_mg_forked(
+    b: &Built,
+    method: Method,
+    screening: f32,
+    masks: bool,
+    fork: Option<&dyn Fork>,
+) -> (Vec<f32>, SolveStats) {
+    let dims = b.dims();
+    let size = scratch_size(&dims);
+    let mut values = vec![0.0f32; size.values];
+    let mut clabels = vec![Label::Outside; size.labels];
+    let mut faces = vec![[0u8; 4]; size.faces];
+    let mut krylov = vec![0.0f32; size.krylov];
+    let mut mask_bytes = vec![0u8; if masks { size.masks } else { 0 }];
+    let mut mg = Multigrid::new(
+        dims,
+        MultigridStorage {
+            values: values.as_mut_slice().into(),
+            labels: &mut clabels,
+            faces: &mut faces,
+            krylov: &mut krylov,
+            masks: &mut mask_bytes,
+        },
+    )
+    .expect("scratch sized by scratch_size");
+    mg.set_fork(fork);
+    let mut psi = vec![0.0f32; dims.len()];
+    let params = SolveParams {
+        tolerance: 1e-6,
         max_iterations: 2000,
         warm_start: false,
         screening,

@@ -33,6 +33,48 @@ use crate::map::Dims;
 pub mod multigrid;
 pub mod thesis;
 
+/// Runs two independent halves of a solve's work, at the same time where the platform can.
+///
+/// [`multigrid::Multigrid::set_fork`] lends one: each pass over the fine level (red-black half
+/// sweeps, residuals, the restriction to the first coarse level, the interpolation from it, the
+/// conjugate-gradient updates) is then cut into two slabs of z-planes handed to
+/// [`Fork::join`]. A half sweep leaves the two planes where its slabs meet to the caller's
+/// thread afterwards (each reads the other); the restriction visits those two planes in both
+/// halves, each adding only into its own coarse planes. Every cell gets the same arithmetic in
+/// the same order as without a fork (a half sweep's cells depend only on the other colour; the
+/// sums into a coarse cell keep their order), so a solve gives the same bits, iterations and
+/// cell updates with or without one. Coarse levels and the norms and dot products stay on the
+/// caller's thread. `no_std` has no threads: the host lends a fork on its thread pool, the
+/// firmware none.
+pub trait Fork: Sync {
+    /// Runs `a` and `b`, each exactly once, and returns when both have finished.
+    fn join(&self, a: &mut (dyn FnMut() + Send), b: &mut (dyn FnMut() + Send));
+}
+
+/// A [`Fork`] that runs both halves on the caller's thread, one after the other: the split
+/// code path without threads (tests use it to check that the split changes no bit).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Sequential;
+
+impl Fork for Sequential {
+    fn join(&self, a: &mut (dyn FnMut() + Send), b: &mut (dyn FnMut() + Send)) {
+        a();
+        b();
+    }
+}
+
+/// Fewest cells (active planes × plane size) worth splitting between two threads: below this
+/// a join costs more than half the work saves.
+pub(crate) const MIN_SPLIT_CELLS: usize = 8192;
+
+/// The plane where a [`Fork`] splits the active planes `zs` of a grid whose planes hold
+/// `plane` cells, if there are enough of them (and at least four planes: each half must keep
+/// one plane away from the two done afterwards).
+#[inline]
+pub(crate) fn split_plane(zs: &core::ops::Range<usize>, plane: usize) -> Option<usize> {
+    (zs.len() >= 4 && zs.len() * plane >= MIN_SPLIT_CELLS).then_some(zs.start + (zs.len() >> 1))
+}
+
 /// When a solve stops.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SolveParams {
@@ -542,7 +584,7 @@ impl Bf16 {
 
 /// How the solvers store a value: `f32` everywhere, or [`Bf16`] on multigrid coarse levels.
 /// Arithmetic is always `f32`.
-pub(crate) trait Stored: Copy + Default + 'static {
+pub(crate) trait Stored: Copy + Default + Send + Sync + 'static {
     /// True for `f32`, the fine level's storage: only there can [neighbour
     /// masks](neighbour_mask) be lent, so other formats need no code for them.
     const FINE: bool = false;
@@ -641,23 +683,60 @@ impl<'r, T: Stored> Stencil<'r, T> {
         before: &'r [T],
         after: &'r [T],
     ) -> Self {
+        Self::at::<false>(dims, screen, y, z, 0, labels, before, after)
+    }
+
+    /// [`Stencil::new`] over a slab of values that starts at linear index `base` of the grid:
+    /// `before` and `after` are the slab's values around the row, `labels` the whole grid's.
+    /// A neighbour row outside the slab reads as outside the domain, so the caller keeps every
+    /// row it passes at least one plane inside the slab (or at the grid's edge).
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn new_in(
+        dims: &Dims,
+        screen: &Screen,
+        y: usize,
+        z: usize,
+        base: usize,
+        labels: &'r [Label],
+        before: &'r [T],
+        after: &'r [T],
+    ) -> Self {
+        Self::at::<true>(dims, screen, y, z, base, labels, before, after)
+    }
+
+    /// [`Stencil::new_in`]; `SHIFTED` false ignores `base` (0), the code of an unsplit pass.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn at<const SHIFTED: bool>(
+        dims: &Dims,
+        screen: &Screen,
+        y: usize,
+        z: usize,
+        base: usize,
+        labels: &'r [Label],
+        before: &'r [T],
+        after: &'r [T],
+    ) -> Self {
         let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
         let nxy = nx * ny;
-        let start = before.len();
+        // Row starts within the slab (values) and within the grid (labels).
+        let local = before.len();
+        let start = if SHIFTED { base + local } else { local };
         let lrow =
             |from: Option<usize>| -> &'r [Label] { from.and_then(|s| labels.get(s..s + nx)).unwrap_or(&[]) };
-        let below = |back: usize| -> Option<usize> { start.checked_sub(back) };
+        let below = |back: usize| -> Option<usize> { local.checked_sub(back) };
         let (ym, zm) = (below(nx).filter(|_| y > 0), below(nxy).filter(|_| z > 0));
         let (yp, zp) = (
-            Some(start + nx).filter(|_| y + 1 < ny),
-            Some(start + nxy).filter(|_| z + 1 < nz),
+            Some(local + nx).filter(|_| y + 1 < ny),
+            Some(local + nxy).filter(|_| z + 1 < nz),
         );
         let vbefore = |s: Option<usize>| -> &'r [T] { s.and_then(|s| before.get(s..s + nx)).unwrap_or(&[]) };
-        // `after` starts at start + nx.
+        // `after` starts at local + nx.
         let vafter = |s: Option<usize>| -> &'r [T] {
-            s.and_then(|s| after.get(s - start - nx..s - start))
+            s.and_then(|s| after.get(s - local - nx..s - local))
                 .unwrap_or(&[])
         };
+        let global = |s: Option<usize>| if SHIFTED { s.map(|s| s + base) } else { s };
         Stencil {
             screen: *screen,
             y,
@@ -666,7 +745,12 @@ impl<'r, T: Stored> Stencil<'r, T> {
             x0: 0,
             x1: nx,
             labels: lrow(Some(start)),
-            nl: [lrow(ym), lrow(yp), lrow(zm), lrow(zp)],
+            nl: [
+                lrow(global(ym)),
+                lrow(global(yp)),
+                lrow(global(zm)),
+                lrow(global(zp)),
+            ],
             nv: [vbefore(ym), vafter(yp), vbefore(zm), vafter(zp)],
         }
     }
@@ -1086,6 +1170,13 @@ impl Active {
         self.z0..self.z1
     }
 
+    /// The same box with its planes limited to `zs` (within the box's own).
+    pub(crate) fn with_zs(mut self, zs: core::ops::Range<usize>) -> Self {
+        self.z0 = zs.start.max(self.z0);
+        self.z1 = zs.end.min(self.z1).max(self.z0);
+        self
+    }
+
     /// Calls `f(y, z)` for each active row, z-major.
     #[inline(always)]
     pub(crate) fn rows(&self, mut f: impl FnMut(usize, usize)) {
@@ -1145,6 +1236,107 @@ pub(crate) fn for_each_row_mut<T: Stored>(
             );
         }
     });
+}
+
+/// [`for_each_row_mut`] over a slab of values that starts at linear index `base` (see
+/// [`Stencil::new_in`]); rows of `active` outside the slab are skipped.
+pub(crate) fn for_each_row_mut_in<T: Stored>(
+    dims: &Dims,
+    active: &Active,
+    screen: &Screen,
+    labels: &[Label],
+    values: &mut [T],
+    base: usize,
+    mut f: impl FnMut(&Stencil<'_, T>, &[Cell<T>]),
+) {
+    let (nx, ny) = (dims.nx(), dims.ny());
+    active.rows(|y, z| {
+        let Some(start) = (nx * (y + ny * z)).checked_sub(base) else {
+            return;
+        };
+        let (before, rest) = values.split_at_mut(start.min(values.len()));
+        if rest.len() >= nx {
+            let (row, after) = rest.split_at_mut(nx);
+            let row = Cell::from_mut(row).as_slice_of_cells();
+            f(
+                &Stencil::new_in(dims, screen, y, z, base, labels, before, after).within(active.xs()),
+                row,
+            );
+        }
+    });
+}
+
+/// [`for_each_row_mut`] for a pass whose rows depend only on values it does not write (a
+/// red-black half sweep), cut in two by a [`Fork`] if one is given and there are enough
+/// planes; `f` returns a count per row, and the total is returned. Each half gets the planes
+/// that read no plane of the other; the two planes where they meet follow on this thread.
+pub(crate) fn for_each_row_mut_split<T: Stored>(
+    fork: Option<&dyn Fork>,
+    dims: &Dims,
+    active: &Active,
+    screen: &Screen,
+    labels: &[Label],
+    values: &mut [T],
+    f: &(impl Fn(&Stencil<'_, T>, &[Cell<T>]) -> u64 + Sync),
+) -> u64 {
+    let zs = active.zs();
+    let (Some(fork), Some(m)) = (fork, split_plane(&zs, dims.nx() * dims.ny())) else {
+        let mut total = 0u64;
+        for_each_row_mut(dims, active, screen, labels, values, |st, row| {
+            total += f(st, row)
+        });
+        return total;
+    };
+    let plane = dims.nx() * dims.ny();
+    let (lo, hi) = values.split_at_mut((m * plane).min(values.len()));
+    let (a, b) = (active.with_zs(zs.start..m - 1), active.with_zs(m + 1..zs.end));
+    let (mut ta, mut tb) = (0u64, 0u64);
+    fork.join(
+        &mut || for_each_row_mut(dims, &a, screen, labels, lo, |st, row| ta += f(st, row)),
+        &mut || {
+            for_each_row_mut_in(dims, &b, screen, labels, hi, m * plane, |st, row| {
+                tb += f(st, row)
+            })
+        },
+    );
+    let mut tail = 0u64;
+    let meet = active.with_zs(m - 1..m + 1);
+    for_each_row_mut(dims, &meet, screen, labels, values, |st, row| tail += f(st, row));
+    ta + tb + tail
+}
+
+/// [`for_each_row`] for a pass that writes one output row per row of `values` (a residual):
+/// `f(stencil, row, out_row)`, cut in two by a [`Fork`] if one is given. `out` is as long
+/// as the grid; the rows outside `active` are left alone.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn for_each_row_out_split<T: Stored>(
+    fork: Option<&dyn Fork>,
+    dims: &Dims,
+    active: &Active,
+    screen: &Screen,
+    labels: &[Label],
+    values: &[T],
+    out: &mut [f32],
+    f: &(impl Fn(&Stencil<'_, T>, &[T], &mut [f32]) + Sync),
+) {
+    let nx = dims.nx();
+    let run = |active: &Active, out: &mut [f32], base: usize| {
+        for_each_row(dims, active, screen, labels, values, |st, row| {
+            let from = st.start.checked_sub(base).unwrap_or(usize::MAX - nx);
+            if let Some(out_row) = out.get_mut(from..from + nx) {
+                f(st, row, out_row);
+            }
+        });
+    };
+    let zs = active.zs();
+    let (Some(fork), Some(m)) = (fork, split_plane(&zs, nx * dims.ny())) else {
+        run(active, out, 0);
+        return;
+    };
+    let plane = nx * dims.ny();
+    let (lo, hi) = out.split_at_mut((m * plane).min(out.len()));
+    let (a, b) = (active.with_zs(zs.start..m), active.with_zs(m..zs.end));
+    fork.join(&mut || run(&a, lo, 0), &mut || run(&b, hi, m * plane));
 }
 
 /// Validates a solve's inputs, trims the buffers to the grid and sets the Dirichlet values

@@ -60,9 +60,9 @@ use core::cell::Cell;
 use heapless::Vec as HVec;
 
 use super::{
-    build_masks, error_estimate, error_met, for_each_row, for_each_row_mut, residual_with, Active, Bf16,
-    Contraction, Residual, RowValues, Screen, SolveError, SolveParams, SolveStats, Stored, MASK_INTERIOR,
-    MASK_OPEN, OPEN_RUN,
+    build_masks, error_estimate, error_met, for_each_row_mut_split, for_each_row_out_split, residual_with,
+    split_plane, Active, Bf16, Contraction, Fork, Residual, RowValues, Screen, SolveError, SolveParams,
+    SolveStats, Stencil, Stored, MASK_INTERIOR, MASK_OPEN, OPEN_RUN,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -277,6 +277,8 @@ pub struct Multigrid<'a> {
     fine_active: Active,
     /// Screening of the current problem on the fine level.
     screen: Screen,
+    /// Splits the fine level's passes between two threads ([`Multigrid::set_fork`]).
+    fork: Option<&'a dyn Fork>,
 }
 
 /// The coarse levels of a solve, lent to the cycles: their layout, values (stored as `U`),
@@ -310,6 +312,7 @@ impl<'v, T> View<'v, T> {
             x,
             b,
             screen: fine_screen.coarser(depth),
+            fork: None,
         }
     }
 }
@@ -330,6 +333,9 @@ struct View<'v, T = f32> {
     b: Option<&'v [T]>,
     /// This level's screening (its diagonal shift in units of a fine face).
     screen: Screen,
+    /// The fine level's [`Fork`], if one was lent ([`Multigrid::set_fork`]); `None` on coarse
+    /// levels, whose passes are too small to split.
+    fork: Option<&'v dyn Fork>,
 }
 
 impl<'a> Multigrid<'a> {
@@ -376,7 +382,15 @@ impl<'a> Multigrid<'a> {
             full_multigrid: true,
             fine_active: Active::all(&fine),
             screen: Screen::NONE,
+            fork: None,
         })
+    }
+
+    /// Lends a [`Fork`] that runs the fine level's passes in two halves at once (the host's
+    /// thread pool); `None` (the default) runs them on the caller's thread. Either way a solve
+    /// gives the same bits.
+    pub fn set_fork(&mut self, fork: Option<&'a dyn Fork>) {
+        self.fork = fork;
     }
 
     /// Whether cold solves (`warm_start == false`) start with full multigrid (the default).
@@ -475,6 +489,7 @@ impl<'a> Multigrid<'a> {
                     x: &mut *phi,
                     b: None,
                     screen,
+                    fork: self.fork,
                 };
                 let (work, correction) = with_hierarchy!(
                     &mut self.values,
@@ -525,6 +540,7 @@ impl<'a> Multigrid<'a> {
             x: phi,
             b: None,
             screen: self.screen,
+            fork: self.fork,
         };
         with_hierarchy!(
             &mut self.values,
@@ -606,8 +622,10 @@ impl<'a> Multigrid<'a> {
             pins,
             fine_active,
             screen,
+            fork,
             ..
         } = self;
+        let fork: Option<&dyn Fork> = *fork;
         let masks: &[u8] = masks;
         let fine_active = *fine_active;
         let screen = *screen;
@@ -624,6 +642,7 @@ impl<'a> Multigrid<'a> {
                 x: z,
                 b: Some(r),
                 screen,
+                fork,
             };
             with_hierarchy!(values, levels, coarse_labels, faces, pins, |h| fine_cycle(
                 fine, h
@@ -640,7 +659,7 @@ impl<'a> Multigrid<'a> {
         let Some(z) = rest.get_mut(..n) else {
             return (res, steps);
         };
-        residual_into(&dims, &fine_active, &screen, (labels, masks), phi, None, r);
+        residual_into(fork, &dims, &fine_active, &screen, (labels, masks), phi, None, r);
         let b_norm = libm::sqrt(b2);
         if b_norm == 0.0 {
             return (res, steps);
@@ -650,7 +669,7 @@ impl<'a> Multigrid<'a> {
         // f32 drift between CG's recursive residual and the true one cannot stall the solve.
         for pass in 0..MAX_RESTARTS {
             if pass > 0 {
-                residual_into(&dims, &fine_active, &screen, (labels, masks), phi, None, r);
+                residual_into(fork, &dims, &fine_active, &screen, (labels, masks), phi, None, r);
                 res = residual_with(&dims, &fine_active, &screen, (labels, masks), phi, b2);
                 stats.cell_updates += 2 * n as u64;
             }
@@ -665,27 +684,33 @@ impl<'a> Multigrid<'a> {
             let start = res.relative;
             while stats.iterations < params.max_iterations {
                 // z ← A p
-                apply(&dims, &fine_active, &screen, (labels, masks), p, z);
+                apply(fork, &dims, &fine_active, &screen, (labels, masks), p, z);
                 stats.cell_updates += n as u64;
                 let pq = dot(p, z);
                 if !(pq > 0.0 && rho.is_finite()) {
                     break;
                 }
                 let alpha = (rho / pq) as f32;
-                let mut change = 0.0f32;
-                for i in 0..n {
-                    if let (Some(l), Some(x), Some(pi), Some(ri), Some(qi)) =
-                        (labels.get(i), phi.get_mut(i), p.get(i), r.get_mut(i), z.get(i))
-                    {
-                        if *l == Label::Interior {
-                            *x += alpha * pi;
-                            *ri -= alpha * qi;
-                            if (alpha * pi).abs() > change {
-                                change = (alpha * pi).abs();
+                let change = split_cells(
+                    fork,
+                    n,
+                    (&mut *phi, &mut *r),
+                    (&*p, &*z),
+                    labels,
+                    |(x, r), (p, q), l| {
+                        let mut change = 0.0f32;
+                        for ((((x, r), p), q), l) in x.iter_mut().zip(r).zip(p).zip(q).zip(l) {
+                            if *l == Label::Interior {
+                                *x += alpha * p;
+                                *r -= alpha * q;
+                                if (alpha * p).abs() > change {
+                                    change = (alpha * p).abs();
+                                }
                             }
                         }
-                    }
-                }
+                        change
+                    },
+                );
                 stats.iterations += 1;
                 let recursive = rel(r);
                 steps.push_with_residual(change, recursive);
@@ -699,9 +724,19 @@ impl<'a> Multigrid<'a> {
                 let rho_new = dot(r, z);
                 let beta = (rho_new / rho) as f32;
                 rho = rho_new;
-                for (pi, zi) in p.iter_mut().zip(z.iter()) {
-                    *pi = zi + beta * *pi;
-                }
+                split_cells(
+                    fork,
+                    n,
+                    (&mut *p, &mut []),
+                    (&*z, &[]),
+                    labels,
+                    |(p, _), (z, _), _| {
+                        for (pi, zi) in p.iter_mut().zip(z) {
+                            *pi = zi + beta * *pi;
+                        }
+                        0.0
+                    },
+                );
             }
         }
         // Report the true residual, not the recurrence's.
@@ -1020,6 +1055,51 @@ fn pin_sources<T: Stored>(pins: &[[usize; 3]], depth: usize, dims: &Dims, x: &mu
 }
 
 /// Dot product summed in f32 over chunks of 64, chunks in f64.
+fn cut(v: &[f32], at: usize) -> (&[f32], &[f32]) {
+    v.split_at(at.min(v.len()))
+}
+
+fn cut_mut(v: &mut [f32], at: usize) -> (&mut [f32], &mut [f32]) {
+    let at = at.min(v.len());
+    v.split_at_mut(at)
+}
+
+/// Runs `f` over the first `n` cells of two written and two read vectors (an empty one stays
+/// empty) and their labels: whole, or in two halves through `fork`. Returns the larger of the
+/// halves' results (a largest change). Every cell's arithmetic is its own, so the split changes
+/// no bit.
+#[allow(clippy::type_complexity)]
+fn split_cells(
+    fork: Option<&dyn Fork>,
+    n: usize,
+    (w0, w1): (&mut [f32], &mut [f32]),
+    (r0, r1): (&[f32], &[f32]),
+    labels: &[Label],
+    f: impl Fn((&mut [f32], &mut [f32]), (&[f32], &[f32]), &[Label]) -> f32 + Sync,
+) -> f32 {
+    let (w0, _) = cut_mut(w0, n);
+    let (w1, _) = cut_mut(w1, n);
+    let (r0, _) = cut(r0, n);
+    let (r1, _) = cut(r1, n);
+    let (labels, _) = labels.split_at(n.min(labels.len()));
+    let Some(fork) = fork.filter(|_| n >= 2 * super::MIN_SPLIT_CELLS) else {
+        return f((w0, w1), (r0, r1), labels);
+    };
+    let m = n >> 1;
+    let ((w0a, w0b), (w1a, w1b)) = (cut_mut(w0, m), cut_mut(w1, m));
+    let ((r0a, r0b), (r1a, r1b)) = (cut(r0, m), cut(r1, m));
+    let (la, lb) = labels.split_at(m.min(labels.len()));
+    let (mut a, mut b) = (0.0f32, 0.0f32);
+    fork.join(&mut || a = f((&mut *w0a, &mut *w1a), (r0a, r1a), la), &mut || {
+        b = f((&mut *w0b, &mut *w1b), (r0b, r1b), lb)
+    });
+    if b > a {
+        b
+    } else {
+        a
+    }
+}
+
 fn dot(a: &[f32], b: &[f32]) -> f64 {
     let mut total = 0.0f64;
     for (ca, cb) in a.chunks(64).zip(b.chunks(64)) {
@@ -1031,6 +1111,7 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
 
 /// `out ← A p` on interior cells (0 elsewhere); `p` must be 0 off the interior.
 fn apply(
+    fork: Option<&dyn Fork>,
     dims: &Dims,
     active: &Active,
     screen: &Screen,
@@ -1038,14 +1119,16 @@ fn apply(
     p: &[f32],
     out: &mut [f32],
 ) {
-    residual_into(dims, active, screen, cells, p, None, out);
+    residual_into(fork, dims, active, screen, cells, p, None, out);
     for o in out.iter_mut() {
         *o = -*o;
     }
 }
 
 /// `out ← b − L x` on interior cells (0 elsewhere).
+#[allow(clippy::too_many_arguments)]
 fn residual_into(
+    fork: Option<&dyn Fork>,
     dims: &Dims,
     active: &Active,
     screen: &Screen,
@@ -1055,15 +1138,17 @@ fn residual_into(
     out: &mut [f32],
 ) {
     if masks.len() >= dims.len() {
-        residual_rows_into::<true>(dims, active, screen, (labels, masks), x, b, out);
+        residual_rows_into::<true>(fork, dims, active, screen, (labels, masks), x, b, out);
     } else {
-        residual_rows_into::<false>(dims, active, screen, (labels, &[]), x, b, out);
+        residual_rows_into::<false>(fork, dims, active, screen, (labels, &[]), x, b, out);
     }
 }
 
 /// [`residual_into`] with the [neighbour masks](super::neighbour_mask) (`MASKS`) or the
 /// labels: one instance each, so the firmware's (labels) is the code it always was.
+#[allow(clippy::too_many_arguments)]
 fn residual_rows_into<const MASKS: bool>(
+    fork: Option<&dyn Fork>,
     dims: &Dims,
     active: &Active,
     screen: &Screen,
@@ -1074,12 +1159,8 @@ fn residual_rows_into<const MASKS: bool>(
 ) {
     // Rows outside the active box hold no interior cell: their residual is 0.
     out.fill(0.0);
-    for_each_row(dims, active, screen, labels, x, |st, row| {
-        let n = row.len();
-        let b_row = b.and_then(|b| b.get(st.start..st.start + n));
-        let Some(out_row) = out.get_mut(st.start..st.start + n) else {
-            return;
-        };
+    let each_row = |st: &Stencil<'_, f32>, row: &[f32], out_row: &mut [f32]| {
+        let b_row = b.and_then(|b| b.get(st.start..st.start + row.len()));
         let each = |x: usize, r: f32, _: u32| {
             if let Some(o) = out_row.get_mut(x) {
                 *o = r;
@@ -1090,7 +1171,8 @@ fn residual_rows_into<const MASKS: bool>(
         } else {
             super::row_residuals(st, row, b_row, each);
         }
-    });
+    };
+    for_each_row_out_split(fork, dims, active, screen, labels, x, out, &each_row);
 }
 
 /// One red-black half sweep: relaxes interior cells with `(x + y + z) % 2 == colour`, in place,
@@ -1109,11 +1191,11 @@ fn relax<T: Stored>(v: &mut View<'_, T>, colour: usize) -> u64 {
 /// [`relax`] with the [neighbour masks](super::neighbour_mask) (`MASKS`) or the labels: one
 /// instance each, so the firmware's (labels) is the code it always was.
 fn relax_rows<T: Stored, const MASKS: bool>(v: &mut View<'_, T>, colour: usize) -> u64 {
-    let mut updates = 0u64;
     let b = v.b;
     let screen = v.screen;
     let masks = v.masks;
-    for_each_row_mut(&v.dims, &v.active, &screen, v.labels, v.x, |st, row| {
+    let each_row = |st: &Stencil<'_, T>, row: &[Cell<T>]| -> u64 {
+        let mut updates = 0u64;
         let nx = row.len();
         let b_row = b.and_then(|b| b.get(st.start..st.start + nx));
         let first = (colour + st.y + st.z) & 1;
@@ -1150,8 +1232,11 @@ fn relax_rows<T: Stored, const MASKS: bool>(v: &mut View<'_, T>, colour: usize) 
                 }
             }
         }
-    });
-    updates
+        updates
+    };
+    // A half sweep's cells read only the other colour: the fork may split it (fine level).
+    let fork = if T::FINE { v.fork } else { None };
+    for_each_row_mut_split(fork, &v.dims, &v.active, &screen, v.labels, v.x, &each_row)
 }
 
 /// The first `x ≥ from` of the colour whose first cell is `first` (0 or 1): red-black sweeps
@@ -1392,6 +1477,40 @@ fn restrict_rows<T: Stored, U: Stored, const MASKS: bool>(
     clabels: &[Label],
     cb: &mut [U],
 ) {
+    let zs = fine.active.zs();
+    let fork = if T::FINE { fine.fork } else { None };
+    let czs = 0..coarse.nz();
+    let (Some(fork), Some(cm), true) = (
+        fork,
+        split_plane(&czs, coarse.nx() * coarse.ny()),
+        coarse.nx() <= ROW_BUF,
+    ) else {
+        restrict_planes::<T, U, MASKS>(fine, zs, coarse, clabels, cb, 0);
+        return;
+    };
+    // Each half sums into its own coarse planes, from every fine plane with a parent there, in
+    // the order of the whole pass: fine planes 2·cm − 1 and 2·cm, whose parents straddle the
+    // split, are visited by both halves (each adds to its own planes only).
+    let cplane = coarse.nx() * coarse.ny();
+    let (lo, hi) = cb.split_at_mut((cm * cplane).min(cb.len()));
+    let a = zs.start..zs.end.min(2 * cm + 1);
+    let b = zs.start.max(2 * cm - 1)..zs.end;
+    fork.join(
+        &mut || restrict_planes::<T, U, MASKS>(fine, a.clone(), coarse, clabels, lo, 0),
+        &mut || restrict_planes::<T, U, MASKS>(fine, b.clone(), coarse, clabels, hi, cm * cplane),
+    );
+}
+
+/// [`restrict_rows`] from the fine planes `zs` into the coarse values `cb`, a slab starting at
+/// coarse linear index `cbase`: parents outside the slab are left to the other half.
+fn restrict_planes<T: Stored, U: Stored, const MASKS: bool>(
+    fine: &View<'_, T>,
+    zs: core::ops::Range<usize>,
+    coarse: &Dims,
+    clabels: &[Label],
+    cb: &mut [U],
+    cbase: usize,
+) {
     let cnx = coarse.nx();
     let zeros: [U; 0] = [];
     let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
@@ -1399,7 +1518,7 @@ fn restrict_rows<T: Stored, U: Stored, const MASKS: bool>(
     let x_all: &[T] = fine.x;
     let (mut cm_buf, mut acc_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
     let collapsed = cnx <= ROW_BUF;
-    for z in fine.active.zs() {
+    for z in zs.clone() {
         for y in fine.active.ys() {
             let start = fnx * (y + fny * z);
             // Mask only: coarse values are not read here.
@@ -1436,7 +1555,7 @@ fn restrict_rows<T: Stored, U: Stored, const MASKS: bool>(
                 for (&(row_start, wyz), &(l, _, _)) in starts.iter().take(n).zip(&parents.rows) {
                     for (c, wx) in [(c0, 0.75), (c1, 0.25)] {
                         if c < cnx && l.get(c) == Some(&Label::Interior) {
-                            if let Some(b) = cb.get_mut(row_start + c) {
+                            if let Some(b) = (row_start + c).checked_sub(cbase).and_then(|i| cb.get_mut(i)) {
                                 *b = U::store(b.load() + wyz * wx * s);
                             }
                         }
@@ -1477,7 +1596,8 @@ fn restrict_rows<T: Stored, U: Stored, const MASKS: bool>(
             if collapsed {
                 let acc: &[f32] = acc_buf.get(..cnx).unwrap_or(&[]);
                 for (&(row_start, wyz), &(l, _, _)) in starts.iter().take(n).zip(&parents.rows) {
-                    let Some(b_row) = cb.get_mut(row_start..row_start + cnx) else {
+                    let Some(b_row) = row_start.checked_sub(cbase).and_then(|r| cb.get_mut(r..r + cnx))
+                    else {
                         continue;
                     };
                     for ((b, a), l) in b_row.iter_mut().zip(acc).zip(l) {
@@ -1514,9 +1634,52 @@ fn interpolate_into<T: Stored, U: Stored>(
     cx: &[U],
     set: bool,
 ) -> f32 {
+    let zs = fine.active.zs();
+    let fork = if T::FINE { fine.fork } else { None };
+    let (Some(fork), Some(m)) = (fork, split_plane(&zs, fine.dims.nx() * fine.dims.ny())) else {
+        return interpolate_planes(
+            (&fine.dims, &fine.active, fine.labels),
+            zs,
+            fine.x,
+            0,
+            coarse,
+            clabels,
+            cx,
+            set,
+        );
+    };
+    // Every fine cell is written from coarse values only: the planes split anywhere.
+    let plane = fine.dims.nx() * fine.dims.ny();
+    let at = (&fine.dims, &fine.active, fine.labels);
+    let (lo, hi) = fine.x.split_at_mut((m * plane).min(fine.x.len()));
+    let (mut a, mut b) = (0.0f32, 0.0f32);
+    fork.join(
+        &mut || a = interpolate_planes(at, zs.start..m, lo, 0, coarse, clabels, cx, set),
+        &mut || b = interpolate_planes(at, m..zs.end, hi, m * plane, coarse, clabels, cx, set),
+    );
+    if b > a {
+        b
+    } else {
+        a
+    }
+}
+
+/// [`interpolate_into`] over the planes `zs` of the fine level (its dimensions, active box and
+/// labels), whose values there are `x` (a slab starting at linear index `base`).
+#[allow(clippy::too_many_arguments)]
+fn interpolate_planes<T: Stored, U: Stored>(
+    (dims, active, labels): (&Dims, &Active, &[Label]),
+    zs: core::ops::Range<usize>,
+    x: &mut [T],
+    base: usize,
+    coarse: &Dims,
+    clabels: &[Label],
+    cx: &[U],
+    set: bool,
+) -> f32 {
     let mut largest = 0.0f32;
-    let xs = fine.active.xs();
-    let (fnx, fny) = (fine.dims.nx(), fine.dims.ny());
+    let xs = active.xs();
+    let (fnx, fny) = (dims.nx(), dims.ny());
     let cnx = coarse.nx();
     let (mut cv_buf, mut cm_buf) = ([0.0f32; ROW_BUF], [0.0f32; ROW_BUF]);
     let mut apply = |v: &mut T, add: f32| {
@@ -1526,11 +1689,15 @@ fn interpolate_into<T: Stored, U: Stored>(
         }
         *v = T::store(add + if set { 0.0 } else { v.load() });
     };
-    for z in fine.active.zs() {
-        for y in fine.active.ys() {
+    for z in zs {
+        for y in active.ys() {
             // Only the active columns: interior cells lie nowhere else.
-            let (from, to) = (fnx * (y + fny * z) + xs.start, fnx * (y + fny * z) + xs.end);
-            let (Some(l_row), Some(row)) = (fine.labels.get(from..to), fine.x.get_mut(from..to)) else {
+            let from = fnx * (y + fny * z) + xs.start;
+            let to = from + xs.len();
+            let (Some(l_row), Some(row)) = (
+                labels.get(from..to),
+                from.checked_sub(base).and_then(|f| x.get_mut(f..f + xs.len())),
+            ) else {
                 continue;
             };
             let parents = Parents::of(y, z, coarse, clabels, cx);
@@ -1654,6 +1821,7 @@ fn fine_cycle<U: Stored>(mut fine: View<'_>, coarse: Hierarchy<'_, U>) -> (u64, 
         x,
         b,
         screen,
+        fork,
     } = fine;
     let (cycle, correction) = vcycle(
         View {
@@ -1665,6 +1833,7 @@ fn fine_cycle<U: Stored>(mut fine: View<'_>, coarse: Hierarchy<'_, U>) -> (u64, 
             x: &mut *x,
             b,
             screen,
+            fork,
         },
         levels,
         values,
@@ -1680,6 +1849,7 @@ fn fine_cycle<U: Stored>(mut fine: View<'_>, coarse: Hierarchy<'_, U>) -> (u64, 
         x,
         b,
         screen,
+        fork,
     };
     (work + cycle + local_smooth(&mut fine, pins), correction)
 }
@@ -1816,6 +1986,76 @@ mod tests {
         let s = mg.solve(labels, &mut phi, &params, method).unwrap();
         let history = mg.history().to_vec();
         (phi, s, history)
+    }
+
+    /// Two threads for [`Multigrid::set_fork`]: a scoped thread per join.
+    struct Threads;
+
+    impl Fork for Threads {
+        fn join(&self, a: &mut (dyn FnMut() + Send), b: &mut (dyn FnMut() + Send)) {
+            std::thread::scope(|s| {
+                s.spawn(b);
+                a();
+            });
+        }
+    }
+
+    /// A grid large enough that every split path runs — the fine level's sweeps, residuals and
+    /// interpolation, the first coarse level's sweeps, and the restriction into it (32 × 24 × 12
+    /// coarse cells) — gives the same bits, iterations and cell updates with a fork as without.
+    #[test]
+    fn a_fork_splits_every_pass_without_changing_a_bit() {
+        let (dims, laplace) = rooms(64, 48, 24);
+        let mut screened = laplace.clone();
+        crate::field::release_source(&mut screened);
+        for (labels, screening) in [(&laplace, 0.0), (&screened, 0.09)] {
+            for method in [Method::Pcg, Method::VCycle] {
+                let solve = |fork: Option<&dyn Fork>| {
+                    let size = scratch_size(&dims);
+                    let mut values = vec![0.0f32; size.values];
+                    let mut clabels = vec![Label::Outside; size.labels];
+                    let mut faces = vec![[0u8; 4]; size.faces];
+                    let mut krylov = vec![0.0f32; size.krylov];
+                    let mut masks = vec![0u8; size.masks];
+                    let mut mg = Multigrid::new(
+                        dims,
+                        MultigridStorage {
+                            values: values.as_mut_slice().into(),
+                            labels: &mut clabels,
+                            faces: &mut faces,
+                            krylov: &mut krylov,
+                            masks: &mut masks,
+                        },
+                    )
+                    .unwrap();
+                    mg.set_fork(fork);
+                    let mut psi = vec![0.0f32; dims.len()];
+                    let params = SolveParams {
+                        tolerance: 1e-6,
+                        max_iterations: 400,
+                        screening,
+                        ..SolveParams::default()
+                    };
+                    let s = mg.solve(labels, &mut psi, &params, method).unwrap();
+                    (psi, s.iterations, s.cell_updates)
+                };
+                let (alone, its, updates) = solve(None);
+                assert!(its > 1, "{method:?}: a solve of {its} iteration tests little");
+                for fork in [&Threads as &dyn Fork, &super::super::Sequential] {
+                    let (split, i, u) = solve(Some(fork));
+                    assert_eq!((i, u), (its, updates), "{method:?}, screening {screening}");
+                    let differ = split
+                        .iter()
+                        .zip(&alone)
+                        .filter(|(a, b)| a.to_bits() != b.to_bits())
+                        .count();
+                    assert_eq!(
+                        differ, 0,
+                        "{method:?}, screening {screening}: {differ} values differ"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
