@@ -151,9 +151,10 @@ def pyamg_solve(a, b, tol):
     return x, (t1 - t0) * 1e3, (t2 - t1) * 1e3, len(residuals) - 1
 
 
-def core_solve(exe, labels_path, source, solver, tol, out):
+def core_solve(exe, labels_path, source, solver, tol, out, threads):
     cmd = [exe, "solve", "--labels", labels_path, "--source", ",".join(map(str, source)),
-           "--solver", solver, "--tol", str(tol), "--radius", "0", "--out", out]
+           "--solver", solver, "--tol", str(tol), "--radius", "0", "--out", out,
+           "--threads", str(threads)]
     line = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout.strip()
     return json.loads(line)
 
@@ -167,6 +168,8 @@ def main():
     p.add_argument("--tol", type=float, default=1e-6, help="relative residual for both solvers")
     p.add_argument("--exe", default="target/release/harmonic-sim")
     p.add_argument("--repeat", type=int, default=3, help="runs per solver (the fastest is kept)")
+    p.add_argument("--threads", type=int, default=2, choices=(1, 2),
+                   help="the core's solver threads (pyamg runs on one)")
     args = p.parse_args()
     if not os.path.exists(args.exe):
         sys.exit(f"{args.exe} not found: cargo build --release -p harmonic-sim")
@@ -198,7 +201,7 @@ def main():
             np.save(path, g)
             for solver in ("mg", "vc"):
                 out = os.path.join(tmp, f"phi-{solver}.npy")
-                rs = [core_solve(args.exe, path, src, solver, args.tol, out) for _ in range(args.repeat)]
+                rs = [core_solve(args.exe, path, src, solver, args.tol, out, args.threads) for _ in range(args.repeat)]
                 r = min(rs, key=lambda r: r["setup_ms"] + r["solve_ms"])
                 phi = np.load(out)[interior].astype(np.float64)
                 if r["unknowns"] != a.shape[0]:

@@ -76,10 +76,7 @@ fn main() -> ExitCode {
             cli::scenarios::run();
             Ok(())
         }
-        Command::BenchSolve(args) => {
-            cli::bench_solve::run(&args);
-            Ok(())
-        }
+        Command::BenchSolve(args) => cli::bench_solve::run(&args),
         Command::Solve(args) => cli::solve::run(&args),
         Command::Tlog(args) => cli::tlog::run(&args),
         Command::LinkEcho(args) => cli::link_echo::run(&args),

@@ -4,6 +4,7 @@
 use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
 use harmonic_sim::tools::bench::{self, BenchSolver};
+use harmonic_sim::tools::fork::with_fork;
 
 use super::parse::{parse_dims, parse_positive};
 
@@ -28,10 +29,14 @@ pub struct BenchSolveArgs {
     /// 0.1 m voxels, the vehicle an ordinary voxel).
     #[arg(long, default_value = "laplace", value_parser = ["laplace", "screened"])]
     field: String,
+    /// Threads for the multigrid solver's fine-level passes: 2 splits each pass between two
+    /// threads of a pool (the same bits as 1, which runs everything on one thread).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u8).range(1..=2))]
+    threads: u8,
 }
 
 /// Run `bench-solve`: measure every solver on every grid size and print the table.
-pub fn run(args: &BenchSolveArgs) {
+pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
     let screening = if args.field == "screened" {
         let k = harmonic_core::field::ScreenedParams::default().kappa_voxel(0.1);
         k * k
@@ -58,7 +63,10 @@ pub fn run(args: &BenchSolveArgs) {
                 dims.ny(),
                 dims.nz()
             );
-            for row in bench::measure(*dims, solver, args.tol, args.repeat, screening) {
+            let measured = with_fork(args.threads, |fork| {
+                bench::measure(*dims, solver, args.tol, args.repeat, screening, fork)
+            })?;
+            for row in measured {
                 println!(
                     "| {} | {} | {} | {} | {} | {} | {:.1e} | {} | {:.2} | {} |",
                     row.grid,
@@ -95,6 +103,7 @@ pub fn run(args: &BenchSolveArgs) {
             pair[1].1 / pair[0].1
         );
     }
+    Ok(())
 }
 
 /// The solver's name in the progress lines.

@@ -14,7 +14,7 @@ use std::time::Instant;
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
-use harmonic_core::solve::{gauss_seidel, SolveParams, SolveStats};
+use harmonic_core::solve::{gauss_seidel, Fork, SolveParams, SolveStats};
 use serde::Serialize;
 
 /// A labelled Laplace problem.
@@ -168,6 +168,7 @@ pub fn measure(
     tolerance: f32,
     repeat: usize,
     screening: f32,
+    fork: Option<&dyn Fork>,
 ) -> Vec<SolveRow> {
     let (mut cold, mut warm, mut scan) = (
         rooms_with_doors(dims, 0),
@@ -206,6 +207,7 @@ pub fn measure(
                 };
                 let mut mg = Multigrid::new(dims, storage).expect("scratch sized by scratch_size");
                 mg.set_full_multigrid(fmg);
+                mg.set_fork(fork);
                 mg.solve(labels, psi, &params, method).expect("valid problem")
             }
             BenchSolver::GaussSeidel => gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),
@@ -293,13 +295,13 @@ mod tests {
     #[test]
     fn a_screened_re_solve_after_a_scan_starts_from_the_last_solution_and_converges() {
         let dims = Dims::new(32, 32, 16).unwrap();
-        let rows = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-5, 1, 0.09);
+        let rows = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-5, 1, 0.09, None);
         let get = |start: &str| rows.iter().find(|r| r.start == start).unwrap();
         let (zero, scan) = (get("zero"), get("scan"));
         assert!(zero.converged && scan.converged, "{rows:?}");
         assert!(scan.iterations < zero.iterations, "{rows:?}");
         // Laplace's problem has no scan row (its vehicle moves with every scan).
-        let laplace = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-6, 1, 0.0);
+        let laplace = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-6, 1, 0.0, None);
         assert!(laplace.iter().all(|r| r.start != "scan"), "{laplace:?}");
     }
 
@@ -307,7 +309,7 @@ mod tests {
     fn warm_and_full_multigrid_starts_beat_a_zero_start() {
         let dims = Dims::new(32, 32, 16).unwrap();
         for method in [Method::Pcg, Method::VCycle] {
-            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-6, 1, 0.0);
+            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-6, 1, 0.0, None);
             let get = |start: &str| rows.iter().find(|r| r.start == start).unwrap();
             let (cold, zero, warm) = (get("cold"), get("zero"), get("warm"));
             assert!(cold.converged && zero.converged && warm.converged, "{rows:?}");

@@ -8,6 +8,7 @@
 //! - [`figures`]: PNG figures (field slices, top views, coverage curves) and PLY map exports.
 //! - [`bench`](mod@bench): the solver benchmarks on building-like grids (`bench-solve`,
 //!   BENCHMARKS.md).
+//! - [`fork`]: two threads for the solver's fine level (`bench-solve`, `solve --threads`).
 //! - [`problem`]: planning problems as `.npy` label grids, and solving one (`solve`,
 //!   `explore --dump-problem`).
 //!
@@ -22,4 +23,5 @@ pub mod batch;
 pub mod bench;
 pub mod faults;
 pub mod figures;
+pub mod fork;
 pub mod problem;

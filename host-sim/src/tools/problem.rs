@@ -49,6 +49,9 @@ pub struct SolveRequest {
     pub radius: f32,
     /// Voxel edge, metres (only scales the radius).
     pub resolution: f32,
+    /// Threads for the multigrid solvers' fine-level passes, 1 or 2 ([`crate::tools::fork`]):
+    /// the same φ either way.
+    pub threads: u8,
 }
 
 /// The JSON line the CLI prints.
@@ -96,6 +99,8 @@ pub enum ProblemError {
     Domain(String),
     /// The radius is unusable at this resolution.
     BadRadius,
+    /// The solver's threads could not be started.
+    Threads(String),
 }
 
 impl std::fmt::Display for ProblemError {
@@ -114,6 +119,7 @@ impl std::fmt::Display for ProblemError {
             }
             ProblemError::Domain(s) => write!(f, "domain: {s}"),
             ProblemError::BadRadius => write!(f, "radius must be between 0 and 6 voxels"),
+            ProblemError::Threads(s) => write!(f, "{s}"),
         }
     }
 }
@@ -193,7 +199,11 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
             } else {
                 (Method::Pcg, "mg")
             };
-            let s = mg.solve(&domain_labels, &mut psi, &params, method);
+            let s = crate::tools::fork::with_fork(req.threads, |fork| {
+                mg.set_fork(fork);
+                mg.solve(&domain_labels, &mut psi, &params, method)
+            })
+            .map_err(ProblemError::Threads)?;
             (s, setup_ms, t1.elapsed().as_secs_f64() * 1e3, name)
         }
         SolverChoice::GaussSeidel => {
@@ -248,6 +258,7 @@ mod tests {
             max_error: f32::INFINITY,
             radius: 0.0,
             resolution: 0.1,
+            threads: 1,
         }
     }
 
