@@ -289,17 +289,18 @@ fn solve_mg_to(b: &Built, method: Method, tolerance: f32) -> (Vec<f32>, SolveSta
 
 /// [`solve_mg_to`] with [`SolveParams::screening`] `screening`.
 fn solve_mg_screened(b: &Built, method: Method, tolerance: f32, screening: f32) -> (Vec<f32>, SolveStats) {
-    solve_mg_lent(b, method, tolerance, screening, true)
+    solve_mg_lent(b, method, tolerance, screening, true, None)
 }
 
 /// [`solve_mg_screened`], lending the neighbour masks (the host's storage) or not (the
-/// firmware's).
+/// firmware's), and a [`Fork`] or not.
 fn solve_mg_lent(
     b: &Built,
     method: Method,
     tolerance: f32,
     screening: f32,
     masks: bool,
+    fork: Option<&dyn Fork>,
 ) -> (Vec<f32>, SolveStats) {
     let dims = b.dims();
     let size = scratch_size(&dims);
@@ -319,6 +320,7 @@ fn solve_mg_lent(
         },
     )
     .expect("scratch sized by scratch_size");
+    mg.set_fork(fork);
     let mut psi = vec![0.0f32; dims.len()];
     let params = SolveParams {
         tolerance,
@@ -350,9 +352,9 @@ proptest! {
         for (problem, screening) in [(&b, 0.0), (&s, SCREENING)] {
             for method in [Method::Pcg, Method::VCycle] {
                 for masks in [true, false] {
-                    let (alone, z) = solve_mg_forked(problem, method, screening, masks, None);
+                    let (alone, z) = solve_mg_lent(problem, method, 1e-6, screening, masks, None);
                     for fork in [&Threads as &dyn Fork, &Sequential] {
-                        let (split, a) = solve_mg_forked(problem, method, screening, masks, Some(fork));
+                        let (split, a) = solve_mg_lent(problem, method, 1e-6, screening, masks, Some(fork));
                         prop_assert_eq!((a.iterations, a.cell_updates), (z.iterations, z.cell_updates));
                         let differ = split.iter().zip(&alone).filter(|(p, q)| p.to_bits() != q.to_bits()).count();
                         prop_assert_eq!(differ, 0, "{:?}, screening {}, masks {}: {} values differ", method, screening, masks, differ);
@@ -373,47 +375,6 @@ impl Fork for Threads {
             a();
         });
     }
-}
-
-/// [`solve_mg_lent`] to 1e-6, with `fork` lent to the solver.
-fn solve_mg_forked(
-    b: &Built,
-    method: Method,
-    screening: f32,
-    masks: bool,
-    fork: Option<&dyn Fork>,
-) -> (Vec<f32>, SolveStats) {
-    let dims = b.dims();
-    let size = scratch_size(&dims);
-    let mut values = vec![0.0f32; size.values];
-    let mut clabels = vec![Label::Outside; size.labels];
-    let mut faces = vec![[0u8; 4]; size.faces];
-    let mut krylov = vec![0.0f32; size.krylov];
-    let mut mask_bytes = vec![0u8; if masks { size.masks } else { 0 }];
-    let mut mg = Multigrid::new(
-        dims,
-        MultigridStorage {
-            values: values.as_mut_slice().into(),
-            labels: &mut clabels,
-            faces: &mut faces,
-            krylov: &mut krylov,
-            masks: &mut mask_bytes,
-        },
-    )
-    .expect("scratch sized by scratch_size");
-    mg.set_fork(fork);
-    let mut psi = vec![0.0f32; dims.len()];
-    let params = SolveParams {
-        tolerance: 1e-6,
-        max_iterations: 2000,
-        warm_start: false,
-        screening,
-        max_error: f32::INFINITY,
-    };
-    let s = mg
-        .solve(&b.labels, &mut psi, &params, method)
-        .expect("valid solve inputs");
-    (psi, s)
 }
 
 /// The exact discrete solution, independently (see [`common::exact_solution`]).
@@ -726,8 +687,8 @@ proptest! {
         harmonic_core::field::release_source(&mut s.labels);
         for (problem, screening) in [(&b, 0.0), (&s, SCREENING)] {
             for method in [Method::Pcg, Method::VCycle] {
-                let (with, a) = solve_mg_lent(problem, method, 1e-6, screening, true);
-                let (without, z) = solve_mg_lent(problem, method, 1e-6, screening, false);
+                let (with, a) = solve_mg_lent(problem, method, 1e-6, screening, true, None);
+                let (without, z) = solve_mg_lent(problem, method, 1e-6, screening, false, None);
                 prop_assert_eq!((a.iterations, a.cell_updates), (z.iterations, z.cell_updates));
                 let differ = with.iter().zip(&without).filter(|(p, q)| p.to_bits() != q.to_bits()).count();
                 prop_assert_eq!(differ, 0, "{:?}, screening {}: {} values differ", method, screening, differ);

@@ -151,6 +151,63 @@ fn solve_stopped_at_the_cycle_cap_prints_not_converged_and_exits_0() {
     }
 }
 
+/// `--threads 2` splits the solver's passes between two threads and must write the same φ,
+/// byte for byte, as one thread, on a grid large enough to be split (two rooms, a doorway,
+/// unknown space beyond the far wall); a third thread is refused.
+#[test]
+fn solve_on_two_threads_writes_the_same_phi_as_on_one() {
+    use harmonic_sim::io::labels;
+    use harmonic_sim::io::npy::{self, Array3};
+    let grid = Array3::from_fn([48, 40, 20], |x, y, _| match (x, y) {
+        (47, _) => labels::UNKNOWN,
+        (24, y) if !(18..22).contains(&y) => labels::OCCUPIED,
+        _ => labels::FREE,
+    });
+    let dir = std::env::temp_dir().join(format!("harmonic-threads-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let input = dir.join("rooms.npy");
+    std::fs::write(&input, npy::write_u8(&grid)).unwrap();
+    for solver in ["mg", "vc"] {
+        let run = |threads: &str| {
+            let phi = dir.join(format!("phi-{solver}-{threads}.npy"));
+            let out = sim()
+                .args([
+                    "solve",
+                    "--source",
+                    "3,3,10",
+                    "--solver",
+                    solver,
+                    "--threads",
+                    threads,
+                ])
+                .arg("--labels")
+                .arg(&input)
+                .arg("--out")
+                .arg(&phi)
+                .output()
+                .unwrap();
+            assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+            let line: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            (
+                std::fs::read(&phi).unwrap(),
+                line["cycles"].clone(),
+                line["converged"].clone(),
+            )
+        };
+        let (one, two) = (run("1"), run("2"));
+        assert_eq!(one.2, true, "{solver}");
+        assert_eq!((&one.1, &one.2), (&two.1, &two.2), "{solver}");
+        assert!(one.0 == two.0, "{solver}: φ differs between one and two threads");
+    }
+    let out = sim()
+        .args(["solve", "--source", "3,3,10", "--threads", "3", "--labels"])
+        .arg(&input)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let _ = std::fs::remove_dir_all(dir);
+}
+
 #[test]
 fn solve_rejects_fortran_order_and_bad_source_with_exit_code_2() {
     let fortran = concat!(

@@ -683,31 +683,17 @@ impl<'r, T: Stored> Stencil<'r, T> {
         before: &'r [T],
         after: &'r [T],
     ) -> Self {
-        Self::at::<false>(dims, screen, y, z, 0, labels, before, after)
+        Self::new_in::<false>(dims, screen, y, z, 0, labels, before, after)
     }
 
     /// [`Stencil::new`] over a slab of values that starts at linear index `base` of the grid:
     /// `before` and `after` are the slab's values around the row, `labels` the whole grid's.
     /// A neighbour row outside the slab reads as outside the domain, so the caller keeps every
-    /// row it passes at least one plane inside the slab (or at the grid's edge).
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn new_in(
-        dims: &Dims,
-        screen: &Screen,
-        y: usize,
-        z: usize,
-        base: usize,
-        labels: &'r [Label],
-        before: &'r [T],
-        after: &'r [T],
-    ) -> Self {
-        Self::at::<true>(dims, screen, y, z, base, labels, before, after)
-    }
-
-    /// [`Stencil::new_in`]; `SHIFTED` false ignores `base` (0), the code of an unsplit pass.
+    /// row it passes at least one plane inside the slab (or at the grid's edge). `SHIFTED`
+    /// false ignores `base` (0): the code of an unsplit pass.
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn at<const SHIFTED: bool>(
+    pub(crate) fn new_in<const SHIFTED: bool>(
         dims: &Dims,
         screen: &Screen,
         y: usize,
@@ -1259,7 +1245,7 @@ pub(crate) fn for_each_row_mut_in<T: Stored>(
             let (row, after) = rest.split_at_mut(nx);
             let row = Cell::from_mut(row).as_slice_of_cells();
             f(
-                &Stencil::new_in(dims, screen, y, z, base, labels, before, after).within(active.xs()),
+                &Stencil::new_in::<true>(dims, screen, y, z, base, labels, before, after).within(active.xs()),
                 row,
             );
         }

@@ -1959,6 +1959,18 @@ mod tests {
         method: Method,
         max_iterations: u32,
     ) -> (Vec<f32>, SolveStats, Vec<f32>) {
+        solve_mg_with(dims, labels, method, max_iterations, 0.0, None)
+    }
+
+    /// [`solve_mg`] with a screening and a [`Fork`].
+    fn solve_mg_with(
+        dims: Dims,
+        labels: &[Label],
+        method: Method,
+        max_iterations: u32,
+        screening: f32,
+        fork: Option<&dyn Fork>,
+    ) -> (Vec<f32>, SolveStats, Vec<f32>) {
         let size = scratch_size(&dims);
         let mut values = vec![0.0f32; size.values];
         let mut clabels = vec![Label::Outside; size.labels];
@@ -1976,11 +1988,13 @@ mod tests {
             },
         )
         .unwrap();
+        mg.set_fork(fork);
         let mut phi = vec![0.0f32; dims.len()];
         let params = SolveParams {
             tolerance: 1e-6,
             max_iterations,
             warm_start: false,
+            screening,
             ..SolveParams::default()
         };
         let s = mg.solve(labels, &mut phi, &params, method).unwrap();
@@ -2011,32 +2025,7 @@ mod tests {
         for (labels, screening) in [(&laplace, 0.0), (&screened, 0.09)] {
             for method in [Method::Pcg, Method::VCycle] {
                 let solve = |fork: Option<&dyn Fork>| {
-                    let size = scratch_size(&dims);
-                    let mut values = vec![0.0f32; size.values];
-                    let mut clabels = vec![Label::Outside; size.labels];
-                    let mut faces = vec![[0u8; 4]; size.faces];
-                    let mut krylov = vec![0.0f32; size.krylov];
-                    let mut masks = vec![0u8; size.masks];
-                    let mut mg = Multigrid::new(
-                        dims,
-                        MultigridStorage {
-                            values: values.as_mut_slice().into(),
-                            labels: &mut clabels,
-                            faces: &mut faces,
-                            krylov: &mut krylov,
-                            masks: &mut masks,
-                        },
-                    )
-                    .unwrap();
-                    mg.set_fork(fork);
-                    let mut psi = vec![0.0f32; dims.len()];
-                    let params = SolveParams {
-                        tolerance: 1e-6,
-                        max_iterations: 400,
-                        screening,
-                        ..SolveParams::default()
-                    };
-                    let s = mg.solve(labels, &mut psi, &params, method).unwrap();
+                    let (psi, s, _) = solve_mg_with(dims, labels, method, 400, screening, fork);
                     (psi, s.iterations, s.cell_updates)
                 };
                 let (alone, its, updates) = solve(None);
