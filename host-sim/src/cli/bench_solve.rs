@@ -4,7 +4,7 @@
 use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
 use harmonic_sim::tools::bench::{self, BenchSolver};
-use harmonic_sim::tools::fork::with_fork;
+use harmonic_sim::tools::fork::{default_threads, with_fork};
 
 use super::parse::{parse_dims, parse_positive};
 
@@ -30,9 +30,10 @@ pub struct BenchSolveArgs {
     #[arg(long, default_value = "laplace", value_parser = ["laplace", "screened"])]
     field: String,
     /// Threads for the multigrid solver's fine-level passes: 2 splits each pass between two
-    /// threads of a pool (the same bits as 1, which runs everything on one thread).
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u8).range(1..=2))]
-    threads: u8,
+    /// threads of a pool (the same bits as 1, which runs everything on one thread). Default: 2
+    /// on a machine with two cores or more, else 1.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2))]
+    threads: Option<u8>,
 }
 
 /// Run `bench-solve`: measure every solver on every grid size and print the table.
@@ -63,7 +64,7 @@ pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
                 dims.ny(),
                 dims.nz()
             );
-            let measured = with_fork(args.threads, |fork| {
+            let measured = with_fork(args.threads.unwrap_or_else(default_threads), |fork| {
                 bench::measure(*dims, solver, args.tol, args.repeat, screening, fork)
             })?;
             for row in measured {

@@ -42,9 +42,10 @@ pub struct SolveArgs {
     #[arg(long)]
     out: Option<PathBuf>,
     /// Threads for the multigrid solvers (`mg`, `vc`): 2 splits the fine level's passes
-    /// between two threads, with the same φ as 1.
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u8).range(1..=2))]
-    threads: u8,
+    /// between two threads, with the same φ as 1. Default: 2 on a machine with two cores or
+    /// more, else 1.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2))]
+    threads: Option<u8>,
 }
 
 /// Run `solve`: solve the problem, write φ if asked and print the statistics as a JSON line.
@@ -62,7 +63,9 @@ pub fn run(args: &SolveArgs) -> Result<(), String> {
         max_error: args.max_error.unwrap_or(f32::INFINITY),
         radius: args.radius,
         resolution: args.resolution,
-        threads: args.threads,
+        threads: args
+            .threads
+            .unwrap_or_else(harmonic_sim::tools::fork::default_threads),
     };
     let (phi, summary) =
         problem::solve(&grid, &request).map_err(|e| format!("{}: {e}", args.labels.display()))?;

@@ -7,6 +7,15 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use harmonic_core::solve::Fork;
 
+/// The solver's default thread count: 2 on a machine with two cores or more, else 1 (a
+/// second thread on one core, polling for work, would only take time from the first).
+pub fn default_threads() -> u8 {
+    match std::thread::available_parallelism() {
+        Ok(n) if n.get() >= 2 => 2,
+        _ => 1,
+    }
+}
+
 /// Runs `f` with a [`Fork`] for `threads` threads (1 or 2): `None` for 1; for 2, a
 /// [`PoolFork`] on a pool of two, with the second worker kept awake ([`with_helper_awake`])
 /// while `f` runs. Errors if the pool cannot start.
