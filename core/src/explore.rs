@@ -1575,7 +1575,7 @@ impl ArrivalLooks {
     }
 }
 
-/// How many of [`LOOK_RAYS`]² rays spread evenly over the field of view of a level camera with
+/// How many of `LOOK_RAYS`² rays spread evenly over the field of view of a level camera with
 /// `intrinsics` at `position`, looking along `heading`, meet an unexplored voxel (unknown, not
 /// sealed) between `min_range` and `range` (the camera resolves nothing nearer) before an
 /// occupied one.

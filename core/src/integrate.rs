@@ -62,12 +62,12 @@
 //! returns land inside as behind. Where the map has a surface estimate
 //! ([`VoxelMap::with_surface`], two words per voxel: the firmware has no RAM for it), every
 //! return with `σ ≤ h` whose pixel has a surface normal (from the 3D points
-//! [`NORMAL_SPAN_PX`] pixels either side, refused across depth edges and corners and near
+//! `NORMAL_SPAN_PX` pixels either side, refused across depth edges and corners and near
 //! edge-on) adds to each voxel its ray crosses near the return the signed distance of the
 //! voxel's centre in front of that surface, along the normal, in half voxels, weighted
 //! `(h/σ)²`. The voxels a frame samples are decided by their mean over every frame so far:
 //! the log-odds is set to how many standard errors the mean lies below
-//! [`SURFACE_OCCUPIED`] (free above it); a voxel whose mean puts it behind the surface is left
+//! `SURFACE_OCCUPIED` (free above it); a voxel whose mean puts it behind the surface is left
 //! as it is. A return on a depth edge (a face neighbour far away in depth: the stereo
 //! pipeline's filter may mix the two sides into a return in mid-air) marks nothing; a return
 //! without a normal keeps the vote. Measured in docs/RESULTS.md ("A surface estimate kept
