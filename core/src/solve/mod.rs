@@ -1207,26 +1207,15 @@ pub(crate) fn for_each_row_mut<T: Stored>(
     screen: &Screen,
     labels: &[Label],
     values: &mut [T],
-    mut f: impl FnMut(&Stencil<'_, T>, &[Cell<T>]),
+    f: impl FnMut(&Stencil<'_, T>, &[Cell<T>]),
 ) {
-    let (nx, ny) = (dims.nx(), dims.ny());
-    active.rows(|y, z| {
-        let start = nx * (y + ny * z);
-        let (before, rest) = values.split_at_mut(start.min(values.len()));
-        if rest.len() >= nx {
-            let (row, after) = rest.split_at_mut(nx);
-            let row = Cell::from_mut(row).as_slice_of_cells();
-            f(
-                &Stencil::new(dims, screen, y, z, labels, before, after).within(active.xs()),
-                row,
-            );
-        }
-    });
+    for_each_row_mut_in::<T, false>(dims, active, screen, labels, values, 0, f);
 }
 
 /// [`for_each_row_mut`] over a slab of values that starts at linear index `base` (see
-/// [`Stencil::new_in`]); rows of `active` outside the slab are skipped.
-pub(crate) fn for_each_row_mut_in<T: Stored>(
+/// [`Stencil::new_in`]); rows of `active` outside the slab are skipped. `SHIFTED` false
+/// ignores `base` (0): the loop of an unsplit pass, without the offset arithmetic.
+pub(crate) fn for_each_row_mut_in<T: Stored, const SHIFTED: bool>(
     dims: &Dims,
     active: &Active,
     screen: &Screen,
@@ -1237,15 +1226,22 @@ pub(crate) fn for_each_row_mut_in<T: Stored>(
 ) {
     let (nx, ny) = (dims.nx(), dims.ny());
     active.rows(|y, z| {
-        let Some(start) = (nx * (y + ny * z)).checked_sub(base) else {
-            return;
+        let linear = nx * (y + ny * z);
+        let start = if SHIFTED {
+            let Some(start) = linear.checked_sub(base) else {
+                return;
+            };
+            start
+        } else {
+            linear
         };
         let (before, rest) = values.split_at_mut(start.min(values.len()));
         if rest.len() >= nx {
             let (row, after) = rest.split_at_mut(nx);
             let row = Cell::from_mut(row).as_slice_of_cells();
             f(
-                &Stencil::new_in::<true>(dims, screen, y, z, base, labels, before, after).within(active.xs()),
+                &Stencil::new_in::<SHIFTED>(dims, screen, y, z, base, labels, before, after)
+                    .within(active.xs()),
                 row,
             );
         }
@@ -1280,7 +1276,7 @@ pub(crate) fn for_each_row_mut_split<T: Stored>(
     fork.join(
         &mut || for_each_row_mut(dims, &a, screen, labels, lo, |st, row| ta += f(st, row)),
         &mut || {
-            for_each_row_mut_in(dims, &b, screen, labels, hi, m * plane, |st, row| {
+            for_each_row_mut_in::<T, true>(dims, &b, screen, labels, hi, m * plane, |st, row| {
                 tb += f(st, row)
             })
         },
@@ -1308,7 +1304,9 @@ pub(crate) fn for_each_row_out_split<T: Stored>(
     let nx = dims.nx();
     let run = |active: &Active, out: &mut [f32], base: usize| {
         for_each_row(dims, active, screen, labels, values, |st, row| {
-            let from = st.start.checked_sub(base).unwrap_or(usize::MAX - nx);
+            let Some(from) = st.start.checked_sub(base) else {
+                return;
+            };
             if let Some(out_row) = out.get_mut(from..from + nx) {
                 f(st, row, out_row);
             }
