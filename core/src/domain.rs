@@ -101,6 +101,125 @@ pub enum DomainError {
     VehicleInInflatedSpace,
 }
 
+/// The planning radius's stencil, and a narrower radius a planner may fall back on to leave a
+/// *pocket* ([`is_pocket`]): a spot where the planning radius leaves the vehicle cut off from
+/// the free space its body fits through. The narrower stencil is rebuilt when it is needed, not
+/// stored beside the other: the MCU has no room for two.
+#[derive(Debug, Clone)]
+pub struct Inflation {
+    stencil: InflationStencil,
+    radius: f32,
+    narrow_radius: f32,
+    resolution: f32,
+    narrowed: bool,
+}
+
+impl Inflation {
+    /// `radius` as [`InflationStencil::new`] takes it; `narrow_radius` the fallback, unused
+    /// unless `0 < narrow_radius < radius` (0: none).
+    pub fn new(radius: f32, narrow_radius: f32, resolution: f32) -> Result<Self, DomainError> {
+        let stencil = InflationStencil::new(radius, resolution)?;
+        if !(narrow_radius.is_finite() && narrow_radius >= 0.0) {
+            return Err(DomainError::BadRadius);
+        }
+        // A narrower radius the stencil cannot hold is refused now, not when it is needed.
+        if narrow_radius > 0.0 && narrow_radius < radius {
+            InflationStencil::new(narrow_radius, resolution)?;
+        }
+        Ok(Self {
+            stencil,
+            radius,
+            narrow_radius: if narrow_radius < radius {
+                narrow_radius
+            } else {
+                0.0
+            },
+            resolution,
+            narrowed: false,
+        })
+    }
+
+    /// The stencil in use.
+    pub fn stencil(&self) -> &InflationStencil {
+        &self.stencil
+    }
+
+    /// True while the narrower radius is in use.
+    pub fn is_narrowed(&self) -> bool {
+        self.narrowed
+    }
+
+    /// Switches to the narrower radius. False if there is none or it is in use already.
+    pub fn narrow(&mut self) -> bool {
+        if self.narrowed || self.narrow_radius <= 0.0 {
+            return false;
+        }
+        self.narrowed = self.rebuild(self.narrow_radius);
+        self.narrowed
+    }
+
+    /// Back to the planning radius. Returns whether the narrower one was in use.
+    pub fn widen(&mut self) -> bool {
+        let was = self.narrowed;
+        if was {
+            self.narrowed = !self.rebuild(self.radius);
+        }
+        was
+    }
+
+    /// Replaces the stencil by one for `radius`. Kept out of line: its frame holds a whole
+    /// stencil, which plans that never switch should not carry on their stack.
+    #[inline(never)]
+    fn rebuild(&mut self, radius: f32) -> bool {
+        match InflationStencil::new(radius, self.resolution) {
+            Ok(s) => {
+                self.stencil = s;
+                true
+            }
+            Err(_) => false,
+        }
+    }
+}
+
+/// Whether a vehicle whose planning radius gave the component `wide`, with no frontier in it,
+/// stands in a *pocket*: the narrower radius's component `narrow` holds a frontier and at least
+/// twice as many voxels. Then the planning radius, not the exploration, is what ended it — a
+/// start between a cabinet top and the ceiling, or a nook noise has narrowed — and the vehicle
+/// may take the narrower radius until it is out. Late in an exploration the vehicle stands in
+/// the space it has explored, which both radii hold nearly alike, so a remnant only the
+/// narrower radius reaches does not make a pocket (flying to each of those lengthened paths by
+/// a fifth for a tenth of a point of coverage: docs/RESULTS.md, "The old radius as a
+/// fallback").
+pub fn is_pocket(wide: &DomainStats, narrow: &DomainStats) -> bool {
+    let size = |s: &DomainStats| u64::from(s.interior) + u64::from(s.frontier);
+    wide.frontier == 0 && narrow.frontier > 0 && size(narrow) >= 2 * size(wide)
+}
+
+/// The planners' pocket test: with the planning radius's component `wide` (no frontier in it)
+/// built, switches `inflation` to its narrower radius and builds the vehicle's component there.
+/// In a [pocket](is_pocket) it returns true and leaves the narrower radius and its domain in
+/// `labels`; otherwise it returns false with the planning radius and its domain back. False at
+/// once without a narrower radius, or with it in use already.
+pub fn narrow_in_pocket(
+    map: &VoxelMap<'_>,
+    inflation: &mut Inflation,
+    vehicle: VoxelIndex,
+    wide: &DomainStats,
+    labels: &mut [Label],
+    queue: &mut [u32],
+) -> bool {
+    if !inflation.narrow() {
+        return false;
+    }
+    let narrow = build(map, inflation.stencil(), vehicle, labels, queue);
+    if narrow.is_ok_and(|n| is_pocket(wide, &n)) {
+        return true;
+    }
+    inflation.widen();
+    let _ = build(map, inflation.stencil(), vehicle, labels, queue);
+    false
+}
+
 impl InflationStencil {
     /// Offsets of every voxel whose cube comes closer than `radius` to the centre of the
     /// voxel at the origin — an obstacle there forbids that centre.
@@ -1199,6 +1318,58 @@ pub(crate) mod tests {
             escape_target(&map, &stencil, vehicle, &mut labels, &mut queue, 1),
             None,
             "visit cap"
+        );
+    }
+
+    #[test]
+    fn inflation_narrows_and_widens_and_refuses_bad_radii() {
+        let mut i = Inflation::new(0.25, 0.2, 0.1).unwrap();
+        let wide = i.stencil().len();
+        assert!(!i.is_narrowed() && !i.widen(), "starts on the planning radius");
+        assert!(i.narrow(), "0.2 m is narrower");
+        assert!(i.is_narrowed());
+        assert_eq!(i.stencil().len(), InflationStencil::new(0.2, 0.1).unwrap().len());
+        assert!(i.stencil().len() < wide);
+        assert!(!i.narrow(), "already narrowed");
+        assert!(i.widen(), "it was narrowed");
+        assert!(!i.is_narrowed());
+        assert_eq!(i.stencil().len(), wide);
+        // No fallback: none given, or one not narrower than the radius.
+        for narrow in [0.0, 0.25, 0.3] {
+            let mut i = Inflation::new(0.25, narrow, 0.1).unwrap();
+            assert!(!i.narrow(), "{narrow}");
+            assert_eq!(i.stencil().len(), wide);
+        }
+        for bad in [f32::NAN, -0.1, f32::INFINITY] {
+            assert_eq!(
+                Inflation::new(0.25, bad, 0.1).unwrap_err(),
+                DomainError::BadRadius,
+                "{bad}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_pocket_is_a_frontierless_component_half_the_narrower_one_or_less() {
+        let stats = |interior, frontier| DomainStats {
+            interior,
+            frontier,
+            ..DomainStats::default()
+        };
+        assert!(is_pocket(&stats(7, 0), &stats(5000, 300)));
+        assert!(is_pocket(&stats(100, 0), &stats(150, 50)), "twice as large");
+        assert!(!is_pocket(&stats(100, 0), &stats(150, 49)), "less than twice");
+        assert!(
+            !is_pocket(&stats(7, 0), &stats(5000, 0)),
+            "no frontier either way"
+        );
+        assert!(
+            !is_pocket(&stats(7, 1), &stats(5000, 300)),
+            "a frontier at the planning radius"
+        );
+        assert!(
+            is_pocket(&stats(u32::MAX, 0), &stats(u32::MAX, u32::MAX)),
+            "no overflow"
         );
     }
 

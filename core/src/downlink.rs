@@ -19,7 +19,7 @@
 //! [`Downlink::Link`], neither decoded nor counted as dropped.
 //!
 //! ```text
-//! 0x81 PlanReport, 296 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
+//! 0x81 PlanReport, 300 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
 //!   0  u32 frame_id   of the frame just planned from     0  u32 first   voxel index
 //!   4  u8  outcome    0 goal 1 kept 2 escape             4  u16 count   1 ..= MAP_SLICE_VOXELS
 //!                     3 complete 4 hold                  6  u8[]  two bits per voxel, voxel
@@ -44,6 +44,7 @@
 //! 284  u32 resend requests sent on the return channel
 //! 288  u32 reopenings (ErrorCounters, added after the others)
 //! 292  u32 remnants_sealed (ErrorCounters, added after the others)
+//! 296  u32 pocket_plans (ErrorCounters, added after the others)
 //! ```
 //!
 //! Fault codes: 1 BadPose, 2 VehicleOutsideGrid, 3 VehicleNotFree, 4 Streamline (detail:
@@ -66,7 +67,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 296;
+pub const PLAN_REPORT_LEN: usize = 300;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -337,6 +338,7 @@ impl PlanReport {
         w.u32(self.resend_requests);
         w.u32(self.errors.reopenings);
         w.u32(self.errors.remnants_sealed);
+        w.u32(self.errors.pocket_plans);
     }
 
     fn read_body(body: &[u8]) -> Result<Self, DownlinkError> {
@@ -376,9 +378,10 @@ impl PlanReport {
             turning_frames: r.u32(),
             stale_pose_frames: r.u32(),
             screening_retries: r.u32(),
-            // Sent last (offsets 288 and 292), after the fields added before them.
+            // Sent last (offsets 288, 292 and 296), after the fields added before them.
             reopenings: 0,
             remnants_sealed: 0,
+            pocket_plans: 0,
         };
         // Counters the link may add later arrive as 0 from a core that does not send them.
         #[allow(clippy::needless_update)]
@@ -420,6 +423,7 @@ impl PlanReport {
         let errors = ErrorCounters {
             reopenings: r.u32(),
             remnants_sealed: r.u32(),
+            pocket_plans: r.u32(),
             ..errors
         };
         Ok(Self {
@@ -842,6 +846,7 @@ mod tests {
             // The counters added after the others travel at their own offsets.
             report.errors.reopenings = 7 + k as u32;
             report.errors.remnants_sealed = 11 + k as u32;
+            report.errors.pocket_plans = 13 + k as u32;
             report.unreachable_frontier = 241 + k as u32;
             // Every operator state travels, and "not reported" too.
             report.operator = crate::operator::OperatorState::from_custom_mode(k as u32);

@@ -59,7 +59,7 @@
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::camera::{DepthFrame, Intrinsics};
-use crate::domain::{self, DomainError, DomainStats, InflationStencil, Label, Reopening};
+use crate::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening};
 use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
@@ -92,6 +92,13 @@ pub struct ExplorerConfig {
     pub integration: IntegrationParams,
     /// Vehicle radius (planning clearance) in metres; obstacles are inflated by it.
     pub vehicle_radius: f32,
+    /// A narrower clearance (metres) for leaving a pocket ([`domain::is_pocket`]): when the
+    /// vehicle's component at `vehicle_radius` holds no frontier but at this radius holds one and
+    /// is at least twice as large, the plan is made at this radius instead of calling the
+    /// exploration complete, and so is every plan after it that finds the vehicle inside the
+    /// planning radius's inflated space, until it is out. Each plan tries `vehicle_radius`
+    /// first. 0 (the default), or not below `vehicle_radius`: none.
+    pub narrow_radius: f32,
     /// Which potential plans (the screened frontier-sourced field by default).
     pub field: PlanningField,
     /// Solver choice.
@@ -231,6 +238,7 @@ impl Default for ExplorerConfig {
             log_odds: LogOddsParams::default(),
             integration: IntegrationParams::default(),
             vehicle_radius: 0.2,
+            narrow_radius: 0.0,
             field: PlanningField::default(),
             solver: SolverKind::default(),
             solve: SolveParams::default(),
@@ -393,6 +401,10 @@ pub struct ErrorCounters {
     /// occupied voxels alone, and the doubtful voxels in the way were forgotten to be looked
     /// at again instead ([`Reopening`]).
     pub reopenings: u32,
+    /// Plans made at [`ExplorerConfig::narrow_radius`]: the vehicle stood in a pocket
+    /// ([`domain::is_pocket`]) or, after such a plan, inside the planning radius's inflated
+    /// space.
+    pub pocket_plans: u32,
     /// Targets sealed instead of flown to because they were far remnants
     /// ([`ExplorerConfig::remnant_frontier_m2`]); not counted in `seals`.
     pub remnants_sealed: u32,
@@ -557,7 +569,7 @@ pub fn check_frame_timing(
 pub struct Explorer<'a> {
     config: ExplorerConfig,
     map: VoxelMap<'a>,
-    stencil: InflationStencil,
+    inflation: Inflation,
     labels: &'a mut [Label],
     phi: &'a mut [f32],
     queue: &'a mut [u32],
@@ -647,7 +659,7 @@ impl<'a> Explorer<'a> {
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
             .map_err(ConfigError::Map)?
             .with_surface(surface);
-        let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
+        let inflation = Inflation::new(config.vehicle_radius, config.narrow_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
         let (Some(labels), Some(phi)) = (labels.get_mut(..n), phi.get_mut(..n)) else {
             return Err(ConfigError::StorageTooSmall);
@@ -657,7 +669,7 @@ impl<'a> Explorer<'a> {
         Ok(Self {
             config,
             map,
-            stencil,
+            inflation,
             labels,
             phi,
             queue,
@@ -866,7 +878,7 @@ impl<'a> Explorer<'a> {
         let still_open = domain::any_near(
             &self.map,
             goal.frontier,
-            domain::frontier_reach(&self.stencil),
+            domain::frontier_reach(self.inflation.stencil()),
             |i| self.map.is_unexplored(i),
         );
         if !still_open || (goal.position - position).norm() <= 1.5 * res {
@@ -886,7 +898,7 @@ impl<'a> Explorer<'a> {
         }
         // Check the remaining path from the vehicle on.
         let rest_of_path = self.waypoints.iter().skip(k).copied();
-        if domain::first_unsafe_along(&self.map, &self.stencil, position, rest_of_path).is_some() {
+        if domain::first_unsafe_along(&self.map, self.inflation.stencil(), position, rest_of_path).is_some() {
             return false;
         }
         // Drop the waypoints already passed; start from where the vehicle is. A sparse path
@@ -913,7 +925,9 @@ impl<'a> Explorer<'a> {
             errors.vehicle_outside_grid += 1;
             return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
         };
-        domain::mark_body(&mut self.map, &self.stencil, position);
+        // Every plan tries the planning radius first; one that found a pocket left it narrowed.
+        let was_narrow = self.inflation.widen();
+        domain::mark_body(&mut self.map, self.inflation.stencil(), position);
         let counts = self.map.counts();
         let unexplored = counts.unknown - counts.sealed;
         let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
@@ -924,11 +938,16 @@ impl<'a> Explorer<'a> {
         // number of unknown voxels, the pass count keeps one call's work bounded too.
         for pass in 0..PLAN_PASSES {
             let t0 = clock.ticks();
-            let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+            let built = self.build_domain(vehicle);
             let t1 = clock.ticks();
             self.status.phase_ticks.domain += t1.saturating_sub(t0);
             let stats = match built {
                 Ok(s) => s,
+                // On the way out of a pocket: the narrower radius still plans.
+                Err(DomainError::VehicleInInflatedSpace) if was_narrow && self.inflation.narrow() => {
+                    self.status.errors.pocket_plans += 1;
+                    continue;
+                }
                 // Inflated space, or a voxel the map holds occupied (noise, pose error): the
                 // vehicle is there, so it steers to the nearest safe free voxel, if any.
                 Err(DomainError::VehicleInInflatedSpace | DomainError::VehicleNotFree) => {
@@ -956,8 +975,12 @@ impl<'a> Explorer<'a> {
                     // The doubting builds overwrote the labels: the caller reads the ordinary
                     // domain of the end (ψ is the last doubting solve's).
                     let t0 = clock.ticks();
-                    let _ = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+                    let _ = self.build_domain(vehicle);
                     self.status.phase_ticks.domain += clock.ticks().saturating_sub(t0);
+                }
+                if self.in_pocket(vehicle, &stats, clock) {
+                    self.status.errors.pocket_plans += 1;
+                    continue;
                 }
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
@@ -1001,7 +1024,11 @@ impl<'a> Explorer<'a> {
             self.status.streamline = Some(end);
             // The last pass flies to whatever it found, so a plan never ends on seals alone.
             if pass + 1 < PLAN_PASSES && is_far_remnant(&self.config, &geometry, &stats, end.length) {
-                domain::seal_around(&mut self.map, end.frontier, domain::frontier_reach(&self.stencil));
+                domain::seal_around(
+                    &mut self.map,
+                    end.frontier,
+                    domain::frontier_reach(self.inflation.stencil()),
+                );
                 self.status.errors.remnants_sealed += 1;
                 self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
                 continue;
@@ -1025,7 +1052,11 @@ impl<'a> Explorer<'a> {
                 self.fruitless_visits = self.fruitless_visits.saturating_add(1);
                 if self.fruitless_visits >= self.config.stall_visits {
                     self.fruitless_visits = 0;
-                    domain::seal_around(&mut self.map, end.frontier, domain::frontier_reach(&self.stencil));
+                    domain::seal_around(
+                        &mut self.map,
+                        end.frontier,
+                        domain::frontier_reach(self.inflation.stencil()),
+                    );
                     self.status.errors.seals += 1;
                     continue;
                 }
@@ -1058,8 +1089,8 @@ impl<'a> Explorer<'a> {
         let t0 = clock.ticks();
         let doubt = self.reopening.doubt(below);
         let doubt = if lenient { doubt.lenient() } else { doubt };
-        let built =
-            domain::build_doubting(&self.map, &self.stencil, vehicle, self.labels, self.queue, &doubt);
+        let stencil = self.inflation.stencil();
+        let built = domain::build_doubting(&self.map, stencil, vehicle, self.labels, self.queue, &doubt);
         let t1 = clock.ticks();
         self.status.phase_ticks.domain += t1.saturating_sub(t0);
         if !built.is_ok_and(|s| s.frontier > 0) {
@@ -1077,13 +1108,13 @@ impl<'a> Explorer<'a> {
         let traced = streamline::trace(&field, position, &self.config.streamline, &mut self.waypoints);
         let gate = traced.ok().and_then(|_| {
             let path = self.waypoints.iter().copied();
-            domain::first_unsafe_along(&self.map, &self.stencil, position, path)
+            domain::first_unsafe_along(&self.map, self.inflation.stencil(), position, path)
         });
         self.waypoints.clear();
         self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
         gate.is_some_and(|g| {
             self.reopening
-                .forget_around(&mut self.map, &self.stencil, g, below)
+                .forget_around(&mut self.map, self.inflation.stencil(), g, below)
                 > 0
         })
     }
@@ -1352,9 +1383,9 @@ impl<'a> Explorer<'a> {
             Ok(None) => return PlanOutcome::Complete,
             Err(fault) => return PlanOutcome::Hold(fault),
         };
-        domain::mark_body(&mut self.map, &self.stencil, position);
+        domain::mark_body(&mut self.map, self.inflation.stencil(), position);
         let t0 = clock.ticks();
-        let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+        let built = self.build_domain(vehicle);
         let t1 = clock.ticks();
         self.status.phase_ticks.domain += t1.saturating_sub(t0);
         match built {
@@ -1433,10 +1464,34 @@ impl<'a> Explorer<'a> {
         PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
     }
 
+    /// Whether the vehicle, whose component at the planning radius (`wide`) holds no frontier,
+    /// stands in a [pocket](domain::is_pocket). If so the narrower radius stays in use for the
+    /// plan; if not, the labels are the planning radius's domain again, as the caller expects.
+    fn in_pocket(&mut self, vehicle: VoxelIndex, wide: &DomainStats, clock: &mut impl Clock) -> bool {
+        let t0 = clock.ticks();
+        let pocket = domain::narrow_in_pocket(
+            &self.map,
+            &mut self.inflation,
+            vehicle,
+            wide,
+            self.labels,
+            self.queue,
+        );
+        self.status.phase_ticks.domain += clock.ticks().saturating_sub(t0);
+        pocket
+    }
+
+    /// The vehicle's domain at the radius in use, built into the labels.
+    fn build_domain(&mut self, vehicle: VoxelIndex) -> Result<DomainStats, DomainError> {
+        let stencil = self.inflation.stencil();
+        domain::build(&self.map, stencil, vehicle, self.labels, self.queue)
+    }
+
     /// Goal back into the domain for a vehicle that a new observation left inside inflated space.
     fn escape(&mut self, vehicle: VoxelIndex, yaw: f32) -> PlanOutcome {
         self.status.errors.escapes += 1;
-        let target = domain::escape_target(&self.map, &self.stencil, vehicle, self.labels, self.queue, 4096);
+        let stencil = self.inflation.stencil();
+        let target = domain::escape_target(&self.map, stencil, vehicle, self.labels, self.queue, 4096);
         // The escape search overwrote the labels; they describe no domain now.
         self.labels.fill(Label::Outside);
         match target {

@@ -746,6 +746,75 @@ fn a_doubtful_voxel_seen_occupied_again_is_believed() {
     assert_eq!(e.status().errors.reopenings, 1, "each voxel is doubted once");
 }
 
+/// A 3.2 × 1.6 × 1.6 m box seen free, with a wall at `wall_x` (seen occupied in four frames)
+/// whose 5 × 5-voxel door a 0.3 m planning radius does not pass and the 0.2 m one does, and
+/// unknown space from `unknown_from` on. Plans once from voxel `(vehicle_x, 8, 8)` with the
+/// planning radius 0.3 m and the narrower radius `narrow`.
+fn plan_beside_a_narrow_door(
+    wall_x: u16,
+    unknown_from: u16,
+    vehicle_x: u16,
+    narrow: f32,
+) -> (PlanOutcome, Status) {
+    let dims = Dims::new(32, 16, 16).unwrap();
+    let mut b = Buffers::new(&dims);
+    let config = ExplorerConfig {
+        vehicle_radius: 0.3,
+        narrow_radius: narrow,
+        ..ExplorerConfig::default()
+    };
+    let mut e = b.seen_explorer(dims, config, |v| v.x < unknown_from && v.x != wall_x);
+    let door = |v: VoxelIndex| (5..10).contains(&v.y) && (5..10).contains(&v.z);
+    for _ in 0..4 {
+        e.map.begin_frame();
+        for i in 0..dims.len() {
+            let v = dims.voxel(i);
+            if v.x == wall_x && !door(v) {
+                e.map.apply_hit(i);
+            } else if v.x == wall_x {
+                e.map.apply_miss(i);
+            }
+        }
+    }
+    let centre = |k: u16| (f32::from(k) + 0.5) * 0.1;
+    let outcome = e.plan(&Point3::new(centre(vehicle_x), centre(8), centre(8)), 0.0);
+    (outcome, *e.status())
+}
+
+#[test]
+fn a_vehicle_in_a_pocket_leaves_it_on_the_narrower_radius() {
+    // A nook (x < 8) behind the narrow door, the rest of the box beyond it with a frontier.
+    let (outcome, status) = plan_beside_a_narrow_door(8, 28, 4, 0.0);
+    assert_eq!(
+        outcome,
+        PlanOutcome::Complete,
+        "without a narrower radius the nook ends it"
+    );
+    assert_eq!(status.errors.pocket_plans, 0);
+
+    let (outcome, status) = plan_beside_a_narrow_door(8, 28, 4, 0.2);
+    let PlanOutcome::Goal(goal) = outcome else {
+        panic!("the nook ended the exploration: {status:?}");
+    };
+    assert_eq!(status.errors.pocket_plans, 1);
+    assert!(goal.position.x > 0.9, "through the door: {goal:?}");
+    assert!(status.domain.frontier > 0, "{status:?}");
+}
+
+#[test]
+fn a_remnant_behind_a_narrow_door_is_no_pocket() {
+    // The vehicle in the explored box (x < 24); behind the door a small hall with the only
+    // frontier. Both radii give the vehicle nearly the same space: the exploration ends as it
+    // did without the narrower radius.
+    let (outcome, status) = plan_beside_a_narrow_door(24, 28, 10, 0.2);
+    assert_eq!(outcome, PlanOutcome::Complete, "{status:?}");
+    assert_eq!(status.errors.pocket_plans, 0);
+    assert!(
+        status.domain.interior > 0 && status.domain.frontier == 0,
+        "{status:?}"
+    );
+}
+
 /// Plans from one end of a 6 × 1 × 1 m hall seen free except for 2 × 2 × 2-voxel pockets of
 /// unknown space with their low corners at `pockets` (voxel indices), under `config`.
 fn plan_to_pockets(config: ExplorerConfig, pockets: &[[u16; 3]]) -> (PlanOutcome, Status) {

@@ -82,7 +82,7 @@ fn a_grid_offset_moves_the_map_against_the_world_and_exploration_still_completes
 }
 
 #[test]
-fn the_stereo_sensor_model_plans_with_a_wider_radius() {
+fn the_stereo_sensor_model_plans_with_a_wider_radius_and_leaves_pockets_on_the_old_one() {
     let fx = 65.0;
     let plans = |model: bool, given: Option<f32>| {
         let mut cfg = SimConfig::default();
@@ -90,12 +90,13 @@ fn the_stereo_sensor_model_plans_with_a_wider_radius() {
             cfg.explorer.vehicle_radius = r;
         }
         sim::integrate_noisy_depth(&mut cfg, 0.25, fx, 0.12, None, model);
-        cfg.explorer.vehicle_radius
+        (cfg.explorer.vehicle_radius, cfg.explorer.narrow_radius)
     };
-    // Surfaces mapped at their true thickness need the margin exact depth's grown ones gave.
-    assert_eq!(plans(false, None), 0.2);
-    assert_eq!(plans(true, None), sim::STEREO_MODEL_VEHICLE_RADIUS_M);
-    assert_eq!(plans(true, Some(0.35)), 0.35, "a wider radius is kept");
+    // Surfaces mapped at their true thickness need the margin exact depth's grown ones gave;
+    // exact depth's radius stays the way out of a pocket.
+    assert_eq!(plans(false, None), (0.2, 0.0));
+    assert_eq!(plans(true, None), (sim::STEREO_MODEL_VEHICLE_RADIUS_M, 0.2));
+    assert_eq!(plans(true, Some(0.35)).0, 0.35, "a wider radius is kept");
 }
 
 #[test]

@@ -532,7 +532,7 @@ fn print_summary(r: &Report) {
             (
                 "left unreachable",
                 format!(
-                    "{n} frontier voxels seen but out of reach (too narrow for the vehicle, behind a gap); {} unknown voxels sealed as unobservable or as far remnants{}{}",
+                    "{n} frontier voxels seen but out of reach (too narrow for the vehicle, behind a gap); {} unknown voxels sealed as unobservable or as far remnants{}{}{}",
                     r.sealed_voxels,
                     match r.errors.remnants_sealed {
                         0 => String::new(),
@@ -541,6 +541,10 @@ fn print_summary(r: &Report) {
                     match r.errors.reopenings {
                         0 => String::new(),
                         k => format!("; {k} passages closed by doubtful voxels reopened to look again"),
+                    },
+                    match r.errors.pocket_plans {
+                        0 => String::new(),
+                        k => format!("; {k} plans made on the narrower radius to leave a pocket"),
                     }
                 ),
             ),

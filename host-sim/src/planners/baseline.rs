@@ -36,7 +36,7 @@
 //! If no candidate sees any frontier voxel, the gain planners fall back to the closest frontier.
 
 use harmonic_core::camera::{DepthFrame, Intrinsics};
-use harmonic_core::domain::{self, DomainError, InflationStencil, Label, Reopening};
+use harmonic_core::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening};
 use harmonic_core::explore::Clock;
 use harmonic_core::explore::{
     check_frame_timing, is_far_remnant, ArrivalLooks, ConfigError, ExplorerConfig, ExplorerStorage, Fault,
@@ -108,7 +108,7 @@ pub struct Baseline<'a> {
     config: ExplorerConfig,
     gain: GainParams,
     map: VoxelMap<'a>,
-    stencil: InflationStencil,
+    inflation: Inflation,
     labels: &'a mut [Label],
     queue: &'a mut [u32],
     search: Search,
@@ -188,7 +188,7 @@ impl<'a> Baseline<'a> {
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
             .map_err(ConfigError::Map)?
             .with_surface(surface);
-        let stencil = InflationStencil::new(config.vehicle_radius, geometry.resolution())
+        let inflation = Inflation::new(config.vehicle_radius, config.narrow_radius, geometry.resolution())
             .map_err(ConfigError::Domain)?;
         let labels = &mut labels[..n];
         labels.fill(Label::Outside);
@@ -197,7 +197,7 @@ impl<'a> Baseline<'a> {
             config,
             gain: GainParams::default(),
             map,
-            stencil,
+            inflation,
             labels,
             queue,
             search: Search::new(geometry.dims()),
@@ -233,7 +233,9 @@ impl<'a> Baseline<'a> {
             self.status.errors.vehicle_outside_grid += 1;
             return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
         };
-        domain::mark_body(&mut self.map, &self.stencil, position);
+        // As the explorer does: the planning radius first, the narrower one out of a pocket.
+        let was_narrow = self.inflation.widen();
+        domain::mark_body(&mut self.map, self.inflation.stencil(), position);
         let counts = self.map.counts();
         let unexplored = counts.unknown - counts.sealed;
         let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
@@ -243,11 +245,15 @@ impl<'a> Baseline<'a> {
 
         for pass in 0..PLAN_PASSES {
             let t0 = clock.ticks();
-            let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+            let built = self.build_domain(vehicle);
             let t1 = clock.ticks();
             self.status.phase_ticks.domain += t1.saturating_sub(t0);
             let stats = match built {
                 Ok(s) => s,
+                Err(DomainError::VehicleInInflatedSpace) if was_narrow && self.inflation.narrow() => {
+                    self.status.errors.pocket_plans += 1;
+                    continue;
+                }
                 Err(DomainError::VehicleInInflatedSpace) => return self.escape(vehicle, yaw),
                 Err(_) => {
                     self.status.errors.vehicle_not_free += 1;
@@ -273,7 +279,21 @@ impl<'a> Baseline<'a> {
                         continue;
                     }
                     // The doubting builds overwrote the labels: end on the ordinary domain.
-                    let _ = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+                    let _ = self.build_domain(vehicle);
+                }
+                let t0 = clock.ticks();
+                let pocket = domain::narrow_in_pocket(
+                    &self.map,
+                    &mut self.inflation,
+                    vehicle,
+                    &stats,
+                    self.labels,
+                    self.queue,
+                );
+                self.status.phase_ticks.domain += clock.ticks().saturating_sub(t0);
+                if pocket {
+                    self.status.errors.pocket_plans += 1;
+                    continue;
                 }
                 self.status.streamline = None;
                 return PlanOutcome::Complete;
@@ -347,7 +367,11 @@ impl<'a> Baseline<'a> {
     /// Seals the unknown voxels behind each frontier voxel a target watches.
     fn seal_target(&mut self, watch: &[VoxelIndex]) {
         for w in watch {
-            domain::seal_around(&mut self.map, *w, domain::frontier_reach(&self.stencil));
+            domain::seal_around(
+                &mut self.map,
+                *w,
+                domain::frontier_reach(self.inflation.stencil()),
+            );
         }
     }
 
@@ -358,8 +382,8 @@ impl<'a> Baseline<'a> {
     fn reopen_doubtful(&mut self, vehicle: VoxelIndex, vehicle_i: usize, below: i8, lenient: bool) -> bool {
         let doubt = self.reopening.doubt(below);
         let doubt = if lenient { doubt.lenient() } else { doubt };
-        let built =
-            domain::build_doubting(&self.map, &self.stencil, vehicle, self.labels, self.queue, &doubt);
+        let stencil = self.inflation.stencil();
+        let built = domain::build_doubting(&self.map, stencil, vehicle, self.labels, self.queue, &doubt);
         if !built.is_ok_and(|s| s.frontier > 0) {
             return false;
         }
@@ -376,10 +400,15 @@ impl<'a> Baseline<'a> {
             .path(f)
             .into_iter()
             .map(|i| geometry.center(dims.voxel(i)));
-        let gate = domain::first_unsafe_along(&self.map, &self.stencil, &geometry.center(vehicle), path);
+        let gate = domain::first_unsafe_along(
+            &self.map,
+            self.inflation.stencil(),
+            &geometry.center(vehicle),
+            path,
+        );
         gate.is_some_and(|g| {
             self.reopening
-                .forget_around(&mut self.map, &self.stencil, g, below)
+                .forget_around(&mut self.map, self.inflation.stencil(), g, below)
                 > 0
         })
     }
@@ -400,9 +429,9 @@ impl<'a> Baseline<'a> {
             Ok(None) => return PlanOutcome::Complete,
             Err(fault) => return PlanOutcome::Hold(fault),
         };
-        domain::mark_body(&mut self.map, &self.stencil, position);
+        domain::mark_body(&mut self.map, self.inflation.stencil(), position);
         let t0 = clock.ticks();
-        let built = domain::build(&self.map, &self.stencil, vehicle, self.labels, self.queue);
+        let built = self.build_domain(vehicle);
         let t1 = clock.ticks();
         self.status.phase_ticks.domain += t1.saturating_sub(t0);
         match built {
@@ -479,7 +508,7 @@ impl<'a> Baseline<'a> {
     fn unknown_behind(&self, f: VoxelIndex) -> Point3<f32> {
         let dims = self.map.dims();
         let g = self.map.geometry();
-        let reach = domain::frontier_reach(&self.stencil);
+        let reach = domain::frontier_reach(self.inflation.stencil());
         let (mut sum, mut n) = (Vector3::zeros(), 0u32);
         for dz in -reach..=reach {
             for dy in -reach..=reach {
@@ -742,7 +771,7 @@ impl<'a> Baseline<'a> {
         }
         let geometry = *self.map.geometry();
         let res = geometry.resolution();
-        let reach = domain::frontier_reach(&self.stencil);
+        let reach = domain::frontier_reach(self.inflation.stencil());
         let open = c
             .watch
             .iter()
@@ -770,7 +799,7 @@ impl<'a> Baseline<'a> {
             return false;
         }
         let rest_of_path = self.waypoints[k..].iter().copied();
-        if domain::first_unsafe_along(&self.map, &self.stencil, position, rest_of_path).is_some() {
+        if domain::first_unsafe_along(&self.map, self.inflation.stencil(), position, rest_of_path).is_some() {
             return false;
         }
         let rest: Vec<Point3<f32>> = std::iter::once(*position)
@@ -780,9 +809,16 @@ impl<'a> Baseline<'a> {
         true
     }
 
+    /// The vehicle's domain at the radius in use, built into the labels.
+    fn build_domain(&mut self, vehicle: VoxelIndex) -> Result<DomainStats, DomainError> {
+        let stencil = self.inflation.stencil();
+        domain::build(&self.map, stencil, vehicle, self.labels, self.queue)
+    }
+
     fn escape(&mut self, vehicle: VoxelIndex, yaw: f32) -> PlanOutcome {
         self.status.errors.escapes += 1;
-        let target = domain::escape_target(&self.map, &self.stencil, vehicle, self.labels, self.queue, 4096);
+        let stencil = self.inflation.stencil();
+        let target = domain::escape_target(&self.map, stencil, vehicle, self.labels, self.queue, 4096);
         self.labels.fill(Label::Outside);
         match target {
             Some(v) => {

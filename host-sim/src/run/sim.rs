@@ -192,7 +192,8 @@ pub const STEREO_MODEL_VEHICLE_RADIUS_M: f32 = 0.25;
 /// `trusted_range` (default: where the error moves the depth by [`TRUSTED_DEPTH_ERROR_M`],
 /// [`crate::sensors::camera::trusted_range`]), farther returns only clearing free space up to it.
 /// The sensor model also widens the planning radius to at least
-/// [`STEREO_MODEL_VEHICLE_RADIUS_M`]. Noisy depth (`sigma_px` > 0) turns the sealing of far
+/// [`STEREO_MODEL_VEHICLE_RADIUS_M`], keeping the radius it had as the way out of a pocket
+/// ([`ExplorerConfig::narrow_radius`]). Noisy depth (`sigma_px` > 0) turns the sealing of far
 /// remnants off ([`ExplorerConfig::remnant_frontier_m2`] = 0). A later `--remnant-area` turns it
 /// back on only without the sensor model: with it the core keeps the rule off itself
 /// ([`harmonic_core::explore::is_far_remnant`]).
@@ -215,6 +216,9 @@ pub fn integrate_noisy_depth(
     let model = sensor_model && sigma_px > 0.0;
     cfg.explorer.integration.depth_noise_per_m = if model { sigma_px / (fx * baseline_m) } else { 0.0 };
     if model {
+        // The radius it had (exact depth's) is the way out of a pocket the wider one leaves
+        // ([`harmonic_core::domain::is_pocket`]).
+        cfg.explorer.narrow_radius = cfg.explorer.vehicle_radius;
         cfg.explorer.vehicle_radius = cfg.explorer.vehicle_radius.max(STEREO_MODEL_VEHICLE_RADIUS_M);
     }
     // Far remnants are sealed only on trustworthy depth: on a noisy map a crumb may be a passage
