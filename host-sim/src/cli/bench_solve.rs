@@ -96,6 +96,9 @@ pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
         if let Some(mg) = find("mg (pcg)", "cold") {
             mg_cold_ms.push((dims.len(), mg.ms));
         }
+        if screening > 0.0 {
+            print_scan_reach(*dims, screening);
+        }
     }
     for pair in mg_cold_ms.windows(2) {
         println!(
@@ -105,6 +108,29 @@ pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
         );
     }
     Ok(())
+}
+
+/// What the `scan` re-solve has to change ([`bench::scan_reach`]): the cells whose `u` moved by
+/// more than each threshold, and the box around them.
+fn print_scan_reach(dims: harmonic_core::map::Dims, screening: f32) {
+    let grid = format!("{}x{}x{}", dims.nx(), dims.ny(), dims.nz());
+    println!("\n{grid}, after the scan (both solved to 1e-7): where u moved");
+    println!("| more than | interior cells | share | box (voxels) | box cells, share of the grid |");
+    println!("|---|---|---|---|---|");
+    for r in bench::scan_reach(dims, screening, &[1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7]) {
+        let bounds = r
+            .bounds
+            .map_or("–".to_string(), |(lo, hi)| format!("{lo:?}..={hi:?}"));
+        println!(
+            "| {:.0e} | {} | {:.1} % | {} | {} ({:.1} %) |",
+            r.threshold,
+            r.cells,
+            100.0 * r.cells as f64 / r.interior.max(1) as f64,
+            bounds,
+            r.box_cells(),
+            100.0 * r.box_cells() as f64 / dims.len() as f64
+        );
+    }
 }
 
 /// The solver's name in the progress lines.

@@ -268,6 +268,96 @@ pub fn measure(
     rows
 }
 
+/// How far a scan's change to the screened field reaches: the cells whose `u` moved by more
+/// than `threshold` between the cold problem's solution and the solution after a scan
+/// ([`rooms_after_a_scan`]), both solved to a relative residual of 1e-7.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ScanReach {
+    /// The change that counts.
+    pub threshold: f32,
+    /// Interior cells whose `u` moved by more.
+    pub cells: usize,
+    /// Interior cells of the problem after the scan.
+    pub interior: usize,
+    /// The smallest box holding them: low and high corners (voxel indices), `None` if none.
+    pub bounds: Option<([u16; 3], [u16; 3])>,
+}
+
+impl ScanReach {
+    /// Cells of the grid inside [`ScanReach::bounds`].
+    pub fn box_cells(&self) -> usize {
+        self.bounds.map_or(0, |(lo, hi)| {
+            (0..3).map(|k| usize::from(hi[k] - lo[k]) + 1).product()
+        })
+    }
+}
+
+/// [`ScanReach`] for each of `thresholds`, on the rooms problem on `dims` with the screened
+/// field's shift `screening` (κ²h²): what a re-solve after a scan has to change, and so what a
+/// re-solve confined to a box around the scan could leave alone.
+pub fn scan_reach(dims: Dims, screening: f32, thresholds: &[f32]) -> Vec<ScanReach> {
+    let (mut cold, mut scan) = (rooms_with_doors(dims, 0), rooms_after_a_scan(dims));
+    harmonic_core::field::release_source(&mut cold.labels);
+    harmonic_core::field::release_source(&mut scan.labels);
+    let size = scratch_size(&dims);
+    let mut values = vec![0.0f32; size.values];
+    let mut clabels = vec![Label::Outside; size.labels];
+    let mut faces = vec![[0u8; 4]; size.faces];
+    let mut krylov = vec![0.0f32; size.krylov];
+    let mut masks = vec![0u8; size.masks];
+    let mut solve = |labels: &[Label], u: &mut [f32], warm_start: bool| {
+        let params = SolveParams {
+            tolerance: 1e-7,
+            max_iterations: 1000,
+            warm_start,
+            screening,
+            max_error: f32::INFINITY,
+        };
+        let storage = MultigridStorage {
+            values: values.as_mut_slice().into(),
+            labels: &mut clabels,
+            faces: &mut faces,
+            krylov: &mut krylov,
+            masks: &mut masks,
+        };
+        let mut mg = Multigrid::new(dims, storage).expect("scratch sized by scratch_size");
+        mg.solve(labels, u, &params, Method::Pcg).expect("valid problem");
+    };
+    let mut before = vec![0.0f32; dims.len()];
+    solve(&cold.labels, &mut before, false);
+    let mut after = before.clone();
+    solve(&scan.labels, &mut after, true);
+    let interior: Vec<usize> = (0..dims.len())
+        .filter(|&i| scan.labels[i] == Label::Interior)
+        .collect();
+    thresholds
+        .iter()
+        .map(|&threshold| {
+            let mut bounds: Option<([u16; 3], [u16; 3])> = None;
+            let mut cells = 0;
+            for &i in interior
+                .iter()
+                .filter(|&&i| (after[i] - before[i]).abs() > threshold)
+            {
+                cells += 1;
+                let v = dims.voxel(i);
+                let c = [v.x, v.y, v.z];
+                let (lo, hi) = bounds.get_or_insert((c, c));
+                for k in 0..3 {
+                    lo[k] = lo[k].min(c[k]);
+                    hi[k] = hi[k].max(c[k]);
+                }
+            }
+            ScanReach {
+                threshold,
+                cells,
+                interior: interior.len(),
+                bounds,
+            }
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -280,6 +370,25 @@ mod tests {
         assert_eq!(p.labels.iter().filter(|l| **l == Label::Source).count(), 1);
         let q = rooms_with_doors(Dims::new(64, 64, 32).unwrap(), 1);
         assert_ne!(p.labels, q.labels, "a scan changes the problem");
+    }
+
+    #[test]
+    fn a_scan_changes_the_screened_field_only_near_what_it_saw() {
+        // The frontier patch sits on the far wall (x = 62) of the last room; the scan resolved
+        // one row of it. The field's change decays with the distance from that row and at each
+        // door on the way, so the change that matters stays in the rooms near it.
+        let dims = Dims::new(64, 64, 32).unwrap();
+        let reach = scan_reach(dims, 0.09, &[1e-2, 1e-5, 1e-9]);
+        let (near, solve, all) = (reach[0], reach[1], reach[2]);
+        assert!(
+            near.cells > 0 && near.cells < solve.cells && solve.cells < all.cells,
+            "{reach:?}"
+        );
+        // A tenth of the cells or so move by more than the explorer's solve resolves (~1e-5).
+        assert!(solve.cells * 4 < solve.interior, "{reach:?}");
+        let (lo, hi) = solve.bounds.unwrap();
+        assert!(hi[0] >= 60 && lo[0] > 20 && lo[1] > 20, "{reach:?}");
+        assert!(solve.box_cells() * 3 < dims.len(), "{reach:?}");
     }
 
     #[test]
