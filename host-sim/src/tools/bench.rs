@@ -153,6 +153,40 @@ impl BenchSolver {
     }
 }
 
+/// Heap storage for a [`Multigrid`] on one grid ([`scratch_size`]): the host's solvers lend it.
+pub struct MultigridScratch {
+    values: Vec<f32>,
+    labels: Vec<Label>,
+    faces: Vec<[u8; 4]>,
+    krylov: Vec<f32>,
+    masks: Vec<u8>,
+}
+
+impl MultigridScratch {
+    /// Zeroed storage sized for `dims`.
+    pub fn new(dims: &Dims) -> Self {
+        let size = scratch_size(dims);
+        Self {
+            values: vec![0.0; size.values],
+            labels: vec![Label::Outside; size.labels],
+            faces: vec![[0; 4]; size.faces],
+            krylov: vec![0.0; size.krylov],
+            masks: vec![0; size.masks],
+        }
+    }
+
+    /// The storage to lend [`Multigrid::new`].
+    pub fn storage(&mut self) -> MultigridStorage<'_> {
+        MultigridStorage {
+            values: self.values.as_mut_slice().into(),
+            labels: &mut self.labels,
+            faces: &mut self.faces,
+            krylov: &mut self.krylov,
+            masks: &mut self.masks,
+        }
+    }
+}
+
 /// Measures a cold solve and a warm re-solve of the rooms problem on `dims`, `repeat` times each
 /// (median reported). `start` is `cold` (multigrid: full multigrid from the labels; Gauss-Seidel:
 /// ψ = 0) and `warm` (from the previous solution after one scan); multigrid adds `zero`, a cold
@@ -181,12 +215,7 @@ pub fn measure(
         harmonic_core::field::release_source(&mut warm.labels);
         harmonic_core::field::release_source(&mut scan.labels);
     }
-    let size = scratch_size(&dims);
-    let mut values = vec![0.0f32; size.values];
-    let mut clabels = vec![Label::Outside; size.labels];
-    let mut faces = vec![[0u8; 4]; size.faces];
-    let mut krylov = vec![0.0f32; size.krylov];
-    let mut masks = vec![0u8; size.masks];
+    let mut scratch = MultigridScratch::new(&dims);
     let mut psi = vec![0.0f32; dims.len()];
     let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool, fmg: bool| -> SolveStats {
         let params = SolveParams {
@@ -198,14 +227,7 @@ pub fn measure(
         };
         match solver {
             BenchSolver::Multigrid(method) => {
-                let storage = MultigridStorage {
-                    values: values.as_mut_slice().into(),
-                    labels: &mut clabels,
-                    faces: &mut faces,
-                    krylov: &mut krylov,
-                    masks: &mut masks,
-                };
-                let mut mg = Multigrid::new(dims, storage).expect("scratch sized by scratch_size");
+                let mut mg = Multigrid::new(dims, scratch.storage()).expect("scratch sized by scratch_size");
                 mg.set_full_multigrid(fmg);
                 mg.set_fork(fork);
                 mg.solve(labels, psi, &params, method).expect("valid problem")
@@ -299,12 +321,7 @@ pub fn scan_reach(dims: Dims, screening: f32, thresholds: &[f32]) -> Vec<ScanRea
     let (mut cold, mut scan) = (rooms_with_doors(dims, 0), rooms_after_a_scan(dims));
     harmonic_core::field::release_source(&mut cold.labels);
     harmonic_core::field::release_source(&mut scan.labels);
-    let size = scratch_size(&dims);
-    let mut values = vec![0.0f32; size.values];
-    let mut clabels = vec![Label::Outside; size.labels];
-    let mut faces = vec![[0u8; 4]; size.faces];
-    let mut krylov = vec![0.0f32; size.krylov];
-    let mut masks = vec![0u8; size.masks];
+    let mut scratch = MultigridScratch::new(&dims);
     let mut solve = |labels: &[Label], u: &mut [f32], warm_start: bool| {
         let params = SolveParams {
             tolerance: 1e-7,
@@ -313,14 +330,7 @@ pub fn scan_reach(dims: Dims, screening: f32, thresholds: &[f32]) -> Vec<ScanRea
             screening,
             max_error: f32::INFINITY,
         };
-        let storage = MultigridStorage {
-            values: values.as_mut_slice().into(),
-            labels: &mut clabels,
-            faces: &mut faces,
-            krylov: &mut krylov,
-            masks: &mut masks,
-        };
-        let mut mg = Multigrid::new(dims, storage).expect("scratch sized by scratch_size");
+        let mut mg = Multigrid::new(dims, scratch.storage()).expect("scratch sized by scratch_size");
         mg.solve(labels, u, &params, Method::Pcg).expect("valid problem");
     };
     let mut before = vec![0.0f32; dims.len()];

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use harmonic_core::domain::{self, InflationStencil, Label};
 use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
-use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
+use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{gauss_seidel, SolveParams};
 use nalgebra::Point3;
 use serde::Serialize;
@@ -175,23 +175,9 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     };
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
         SolverChoice::Multigrid | SolverChoice::VCycle => {
-            let size = scratch_size(&dims);
-            let (mut values, mut clabels, mut faces, mut krylov, mut masks) = (
-                vec![0.0f32; size.values],
-                vec![Label::Outside; size.labels],
-                vec![[0u8; 4]; size.faces],
-                vec![0.0f32; size.krylov],
-                vec![0u8; size.masks],
-            );
-            let storage = MultigridStorage {
-                values: values.as_mut_slice().into(),
-                labels: &mut clabels,
-                faces: &mut faces,
-                krylov: &mut krylov,
-                masks: &mut masks,
-            };
-            let mut mg =
-                Multigrid::new(dims, storage).map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
+            let mut scratch = super::bench::MultigridScratch::new(&dims);
+            let mut mg = Multigrid::new(dims, scratch.storage())
+                .map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
             let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
             let t1 = Instant::now();
             let (method, name) = if req.solver == SolverChoice::VCycle {
