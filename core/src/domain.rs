@@ -195,6 +195,40 @@ pub fn is_pocket(wide: &DomainStats, narrow: &DomainStats) -> bool {
     wide.frontier == 0 && narrow.frontier > 0 && size(narrow) >= 2 * size(wide)
 }
 
+/// The planners' domain for a way to the voxel `target` (linear index; home): built at the
+/// planning radius, or at `inflation`'s narrower one where the planning radius leaves the
+/// vehicle inside its inflated space after a plan on the narrower radius (`was_narrow`: on its
+/// way out of a pocket), or leaves `target` out of the vehicle's component (home in a pocket:
+/// a cramped start). Returns the build and whether the narrower radius made it; `target` may
+/// still lie outside the domain, for the caller to refuse.
+pub fn build_towards(
+    map: &VoxelMap<'_>,
+    inflation: &mut Inflation,
+    vehicle: VoxelIndex,
+    target: usize,
+    was_narrow: bool,
+    labels: &mut [Label],
+    queue: &mut [u32],
+) -> (Result<DomainStats, DomainError>, bool) {
+    let built = build(map, inflation.stencil(), vehicle, labels, queue);
+    let reaches = |labels: &[Label]| labels.get(target).is_some_and(|l| l.in_domain());
+    let retry = match built {
+        Err(DomainError::VehicleInInflatedSpace) => was_narrow,
+        Ok(_) => !reaches(labels),
+        Err(_) => false,
+    };
+    if !(retry && inflation.narrow()) {
+        return (built, false);
+    }
+    let narrow = build(map, inflation.stencil(), vehicle, labels, queue);
+    if narrow.is_ok() && reaches(labels) {
+        return (narrow, true);
+    }
+    // No better: the planning radius's domain again, as the caller expects.
+    inflation.widen();
+    (build(map, inflation.stencil(), vehicle, labels, queue), false)
+}
+
 /// The planners' pocket test: with the planning radius's component `wide` (no frontier in it)
 /// built, switches `inflation` to its narrower radius and builds the vehicle's component there.
 /// In a [pocket](is_pocket) it returns true and leaves the narrower radius and its domain in

@@ -1383,11 +1383,23 @@ impl<'a> Explorer<'a> {
             Ok(None) => return PlanOutcome::Complete,
             Err(fault) => return PlanOutcome::Hold(fault),
         };
+        let was_narrow = self.inflation.widen();
         domain::mark_body(&mut self.map, self.inflation.stencil(), position);
+        let dims = geometry.dims();
+        let at_home = dims.linear(home_voxel);
         let t0 = clock.ticks();
-        let built = self.build_domain(vehicle);
+        let (built, narrowed) = domain::build_towards(
+            &self.map,
+            &mut self.inflation,
+            vehicle,
+            at_home,
+            was_narrow,
+            self.labels,
+            self.queue,
+        );
         let t1 = clock.ticks();
         self.status.phase_ticks.domain += t1.saturating_sub(t0);
+        self.status.errors.pocket_plans += u32::from(narrowed);
         match built {
             Ok(stats) => self.status.domain = stats,
             Err(DomainError::VehicleInInflatedSpace | DomainError::VehicleNotFree) => {
@@ -1398,8 +1410,6 @@ impl<'a> Explorer<'a> {
                 return PlanOutcome::Hold(Fault::VehicleNotFree);
             }
         }
-        let dims = geometry.dims();
-        let at_home = dims.linear(home_voxel);
         if !self.labels.get(at_home).is_some_and(|l| l.in_domain()) {
             return PlanOutcome::Hold(Fault::HomeUnreachable);
         }

@@ -748,14 +748,14 @@ fn a_doubtful_voxel_seen_occupied_again_is_believed() {
 
 /// A 3.2 × 1.6 × 1.6 m box seen free, with a wall at `wall_x` (seen occupied in four frames)
 /// whose 5 × 5-voxel door a 0.3 m planning radius does not pass and the 0.2 m one does, and
-/// unknown space from `unknown_from` on. Plans once from voxel `(vehicle_x, 8, 8)` with the
-/// planning radius 0.3 m and the narrower radius `narrow`.
-fn plan_beside_a_narrow_door(
+/// unknown space from `unknown_from` on. Runs `f` on an explorer with the planning radius 0.3 m
+/// and the narrower radius `narrow`.
+fn beside_a_narrow_door<R>(
     wall_x: u16,
     unknown_from: u16,
-    vehicle_x: u16,
     narrow: f32,
-) -> (PlanOutcome, Status) {
+    f: impl FnOnce(&mut Explorer<'_>) -> R,
+) -> R {
     let dims = Dims::new(32, 16, 16).unwrap();
     let mut b = Buffers::new(&dims);
     let config = ExplorerConfig {
@@ -776,9 +776,45 @@ fn plan_beside_a_narrow_door(
             }
         }
     }
+    f(&mut e)
+}
+
+/// The centre of voxel `(x, 8, 8)`.
+fn at_x(x: u16) -> Point3<f32> {
     let centre = |k: u16| (f32::from(k) + 0.5) * 0.1;
-    let outcome = e.plan(&Point3::new(centre(vehicle_x), centre(8), centre(8)), 0.0);
-    (outcome, *e.status())
+    Point3::new(centre(x), centre(8), centre(8))
+}
+
+/// [`beside_a_narrow_door`], planning once from voxel `(vehicle_x, 8, 8)`.
+fn plan_beside_a_narrow_door(
+    wall_x: u16,
+    unknown_from: u16,
+    vehicle_x: u16,
+    narrow: f32,
+) -> (PlanOutcome, Status) {
+    beside_a_narrow_door(wall_x, unknown_from, narrow, |e| {
+        let outcome = e.plan(&at_x(vehicle_x), 0.0);
+        (outcome, *e.status())
+    })
+}
+
+#[test]
+fn home_in_a_pocket_is_reached_on_the_narrower_radius() {
+    // Home in the nook behind the narrow door (a cramped start); the vehicle beyond it.
+    let home = |narrow: f32| {
+        beside_a_narrow_door(8, 32, narrow, |e| {
+            let outcome = e.plan_home(&at_x(20), 0.0, &at_x(4), &mut NoClock);
+            (outcome, *e.status())
+        })
+    };
+    let (outcome, status) = home(0.0);
+    assert_eq!(outcome, PlanOutcome::Hold(Fault::HomeUnreachable), "{status:?}");
+    let (outcome, status) = home(0.2);
+    let PlanOutcome::Goal(goal) = outcome else {
+        panic!("home was not reached: {outcome:?} {status:?}");
+    };
+    assert_eq!(status.errors.pocket_plans, 1);
+    assert!(goal.position.x < 0.8, "into the nook: {goal:?}");
 }
 
 #[test]

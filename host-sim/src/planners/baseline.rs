@@ -429,11 +429,24 @@ impl<'a> Baseline<'a> {
             Ok(None) => return PlanOutcome::Complete,
             Err(fault) => return PlanOutcome::Hold(fault),
         };
+        // As the explorer does: the narrower radius out of a pocket, or into one to reach home.
+        let was_narrow = self.inflation.widen();
         domain::mark_body(&mut self.map, self.inflation.stencil(), position);
+        let dims = geometry.dims();
+        let (from, to) = (dims.linear(vehicle), dims.linear(home_voxel));
         let t0 = clock.ticks();
-        let built = self.build_domain(vehicle);
+        let (built, narrowed) = domain::build_towards(
+            &self.map,
+            &mut self.inflation,
+            vehicle,
+            to,
+            was_narrow,
+            self.labels,
+            self.queue,
+        );
         let t1 = clock.ticks();
         self.status.phase_ticks.domain += t1.saturating_sub(t0);
+        self.status.errors.pocket_plans += u32::from(narrowed);
         match built {
             Ok(stats) => self.status.domain = stats,
             Err(DomainError::VehicleInInflatedSpace) => return self.escape(vehicle, yaw),
@@ -442,8 +455,6 @@ impl<'a> Baseline<'a> {
                 return PlanOutcome::Hold(Fault::VehicleNotFree);
             }
         }
-        let dims = geometry.dims();
-        let (from, to) = (dims.linear(vehicle), dims.linear(home_voxel));
         if !self.labels.get(to).is_some_and(|l| l.in_domain()) {
             return PlanOutcome::Hold(Fault::HomeUnreachable);
         }
