@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use harmonic_sim::io::npy;
-use harmonic_sim::tools::problem::{self, SolverChoice};
+use harmonic_sim::tools::problem::{self, FieldChoice, SolverChoice};
 
 use super::parse::{parse_positive, parse_radius, parse_voxel};
 
@@ -46,6 +46,12 @@ pub struct SolveArgs {
     /// more, else 1.
     #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2))]
     threads: Option<u8>,
+    /// The field: `laplace` (the seed's: vehicle φ = 1, frontiers φ = 0) or `screened` (the
+    /// explorer's default: frontiers u = 1, ∇²u = κ²u with the default 0.33 m decay length at
+    /// `--resolution`, the vehicle an ordinary voxel that only picks the component; φ is
+    /// written as u). The explorer solves it to `--tol 1e-5`.
+    #[arg(long, default_value = "laplace", value_parser = ["laplace", "screened"])]
+    field: String,
 }
 
 /// Run `solve`: solve the problem, write φ if asked and print the statistics as a JSON line.
@@ -66,6 +72,11 @@ pub fn run(args: &SolveArgs) -> Result<(), String> {
         threads: args
             .threads
             .unwrap_or_else(harmonic_sim::tools::fork::default_threads),
+        field: if args.field == "screened" {
+            FieldChoice::Screened
+        } else {
+            FieldChoice::Laplace
+        },
     };
     let (phi, summary) =
         problem::solve(&grid, &request).map_err(|e| format!("{}: {e}", args.labels.display()))?;

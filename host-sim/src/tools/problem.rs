@@ -52,6 +52,20 @@ pub struct SolveRequest {
     /// Threads for the multigrid solvers' fine-level passes, 1 or 2 ([`crate::tools::fork`]):
     /// the same φ either way.
     pub threads: u8,
+    /// Which field: the seed's (vehicle φ = 1, frontiers φ = 0) or the explorer's default.
+    pub field: FieldChoice,
+}
+
+/// The field `solve` solves for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum FieldChoice {
+    /// The seed's harmonic field: Laplace's equation, vehicle φ = 1, frontiers φ = 0.
+    #[default]
+    Laplace,
+    /// The explorer's default ([`harmonic_core::field`]): frontiers u = 1, ∇²u = κ²u elsewhere
+    /// with the default decay length at the request's resolution, the vehicle an ordinary voxel
+    /// (it only picks the component). φ is written as u.
+    Screened,
 }
 
 /// The JSON line the CLI prints.
@@ -165,12 +179,19 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     let mut queue = vec![0u32; 16 * 1024];
     let stats = domain::build(&map, &stencil, source, &mut domain_labels, &mut queue)
         .map_err(|e| ProblemError::Domain(format!("{e:?} at source [{sx}, {sy}, {sz}]")))?;
+    let screened = req.field == FieldChoice::Screened;
+    let (screening, released) = if screened {
+        let k = harmonic_core::field::ScreenedParams::default().kappa_voxel(req.resolution);
+        (k * k, harmonic_core::field::release_source(&mut domain_labels))
+    } else {
+        (0.0, 0)
+    };
     let mut psi = vec![0.0f32; n];
     let params = SolveParams {
         tolerance: req.tolerance,
         max_iterations: req.max_cycles,
         warm_start: false,
-        screening: 0.0,
+        screening,
         max_error: req.max_error,
     };
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
@@ -202,15 +223,15 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     let s = solve_stats.map_err(|e| ProblemError::Domain(format!("solver: {e:?}")))?;
     let phi = Array3::from_fn(grid.shape, |x, y, z| {
         let i = dims.linear(VoxelIndex::new(x as u16, y as u16, z as u16));
-        if domain_labels[i].in_domain() {
-            1.0 - psi[i]
-        } else {
-            0.0
+        match (domain_labels[i].in_domain(), screened) {
+            (false, _) => 0.0,
+            (true, true) => psi[i],
+            (true, false) => 1.0 - psi[i],
         }
     });
     let summary = SolveSummary {
         cells: n,
-        unknowns: stats.interior,
+        unknowns: stats.interior + released as u32,
         frontier: stats.frontier,
         solver: name,
         cycles: s.iterations,
@@ -245,7 +266,37 @@ mod tests {
             radius: 0.0,
             resolution: 0.1,
             threads: 1,
+            field: FieldChoice::Laplace,
         }
+    }
+
+    #[test]
+    fn the_screened_field_rises_to_the_frontier_and_decays_away_from_it() {
+        let grid = corridor();
+        let laplace = solve(&grid, &request(SolverChoice::Multigrid)).unwrap();
+        let req = SolveRequest {
+            field: FieldChoice::Screened,
+            ..request(SolverChoice::Multigrid)
+        };
+        let (u, summary) = solve(&grid, &req).unwrap();
+        assert!(summary.converged, "{summary:?}");
+        // The vehicle is an ordinary voxel of the screened problem: one unknown more.
+        assert_eq!(summary.unknowns, laplace.1.unknowns + 1);
+        assert_eq!(
+            laplace.0.get(0, 1, 1),
+            Some(&1.0),
+            "the seed's field: the vehicle at 1"
+        );
+        let along: Vec<f32> = (0..11).map(|x| *u.get(x, 1, 1).unwrap()).collect();
+        assert!((along[10] - 1.0).abs() < 1e-6, "the frontier at 1: {along:?}");
+        assert!(
+            along.windows(2).all(|w| w[0] < w[1]),
+            "rising to the frontier: {along:?}"
+        );
+        // Ten voxels of 0.33 m decay length at 0.1 m: about e^(-3), far below the seed's
+        // field's linear fall there.
+        assert!(along[0] > 0.0 && along[0] < 0.1, "{along:?}");
+        assert_eq!(u.get(11, 1, 1), Some(&0.0), "unknown space is outside");
     }
 
     #[test]
