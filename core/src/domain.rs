@@ -217,16 +217,36 @@ pub fn build_towards(
         Ok(_) => !reaches(labels),
         Err(_) => false,
     };
-    if !(retry && inflation.narrow()) {
-        return (built, false);
+    match retry.then(|| try_narrower(map, inflation, vehicle, labels, queue, |_, l| reaches(l))) {
+        Some(Some(narrow)) => (Ok(narrow), true),
+        // `labels` hold the planning radius's domain again: `built` describes them.
+        _ => (built, false),
     }
-    let narrow = build(map, inflation.stencil(), vehicle, labels, queue);
-    if narrow.is_ok() && reaches(labels) {
-        return (narrow, true);
+}
+
+/// Switches `inflation` to its narrower radius and builds the vehicle's component there. If
+/// `keep` accepts that build (its stats and labels), returns it with the narrower radius left
+/// in use; otherwise switches back and rebuilds the planning radius's domain in `labels`. `None`
+/// at once, `labels` untouched, without a narrower radius or with it in use already.
+fn try_narrower(
+    map: &VoxelMap<'_>,
+    inflation: &mut Inflation,
+    vehicle: VoxelIndex,
+    labels: &mut [Label],
+    queue: &mut [u32],
+    keep: impl Fn(&DomainStats, &[Label]) -> bool,
+) -> Option<DomainStats> {
+    if !inflation.narrow() {
+        return None;
     }
-    // No better: the planning radius's domain again, as the caller expects.
-    inflation.widen();
-    (build(map, inflation.stencil(), vehicle, labels, queue), false)
+    match build(map, inflation.stencil(), vehicle, labels, queue) {
+        Ok(narrow) if keep(&narrow, labels) => Some(narrow),
+        _ => {
+            inflation.widen();
+            let _ = build(map, inflation.stencil(), vehicle, labels, queue);
+            None
+        }
+    }
 }
 
 /// The planners' pocket test: with the planning radius's component `wide` (no frontier in it)
@@ -242,16 +262,10 @@ pub fn narrow_in_pocket(
     labels: &mut [Label],
     queue: &mut [u32],
 ) -> bool {
-    if !inflation.narrow() {
-        return false;
-    }
-    let narrow = build(map, inflation.stencil(), vehicle, labels, queue);
-    if narrow.is_ok_and(|n| is_pocket(wide, &n)) {
-        return true;
-    }
-    inflation.widen();
-    let _ = build(map, inflation.stencil(), vehicle, labels, queue);
-    false
+    try_narrower(map, inflation, vehicle, labels, queue, |narrow, _| {
+        is_pocket(wide, narrow)
+    })
+    .is_some()
 }
 
 impl InflationStencil {
