@@ -170,6 +170,42 @@ impl Clock for HostClock {
     }
 }
 
+/// Heap storage for a [`Multigrid`](multigrid::Multigrid) on one grid
+/// ([`multigrid::scratch_size`]): what an explorer lends its solver ([`HostStorage`]), and the
+/// host tools' solves.
+pub struct MultigridScratch {
+    values: Vec<f32>,
+    labels: Vec<Label>,
+    faces: Vec<[u8; 4]>,
+    krylov: Vec<f32>,
+    masks: Vec<u8>,
+}
+
+impl MultigridScratch {
+    /// Zeroed storage sized for `dims`.
+    pub fn new(dims: &Dims) -> Self {
+        let size = multigrid::scratch_size(dims);
+        Self {
+            values: vec![0.0; size.values],
+            labels: vec![Label::Outside; size.labels],
+            faces: vec![[0; 4]; size.faces],
+            krylov: vec![0.0; size.krylov],
+            masks: vec![0; size.masks],
+        }
+    }
+
+    /// The storage to lend [`Multigrid::new`](multigrid::Multigrid::new).
+    pub fn storage(&mut self) -> multigrid::MultigridStorage<'_> {
+        multigrid::MultigridStorage {
+            values: self.values.as_mut_slice().into(),
+            labels: &mut self.labels,
+            faces: &mut self.faces,
+            krylov: &mut self.krylov,
+            masks: &mut self.masks,
+        }
+    }
+}
+
 /// Host-owned buffers for one explorer.
 pub struct HostStorage {
     log_odds: Vec<i8>,
@@ -177,11 +213,7 @@ pub struct HostStorage {
     labels: Vec<Label>,
     phi: Vec<f32>,
     queue: Vec<u32>,
-    coarse_values: Vec<f32>,
-    coarse_labels: Vec<Label>,
-    coarse_faces: Vec<[u8; 4]>,
-    krylov: Vec<f32>,
-    masks: Vec<u8>,
+    solver: MultigridScratch,
     /// The map's surface estimate: empty until [`HostStorage::with_surface`].
     surface: Vec<[i32; 2]>,
     /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
@@ -192,13 +224,8 @@ impl HostStorage {
     /// Buffers for `dims`, with MGPCG storage and the fine level's neighbour masks.
     pub fn new(dims: &Dims) -> Self {
         let n = dims.len();
-        let mg = multigrid::scratch_size(dims);
         Self {
-            coarse_values: vec![0.0; mg.values],
-            coarse_labels: vec![Label::Outside; mg.labels],
-            coarse_faces: vec![[0; 4]; mg.faces],
-            krylov: vec![0.0; mg.krylov],
-            masks: vec![0; mg.masks],
+            solver: MultigridScratch::new(dims),
             surface: Vec::new(),
             log_odds: vec![0; n],
             touched: vec![0; map::touched_words(dims)],
@@ -222,17 +249,18 @@ impl HostStorage {
     }
     /// Lends the buffers to an explorer.
     pub fn lend(&mut self) -> ExplorerStorage<'_> {
+        let solver = self.solver.storage();
         ExplorerStorage {
             log_odds: &mut self.log_odds,
             touched: &mut self.touched,
             labels: &mut self.labels,
             phi: &mut self.phi,
             queue: &mut self.queue,
-            coarse_values: self.coarse_values.as_mut_slice().into(),
-            coarse_labels: &mut self.coarse_labels,
-            coarse_faces: &mut self.coarse_faces,
-            krylov: &mut self.krylov,
-            masks: &mut self.masks,
+            coarse_values: solver.values,
+            coarse_labels: solver.labels,
+            coarse_faces: solver.faces,
+            krylov: solver.krylov,
+            masks: solver.masks,
             surface: &mut self.surface,
             jacobi: &mut self.jacobi,
         }

@@ -13,9 +13,11 @@ use std::time::Instant;
 
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
-use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
+use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{gauss_seidel, Fork, SolveParams, SolveStats};
 use serde::Serialize;
+
+use crate::planners::MultigridScratch;
 
 /// A labelled Laplace problem.
 pub struct Problem {
@@ -149,40 +151,6 @@ impl BenchSolver {
             BenchSolver::Multigrid(Method::VCycle) => "mg (v-cycle)",
             BenchSolver::Multigrid(_) => "mg (pcg)",
             BenchSolver::GaussSeidel => "gs",
-        }
-    }
-}
-
-/// Heap storage for a [`Multigrid`] on one grid ([`scratch_size`]): the host's solvers lend it.
-pub struct MultigridScratch {
-    values: Vec<f32>,
-    labels: Vec<Label>,
-    faces: Vec<[u8; 4]>,
-    krylov: Vec<f32>,
-    masks: Vec<u8>,
-}
-
-impl MultigridScratch {
-    /// Zeroed storage sized for `dims`.
-    pub fn new(dims: &Dims) -> Self {
-        let size = scratch_size(dims);
-        Self {
-            values: vec![0.0; size.values],
-            labels: vec![Label::Outside; size.labels],
-            faces: vec![[0; 4]; size.faces],
-            krylov: vec![0.0; size.krylov],
-            masks: vec![0; size.masks],
-        }
-    }
-
-    /// The storage to lend [`Multigrid::new`].
-    pub fn storage(&mut self) -> MultigridStorage<'_> {
-        MultigridStorage {
-            values: self.values.as_mut_slice().into(),
-            labels: &mut self.labels,
-            faces: &mut self.faces,
-            krylov: &mut self.krylov,
-            masks: &mut self.masks,
         }
     }
 }

@@ -196,7 +196,7 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
     };
     let (solve_stats, setup_ms, solve_ms, name) = match req.solver {
         SolverChoice::Multigrid | SolverChoice::VCycle => {
-            let mut scratch = super::bench::MultigridScratch::new(&dims);
+            let mut scratch = crate::planners::MultigridScratch::new(&dims);
             let mut mg = Multigrid::new(dims, scratch.storage())
                 .map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
             let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
