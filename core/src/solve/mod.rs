@@ -30,6 +30,7 @@ use core::cell::Cell;
 use crate::domain::Label;
 use crate::map::Dims;
 
+pub mod local;
 pub mod multigrid;
 pub mod thesis;
 
@@ -323,6 +324,29 @@ pub fn prepare(labels: &[Label], psi: &mut [f32], warm_start: bool) {
     }
 }
 
+/// Where a solve takes its Dirichlet values from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Dirichlet {
+    /// Frontiers ψ = 1, the source ψ = 0 ([`prepare`]).
+    Standard,
+    /// As the buffer holds them (in [0, 1]; anything else takes the standard value): a box cut
+    /// out of a larger grid, whose rim holds the values outside it ([`local`]).
+    Given,
+}
+
+/// [`prepare`] for a warm start whose Dirichlet cells keep the values in the buffer where they
+/// lie in [0, 1] (others take the standard ones).
+pub(crate) fn prepare_given(labels: &[Label], psi: &mut [f32]) {
+    for (l, p) in labels.iter().zip(psi.iter_mut()) {
+        let kept = (0.0..=1.0).contains(p);
+        *p = match l {
+            Label::Frontier | Label::Source | Label::Interior if kept => *p,
+            Label::Frontier => PSI_FRONTIER,
+            _ => 0.0,
+        };
+    }
+}
+
 /// Clamps interior ψ into [0, 1], the range the maximum principle guarantees: rounding can
 /// leave a value a few ulps outside it, and equal values at the top would give the streamline a
 /// plateau to wander on.
@@ -446,9 +470,28 @@ impl Screen {
 /// neighbour adds ψ = 1; the source adds 0). It depends on the labels only, so a solver
 /// computes it once per solve.
 pub(crate) fn dirichlet_norm2(dims: &Dims, labels: &[Label]) -> f64 {
+    dirichlet_norm2_with(dims, labels, |i| {
+        if labels.get(i) == Some(&Label::Frontier) {
+            PSI_FRONTIER
+        } else {
+            0.0
+        }
+    })
+}
+
+/// `‖b‖²` for the Dirichlet values `psi` holds ([`Dirichlet::Given`]).
+pub(crate) fn dirichlet_norm2_given(dims: &Dims, labels: &[Label], psi: &[f32]) -> f64 {
+    dirichlet_norm2_with(dims, labels, |i| match labels.get(i) {
+        Some(Label::Frontier | Label::Source) => psi.get(i).copied().unwrap_or(0.0),
+        _ => 0.0,
+    })
+}
+
+/// `‖b‖²` with `value(i)` the Dirichlet contribution of voxel `i` (0 for any other).
+fn dirichlet_norm2_with(dims: &Dims, labels: &[Label], value: impl Fn(usize) -> f32) -> f64 {
     let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
     let nxy = nx * ny;
-    let frontier = |i: usize| u32::from(labels.get(i) == Some(&Label::Frontier));
+    let frontier = value;
     let mut total = 0.0f64;
     for z in 0..nz {
         for y in 0..ny {
@@ -459,7 +502,7 @@ pub(crate) fn dirichlet_norm2(dims: &Dims, labels: &[Label]) -> f64 {
                 if labels.get(i) != Some(&Label::Interior) {
                     continue;
                 }
-                let mut n = 0;
+                let mut n = 0.0f32;
                 if x > 0 {
                     n += frontier(i - 1);
                 }
@@ -478,8 +521,7 @@ pub(crate) fn dirichlet_norm2(dims: &Dims, labels: &[Label]) -> f64 {
                 if z + 1 < nz {
                     n += frontier(i + nxy);
                 }
-                let b = n as f32 * PSI_FRONTIER;
-                row += b * b;
+                row += n * n;
             }
             total += f64::from(row);
         }
@@ -1330,6 +1372,7 @@ pub(crate) fn checked_problem<'l, 'p>(
     labels: &'l [Label],
     psi: &'p mut [f32],
     params: &SolveParams,
+    dirichlet: Dirichlet,
 ) -> Result<(&'l [Label], &'p mut [f32]), SolveError> {
     let n = dims.len();
     let (Some(labels), Some(psi)) = (labels.get(..n), psi.get_mut(..n)) else {
@@ -1341,7 +1384,10 @@ pub(crate) fn checked_problem<'l, 'p>(
     if !(params.screening.is_finite() && params.screening >= 0.0) {
         return Err(SolveError::BadScreening);
     }
-    prepare(labels, psi, params.warm_start);
+    match dirichlet {
+        Dirichlet::Standard => prepare(labels, psi, params.warm_start),
+        Dirichlet::Given => prepare_given(labels, psi),
+    }
     Ok((labels, psi))
 }
 
@@ -1353,7 +1399,7 @@ pub fn gauss_seidel(
     phi: &mut [f32],
     params: &SolveParams,
 ) -> Result<SolveStats, SolveError> {
-    let (labels, phi) = checked_problem(dims, labels, phi, params)?;
+    let (labels, phi) = checked_problem(dims, labels, phi, params, Dirichlet::Standard)?;
     const CHECK_EVERY: u32 = 4;
     let b2 = dirichlet_norm2(dims, labels);
     if b2 == 0.0 {

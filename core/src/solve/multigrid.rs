@@ -61,8 +61,8 @@ use heapless::Vec as HVec;
 
 use super::{
     build_masks, error_estimate, error_met, for_each_row_mut_split, for_each_row_out_split, residual_with,
-    split_plane, Active, Bf16, Contraction, Fork, Residual, RowValues, Screen, SolveError, SolveParams,
-    SolveStats, Stencil, Stored, MASK_INTERIOR, MASK_OPEN, OPEN_RUN,
+    split_plane, Active, Bf16, Contraction, Dirichlet, Fork, Residual, RowValues, Screen, SolveError,
+    SolveParams, SolveStats, Stencil, Stored, MASK_INTERIOR, MASK_OPEN, OPEN_RUN,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -420,8 +420,64 @@ impl<'a> Multigrid<'a> {
         params: &SolveParams,
         method: Method,
     ) -> Result<SolveStats, SolveError> {
+        self.solve_with(labels, phi, params, method, Dirichlet::Standard)
+    }
+
+    /// Lays the coarse levels out again for a fine grid of `fine`, which the storage lent to
+    /// [`Multigrid::new`] must fit (any grid no larger along each axis than the one it was
+    /// made for does): [`super::local`] solves boxes cut out of the grid in the same storage.
+    pub(crate) fn relayout(&mut self, fine: Dims) -> Result<(), SolveError> {
+        let need = scratch_size(&fine);
+        let faces_ok = self.faces.is_empty() || self.faces.len() >= need.faces;
+        let krylov_ok = self.krylov.is_empty() || self.krylov.len() >= need.krylov;
+        let masks_ok = self.masks.is_empty() || self.masks.len() >= need.masks;
+        if self.values.len() < need.values
+            || self.labels.len() < need.labels
+            || !faces_ok
+            || !krylov_ok
+            || !masks_ok
+        {
+            return Err(SolveError::ScratchTooSmall);
+        }
+        self.levels.clear();
+        let (mut offset, mut label_offset) = (0, 0);
+        for dims in coarse_dims(&fine) {
+            // coarse_dims yields at most MAX_LEVELS - 1 entries.
+            let _ = self.levels.push(Level {
+                dims,
+                offset,
+                label_offset,
+                active: Active::all(&dims),
+            });
+            offset += 2 * dims.len();
+            label_offset += dims.len();
+        }
+        self.fine = fine;
+        self.fine_active = Active::all(&fine);
+        Ok(())
+    }
+
+    /// The grid the coarse levels are laid out for.
+    pub(crate) fn fine_dims(&self) -> Dims {
+        self.fine
+    }
+
+    /// [`Multigrid::solve`] with the Dirichlet values taken as `dirichlet` says.
+    pub(crate) fn solve_with(
+        &mut self,
+        labels: &[Label],
+        phi: &mut [f32],
+        params: &SolveParams,
+        method: Method,
+        dirichlet: Dirichlet,
+    ) -> Result<SolveStats, SolveError> {
         let n = self.fine.len();
-        let (labels, phi) = super::checked_problem(&self.fine, labels, phi, params)?;
+        let params = &SolveParams {
+            // Full multigrid solves for standard Dirichlet values; given ones start warm.
+            warm_start: params.warm_start || dirichlet == Dirichlet::Given,
+            ..*params
+        };
+        let (labels, phi) = super::checked_problem(&self.fine, labels, phi, params, dirichlet)?;
         self.history.clear();
         let mut stats = SolveStats::default();
         stats.cell_updates += self.build_labels(labels);
@@ -430,11 +486,14 @@ impl<'a> Multigrid<'a> {
         self.screen = Screen::new(params.screening);
         let screen = self.screen;
         let active = self.fine_active;
-        let b2 = super::dirichlet_norm2(&self.fine, labels);
+        let b2 = match dirichlet {
+            Dirichlet::Standard => super::dirichlet_norm2(&self.fine, labels),
+            Dirichlet::Given => super::dirichlet_norm2_given(&self.fine, labels, phi),
+        };
         if b2 == 0.0 {
-            // No interior cell touches a frontier: every interior component holds only the
-            // source's value, and ψ = 0 there is the exact solution.
-            super::prepare(labels, phi, false);
+            // No interior cell touches a frontier (or a Dirichlet value above 0): every
+            // interior component holds only the value 0, and ψ = 0 there is the exact solution.
+            zero_interior(labels, phi);
         }
         let mut res = residual_with(&self.fine, &active, &screen, (labels, self.masks), phi, b2);
         stats.initial_residual = res.relative;
@@ -515,7 +574,7 @@ impl<'a> Multigrid<'a> {
                 if !res.relative.is_finite() || res.relative > limit {
                     // Never observed with the face floor above, but a diverged φ must not
                     // reach the streamline: reset it and report.
-                    super::prepare(labels, phi, false);
+                    zero_interior(labels, phi);
                     return Err(SolveError::Diverged);
                 }
             }
@@ -745,6 +804,15 @@ impl<'a> Multigrid<'a> {
             residual_with(&dims, &fine_active, &screen, (labels, masks), phi, b2),
             steps,
         )
+    }
+}
+
+/// Sets ψ = 0 on the interior, keeping the Dirichlet values.
+fn zero_interior(labels: &[Label], phi: &mut [f32]) {
+    for (l, p) in labels.iter().zip(phi.iter_mut()) {
+        if *l == Label::Interior {
+            *p = 0.0;
+        }
     }
 }
 

@@ -96,6 +96,22 @@ pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
         if let Some(mg) = find("mg (pcg)", "cold") {
             mg_cold_ms.push((dims.len(), mg.ms));
         }
+        for r in &rows {
+            if let Some(l) = r.local {
+                let share = 100.0 * l.last_cells as f64 / dims.len() as f64;
+                if l.whole {
+                    println!(
+                        "\n{} {}: gave up on boxes, solved the whole grid",
+                        r.grid, r.solver
+                    );
+                } else {
+                    println!(
+                        "\n{} {}: scan (local) took {} box(es), the last {} cells ({share:.1} % of the grid)",
+                        r.grid, r.solver, l.boxes, l.last_cells
+                    );
+                }
+            }
+        }
         if screening > 0.0 {
             print_scan_reach(*dims, screening);
         }

@@ -13,6 +13,7 @@ use std::time::Instant;
 
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
+use harmonic_core::solve::local::{resolve_near, Local, LocalParams, LocalScratch};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{gauss_seidel, Fork, SolveParams, SolveStats};
 use serde::Serialize;
@@ -115,7 +116,7 @@ pub struct SolveRow {
     pub frontier: usize,
     /// "mg (pcg)", "mg (v-cycle)" or "gs".
     pub solver: String,
-    /// "cold", "zero", "warm" or (screened field) "scan".
+    /// "cold", "zero", "warm" or (screened field, multigrid) "scan" and "scan (local)".
     pub start: String,
     /// Cycles, CG iterations or sweeps.
     pub iterations: u32,
@@ -129,6 +130,19 @@ pub struct SolveRow {
     pub cell_updates: u64,
     /// The solve's estimate of its largest error ([`SolveStats::error_estimate`]).
     pub error_estimate: Option<f32>,
+    /// The `scan (local)` row's boxes ([`resolve_near`]); `None` on every other row.
+    pub local: Option<LocalBoxes>,
+}
+
+/// The boxes a local re-solve took.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct LocalBoxes {
+    /// Boxes solved.
+    pub boxes: u8,
+    /// Cells of the last.
+    pub last_cells: usize,
+    /// True if it gave up and the whole grid was solved instead.
+    pub whole: bool,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -163,7 +177,9 @@ impl BenchSolver {
 /// `screening` 0 solves the seed's Laplace problem; above 0 (κ²h²) the explorer's default
 /// field: the frontier-sourced screened field, the vehicle an ordinary interior voxel, and then
 /// `scan` too: the cold solution re-solved after a scan that resolved one row of the frontier
-/// ([`rooms_after_a_scan`]).
+/// ([`rooms_after_a_scan`]), and for multigrid `scan (local)`: the same re-solve confined to
+/// boxes around the scan ([`resolve_near`], the whole grid solved instead if it gives up; its
+/// time includes its residual passes over the whole grid).
 pub fn measure(
     dims: Dims,
     solver: BenchSolver,
@@ -216,8 +232,52 @@ pub fn measure(
         ms,
         cell_updates: stats.cell_updates,
         error_estimate: stats.error_estimate,
+        local: None,
     };
     let is_mg = matches!(solver, BenchSolver::Multigrid(_));
+    let (mut local_times, mut local_stats) = (Vec::new(), (SolveStats::default(), None));
+    let mut box_labels = vec![Label::Outside; dims.len()];
+    let mut box_psi = vec![0.0f32; dims.len()];
+    let mut local_scratch = MultigridScratch::new(&dims);
+    let mut resolve_local = |labels: &[Label],
+                             psi: &mut [f32],
+                             method: Method|
+     -> (SolveStats, Option<LocalBoxes>) {
+        let params = SolveParams {
+            tolerance,
+            max_iterations: 1_000_000,
+            warm_start: true,
+            screening,
+            max_error: f32::INFINITY,
+        };
+        let mut mg = Multigrid::new(dims, local_scratch.storage()).expect("scratch sized by scratch_size");
+        mg.set_fork(fork);
+        let local = LocalParams::for_screening(screening, tolerance);
+        let scratch = LocalScratch {
+            labels: &mut box_labels,
+            psi: &mut box_psi,
+        };
+        match resolve_near(&mut mg, labels, psi, &params, &local, method, scratch).expect("valid problem") {
+            Local::Solved(s) => (
+                s.stats,
+                Some(LocalBoxes {
+                    boxes: s.boxes,
+                    last_cells: s.box_cells,
+                    whole: false,
+                }),
+            ),
+            Local::Whole { cell_updates } => {
+                let mut s = mg.solve(labels, psi, &params, method).expect("valid problem");
+                s.cell_updates += cell_updates;
+                let whole = LocalBoxes {
+                    boxes: 0,
+                    last_cells: dims.len(),
+                    whole: true,
+                };
+                (s, Some(whole))
+            }
+        }
+    };
     let (mut cold_times, mut zero_times, mut warm_times, mut scan_times) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut cold_stats, mut zero_stats, mut warm_stats, mut scan_stats) = (
@@ -242,6 +302,12 @@ pub fn measure(
             let t = Instant::now();
             scan_stats = run(&scan.labels, &mut after, true, true);
             scan_times.push(t.elapsed().as_secs_f64() * 1e3);
+            if let BenchSolver::Multigrid(method) = solver {
+                let mut after = psi.clone();
+                let t = Instant::now();
+                local_stats = resolve_local(&scan.labels, &mut after, method);
+                local_times.push(t.elapsed().as_secs_f64() * 1e3);
+            }
         }
         let t = Instant::now();
         warm_stats = run(&warm.labels, &mut psi, true, true);
@@ -254,6 +320,11 @@ pub fn measure(
     rows.push(row(&warm, "warm", warm_stats, median(warm_times)));
     if screened {
         rows.push(row(&scan, "scan", scan_stats, median(scan_times)));
+        if !local_times.is_empty() {
+            let mut local = row(&scan, "scan (local)", local_stats.0, median(local_times));
+            local.local = local_stats.1;
+            rows.push(local);
+        }
     }
     rows
 }
@@ -390,6 +461,23 @@ mod tests {
         // Laplace's problem has no scan row (its vehicle moves with every scan).
         let laplace = measure(dims, BenchSolver::Multigrid(Method::Pcg), 1e-6, 1, 0.0, None);
         assert!(laplace.iter().all(|r| r.start != "scan"), "{laplace:?}");
+    }
+
+    /// The benchmark's scan re-solved in boxes: the whole grid meets the tolerance, with a
+    /// fraction of the whole-grid re-solve's work, in boxes well short of the grid.
+    #[test]
+    fn the_scan_re_solved_in_boxes_meets_the_tolerance_for_less_work() {
+        let dims = Dims::new(64, 64, 32).unwrap();
+        for method in [Method::Pcg, Method::VCycle] {
+            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-5, 1, 0.09, None);
+            let get = |start: &str| rows.iter().find(|r| r.start == start).unwrap();
+            let (whole, local) = (get("scan"), get("scan (local)"));
+            let boxes = local.local.unwrap();
+            assert!(!boxes.whole && boxes.boxes >= 1, "{rows:?}");
+            assert!(local.converged && local.residual <= 1e-5, "{rows:?}");
+            assert!(boxes.last_cells < dims.len() / 2, "{rows:?}");
+            assert!(2 * local.cell_updates < whole.cell_updates, "{rows:?}");
+        }
     }
 
     #[test]
