@@ -1183,6 +1183,19 @@ impl Active {
         }
     }
 
+    /// The rows of the box `lo..hi` (cells `lo[0]..hi[0]` of each), within `dims`.
+    pub(crate) fn bounded(dims: &Dims, lo: [usize; 3], hi: [usize; 3]) -> Self {
+        let [x1, y1, z1] = [hi[0].min(dims.nx()), hi[1].min(dims.ny()), hi[2].min(dims.nz())];
+        Self {
+            x0: lo[0].min(x1),
+            x1,
+            y0: lo[1].min(y1),
+            y1,
+            z0: lo[2].min(z1),
+            z1,
+        }
+    }
+
     /// The active `x` range.
     pub(crate) fn xs(&self) -> core::ops::Range<usize> {
         self.x0..self.x1
