@@ -63,6 +63,7 @@ use crate::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening}
 use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use crate::solve::local::{resolve_near, Local, LocalParams, LocalScratch};
 use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
 use crate::streamline::{self, Field, StreamlineEnd, StreamlineError, StreamlineParams, Waypoints};
@@ -300,6 +301,13 @@ pub struct ExplorerStorage<'a> {
     /// The other sweep of the thesis's Jacobi solve ([`SolverKind::ThesisJacobi`] only: one
     /// entry per voxel then; otherwise it may be empty).
     pub jacobi: &'a mut [f32],
+    /// Labels of the box a local re-solve cuts out ([`crate::solve::local`]; optional, like
+    /// `krylov`): with this and `local_psi` lent (half a grid each is enough), a re-solve of
+    /// the screened field after a scan works in boxes around what changed. Empty: every solve
+    /// sweeps the whole grid.
+    pub local_labels: &'a mut [Label],
+    /// Values of that box (as many as `local_labels`).
+    pub local_psi: &'a mut [f32],
 }
 
 impl ExplorerStorage<'_> {
@@ -318,6 +326,8 @@ impl ExplorerStorage<'_> {
             + size_of_val(self.masks)
             + size_of_val(self.surface)
             + size_of_val(self.jacobi)
+            + size_of_val(self.local_labels)
+            + size_of_val(self.local_psi)
     }
 }
 
@@ -504,6 +514,11 @@ pub struct Status {
     pub integration_ops: u64,
     /// Total solver cell updates ("planning ops").
     pub planning_ops: u64,
+    /// Solves done in boxes around what a scan changed ([`crate::solve::local`]).
+    pub local_solves: u32,
+    /// Local re-solves that gave the grid back to a whole-grid solve (the change reached too
+    /// far).
+    pub local_given_up: u32,
     /// Exploration state.
     pub termination: Termination,
     /// At a [`Termination::Complete`] end: the map's frontier voxels (observed free, next to
@@ -576,6 +591,13 @@ pub struct Explorer<'a> {
     multigrid: Option<Multigrid<'a>>,
     /// The thesis's Jacobi scratch (empty unless [`SolverKind::ThesisJacobi`]).
     jacobi: &'a mut [f32],
+    /// The box scratch of local re-solves (empty: none).
+    local_labels: &'a mut [Label],
+    /// Its values.
+    local_psi: &'a mut [f32],
+    /// The screening of the field `phi` holds, if a solve left one there: a re-solve with
+    /// the same screening may work locally.
+    solved_screening: Option<f32>,
     waypoints: Waypoints,
     intrinsics: Option<Intrinsics>,
     last_goal: Option<Goal>,
@@ -622,6 +644,8 @@ impl<'a> Explorer<'a> {
             masks,
             surface,
             jacobi,
+            local_labels,
+            local_psi,
         } = storage;
         if labels.len() < n || phi.len() < n || queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
@@ -675,6 +699,9 @@ impl<'a> Explorer<'a> {
             queue,
             multigrid,
             jacobi,
+            local_labels,
+            local_psi,
+            solved_screening: None,
             waypoints: Waypoints::new(),
             intrinsics: None,
             last_goal: None,
@@ -1190,7 +1217,32 @@ impl<'a> Explorer<'a> {
             ..self.config.solve
         };
         let dims = self.map.geometry().dims();
-        match (self.multigrid.as_mut(), self.config.solver) {
+        let same_field = self.solved_screening == Some(screening);
+        self.solved_screening = None;
+        let solved = match (self.multigrid.as_mut(), self.config.solver) {
+            (Some(mg), _)
+                if same_field && params.warm_start && screening > 0.0 && !self.local_labels.is_empty() =>
+            {
+                let local = LocalParams::for_screening(screening, tolerance);
+                let scratch = LocalScratch {
+                    labels: &mut *self.local_labels,
+                    psi: &mut *self.local_psi,
+                };
+                match resolve_near(mg, self.labels, self.phi, &params, &local, Method::Auto, scratch)? {
+                    Local::Solved(s) => {
+                        self.status.local_solves += 1;
+                        Ok(s.stats)
+                    }
+                    Local::Whole { cell_updates } => {
+                        self.status.local_given_up += 1;
+                        mg.solve(self.labels, self.phi, &params, Method::Auto)
+                            .map(|s| SolveStats {
+                                cell_updates: s.cell_updates + cell_updates,
+                                ..s
+                            })
+                    }
+                }
+            }
             (Some(mg), _) => mg.solve(self.labels, self.phi, &params, Method::Auto),
             (None, SolverKind::ThesisJacobi) => solve::thesis::solve(
                 &dims,
@@ -1200,7 +1252,11 @@ impl<'a> Explorer<'a> {
                 &solve::thesis::ThesisParams::default(),
             ),
             (None, _) => solve::gauss_seidel(&dims, self.labels, self.phi, &params),
+        };
+        if solved.is_ok() {
+            self.solved_screening = Some(screening);
         }
+        solved
     }
 
     /// The goal for a traced streamline: the waypoint nearest the end that sees the frontier.

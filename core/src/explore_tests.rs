@@ -25,6 +25,8 @@ struct Buffers {
     krylov: Vec<f32>,
     masks: Vec<u8>,
     jacobi: Vec<f32>,
+    local_labels: Vec<Label>,
+    local_psi: Vec<f32>,
 }
 
 impl Buffers {
@@ -43,6 +45,8 @@ impl Buffers {
             krylov: vec![0.0; s.krylov],
             masks: vec![0; s.masks],
             jacobi: Vec::new(),
+            local_labels: Vec::new(),
+            local_psi: Vec::new(),
         }
     }
     fn explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Explorer<'_> {
@@ -85,6 +89,8 @@ impl Buffers {
                 masks: &mut self.masks,
                 surface: &mut [],
                 jacobi: &mut self.jacobi,
+                local_labels: &mut self.local_labels,
+                local_psi: &mut self.local_psi,
             },
         )
     }
@@ -954,6 +960,7 @@ fn storage_bytes_count_every_buffer() {
     let (mut queue, mut values, mut coarse_labels) =
         ([0u32; 5], [Bf16::default(); 7], [Label::default(); 11]);
     let (mut faces, mut krylov, mut masks, mut jacobi) = ([[0u8; 4]; 13], [0f32; 17], [0u8; 19], [0f32; 23]);
+    let (mut local_labels, mut local_psi) = ([Label::default(); 29], [0f32; 31]);
     let storage = ExplorerStorage {
         log_odds: &mut lo,
         touched: &mut touched,
@@ -967,7 +974,51 @@ fn storage_bytes_count_every_buffer() {
         masks: &mut masks,
         surface: &mut [],
         jacobi: &mut jacobi,
+        local_labels: &mut local_labels,
+        local_psi: &mut local_psi,
     };
-    let want = 10 + 4 + 3 * label + 8 + 20 + 14 + 11 * label + 52 + 68 + 19 + 92;
+    let want = 10 + 4 + 3 * label + 8 + 20 + 14 + 11 * label + 52 + 68 + 19 + 92 + 29 * label + 4 * 31;
     assert_eq!(storage.bytes(), want);
+}
+
+/// A re-solve after a scan, with a box lent, works in a box around the scan and leaves the
+/// field a whole-grid re-solve leaves, for less work; without the box it sweeps the grid.
+#[test]
+fn a_re_solve_after_a_scan_works_in_a_box_around_it() {
+    let dims = Dims::new(160, 24, 12).unwrap();
+    let vehicle = VoxelIndex::new(120, 12, 6);
+    let mut fields = Vec::new();
+    for local in [false, true] {
+        let mut b = Buffers::new(&dims);
+        if local {
+            b.local_labels = vec![Label::Outside; dims.len() / 2];
+            b.local_psi = vec![0.0; dims.len() / 2];
+        }
+        let mut e = b.seen_explorer(dims, ExplorerConfig::default(), |v| v.x < 130);
+        e.build_domain(vehicle).unwrap();
+        let first = e.solve_field(vehicle).unwrap();
+        // The scan: three more planes seen beyond the frontier.
+        e.map.begin_frame();
+        for i in 0..dims.len() {
+            if (130..133).contains(&dims.voxel(i).x) {
+                e.map.apply_miss(i);
+            }
+        }
+        e.build_domain(vehicle).unwrap();
+        let s = e.solve_field(vehicle).unwrap();
+        assert!(first.converged && s.converged, "{first:?} {s:?}");
+        assert_eq!(
+            (e.status.local_solves, e.status.local_given_up),
+            (u32::from(local), 0)
+        );
+        fields.push((e.phi.to_vec(), s.cell_updates));
+    }
+    let [(whole, whole_work), (boxed, boxed_work)] = [fields[0].clone(), fields[1].clone()];
+    let worst = whole
+        .iter()
+        .zip(&boxed)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1e-4, "{worst}");
+    assert!(2 * boxed_work < whole_work, "{boxed_work} against {whole_work}");
 }

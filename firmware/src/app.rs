@@ -349,6 +349,9 @@ pub fn build_explorer<'a>(
             surface: &mut [],
             // The thesis's Jacobi solve is a host-side ablation.
             jacobi: &mut [],
+            // No room for a box (half a grid's labels and values): whole-grid re-solves.
+            local_labels: &mut [],
+            local_psi: &mut [],
         },
     )?;
     Ok((slot.write(explorer), depth))

@@ -105,6 +105,8 @@ pub fn run(data: &[u8]) {
         masks: &mut masks,
         surface: &mut [],
         jacobi: &mut [],
+        local_labels: &mut [],
+        local_psi: &mut [],
     };
     let Ok(mut explorer) = Explorer::new(geometry, config, storage) else {
         return;

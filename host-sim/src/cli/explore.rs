@@ -476,7 +476,7 @@ fn write_run_figures(
 
 /// The end-of-run summary: one aligned line per quantity of the report.
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 17] = [
+    let rows: [(&str, String); 18] = [
         ("scenario", r.scenario.clone()),
         ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
@@ -508,6 +508,13 @@ fn print_summary(r: &Report) {
         ("collisions", r.collisions.to_string()),
         ("integration ops", r.integration_ops.to_string()),
         ("planning ops", r.planning_ops.to_string()),
+        (
+            "local re-solves",
+            format!(
+                "{} in boxes, {} gave the grid back",
+                r.local_solves[0], r.local_solves[1]
+            ),
+        ),
         (
             "integrate / step",
             format!("{:.2} ms", r.timing.integrate.mean_ms),

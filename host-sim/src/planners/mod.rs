@@ -218,10 +218,16 @@ pub struct HostStorage {
     surface: Vec<[i32; 2]>,
     /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
     jacobi: Vec<f32>,
+    /// The box of local re-solves: half a grid, the most
+    /// [`LocalParams::max_share`](harmonic_core::solve::local::LocalParams::max_share) lets a box take.
+    local_labels: Vec<Label>,
+    /// Its values.
+    local_psi: Vec<f32>,
 }
 
 impl HostStorage {
-    /// Buffers for `dims`, with MGPCG storage and the fine level's neighbour masks.
+    /// Buffers for `dims`, with MGPCG storage, the fine level's neighbour masks and a box for
+    /// local re-solves.
     pub fn new(dims: &Dims) -> Self {
         let n = dims.len();
         Self {
@@ -233,6 +239,8 @@ impl HostStorage {
             phi: vec![0.0; n],
             queue: vec![0; 16 * 1024],
             jacobi: Vec::new(),
+            local_labels: vec![Label::Outside; n / 2],
+            local_psi: vec![0.0; n / 2],
         }
     }
     /// Adds the one-per-voxel scratch the thesis's Jacobi solve needs
@@ -263,6 +271,8 @@ impl HostStorage {
             masks: solver.masks,
             surface: &mut self.surface,
             jacobi: &mut self.jacobi,
+            local_labels: &mut self.local_labels,
+            local_psi: &mut self.local_psi,
         }
     }
 }

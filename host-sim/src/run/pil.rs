@@ -1122,6 +1122,7 @@ pub fn run(
         min_clearance_at: contact.closest.1,
         integration_ops: last.integration_ops,
         planning_ops: last.planning_ops,
+        local_solves: [0, 0],
         flight_time_s: now_ms as f64 * 1e-3,
         wall_time_s: wall.elapsed().as_secs_f64(),
         grid: [dims.nx(), dims.ny(), dims.nz()],

@@ -480,6 +480,9 @@ pub struct Report {
     pub integration_ops: u64,
     /// Solver cell updates.
     pub planning_ops: u64,
+    /// Solves done in boxes around a scan's change, and those that gave the grid back to a
+    /// whole-grid solve ([`harmonic_core::solve::local`]); 0 for the baselines and the firmware.
+    pub local_solves: [u32; 2],
     /// Simulated time of the run, flight and waiting for the link, s (wall-clock time against
     /// a remote autopilot).
     pub flight_time_s: f64,
@@ -1716,6 +1719,7 @@ pub fn run_observed(
         collision_points: track.contact.collisions,
         integration_ops: status.integration_ops,
         planning_ops: status.planning_ops,
+        local_solves: [status.local_solves, status.local_given_up],
         flight_time_s: rig.t_s,
         wall_time_s: wall.elapsed().as_secs_f64(),
         grid: [dims.nx(), dims.ny(), dims.nz()],
