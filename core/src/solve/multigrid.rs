@@ -160,6 +160,24 @@ fn coarse_dims(fine: &Dims) -> HVec<Dims, MAX_LEVELS> {
     out
 }
 
+/// The coarse levels over `fine`, laid out one after the other in the scratch.
+fn lay_out(fine: &Dims) -> HVec<Level, MAX_LEVELS> {
+    let mut levels = HVec::new();
+    let (mut offset, mut label_offset) = (0, 0);
+    for dims in coarse_dims(fine) {
+        // coarse_dims yields at most MAX_LEVELS - 1 entries.
+        let _ = levels.push(Level {
+            dims,
+            offset,
+            label_offset,
+            active: Active::all(&dims),
+        });
+        offset += 2 * dims.len();
+        label_offset += dims.len();
+    }
+    levels
+}
+
 /// Scratch a [`Multigrid`] over `fine` needs.
 pub fn scratch_size(fine: &Dims) -> ScratchSize {
     let cells: usize = coarse_dims(fine).iter().map(|d| d.len()).sum();
@@ -356,22 +374,9 @@ impl<'a> Multigrid<'a> {
         } else {
             &mut []
         };
-        let mut levels = HVec::new();
-        let (mut offset, mut label_offset) = (0, 0);
-        for dims in coarse_dims(&fine) {
-            // coarse_dims yields at most MAX_LEVELS - 1 entries.
-            let _ = levels.push(Level {
-                dims,
-                offset,
-                label_offset,
-                active: Active::all(&dims),
-            });
-            offset += 2 * dims.len();
-            label_offset += dims.len();
-        }
         Ok(Self {
             fine,
-            levels,
+            levels: lay_out(&fine),
             values: storage.values,
             labels: storage.labels,
             faces: storage.faces,
@@ -439,19 +444,7 @@ impl<'a> Multigrid<'a> {
         {
             return Err(SolveError::ScratchTooSmall);
         }
-        self.levels.clear();
-        let (mut offset, mut label_offset) = (0, 0);
-        for dims in coarse_dims(&fine) {
-            // coarse_dims yields at most MAX_LEVELS - 1 entries.
-            let _ = self.levels.push(Level {
-                dims,
-                offset,
-                label_offset,
-                active: Active::all(&dims),
-            });
-            offset += 2 * dims.len();
-            label_offset += dims.len();
-        }
+        self.levels = lay_out(&fine);
         self.fine = fine;
         self.fine_active = Active::all(&fine);
         Ok(())
