@@ -1228,7 +1228,10 @@ impl<'a> Explorer<'a> {
                     labels: &mut *self.local_labels,
                     psi: &mut *self.local_psi,
                 };
-                match resolve_near(mg, self.labels, self.phi, &params, &local, Method::Auto, scratch)? {
+                // A box solve that fails (never seen) writes nothing back, so `phi` is still a
+                // warm start: the whole grid is solved instead and reports any error of its own.
+                let near = resolve_near(mg, self.labels, self.phi, &params, &local, Method::Auto, scratch);
+                match near.unwrap_or(Local::Whole { cell_updates: 0 }) {
                     Local::Solved(s) => {
                         self.status.local_solves += 1;
                         Ok(s.stats)
