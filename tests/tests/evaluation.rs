@@ -364,14 +364,15 @@ fn million_triangle_mesh_loads_in_seconds() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
-/// "Doorways must not close under noise": in the thesis's apartment, starts 9 and 2 of the
-/// noise table (σ = 1 px, the stereo sensor model, 0.25 m radius), noisy returns leave weakly
-/// seen occupied voxels in the 0.9 m hall (start 9) and on a door's frame (start 2), and the
-/// vehicle's safe space ends there. Without the reopening rule the runs end `complete` at 39 %
-/// and 53 % of the free space; with it (the default) the explorer looks at those voxels again,
-/// finds the way open and explores the rest (90 % and 89 % measured), without a collision.
-/// Start 2 needs the lenient doubt (`Doubt::lenient`): the door's fringe lies near doubtful
-/// voxels too.
+/// "Doorways must not close under noise": in the thesis's apartment, starts 33 and 11 (σ = 1
+/// px, the stereo sensor model, 0.25 m radius), noisy returns leave weakly seen occupied voxels
+/// where the vehicle's safe space ends, in the 0.9 m hall (start 33) and at a door (start 11).
+/// Without the reopening rule the runs end `complete` at 40 % and 58 % of the free space; with
+/// it (the default) the explorer looks at those voxels again, finds the way open and explores
+/// the rest (90 % both, measured), without a collision. Start 11 takes the lenient doubt
+/// (`Doubt::lenient`) once: a fringe near doubtful voxels too. (Which starts close depends on
+/// the exact path: until the re-solves in boxes, 2026-12-06, they were starts 9 and 2; of
+/// starts 1–40, 6 close without the rule and 3 with it.)
 #[test]
 fn a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end() {
     use harmonic_sim::sensors::camera::StereoNoise;
@@ -397,7 +398,7 @@ fn a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end() {
         cfg.explorer.doubtful_log_odds = doubtful_log_odds;
         sim::run(&scenario, &cfg, |_| {}).unwrap()
     };
-    for start in [9, 2] {
+    for start in [33, 11] {
         let closed = run(start, 0.0);
         assert_eq!(closed.termination, "complete");
         assert!(
