@@ -434,7 +434,7 @@ pub fn resolve_near(
 mod tests {
     extern crate std;
     use super::*;
-    use crate::solve::multigrid::{scratch_size, MultigridStorage};
+    use crate::solve::multigrid::tests::Scratch as Storage;
     use crate::solve::screened_residual;
     use std::vec;
     use std::vec::Vec;
@@ -460,42 +460,6 @@ mod tests {
         (dims, labels)
     }
 
-    /// Everything a multigrid over `dims` needs, MGPCG included.
-    struct Storage {
-        values: Vec<f32>,
-        labels: Vec<Label>,
-        faces: Vec<[u8; 4]>,
-        krylov: Vec<f32>,
-        masks: Vec<u8>,
-    }
-
-    impl Storage {
-        fn new(dims: &Dims) -> Self {
-            let size = scratch_size(dims);
-            Self {
-                values: vec![0.0; size.values],
-                labels: vec![Label::Outside; size.labels],
-                faces: vec![[0; 4]; size.faces],
-                krylov: vec![0.0; size.krylov],
-                masks: vec![0; size.masks],
-            }
-        }
-
-        fn multigrid(&mut self, dims: Dims) -> Multigrid<'_> {
-            Multigrid::new(
-                dims,
-                MultigridStorage {
-                    values: self.values.as_mut_slice().into(),
-                    labels: &mut self.labels,
-                    faces: &mut self.faces,
-                    krylov: &mut self.krylov,
-                    masks: &mut self.masks,
-                },
-            )
-            .unwrap()
-        }
-    }
-
     const SCREENING: f32 = 0.09;
 
     fn params(tolerance: f32, warm_start: bool, screening: f32) -> SolveParams {
@@ -510,7 +474,7 @@ mod tests {
     /// The old problem solved cold to 1e-5 (as the explorer does), and the box scratch.
     fn solved_before(screening: f32) -> (Dims, Vec<f32>, Storage) {
         let (dims, before) = rooms(false);
-        let mut storage = Storage::new(&dims);
+        let mut storage = Storage::new(&dims, true);
         let mut psi = vec![0.0; dims.len()];
         let s = storage
             .multigrid(dims)

@@ -1986,7 +1986,7 @@ fn vcycle<T: Stored, U: Stored>(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     extern crate std;
     use super::*;
     use crate::map::VoxelIndex;
@@ -2023,6 +2023,41 @@ mod tests {
         solve_mg_with(dims, labels, method, max_iterations, 0.0, None)
     }
 
+    /// Owned storage for a multigrid over a grid, the neighbour masks included, for tests.
+    pub(crate) struct Scratch {
+        values: Vec<f32>,
+        labels: Vec<Label>,
+        faces: Vec<[u8; 4]>,
+        krylov: Vec<f32>,
+        masks: Vec<u8>,
+    }
+
+    impl Scratch {
+        /// Zeroed storage for `dims`, with the MGPCG vectors if `krylov`.
+        pub(crate) fn new(dims: &Dims, krylov: bool) -> Self {
+            let size = scratch_size(dims);
+            Self {
+                values: vec![0.0; size.values],
+                labels: vec![Label::Outside; size.labels],
+                faces: vec![[0; 4]; size.faces],
+                krylov: vec![0.0; if krylov { size.krylov } else { 0 }],
+                masks: vec![0; size.masks],
+            }
+        }
+
+        /// A multigrid over `dims` in this storage.
+        pub(crate) fn multigrid(&mut self, dims: Dims) -> Multigrid<'_> {
+            let storage = MultigridStorage {
+                values: self.values.as_mut_slice().into(),
+                labels: &mut self.labels,
+                faces: &mut self.faces,
+                krylov: &mut self.krylov,
+                masks: &mut self.masks,
+            };
+            Multigrid::new(dims, storage).unwrap()
+        }
+    }
+
     /// [`solve_mg`] with a screening and a [`Fork`].
     fn solve_mg_with(
         dims: Dims,
@@ -2032,23 +2067,8 @@ mod tests {
         screening: f32,
         fork: Option<&dyn Fork>,
     ) -> (Vec<f32>, SolveStats, Vec<f32>) {
-        let size = scratch_size(&dims);
-        let mut values = vec![0.0f32; size.values];
-        let mut clabels = vec![Label::Outside; size.labels];
-        let mut faces = vec![[0u8; 4]; size.faces];
-        let mut krylov = vec![0.0f32; if method == Method::VCycle { 0 } else { size.krylov }];
-        let mut masks = vec![0u8; size.masks];
-        let mut mg = Multigrid::new(
-            dims,
-            MultigridStorage {
-                values: values.as_mut_slice().into(),
-                labels: &mut clabels,
-                faces: &mut faces,
-                krylov: &mut krylov,
-                masks: &mut masks,
-            },
-        )
-        .unwrap();
+        let mut scratch = Scratch::new(&dims, method != Method::VCycle);
+        let mut mg = scratch.multigrid(dims);
         mg.set_fork(fork);
         let mut phi = vec![0.0f32; dims.len()];
         let params = SolveParams {
@@ -2234,24 +2254,8 @@ mod tests {
             screening: 0.09,
             ..SolveParams::default()
         };
-        let size = scratch_size(&big);
-        let (mut values, mut clabels) = (vec![0.0f32; size.values], vec![Label::Outside; size.labels]);
-        let (mut faces, mut krylov, mut masks) = (
-            vec![[0u8; 4]; size.faces],
-            vec![0.0f32; size.krylov],
-            vec![0u8; size.masks],
-        );
-        let mut mg = Multigrid::new(
-            big,
-            MultigridStorage {
-                values: values.as_mut_slice().into(),
-                labels: &mut clabels,
-                faces: &mut faces,
-                krylov: &mut krylov,
-                masks: &mut masks,
-            },
-        )
-        .unwrap();
+        let mut scratch = Scratch::new(&big, true);
+        let mut mg = scratch.multigrid(big);
         let mut before = vec![0.0f32; big.len()];
         let first = mg.solve(&big_labels, &mut before, &params, Method::Pcg).unwrap();
         mg.relayout(small).unwrap();
