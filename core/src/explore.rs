@@ -1228,23 +1228,14 @@ impl<'a> Explorer<'a> {
                     labels: &mut *self.local_labels,
                     psi: &mut *self.local_psi,
                 };
-                // A box solve that fails (never seen) writes nothing back, so `phi` is still a
-                // warm start: the whole grid is solved instead and reports any error of its own.
-                let near = resolve_near(mg, self.labels, self.phi, &params, &local, Method::Auto, scratch);
-                match near.unwrap_or(Local::Whole { cell_updates: 0 }) {
-                    Local::Solved(s) => {
-                        self.status.local_solves += 1;
-                        Ok(s.stats)
-                    }
-                    Local::Whole { cell_updates } => {
-                        self.status.local_given_up += 1;
-                        mg.solve(self.labels, self.phi, &params, Method::Auto)
-                            .map(|s| SolveStats {
-                                cell_updates: s.cell_updates + cell_updates,
-                                ..s
-                            })
+                let solved = resolve_near(mg, self.labels, self.phi, &params, &local, Method::Auto, scratch);
+                if let Ok(how) = &solved {
+                    match how {
+                        Local::Solved(_) => self.status.local_solves += 1,
+                        Local::Whole(_) => self.status.local_given_up += 1,
                     }
                 }
+                solved.map(|how| how.stats())
             }
             (Some(mg), _) => mg.solve(self.labels, self.phi, &params, Method::Auto),
             (None, SolverKind::ThesisJacobi) => solve::thesis::solve(

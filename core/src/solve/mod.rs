@@ -376,6 +376,23 @@ pub struct Residual {
 }
 
 impl Residual {
+    /// The residual from the sums over interior rows of the squared residuals `r2` and of the
+    /// rows' rounding terms `e2` ([`rounding_row`]), the largest residual `max` and `‖b‖² = b2`.
+    pub(crate) fn from_sums(r2: f64, e2: f64, max: f32, b2: f64) -> Self {
+        if b2 == 0.0 {
+            return Self {
+                relative: 0.0,
+                floor: 0.0,
+                max,
+            };
+        }
+        Self {
+            relative: libm::sqrt(r2 / b2) as f32,
+            floor: libm::sqrt(e2 / b2) as f32,
+            max,
+        }
+    }
+
     /// True if the residual meets `tolerance`, or the floor where that lies above it.
     pub fn meets(&self, tolerance: f32) -> bool {
         self.relative <= tolerance.max(self.floor)
@@ -560,10 +577,8 @@ fn residual_rows<const MASKS: bool>(
     for_each_row(dims, active, screen, labels, psi, |st, row| {
         let (mut row_r, mut row_e) = (0.0f32, 0.0f32);
         let each = |x: usize, r: f32, n: u32| {
-            let c = row.at(x);
-            let n = n as f32;
             row_r += r * r;
-            row_e += (n + n * n) * c * c;
+            row_e += rounding2(n, row.at(x));
             if r.abs() > max {
                 max = r.abs();
             }
@@ -574,21 +589,23 @@ fn residual_rows<const MASKS: bool>(
             row_residuals(st, row, None, each);
         }
         r2 += f64::from(row_r);
-        e2 += f64::from(row_e) * f64::from(f32::EPSILON * f32::EPSILON) / 12.0;
+        e2 += rounding_row(row_e);
     });
-    if b2 == 0.0 {
-        Residual {
-            relative: 0.0,
-            floor: 0.0,
-            max,
-        }
-    } else {
-        Residual {
-            relative: libm::sqrt(r2 / b2) as f32,
-            floor: libm::sqrt(e2 / b2) as f32,
-            max,
-        }
-    }
+    Residual::from_sums(r2, e2, max, b2)
+}
+
+/// A cell's share of the rounding floor ([`Residual`]) before the factor `ε²/12`: a cell of
+/// value `c` with `n` in-domain neighbours, `Σⱼ ψⱼ² + n²·ψᵢ² ≈ (n + n²)·c²`.
+#[inline(always)]
+pub(crate) fn rounding2(n: u32, c: f32) -> f32 {
+    let n = n as f32;
+    (n + n * n) * c * c
+}
+
+/// A row's sum of [`rounding2`] terms, times `ε²/12`: its share of the squared floor.
+#[inline(always)]
+pub(crate) fn rounding_row(row_e: f32) -> f64 {
+    f64::from(row_e) * f64::from(f32::EPSILON * f32::EPSILON) / 12.0
 }
 
 /// A bfloat16 number: the upper half of an `f32` (sign, the full 8-bit exponent, 7 bits of

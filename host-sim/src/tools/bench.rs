@@ -200,8 +200,11 @@ pub fn measure(
         harmonic_core::field::release_source(&mut scan.labels);
     }
     let mut scratch = MultigridScratch::new(&dims);
+    // The box of `scan (local)`: half a grid, the most a box may take (as the explorer lends).
+    let (mut box_labels, mut box_psi) = (vec![Label::Outside; dims.len() / 2], vec![0.0f32; dims.len() / 2]);
     let mut psi = vec![0.0f32; dims.len()];
-    let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool, fmg: bool| -> SolveStats {
+    // One solve; `boxes` re-solves in boxes around the change (multigrid, warm) and reports them.
+    let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool, fmg: bool, boxes: bool| {
         let params = SolveParams {
             tolerance,
             max_iterations: 1_000_000,
@@ -214,9 +217,37 @@ pub fn measure(
                 let mut mg = Multigrid::new(dims, scratch.storage()).expect("scratch sized by scratch_size");
                 mg.set_full_multigrid(fmg);
                 mg.set_fork(fork);
-                mg.solve(labels, psi, &params, method).expect("valid problem")
+                if !boxes {
+                    return (
+                        mg.solve(labels, psi, &params, method).expect("valid problem"),
+                        None,
+                    );
+                }
+                let local = LocalParams::for_screening(screening, tolerance);
+                let scratch = LocalScratch {
+                    labels: &mut box_labels,
+                    psi: &mut box_psi,
+                };
+                let how = resolve_near(&mut mg, labels, psi, &params, &local, method, scratch)
+                    .expect("valid problem");
+                let taken = match how {
+                    Local::Solved(s) => LocalBoxes {
+                        boxes: s.boxes,
+                        last_cells: s.box_cells,
+                        whole: false,
+                    },
+                    Local::Whole(_) => LocalBoxes {
+                        boxes: 0,
+                        last_cells: dims.len(),
+                        whole: true,
+                    },
+                };
+                (how.stats(), Some(taken))
             }
-            BenchSolver::GaussSeidel => gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),
+            BenchSolver::GaussSeidel => (
+                gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),
+                None,
+            ),
         }
     };
     let grid = format!("{}x{}x{}", dims.nx(), dims.ny(), dims.nz());
@@ -236,48 +267,6 @@ pub fn measure(
     };
     let is_mg = matches!(solver, BenchSolver::Multigrid(_));
     let (mut local_times, mut local_stats) = (Vec::new(), (SolveStats::default(), None));
-    let mut box_labels = vec![Label::Outside; dims.len()];
-    let mut box_psi = vec![0.0f32; dims.len()];
-    let mut local_scratch = MultigridScratch::new(&dims);
-    let mut resolve_local = |labels: &[Label],
-                             psi: &mut [f32],
-                             method: Method|
-     -> (SolveStats, Option<LocalBoxes>) {
-        let params = SolveParams {
-            tolerance,
-            max_iterations: 1_000_000,
-            warm_start: true,
-            screening,
-            max_error: f32::INFINITY,
-        };
-        let mut mg = Multigrid::new(dims, local_scratch.storage()).expect("scratch sized by scratch_size");
-        mg.set_fork(fork);
-        let local = LocalParams::for_screening(screening, tolerance);
-        let scratch = LocalScratch {
-            labels: &mut box_labels,
-            psi: &mut box_psi,
-        };
-        match resolve_near(&mut mg, labels, psi, &params, &local, method, scratch).expect("valid problem") {
-            Local::Solved(s) => (
-                s.stats,
-                Some(LocalBoxes {
-                    boxes: s.boxes,
-                    last_cells: s.box_cells,
-                    whole: false,
-                }),
-            ),
-            Local::Whole { cell_updates } => {
-                let mut s = mg.solve(labels, psi, &params, method).expect("valid problem");
-                s.cell_updates += cell_updates;
-                let whole = LocalBoxes {
-                    boxes: 0,
-                    last_cells: dims.len(),
-                    whole: true,
-                };
-                (s, Some(whole))
-            }
-        }
-    };
     let (mut cold_times, mut zero_times, mut warm_times, mut scan_times) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let (mut cold_stats, mut zero_stats, mut warm_stats, mut scan_stats) = (
@@ -290,27 +279,27 @@ pub fn measure(
         if is_mg {
             psi.fill(0.0);
             let t = Instant::now();
-            zero_stats = run(&cold.labels, &mut psi, false, false);
+            zero_stats = run(&cold.labels, &mut psi, false, false, false).0;
             zero_times.push(t.elapsed().as_secs_f64() * 1e3);
         }
         psi.fill(0.0);
         let t = Instant::now();
-        cold_stats = run(&cold.labels, &mut psi, false, true);
+        cold_stats = run(&cold.labels, &mut psi, false, true, false).0;
         cold_times.push(t.elapsed().as_secs_f64() * 1e3);
         if screened {
             let mut after = psi.clone();
             let t = Instant::now();
-            scan_stats = run(&scan.labels, &mut after, true, true);
+            scan_stats = run(&scan.labels, &mut after, true, true, false).0;
             scan_times.push(t.elapsed().as_secs_f64() * 1e3);
-            if let BenchSolver::Multigrid(method) = solver {
+            if is_mg {
                 let mut after = psi.clone();
                 let t = Instant::now();
-                local_stats = resolve_local(&scan.labels, &mut after, method);
+                local_stats = run(&scan.labels, &mut after, true, true, true);
                 local_times.push(t.elapsed().as_secs_f64() * 1e3);
             }
         }
         let t = Instant::now();
-        warm_stats = run(&warm.labels, &mut psi, true, true);
+        warm_stats = run(&warm.labels, &mut psi, true, true, false).0;
         warm_times.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let mut rows = vec![row(&cold, "cold", cold_stats, median(cold_times))];
