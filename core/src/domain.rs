@@ -32,7 +32,7 @@ use nalgebra::Point3;
 use crate::integrate::traverse;
 
 use crate::map::{
-    stored_blocks, stored_observed, Dims, Occupancy, VoxelIndex, VoxelMap, LOG_ODDS_SCALE, SEALED, UNKNOWN,
+    stored_blocks, stored_free, stored_observed, Dims, VoxelIndex, VoxelMap, LOG_ODDS_SCALE, SEALED, UNKNOWN,
 };
 
 /// Role of a voxel in the Laplace problem. After [`build`] only `Outside`, `Interior`,
@@ -71,8 +71,8 @@ impl Label {
 
 /// Largest supported inflation radius, voxels.
 pub const MAX_INFLATION_VOXELS: usize = 6;
-/// Capacity of the inflation stencil: the offsets within [`MAX_INFLATION_VOXELS`] (1284 of
-/// them; the explorer carries the stencil, and on the MCU every byte of it is stack at start-up).
+/// Most offsets an inflation stencil holds: those within [`MAX_INFLATION_VOXELS`].
+#[cfg(test)]
 const STENCIL_CAPACITY: usize = 1284;
 /// Most rows (dy, dz) the inflation stencil reaches: (2 · 7 + 1)² at the largest radius.
 const STENCIL_ROWS: usize = 225;
@@ -81,9 +81,16 @@ const STENCIL_ROWS: usize = 225;
 const OBSERVED_ROW_WORDS: usize = 256;
 
 /// The set of voxel offsets within the vehicle radius, precomputed once.
+///
+/// A ball's offsets with the same `(dy, dz)` are an interval `[−w, w]` of `dx`, so the stencil
+/// keeps one `[dy, dz, w]` per row (675 bytes at the largest radius) instead of every offset
+/// (3.8 KiB): the explorer carries a stencil, and on the MCU its construction passes the
+/// explorer through the stack by value.
 #[derive(Debug, Clone)]
 pub struct InflationStencil {
-    offsets: HVec<[i8; 3], STENCIL_CAPACITY>,
+    /// `[dy, dz, w]` in `dz`, then `dy` order; the centre row leaves out `dx = 0`.
+    rows: HVec<[i8; 3], STENCIL_ROWS>,
+    len: u16,
     radius_voxels: f32,
 }
 
@@ -276,33 +283,54 @@ impl InflationStencil {
         if !(r.is_finite() && r >= 0.0 && r <= MAX_INFLATION_VOXELS as f32) {
             return Err(DomainError::BadRadius);
         }
-        let mut offsets = HVec::new();
+        let mut rows = HVec::new();
+        let mut len = 0u16;
+        // reach ≤ ⌈6.5⌉ = 7: at most 15 · 15 rows (`STENCIL_ROWS`), so no push can fail.
         let reach = libm::ceilf(r + 0.5) as i32;
         for dz in -reach..=reach {
             for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    if (dx, dy, dz) == (0, 0, 0) {
-                        continue;
-                    }
-                    if cube_distance_sq([dx, dy, dz]) < r * r {
-                        // |d| ≤ 7 and capacity covers the ball, so neither can fail.
-                        offsets
-                            .push([dx as i8, dy as i8, dz as i8])
-                            .map_err(|_| DomainError::BadRadius)?;
-                    }
+                // The distance grows with |dx|: the row is [−w, w] for the last dx inside.
+                let inside = |dx: i32| cube_distance_sq([dx, dy, dz]) < r * r;
+                let Some(w) = (0..=reach).take_while(|&dx| inside(dx)).last() else {
+                    continue;
+                };
+                let centre = (dy, dz) == (0, 0);
+                if centre && w == 0 {
+                    continue;
                 }
+                rows.push([dy as i8, dz as i8, w as i8])
+                    .map_err(|_| DomainError::BadRadius)?;
+                len += (2 * w + 1 - i32::from(centre)) as u16;
             }
         }
         Ok(Self {
-            offsets,
+            rows,
+            len,
             radius_voxels: r,
         })
     }
-    /// The offsets, as signed voxel steps.
+    /// The offsets, as signed voxel steps, in `dz`, `dy`, `dx` order.
     pub fn offsets(&self) -> impl Iterator<Item = [i32; 3]> + '_ {
-        self.offsets
-            .iter()
-            .map(|d| [i32::from(d[0]), i32::from(d[1]), i32::from(d[2])])
+        self.rows.iter().flat_map(|&[dy, dz, w]| {
+            let (dy, dz, w) = (i32::from(dy), i32::from(dz), i32::from(w));
+            // The centre row skips dx = 0; every other row's second range is empty.
+            let (left_end, right_start) = if (dy, dz) == (0, 0) { (-1, 1) } else { (w, w + 1) };
+            (-w..=left_end).chain(right_start..=w).map(move |dx| [dx, dy, dz])
+        })
+    }
+    /// The voxels of the stencil around `v` in a grid of `dims`, as runs of linear indices:
+    /// one per row that lies in the grid, clipped to it. Unlike [`InflationStencil::offsets`]
+    /// the centre row's run holds `v` itself.
+    pub fn runs(&self, dims: &Dims, v: VoxelIndex) -> impl Iterator<Item = core::ops::Range<usize>> + '_ {
+        let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
+        let (x, y, z) = (usize::from(v.x), usize::from(v.y), usize::from(v.z));
+        self.rows.iter().filter_map(move |&[dy, dz, w]| {
+            let ty = y.checked_add_signed(isize::from(dy)).filter(|&t| t < ny)?;
+            let tz = z.checked_add_signed(isize::from(dz)).filter(|&t| t < nz)?;
+            let w = usize::from(w.unsigned_abs());
+            let base = nx * (ty + ny * tz);
+            Some(base + x.saturating_sub(w)..base + (x + w + 1).min(nx))
+        })
     }
     /// Radius in voxels.
     pub fn radius_voxels(&self) -> f32 {
@@ -310,11 +338,11 @@ impl InflationStencil {
     }
     /// Number of offsets.
     pub fn len(&self) -> usize {
-        self.offsets.len()
+        usize::from(self.len)
     }
     /// True if the radius is too small to exclude any neighbour.
     pub fn is_empty(&self) -> bool {
-        self.offsets.is_empty()
+        self.len == 0
     }
 }
 
@@ -631,17 +659,20 @@ fn is_certain_frontier(
     doubt: &Doubt<'_>,
 ) -> bool {
     let dims = map.dims();
+    // `n` is free, so the stencil's runs, which hold `n` itself, neither block nor find the
+    // unknown in it.
     let fringe = |n: VoxelIndex| {
         let (mut blocked, mut unexplored) = (false, false);
-        for m in stencil.offsets().filter_map(|d| dims.offset(n, d)) {
-            let i = dims.linear(m);
-            let lo = map.stored().get(i).copied().unwrap_or(UNKNOWN);
-            blocked |= if doubt.lenient {
-                doubt.blocks(i, lo)
-            } else {
-                stored_blocks(lo)
-            };
-            unexplored |= lo == UNKNOWN;
+        for run in stencil.runs(&dims, n) {
+            let stored = map.stored().get(run.clone()).unwrap_or_default();
+            for (i, &lo) in run.zip(stored) {
+                blocked |= if doubt.lenient {
+                    doubt.blocks(i, lo)
+                } else {
+                    stored_blocks(lo)
+                };
+                unexplored |= lo == UNKNOWN;
+            }
         }
         clear_of_grid_edges(&dims, stencil, n) && !blocked && unexplored
     };
@@ -708,24 +739,13 @@ fn inflate(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label],
     let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
     let stored = map.stored();
     // The stencil as rows: for each (dy, dz) it reaches, the half-width w of its x interval
-    // [−w, w] (a ball's rows are intervals). The offsets come in dz, dy, dx order, so each row's
-    // offsets are consecutive. The centre (0, 0, 0) is not an offset; covering it too changes
-    // nothing, because the voxel that stamps is itself unknown, sealed or occupied (outside).
-    let mut rows: HVec<(isize, isize, usize), STENCIL_ROWS> = HVec::new();
-    for d in stencil.offsets.iter() {
-        let (dy, dz, w) = (
-            isize::from(d[1]),
-            isize::from(d[2]),
-            usize::from(d[0].unsigned_abs()),
-        );
-        match rows.last_mut() {
-            Some(last) if (last.0, last.1) == (dy, dz) => last.2 = last.2.max(w),
-            // At most (2·7 + 1)² rows for the largest radius: `STENCIL_ROWS`.
-            _ => {
-                let _ = rows.push((dy, dz, w));
-            }
-        }
-    }
+    // [−w, w]. The centre (0, 0, 0) is not an offset; covering it too changes nothing, because
+    // the voxel that stamps is itself unknown, sealed or occupied (outside).
+    let rows: HVec<(isize, isize, usize), STENCIL_ROWS> = stencil
+        .rows
+        .iter()
+        .map(|&[dy, dz, w]| (isize::from(dy), isize::from(dz), usize::from(w.unsigned_abs())))
+        .collect();
     // Rows holding an observed voxel: an unknown voxel can border observed space only if one
     // of the nine rows around its own does, so whole rows of the unobserved grid are skipped.
     let mut observed = [0u32; OBSERVED_ROW_WORDS];
@@ -905,10 +925,13 @@ fn safe_voxels(
 /// within the vehicle radius (the domain's rule, checked locally).
 pub fn is_safe(map: &VoxelMap<'_>, stencil: &InflationStencil, v: VoxelIndex) -> bool {
     let dims = map.dims();
+    let stored = map.stored();
+    // Row by row (the runs hold `v` too).
     map.is_free(dims.linear(v))
-        && stencil.offsets().all(|d| {
-            dims.offset(v, d)
-                .is_none_or(|n| map.occupancy(dims.linear(n)) == Occupancy::Free)
+        && stencil.runs(&dims, v).all(|run| {
+            stored
+                .get(run)
+                .is_some_and(|r| r.iter().all(|&lo| stored_free(lo)))
         })
 }
 
@@ -1437,6 +1460,32 @@ pub(crate) mod tests {
         );
     }
 
+    #[test]
+    fn stencil_rows_give_every_offset_within_the_radius_in_order() {
+        // The stencil keeps rows; its offsets must be those of a plain loop over the cube, in
+        // the same dz, dy, dx order (the order decides which voxels `forget_around` takes first).
+        extern crate std;
+        for step in 0..=120 {
+            let r = step as f32 * 0.05;
+            let s = InflationStencil::new(r, 1.0).unwrap();
+            let reach = libm::ceilf(r + 0.5) as i32;
+            let mut expected = std::vec::Vec::new();
+            for dz in -reach..=reach {
+                for dy in -reach..=reach {
+                    for dx in -reach..=reach {
+                        if (dx, dy, dz) != (0, 0, 0) && cube_distance_sq([dx, dy, dz]) < r * r {
+                            expected.push([dx, dy, dz]);
+                        }
+                    }
+                }
+            }
+            let got: std::vec::Vec<[i32; 3]> = s.offsets().collect();
+            assert_eq!(got, expected, "radius {r} voxels");
+            assert_eq!(s.len(), expected.len());
+            assert_eq!(s.is_empty(), expected.is_empty());
+        }
+    }
+
     /// The straightforward inflation (two passes, every neighbour bounds-checked) that
     /// [`inflate`]'s one pass with index arithmetic replaced, without the grid-edge rule
     /// both share ([`clear_grid_edges`]).
@@ -1465,7 +1514,11 @@ pub(crate) mod tests {
             }
         }
         for i in 0..dims.len() {
-            if matches!(map.occupancy(i), Occupancy::Occupied | Occupancy::Uncertain) || map.is_sealed(i) {
+            if matches!(
+                map.occupancy(i),
+                crate::map::Occupancy::Occupied | crate::map::Occupancy::Uncertain
+            ) || map.is_sealed(i)
+            {
                 let v = dims.voxel(i);
                 for d in stencil.offsets() {
                     if let Some(l) = dims.offset(v, d).and_then(|n| labels.get_mut(dims.linear(n))) {
@@ -1511,7 +1564,7 @@ pub(crate) mod tests {
 
     /// Run-wise inflation on building-like maps (long runs of wall, free space and unknown) and
     /// on a grid with more rows than the observed-row bitset holds (every unknown voxel tested
-    /// then) gives the reference's labels.
+    /// then) gives the reference's labels, and [`is_safe`] the offset-by-offset answer.
     #[test]
     fn run_wise_inflation_matches_the_reference_on_rooms_and_tall_grids() {
         extern crate std;
@@ -1554,6 +1607,15 @@ pub(crate) mod tests {
                 let stencil = InflationStencil::new(radius, 1.0).unwrap();
                 let case = std::format!("case {case}: {nx}x{ny}x{nz}, radius {radius}");
                 assert_inflates_like_the_reference(&map, &stencil, &case);
+                // `is_safe` reads the stencil row by row; offset by offset it must agree.
+                for i in 0..n {
+                    let v = dims.voxel(i);
+                    let reference = map.is_free(i)
+                        && stencil
+                            .offsets()
+                            .all(|d| dims.offset(v, d).is_none_or(|m| map.is_free(dims.linear(m))));
+                    assert_eq!(is_safe(&map, &stencil, v), reference, "{case}, voxel {v:?}");
+                }
             }
         }
     }

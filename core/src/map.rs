@@ -311,6 +311,12 @@ pub(crate) const fn stored_observed(lo: i8) -> bool {
     lo > SEALED
 }
 
+/// True for the stored value of an observed free voxel ([`Occupancy::Free`]).
+#[inline(always)]
+pub(crate) const fn stored_free(lo: i8) -> bool {
+    lo > SEALED && lo < 0
+}
+
 /// True for a stored value the vehicle keeps its radius from: occupied, uncertain or sealed.
 #[inline(always)]
 pub(crate) const fn stored_blocks(lo: i8) -> bool {
