@@ -515,7 +515,19 @@ mod tests {
         psi: &mut [f32],
         screening: f32,
     ) -> Local {
-        let (mut bl, mut bp) = (vec![Label::Outside; dims.len()], vec![0.0; dims.len()]);
+        resolve_lending(storage, dims, labels, psi, screening, dims.len()).unwrap()
+    }
+
+    /// [`resolve_near`] with a box scratch of `cells` labels and values.
+    fn resolve_lending(
+        storage: &mut Storage,
+        dims: Dims,
+        labels: &[Label],
+        psi: &mut [f32],
+        screening: f32,
+        cells: usize,
+    ) -> Result<Local, SolveError> {
+        let (mut bl, mut bp) = (vec![Label::Outside; cells], vec![0.0; cells]);
         let scratch = LocalScratch {
             labels: &mut bl,
             psi: &mut bp,
@@ -536,7 +548,7 @@ mod tests {
             dims,
             "the multigrid is laid out for the grid again"
         );
-        out.unwrap()
+        out
     }
 
     /// The property the explorer relies on: a re-solve confined to boxes around the scan
@@ -627,22 +639,7 @@ mod tests {
     fn a_box_scratch_too_small_leaves_the_whole_grid() {
         let (dims, mut psi, mut storage) = solved_before(SCREENING);
         let (_, after) = rooms(true);
-        let (mut bl, mut bp) = (vec![Label::Outside; 100], vec![0.0; 100]);
-        let scratch = LocalScratch {
-            labels: &mut bl,
-            psi: &mut bp,
-        };
-        let local = LocalParams::for_screening(SCREENING, 1e-5);
-        let mut mg = storage.multigrid(dims);
-        let out = resolve_near(
-            &mut mg,
-            &after,
-            &mut psi,
-            &params(1e-5, true, SCREENING),
-            &local,
-            Method::Auto,
-            scratch,
-        );
+        let out = resolve_lending(&mut storage, dims, &after, &mut psi, SCREENING, 100);
         assert!(matches!(out, Ok(Local::Whole(s)) if s.converged), "{out:?}");
         let checked = screened_residual(&dims, &after, &psi, SCREENING);
         assert!(checked.relative <= 1e-5, "{checked:?}");
