@@ -16,8 +16,8 @@ use super::parse::{
 pub struct SensingArgs {
     /// Sensor noise model: `stereo` (σ = 1 px disparity noise per pixel, then the stereo
     /// pipeline's 5 × 5 median), `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd median
-    /// window, 1 = unfiltered). The core integrates it with the rules of exact depth, up to the
-    /// range where the depth error stays small (see `--trusted-range`), or with `--stereo-model`.
+    /// window, 1 = unfiltered). The core integrates it with its stereo sensor model and a
+    /// surface estimate (`--depth-rules surface`) unless `--depth-rules` says otherwise.
     #[arg(long, value_parser = parse_noise)]
     noise: Option<StereoNoise>,
     /// How noisy depth is integrated: `exact` (the rules of exact depth, up to
@@ -27,8 +27,8 @@ pub struct SensingArgs {
     /// range; with `--depth-from stereo` also the matcher's window: slanted surfaces are less
     /// certain, and returns whose slant cannot be measured are left out) or `surface` (the
     /// model, and every planner's map keeps a surface estimate across frames: 8 bytes per voxel
-    /// on the host). Default: `surface` with `--depth-from stereo`, `exact` with `--noise`
-    /// (docs/RESULTS.md, "The stereo sensor model" and after).
+    /// on the host). Default: `surface`, with `--noise` and with `--depth-from stereo`
+    /// (docs/RESULTS.md, "The stereo sensor model" and after; "The surface rules for `--noise`").
     #[arg(long, value_enum)]
     depth_rules: Option<DepthRules>,
     /// Same as `--depth-rules model` (with `--surface-estimate`: `--depth-rules surface`).
@@ -38,10 +38,10 @@ pub struct SensingArgs {
     #[arg(long)]
     surface_estimate: bool,
     /// Range (m) up to which depth is integrated; farther returns only clear free space.
-    /// Default with `--noise`: where a 1σ (filtered) disparity error moves the depth by 0.1 m
-    /// (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m unfiltered; 2.8 m with
-    /// `--depth-from stereo --depth-rules exact`. Otherwise, and with the stereo model, the
-    /// camera's 10 m.
+    /// Default with `--noise --depth-rules exact`: where a 1σ (filtered) disparity error moves
+    /// the depth by 0.1 m (one voxel): 1.8 m at σ = 1 px with the 5 × 5 median, 0.9 m
+    /// unfiltered; 2.8 m with `--depth-from stereo --depth-rules exact`. Otherwise, and with the
+    /// stereo model, the camera's 10 m.
     #[arg(long, value_parser = parse_positive)]
     trusted_range: Option<f32>,
     /// Fraction of pixels (0-1) that return half their true depth (gross matching errors).
@@ -89,7 +89,7 @@ pub enum DepthRules {
 pub struct BodyArgs {
     /// Vehicle radius in metres: obstacles are inflated by this much for planning [default:
     /// 0.2; 0.25 with the stereo model (`--depth-rules model` or `surface`, the default with
-    /// `--depth-from stereo`), which maps surfaces at their true thickness].
+    /// `--noise` and `--depth-from stereo`), which maps surfaces at their true thickness].
     #[arg(long, value_parser = parse_radius)]
     vehicle_radius: Option<f32>,
     /// Radius of the vehicle body for collision counting, metres.
@@ -236,7 +236,7 @@ impl SensingArgs {
             (Some(rules), _, _) => rules,
             (None, true, true) => DepthRules::Surface,
             (None, true, false) => DepthRules::Model,
-            (None, false, _) if self.depth_from == "stereo" => DepthRules::Surface,
+            (None, false, _) if self.depth_from == "stereo" || self.noise.is_some() => DepthRules::Surface,
             (None, false, _) => DepthRules::Exact,
         }
     }
@@ -257,6 +257,9 @@ impl SensingArgs {
             .map_or((0.0, 1.0), |n| (n.filtered_sigma_px(), n.baseline_m));
         let fx = cfg.camera.intrinsics.fx();
         sim::integrate_noisy_depth(cfg, sigma_px, fx, baseline_m, self.trusted_range, model);
+        if let (Some(noise), true) = (self.noise, model) {
+            sim::use_pipeline_window(cfg, noise);
+        }
         if self.depth_from == "stereo" {
             let rig = harmonic_sim::sensors::stereo::StereoRig {
                 scale: self.stereo_scale,
@@ -286,9 +289,13 @@ mod tests {
     }
 
     #[test]
-    fn matched_stereo_defaults_to_the_surface_rules_and_the_depth_camera_to_exact_ones() {
+    fn noisy_depth_defaults_to_the_surface_rules_and_exact_depth_to_exact_ones() {
         assert_eq!(rules(&[]), DepthRules::Exact);
-        assert_eq!(rules(&["--noise", "stereo"]), DepthRules::Exact);
+        assert_eq!(rules(&["--noise", "stereo"]), DepthRules::Surface);
+        assert_eq!(
+            rules(&["--noise", "stereo", "--depth-rules", "exact"]),
+            DepthRules::Exact
+        );
         assert_eq!(rules(&["--depth-from", "stereo"]), DepthRules::Surface);
         assert_eq!(
             rules(&["--depth-from", "stereo", "--depth-rules", "exact"]),
@@ -318,5 +325,27 @@ mod tests {
         assert!(!cfg.surface_estimate);
         assert_eq!(cfg.explorer.integration.depth_noise_per_m, 0.0);
         assert_eq!(cfg.explorer.integration.footprint_px, 0.0);
+        // The depth camera's noise: the model and the estimate, the pipeline's 5 × 5 median as
+        // the window.
+        let mut cfg = SimConfig::default();
+        let a = Args::try_parse_from(["explore", "--noise", "stereo"]).unwrap();
+        a.sensing.apply(&mut cfg);
+        assert!(cfg.surface_estimate);
+        assert!(cfg.explorer.integration.depth_noise_per_m > 0.0);
+        assert_eq!(cfg.explorer.integration.footprint_px, 5.0);
+        assert_eq!(cfg.explorer.integration.max_range, cfg.camera.max_range);
+        // Unfiltered noise has no window; the exact rules have no model.
+        for args in [["--noise", "stereo:1:1"], ["--noise", "stereo"]] {
+            let mut cfg = SimConfig::default();
+            let exact = args[1] == "stereo";
+            let mut argv = vec!["explore", args[0], args[1]];
+            if exact {
+                argv.extend(["--depth-rules", "exact"]);
+            }
+            let a = Args::try_parse_from(argv).unwrap();
+            a.sensing.apply(&mut cfg);
+            assert_eq!(cfg.explorer.integration.footprint_px, 0.0);
+            assert_eq!(cfg.surface_estimate, !exact);
+        }
     }
 }

@@ -68,7 +68,7 @@ use crate::link::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::planners::baseline::Baseline;
 use crate::planners::{HarmonicPlanner, HostClock, HostStorage, Planner, PlannerKind};
 use crate::run::metrics::{Contact, Coverage, GroundTruth};
-use crate::sensors::camera::DepthCamera;
+use crate::sensors::camera::{DepthCamera, StereoNoise};
 use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
 use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
 use crate::vehicle::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
@@ -228,6 +228,21 @@ pub fn integrate_noisy_depth(
     if sigma_px > 0.0 {
         cfg.explorer.remnant_frontier_m2 = 0.0;
     }
+}
+
+/// With the stereo sensor model, `--noise`'s filter window ([`StereoNoise::filter_px`]) is the
+/// model's footprint ([`IntegrationParams::footprint_px`](harmonic_core::integrate::IntegrationParams)),
+/// as the matcher's window is for stereo depth ([`use_stereo_depth`]): the median stands in for a
+/// stereo pipeline's window aggregation, so slanted surfaces are less certain, returns whose
+/// slant cannot be measured are left out, and no return clears deeper than the nearest depth
+/// within half the window. An unfiltered camera (a 1 px window) has none. Measured in
+/// docs/RESULTS.md, "The rules for `--noise`".
+pub fn use_pipeline_window(cfg: &mut SimConfig, noise: StereoNoise) {
+    cfg.explorer.integration.footprint_px = if noise.filter_px > 1 {
+        f32::from(noise.filter_px)
+    } else {
+        0.0
+    };
 }
 
 /// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than
