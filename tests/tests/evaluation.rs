@@ -256,6 +256,28 @@ fn stereo_noise_no_longer_ends_exploration_early() {
     assert!(a.observed_voxels > raw_a.observed_voxels, "{a:?} vs {raw_a:?}");
 }
 
+/// The default `--noise stereo` camera (σ = 1 px, 5 × 5 median) integrated with the core's
+/// stereo sensor model (no surface estimate, no window), sensor noise seeded with `seed`.
+fn stereo_model_config(seed: u64) -> SimConfig {
+    use harmonic_sim::sensors::camera::StereoNoise;
+    let mut cfg = SimConfig {
+        seed,
+        ..SimConfig::default()
+    };
+    let noise = StereoNoise::default();
+    cfg.camera = cfg.camera.with_noise(Some(noise));
+    let fx = cfg.camera.intrinsics.fx();
+    sim::integrate_noisy_depth(
+        &mut cfg,
+        noise.filtered_sigma_px(),
+        fx,
+        noise.baseline_m,
+        None,
+        true,
+    );
+    cfg
+}
+
 /// `--noise stereo`'s default rules (the sensor model, the surface estimate and the median's
 /// window as the pipeline's footprint) keep the body off thin obstacles' ends. Kitchen start 1
 /// of closest frontier, whose A* paths pass the pantry door's jamb at the planning radius: on
@@ -269,24 +291,12 @@ fn the_pipeline_window_keeps_noisy_runs_off_a_door_jamb() {
     let scenario = Scenario::builtin("kitchen").unwrap().with_random_start(1);
     let run = |window: bool| {
         let mut cfg = SimConfig {
-            seed: 1,
             planner: PlannerKind::ClosestFrontier,
             surface_estimate: true,
-            ..SimConfig::default()
+            ..stereo_model_config(1)
         };
-        let noise = StereoNoise::default();
-        cfg.camera = cfg.camera.with_noise(Some(noise));
-        let fx = cfg.camera.intrinsics.fx();
-        sim::integrate_noisy_depth(
-            &mut cfg,
-            noise.filtered_sigma_px(),
-            fx,
-            noise.baseline_m,
-            None,
-            true,
-        );
         if window {
-            sim::use_pipeline_window(&mut cfg, noise);
+            sim::use_pipeline_window(&mut cfg, StereoNoise::default());
         }
         sim::run(&scenario, &cfg, |_| {}).unwrap()
     };
@@ -423,26 +433,11 @@ fn million_triangle_mesh_loads_in_seconds() {
 /// starts 1–40, 6 close without the rule and 3 with it.)
 #[test]
 fn a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end() {
-    use harmonic_sim::sensors::camera::StereoNoise;
     let run = |start: u64, doubtful_log_odds: f32| {
         let scenario = Scenario::builtin("apartment-thesis")
             .unwrap()
             .with_random_start(start);
-        let mut cfg = SimConfig {
-            seed: start,
-            ..SimConfig::default()
-        };
-        let noise = StereoNoise::default();
-        cfg.camera = cfg.camera.with_noise(Some(noise));
-        let fx = cfg.camera.intrinsics.fx();
-        sim::integrate_noisy_depth(
-            &mut cfg,
-            noise.filtered_sigma_px(),
-            fx,
-            noise.baseline_m,
-            None,
-            true,
-        );
+        let mut cfg = stereo_model_config(start);
         cfg.explorer.doubtful_log_odds = doubtful_log_odds;
         sim::run(&scenario, &cfg, |_| {}).unwrap()
     };

@@ -311,41 +311,32 @@ mod tests {
             DepthRules::Surface
         );
         // The rules reach the simulator's configuration: the surface estimate's storage, the
-        // sensor model's depth noise and (matched stereo only) the matcher's window.
-        let mut cfg = SimConfig::default();
-        let a = Args::try_parse_from(["explore", "--depth-from", "stereo"]).unwrap();
-        a.sensing.apply(&mut cfg);
-        assert!(cfg.surface_estimate);
-        assert!(cfg.explorer.integration.depth_noise_per_m > 0.0);
-        assert_eq!(cfg.explorer.integration.footprint_px, 3.5);
-        let mut cfg = SimConfig::default();
-        let a =
-            Args::try_parse_from(["explore", "--depth-from", "stereo", "--depth-rules", "exact"]).unwrap();
-        a.sensing.apply(&mut cfg);
-        assert!(!cfg.surface_estimate);
-        assert_eq!(cfg.explorer.integration.depth_noise_per_m, 0.0);
-        assert_eq!(cfg.explorer.integration.footprint_px, 0.0);
-        // The depth camera's noise: the model and the estimate, the pipeline's 5 × 5 median as
-        // the window.
-        let mut cfg = SimConfig::default();
-        let a = Args::try_parse_from(["explore", "--noise", "stereo"]).unwrap();
-        a.sensing.apply(&mut cfg);
-        assert!(cfg.surface_estimate);
-        assert!(cfg.explorer.integration.depth_noise_per_m > 0.0);
-        assert_eq!(cfg.explorer.integration.footprint_px, 5.0);
-        assert_eq!(cfg.explorer.integration.max_range, cfg.camera.max_range);
-        // Unfiltered noise has no window; the exact rules have no model.
-        for args in [["--noise", "stereo:1:1"], ["--noise", "stereo"]] {
+        // sensor model's depth noise and the window (the matcher's, or the pipeline's 5 × 5
+        // median for the depth camera's noise; none unfiltered).
+        for (args, surface, window) in [
+            (&["--depth-from", "stereo"][..], true, 3.5),
+            (&["--depth-from", "stereo", "--depth-rules", "exact"], false, 0.0),
+            (&["--noise", "stereo"], true, 5.0),
+            (&["--noise", "stereo", "--depth-rules", "exact"], false, 0.0),
+            (&["--noise", "stereo:1:1"], true, 0.0),
+        ] {
             let mut cfg = SimConfig::default();
-            let exact = args[1] == "stereo";
-            let mut argv = vec!["explore", args[0], args[1]];
-            if exact {
-                argv.extend(["--depth-rules", "exact"]);
-            }
-            let a = Args::try_parse_from(argv).unwrap();
+            let a = Args::try_parse_from(std::iter::once("explore").chain(args.iter().copied())).unwrap();
             a.sensing.apply(&mut cfg);
-            assert_eq!(cfg.explorer.integration.footprint_px, 0.0);
-            assert_eq!(cfg.surface_estimate, !exact);
+            assert_eq!(cfg.surface_estimate, surface, "{args:?}");
+            assert_eq!(
+                cfg.explorer.integration.depth_noise_per_m > 0.0,
+                surface,
+                "{args:?}"
+            );
+            assert_eq!(cfg.explorer.integration.footprint_px, window, "{args:?}");
+            if surface {
+                // The model uses depth to the camera's range.
+                assert_eq!(
+                    cfg.explorer.integration.max_range, cfg.camera.max_range,
+                    "{args:?}"
+                );
+            }
         }
     }
 }
