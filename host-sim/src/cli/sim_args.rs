@@ -16,19 +16,22 @@ use super::parse::{
 pub struct SensingArgs {
     /// Sensor noise model: `stereo` (σ = 1 px disparity noise per pixel, then the stereo
     /// pipeline's 5 × 5 median), `stereo:SIGMA_PX` or `stereo:SIGMA_PX:FILTER_PX` (odd median
-    /// window, 1 = unfiltered). The core integrates it with its stereo sensor model and a
-    /// surface estimate (`--depth-rules surface`) unless `--depth-rules` says otherwise.
+    /// window, 1 = unfiltered). The core integrates it with its stereo sensor model, a surface
+    /// estimate and the median's window as the pipeline's (`--depth-rules surface`) unless
+    /// `--depth-rules` says otherwise.
     #[arg(long, value_parser = parse_noise)]
     noise: Option<StereoNoise>,
     /// How noisy depth is integrated: `exact` (the rules of exact depth, up to
     /// `--trusted-range`), `model` (the core's stereo sensor model: depth error
     /// σ_z = z²σ_d/(f·b), misses stop 2σ short of a return, a return marks a surface only where
     /// σ is at most a voxel, a hit/miss vote per voxel per frame, depth used to the camera's
-    /// range; with `--depth-from stereo` also the matcher's window: slanted surfaces are less
-    /// certain, and returns whose slant cannot be measured are left out) or `surface` (the
+    /// range; also the window of the pipeline, the matcher's with `--depth-from stereo` and the
+    /// median's with `--noise`: slanted surfaces are less certain, returns whose slant cannot be
+    /// measured are left out, and none clears deeper than the nearest depth within half the
+    /// window) or `surface` (the
     /// model, and every planner's map keeps a surface estimate across frames: 8 bytes per voxel
     /// on the host). Default: `surface`, with `--noise` and with `--depth-from stereo`
-    /// (docs/RESULTS.md, "The stereo sensor model" and after; "The surface rules for `--noise`").
+    /// (docs/RESULTS.md, "The stereo sensor model" and after; "The rules for `--noise`").
     #[arg(long, value_enum)]
     depth_rules: Option<DepthRules>,
     /// Same as `--depth-rules model` (with `--surface-estimate`: `--depth-rules surface`).
@@ -65,6 +68,11 @@ pub struct SensingArgs {
     /// With `--depth-from stereo`: the matcher's window (odd, 3-15).
     #[arg(long, default_value_t = 7)]
     stereo_window: u8,
+    /// With `--noise` and the sensor model: the stereo pipeline's aggregation window, in pixels
+    /// of the depth frame, which the model takes as its footprint (see `--depth-rules`)
+    /// [default: the median's width, 5; 0: none, as before 2026-12-06].
+    #[arg(long, value_parser = parse_non_negative)]
+    pipeline_window: Option<f32>,
     /// Move the map's voxel grid `X,Y,Z` metres (each below the voxel size) against the world.
     /// The built-in worlds put every surface on a voxel face, the best case for exact depth and
     /// the worst for noisy depth (a return within σ of a face lands in either voxel); a real
@@ -221,6 +229,12 @@ impl SensingArgs {
                     .into(),
             );
         }
+        if self.pipeline_window.is_some() && (self.noise.is_none() || self.rules() == DepthRules::Exact) {
+            return Err(
+                "--pipeline-window is the sensor model's footprint for --noise: give --noise without --depth-rules exact (the matcher's is --stereo-window)"
+                    .into(),
+            );
+        }
         if self.depth_from == "stereo" && (self.noise.is_some() || self.outliers > 0.0 || self.textureless) {
             return Err(
                 "--noise, --outliers and --textureless model the depth camera; with --depth-from stereo the matcher makes its own errors (textureless boxes render flat)".into(),
@@ -259,6 +273,9 @@ impl SensingArgs {
         sim::integrate_noisy_depth(cfg, sigma_px, fx, baseline_m, self.trusted_range, model);
         if let (Some(noise), true) = (self.noise, model) {
             sim::use_pipeline_window(cfg, noise);
+            if let Some(w) = self.pipeline_window {
+                cfg.explorer.integration.footprint_px = w;
+            }
         }
         if self.depth_from == "stereo" {
             let rig = harmonic_sim::sensors::stereo::StereoRig {
@@ -313,30 +330,71 @@ mod tests {
         // The rules reach the simulator's configuration: the surface estimate's storage, the
         // sensor model's depth noise and the window (the matcher's, or the pipeline's 5 × 5
         // median for the depth camera's noise; none unfiltered).
-        for (args, surface, window) in [
-            (&["--depth-from", "stereo"][..], true, 3.5),
-            (&["--depth-from", "stereo", "--depth-rules", "exact"], false, 0.0),
-            (&["--noise", "stereo"], true, 5.0),
-            (&["--noise", "stereo", "--depth-rules", "exact"], false, 0.0),
-            (&["--noise", "stereo:1:1"], true, 0.0),
+        for (args, surface, model, window) in [
+            (&["--depth-from", "stereo"][..], true, true, 3.5),
+            (
+                &["--depth-from", "stereo", "--depth-rules", "exact"],
+                false,
+                false,
+                0.0,
+            ),
+            (&["--noise", "stereo"], true, true, 5.0),
+            (
+                &["--noise", "stereo", "--depth-rules", "exact"],
+                false,
+                false,
+                0.0,
+            ),
+            (&["--noise", "stereo:1:1"], true, true, 0.0),
+            (&["--noise", "stereo", "--pipeline-window", "0"], true, true, 0.0),
+            (
+                &[
+                    "--noise",
+                    "stereo",
+                    "--depth-rules",
+                    "model",
+                    "--pipeline-window",
+                    "3",
+                ],
+                false,
+                true,
+                3.0,
+            ),
         ] {
             let mut cfg = SimConfig::default();
             let a = Args::try_parse_from(std::iter::once("explore").chain(args.iter().copied())).unwrap();
+            a.sensing.check().unwrap();
             a.sensing.apply(&mut cfg);
             assert_eq!(cfg.surface_estimate, surface, "{args:?}");
             assert_eq!(
                 cfg.explorer.integration.depth_noise_per_m > 0.0,
-                surface,
+                model,
                 "{args:?}"
             );
             assert_eq!(cfg.explorer.integration.footprint_px, window, "{args:?}");
-            if surface {
+            if model {
                 // The model uses depth to the camera's range.
                 assert_eq!(
                     cfg.explorer.integration.max_range, cfg.camera.max_range,
                     "{args:?}"
                 );
             }
+        }
+        // The pipeline's window belongs to the depth camera's noise under the model.
+        for args in [
+            &["--pipeline-window", "3"][..],
+            &[
+                "--noise",
+                "stereo",
+                "--depth-rules",
+                "exact",
+                "--pipeline-window",
+                "3",
+            ],
+            &["--depth-from", "stereo", "--pipeline-window", "3"],
+        ] {
+            let a = Args::try_parse_from(std::iter::once("explore").chain(args.iter().copied())).unwrap();
+            assert!(a.sensing.check().is_err(), "{args:?}");
         }
     }
 }
