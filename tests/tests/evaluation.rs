@@ -296,7 +296,7 @@ fn the_pipeline_window_keeps_noisy_runs_off_a_door_jamb() {
             ..stereo_model_config(1)
         };
         if window {
-            sim::use_pipeline_window(&mut cfg, StereoNoise::default());
+            sim::use_pipeline_window(&mut cfg, StereoNoise::default(), None);
         }
         sim::run(&scenario, &cfg, |_| {}).unwrap()
     };

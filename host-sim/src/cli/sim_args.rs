@@ -272,10 +272,7 @@ impl SensingArgs {
         let fx = cfg.camera.intrinsics.fx();
         sim::integrate_noisy_depth(cfg, sigma_px, fx, baseline_m, self.trusted_range, model);
         if let (Some(noise), true) = (self.noise, model) {
-            sim::use_pipeline_window(cfg, noise);
-            if let Some(w) = self.pipeline_window {
-                cfg.explorer.integration.footprint_px = w;
-            }
+            sim::use_pipeline_window(cfg, noise, self.pipeline_window);
         }
         if self.depth_from == "stereo" {
             let rig = harmonic_sim::sensors::stereo::StereoRig {

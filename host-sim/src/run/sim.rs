@@ -235,14 +235,16 @@ pub fn integrate_noisy_depth(
 /// as the matcher's window is for stereo depth ([`use_stereo_depth`]): the median stands in for a
 /// stereo pipeline's window aggregation, so slanted surfaces are less certain, returns whose
 /// slant cannot be measured are left out, and no return clears deeper than the nearest depth
-/// within half the window. An unfiltered camera (a 1 px window) has none. Measured in
-/// docs/RESULTS.md, "The rules for `--noise`".
-pub fn use_pipeline_window(cfg: &mut SimConfig, noise: StereoNoise) {
-    cfg.explorer.integration.footprint_px = if noise.filter_px > 1 {
+/// within half the window. An unfiltered camera (a 1 px window) has none. `window_px`, if
+/// given, is the window instead (`--pipeline-window`; 0: none). Measured in docs/RESULTS.md,
+/// "The rules for `--noise`".
+pub fn use_pipeline_window(cfg: &mut SimConfig, noise: StereoNoise, window_px: Option<f32>) {
+    let median = if noise.filter_px > 1 {
         f32::from(noise.filter_px)
     } else {
         0.0
     };
+    cfg.explorer.integration.footprint_px = window_px.unwrap_or(median);
 }
 
 /// Switches `cfg` to stereo depth from `rig`: depth 0 (no match) becomes unknown rather than
