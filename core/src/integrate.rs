@@ -68,7 +68,11 @@
 //! `(h/σ)²`. The voxels a frame samples are decided by their mean over every frame so far:
 //! the log-odds is set to how many standard errors the mean lies below
 //! `SURFACE_OCCUPIED` (free above it); a voxel whose mean puts it behind the surface is left
-//! as it is. A return on a depth edge (a face neighbour far away in depth: the stereo
+//! as it is. A return's samples stop at the first voxel along its ray that the map holds
+//! occupied and whose mean puts the surface in it: that voxel hides the ones behind it, so a
+//! return that lands deep (its error, or a filter that mixed a nearer edge into it) does not
+//! mark a second layer behind a surface already seen, nor the free voxel on the far side of a
+//! one-voxel wall. A return on a depth edge (a face neighbour far away in depth: the stereo
 //! pipeline's filter may mix the two sides into a return in mid-air) marks nothing; a return
 //! without a normal keeps the vote. Measured in docs/RESULTS.md ("A surface estimate kept
 //! across frames"): much more free space seen on grids aligned with the walls, but not yet a
@@ -315,6 +319,10 @@ pub fn integrate_with_scratch(
                             return true;
                         }
                         let i = dims.linear(voxel);
+                        // A voxel the map holds occupied whose mean puts the surface in it
+                        // hides the voxels behind it from this return.
+                        let occludes = map.occupancy(i) == Occupancy::Occupied
+                            && surface_estimate(map.surface(), i).is_some_and(|(m, _)| m <= SURFACE_IN_VOXEL);
                         surface_add(map.surface_mut(), i, delta.min(SURFACE_BAND), w);
                         if !votes.hit(i, map) {
                             let occ =
@@ -325,7 +333,7 @@ pub fn integrate_with_scratch(
                                 stats.vote_overflow += 1;
                             }
                         }
-                        true
+                        !occludes
                     });
                     return;
                 }
@@ -474,6 +482,10 @@ const SURFACE_BAND: f32 = 3.0;
 /// touch the surface): the voxel in front of a wall on a voxel face sits exactly at 1, and the
 /// tilt of noisy normals shrinks every mean a little towards 0.
 const SURFACE_OCCUPIED: f32 = 0.6;
+/// A voxel whose mean is at most this (its centre at or behind the surface) holds the surface:
+/// once the map holds it occupied, a return's samples stop there (the voxels behind it are
+/// hidden from the return, whose error, not a second surface, puts it deeper).
+const SURFACE_IN_VOXEL: f32 = 0.0;
 /// A voxel whose mean is below minus this lies behind the surface, where exact depth would not
 /// observe it either: it is not updated.
 const SURFACE_HIDDEN: f32 = 1.1;
@@ -1634,6 +1646,59 @@ mod tests {
         let (wall, _) = surface_estimate(map.surface(), at(10)).unwrap();
         assert!(front > SURFACE_OCCUPIED && front < 1.5, "{front}");
         assert!(wall < 0.0 && wall > -SURFACE_HIDDEN, "{wall}");
+    }
+
+    /// After the wall of [`the_surface_estimate_frees_the_voxel_in_front_of_a_wall_on_a_voxel_face`]
+    /// is established, frames whose returns all land a voxel too deep (as a filter that mixed a
+    /// nearer edge into them gives) do not mark the voxel behind the wall: the wall's voxel
+    /// hides it.
+    #[test]
+    fn returns_behind_an_established_surface_do_not_mark_the_voxel_behind_it() {
+        let g = cube16();
+        let (mut lo, mut st) = ([0i8; 4096], [0u32; 128]);
+        let mut surface = [[0i32; 2]; 4096];
+        let mut scratch = [0u32; 8192];
+        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st)
+            .unwrap()
+            .with_surface(&mut surface);
+        let side = 30u16;
+        let c = f32::from(side - 1) / 2.0;
+        let intr = Intrinsics::new(20.0, 20.0, c, c, side, side).unwrap();
+        let mut pose = looking_along_x();
+        pose.translation.vector.x = 0.0;
+        let noise = 0.03;
+        let params = IntegrationParams {
+            depth_noise_per_m: noise,
+            ..IntegrationParams::default()
+        };
+        let mut seed = 777u64;
+        let mut uniform = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as f32 / (1u64 << 31) as f32
+        };
+        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
+        let mut depth = [0u16; 900];
+        // 20 frames of the wall at 1.0 m, then 3 whose returns all lie at 1.1 m.
+        for (frame, wall) in core::iter::repeat_n(1.0f32, 20)
+            .chain(core::iter::repeat_n(1.1, 3))
+            .enumerate()
+        {
+            for d in depth.iter_mut() {
+                let n: f32 = (0..12).map(|_| uniform()).sum::<f32>() - 6.0;
+                *d = libm::roundf((wall + noise * n) * 1000.0) as u16;
+            }
+            let f = DepthFrame::new(intr, &depth).unwrap();
+            integrate_with_scratch(&mut map, &f, &pose, &params, &mut scratch).unwrap();
+            if frame == 19 {
+                assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+                assert!(map.is_unknown(at(11)));
+            }
+        }
+        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+        assert!(map.is_unknown(at(11)), "{:?}", map.occupancy(at(11)));
+        assert!(surface_estimate(map.surface(), at(11)).is_none());
     }
 
     /// The centre pixel's `(σ, free distance)` of a 5 × 5 `depth` image (f = 50 px) looking
