@@ -1598,18 +1598,25 @@ mod tests {
         assert!((free_length(r, 0.2, Some(3.0), h) - (r - 0.4)).abs() < 1e-6);
     }
 
-    /// A camera 1 m in front of a wall on a voxel face (x = 1.0 m), 20 frames of depth with
-    /// independent noise of 3 cm: with the surface estimate the voxel in front of the wall ends
-    /// free and the wall's voxel occupied, and the voxel behind it is never observed.
-    #[test]
-    fn the_surface_estimate_frees_the_voxel_in_front_of_a_wall_on_a_voxel_face() {
+    /// Integrates one 30 × 30 frame per entry of `walls` into a map of [`cube16`] with a
+    /// surface estimate, from a camera at x = 0 looking along +x at a wall that many metres
+    /// away, each depth with independent noise of 3 cm (a fixed generator seeded with `seed`;
+    /// a sum of 12 uniforms is close to normal). `each` sees the frame's number and stats and
+    /// the map after it; the map is returned to `last` with a function that gives the linear
+    /// index of voxel `(x, 8, 8)`.
+    fn frames_of_a_wall(
+        walls: impl IntoIterator<Item = f32>,
+        mut seed: u64,
+        mut each: impl FnMut(usize, IntegrationStats, &VoxelMap<'_>),
+        last: impl FnOnce(&VoxelMap<'_>, &dyn Fn(u16) -> usize),
+    ) {
         let g = cube16();
         let (mut lo, mut st) = ([0i8; 4096], [0u32; 128]);
         let mut surface = [[0i32; 2]; 4096];
-        let mut scratch = [0u32; 8192];
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st)
             .unwrap()
             .with_surface(&mut surface);
+        let mut scratch = [0u32; 8192];
         let side = 30u16;
         let c = f32::from(side - 1) / 2.0;
         let intr = Intrinsics::new(20.0, 20.0, c, c, side, side).unwrap();
@@ -1620,8 +1627,6 @@ mod tests {
             depth_noise_per_m: noise,
             ..IntegrationParams::default()
         };
-        // A fixed linear congruential generator; a sum of 12 uniforms is close to normal.
-        let mut seed = 12345u64;
         let mut uniform = move || {
             seed = seed
                 .wrapping_mul(6364136223846793005)
@@ -1629,23 +1634,33 @@ mod tests {
             (seed >> 33) as f32 / (1u64 << 31) as f32
         };
         let mut depth = [0u16; 900];
-        for _ in 0..20 {
+        for (k, wall) in walls.into_iter().enumerate() {
             for d in depth.iter_mut() {
                 let n: f32 = (0..12).map(|_| uniform()).sum::<f32>() - 6.0;
-                *d = libm::roundf((1.0 + noise * n) * 1000.0) as u16;
+                *d = libm::roundf((wall + noise * n) * 1000.0) as u16;
             }
             let frame = DepthFrame::new(intr, &depth).unwrap();
             let s = integrate_with_scratch(&mut map, &frame, &pose, &params, &mut scratch).unwrap();
-            assert!(s.voted > 0, "{s:?}");
+            each(k, s, &map);
         }
-        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
-        assert_eq!(map.occupancy(at(9)), Occupancy::Free);
-        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
-        assert!(map.is_unknown(at(11)));
-        let (front, _) = surface_estimate(map.surface(), at(9)).unwrap();
-        let (wall, _) = surface_estimate(map.surface(), at(10)).unwrap();
-        assert!(front > SURFACE_OCCUPIED && front < 1.5, "{front}");
-        assert!(wall < 0.0 && wall > -SURFACE_HIDDEN, "{wall}");
+        last(&map, &|x| g.dims().linear(VoxelIndex::new(x, 8, 8)));
+    }
+
+    /// A camera 1 m in front of a wall on a voxel face (x = 1.0 m), 20 frames of depth with
+    /// independent noise of 3 cm: with the surface estimate the voxel in front of the wall ends
+    /// free and the wall's voxel occupied, and the voxel behind it is never observed.
+    #[test]
+    fn the_surface_estimate_frees_the_voxel_in_front_of_a_wall_on_a_voxel_face() {
+        let each = |_, s: IntegrationStats, _: &VoxelMap<'_>| assert!(s.voted > 0, "{s:?}");
+        frames_of_a_wall(core::iter::repeat_n(1.0, 20), 12345, each, |map, at| {
+            assert_eq!(map.occupancy(at(9)), Occupancy::Free);
+            assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+            assert!(map.is_unknown(at(11)));
+            let (front, _) = surface_estimate(map.surface(), at(9)).unwrap();
+            let (wall, _) = surface_estimate(map.surface(), at(10)).unwrap();
+            assert!(front > SURFACE_OCCUPIED && front < 1.5, "{front}");
+            assert!(wall < 0.0 && wall > -SURFACE_HIDDEN, "{wall}");
+        });
     }
 
     /// After the wall of [`the_surface_estimate_frees_the_voxel_in_front_of_a_wall_on_a_voxel_face`]
@@ -1654,51 +1669,20 @@ mod tests {
     /// hides it.
     #[test]
     fn returns_behind_an_established_surface_do_not_mark_the_voxel_behind_it() {
-        let g = cube16();
-        let (mut lo, mut st) = ([0i8; 4096], [0u32; 128]);
-        let mut surface = [[0i32; 2]; 4096];
-        let mut scratch = [0u32; 8192];
-        let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st)
-            .unwrap()
-            .with_surface(&mut surface);
-        let side = 30u16;
-        let c = f32::from(side - 1) / 2.0;
-        let intr = Intrinsics::new(20.0, 20.0, c, c, side, side).unwrap();
-        let mut pose = looking_along_x();
-        pose.translation.vector.x = 0.0;
-        let noise = 0.03;
-        let params = IntegrationParams {
-            depth_noise_per_m: noise,
-            ..IntegrationParams::default()
-        };
-        let mut seed = 777u64;
-        let mut uniform = move || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 33) as f32 / (1u64 << 31) as f32
-        };
-        let at = |x| g.dims().linear(VoxelIndex::new(x, 8, 8));
-        let mut depth = [0u16; 900];
+        let at = |x| cube16().dims().linear(VoxelIndex::new(x, 8, 8));
         // 20 frames of the wall at 1.0 m, then 3 whose returns all lie at 1.1 m.
-        for (frame, wall) in core::iter::repeat_n(1.0f32, 20)
-            .chain(core::iter::repeat_n(1.1, 3))
-            .enumerate()
-        {
-            for d in depth.iter_mut() {
-                let n: f32 = (0..12).map(|_| uniform()).sum::<f32>() - 6.0;
-                *d = libm::roundf((wall + noise * n) * 1000.0) as u16;
-            }
-            let f = DepthFrame::new(intr, &depth).unwrap();
-            integrate_with_scratch(&mut map, &f, &pose, &params, &mut scratch).unwrap();
-            if frame == 19 {
+        let walls = core::iter::repeat_n(1.0f32, 20).chain(core::iter::repeat_n(1.1, 3));
+        let each = |k, _, map: &VoxelMap<'_>| {
+            if k == 19 {
                 assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
                 assert!(map.is_unknown(at(11)));
             }
-        }
-        assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
-        assert!(map.is_unknown(at(11)), "{:?}", map.occupancy(at(11)));
-        assert!(surface_estimate(map.surface(), at(11)).is_none());
+        };
+        frames_of_a_wall(walls, 777, each, |map, at| {
+            assert_eq!(map.occupancy(at(10)), Occupancy::Occupied);
+            assert!(map.is_unknown(at(11)), "{:?}", map.occupancy(at(11)));
+            assert!(surface_estimate(map.surface(), at(11)).is_none());
+        });
     }
 
     /// The centre pixel's `(σ, free distance)` of a 5 × 5 `depth` image (f = 50 px) looking
