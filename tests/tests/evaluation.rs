@@ -279,21 +279,25 @@ fn stereo_model_config(seed: u64) -> SimConfig {
 }
 
 /// `--noise stereo`'s default rules (the sensor model, the surface estimate and the median's
-/// window as the pipeline's footprint) keep the body off thin obstacles' ends. Kitchen start 1
-/// of closest frontier, whose A* paths pass the pantry door's jamb at the planning radius: on
-/// the surface rules without the window its map loses the jamb's end voxel for a while and the
-/// body touches it (0.150 m, the body's radius); with the window it keeps 0.2 m and more
-/// (docs/RESULTS.md, "The rules for `--noise`"). If a change to the map rules stops the first
-/// run touching, this start no longer shows the window's effect: pick another from the rows.
+/// window as the pipeline's footprint) keep the body off obstacles and the halls open.
+/// Apartment-thesis start 5 of closest frontier: on the surface rules without the window its
+/// map seals the 0.9 m hall (37.7 % free coverage) and the body touches a wall (0.114 m of
+/// clearance for a 0.15 m body); with the window it explores the hall and keeps 0.2 m and more
+/// (docs/RESULTS.md, "A surface voxel hides what lies behind it"). Until the occlusion rule of
+/// that section this test used kitchen start 1, whose windowless run no longer touches. If a
+/// change to the map rules stops this run failing without the window, it no longer shows the
+/// window's effect: pick another start from the rows.
 #[test]
-fn the_pipeline_window_keeps_noisy_runs_off_a_door_jamb() {
+fn the_pipeline_window_keeps_noisy_runs_off_walls_and_the_hall_open() {
     use harmonic_sim::sensors::camera::StereoNoise;
-    let scenario = Scenario::builtin("kitchen").unwrap().with_random_start(1);
+    let scenario = Scenario::builtin("apartment-thesis")
+        .unwrap()
+        .with_random_start(5);
     let run = |window: bool| {
         let mut cfg = SimConfig {
             planner: PlannerKind::ClosestFrontier,
             surface_estimate: true,
-            ..stereo_model_config(1)
+            ..stereo_model_config(5)
         };
         if window {
             sim::use_pipeline_window(&mut cfg, StereoNoise::default(), None);
@@ -302,16 +306,17 @@ fn the_pipeline_window_keeps_noisy_runs_off_a_door_jamb() {
     };
     let without = run(false);
     assert!(
-        without.collisions > 0,
-        "without the window: {} collisions, {} m",
+        without.collisions > 0 && without.coverage_free < 0.5,
+        "without the window: {} collisions, {} m, {} free coverage",
         without.collisions,
-        without.min_clearance_m
+        without.min_clearance_m,
+        without.coverage_free
     );
     let with = run(true);
     assert_eq!(with.termination, "complete");
     assert_eq!(with.collisions, 0, "{:?}", with.collision_points);
     assert!(with.min_clearance_m >= 0.2, "{}", with.min_clearance_m);
-    assert!(with.coverage_free > 0.97, "{}", with.coverage_free);
+    assert!(with.coverage_free > 0.95, "{}", with.coverage_free);
 }
 
 #[test]
