@@ -532,6 +532,15 @@ fn surface_add(surface: &mut [[i32; 2]], i: usize, delta: f32, w: i32) {
     }
 }
 
+/// Voxel `i`'s surface estimate in `map` ([`VoxelMap::with_surface`]): the mean distance of
+/// its centre in front of the surface, in half voxels (+1: the voxel in front of a surface on
+/// its far face, −1: the voxel behind it), and the weight of the samples behind that mean
+/// (one return with `σ` a voxel weighs 1). `None` without an estimate or samples. For
+/// diagnosing a map; the integrator decides the voxel's log-odds from it.
+pub fn surface_estimate_at(map: &VoxelMap<'_>, i: usize) -> Option<(f32, f32)> {
+    surface_estimate(map.surface(), i)
+}
+
 /// Voxel `i`'s mean distance in front of the surface (half voxels) and the weight behind it
 /// (`None`: no samples).
 fn surface_estimate(surface: &[[i32; 2]], i: usize) -> Option<(f32, f32)> {

@@ -347,6 +347,58 @@ fn explore_records_a_tlog_that_the_tlog_command_reads_back() {
 }
 
 #[test]
+fn explore_lists_the_voxels_behind_map_accuracy() {
+    let dir = std::env::temp_dir().join(format!("harmonic-cli-errors-{}", std::process::id()));
+    let csv = dir.with_extension("csv");
+    let out = sim()
+        .args([
+            "explore",
+            "--scenario",
+            "apartment",
+            "--noise",
+            "stereo",
+            "--max-scans",
+            "3",
+            "--quiet",
+        ])
+        .arg("--out")
+        .arg(&dir)
+        .arg("--map-errors")
+        .arg(&csv)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    assert_eq!(header[..4], ["error", "ix", "iy", "iz"]);
+    let mut kinds = std::collections::BTreeMap::<&str, u64>::new();
+    for line in lines {
+        assert_eq!(line.split(',').count(), header.len(), "{line}");
+        *kinds.entry(line.split(',').next().unwrap()).or_default() += 1;
+    }
+    // The file holds exactly the voxels the report counts.
+    let accuracy = &report["map_accuracy"];
+    for (kind, key) in [
+        ("false_occupied", "false_occupied"),
+        ("false_free", "false_free"),
+        ("unseen", "unseen"),
+        ("seen_only_here", "seen_only_here"),
+    ] {
+        assert_eq!(
+            kinds.get(kind).copied().unwrap_or(0),
+            accuracy[key].as_u64().unwrap(),
+            "{kind}: {kinds:?}"
+        );
+    }
+    assert!(kinds.get("unseen").copied().unwrap_or(0) > 0, "{kinds:?}");
+    let _ = std::fs::remove_dir_all(dir);
+    let _ = std::fs::remove_file(csv);
+}
+
+#[test]
 fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
     let one_line = |args: &[&str], needle: &str| {
         let out = sim().args(args).output().unwrap();
@@ -409,4 +461,14 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
     );
     one_line(&["explore", "--drift", "0.1"], "SIGMA_POS_M,SIGMA_YAW_RAD");
     one_line(&["explore", "--planner", "greedy"], "unknown planner");
+    one_line(
+        &[
+            "explore",
+            "--map-errors",
+            "/tmp/unused.csv",
+            "--out",
+            "/tmp/unused",
+        ],
+        "give --noise, --depth-from stereo or --drift",
+    );
 }

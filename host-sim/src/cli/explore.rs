@@ -89,6 +89,13 @@ pub struct ExploreArgs {
     /// Write every planning step's problem (labels .npy + source) here, for `harmonic-sim solve`.
     #[arg(long)]
     dump_problem: Option<PathBuf>,
+    /// Write every voxel where the map differs from the noise-free map of the same run
+    /// (false occupied, false free, unseen, seen only here) to this CSV file: its index, centre,
+    /// state in both maps, log-odds and, with the stereo sensor model, the surface estimate.
+    /// The voxels behind `map accuracy`; needs imperfect sensing (`--noise`, `--depth-from
+    /// stereo` or `--drift`).
+    #[arg(long, value_name = "FILE")]
+    map_errors: Option<PathBuf>,
     /// Depth-link transport: `sim` (in-process pipe), `tcp:HOST:PORT` (connect),
     /// `tcp-listen:[HOST:]PORT` (wait for the peer) or `serial:PATH[:BAUD]`. Over TCP and serial
     /// the far end must send the bytes back (echo, loopback plug): both link ends run here.
@@ -230,6 +237,7 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     cfg.explorer.max_frame_yaw_rate = args.max_frame_yaw_rate.to_radians();
     cfg.explorer.max_frame_pose_lag_ms = args.max_frame_pose_lag_ms;
     cfg.dump_problem = args.dump_problem.clone();
+    cfg.map_errors = args.map_errors.clone();
     let (burst_rate, burst_len) = args.link_burst.unwrap_or((0.0, DEFAULT_BURST_LEN));
     cfg.link = LinkConfig {
         transport: args.link.clone(),

@@ -137,6 +137,10 @@ pub struct SimConfig {
     /// Write each full replan's problem (`step_NNNN.npy` labels and `step_NNNN.json` with the
     /// source voxel and the command that re-solves it) into this directory.
     pub dump_problem: Option<std::path::PathBuf>,
+    /// Write the voxels where the map differs from the noise-free map of the same run here, as
+    /// CSV ([`crate::sensors::sensing::write_map_errors`]). Only runs with imperfect sensing
+    /// keep that map.
+    pub map_errors: Option<std::path::PathBuf>,
     /// The depth link: transport, baud rate, faults.
     pub link: LinkConfig,
     /// After a complete exploration, fly back to the start through known free space
@@ -309,6 +313,7 @@ impl Default for SimConfig {
             seed: 1,
             drift: None,
             dump_problem: None,
+            map_errors: None,
             link: LinkConfig::default(),
             return_home: false,
             mavlink: None,
@@ -594,6 +599,8 @@ pub enum SimError {
     Config(String),
     /// A problem dump could not be written.
     Dump(String),
+    /// The map's errors could not be written, or the run keeps no noise-free map.
+    MapErrors(String),
     /// The depth link could not be opened or failed.
     Link(String),
     /// The MAVLink link could not be opened or failed.
@@ -606,6 +613,7 @@ impl std::fmt::Display for SimError {
             SimError::Grid(s) => write!(f, "grid: {s}"),
             SimError::Config(s) => write!(f, "explorer configuration: {s}"),
             SimError::Dump(s) => write!(f, "--dump-problem: {s}"),
+            SimError::MapErrors(s) => write!(f, "--map-errors: {s}"),
             SimError::Link(s) => write!(f, "depth link: {s}"),
             SimError::Mavlink(s) => write!(f, "mavlink: {s}"),
         }
@@ -1261,6 +1269,27 @@ pub fn run_observed(
         }
     };
     let measure_accuracy = !cfg.camera.is_exact() || drift.is_some() || stereo.is_some();
+    // Opened before the flight, so a path that cannot be written fails at once.
+    let mut map_errors = match &cfg.map_errors {
+        Some(_) if !measure_accuracy => {
+            return Err(SimError::MapErrors(
+                "it compares the map with the noise-free map of the same run, which only a run with \
+                 imperfect sensing keeps: give --noise, --depth-from stereo or --drift"
+                    .into(),
+            ))
+        }
+        Some(path) => {
+            let err = |e: std::io::Error| SimError::MapErrors(format!("{}: {e}", path.display()));
+            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                std::fs::create_dir_all(dir).map_err(err)?;
+            }
+            Some((
+                path,
+                std::io::BufWriter::new(std::fs::File::create(path).map_err(err)?),
+            ))
+        }
+        None => None,
+    };
     let reference_len = if measure_accuracy {
         geometry.dims().len()
     } else {
@@ -1707,6 +1736,12 @@ pub fn run_observed(
         solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
         streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
     };
+    if let (Some((path, out)), Some(r)) = (map_errors.as_mut(), reference.as_ref()) {
+        use std::io::Write;
+        crate::sensors::sensing::write_map_errors(planner.map(), r, out)
+            .and_then(|_| out.flush())
+            .map_err(|e| SimError::MapErrors(format!("{}: {e}", path.display())))?;
+    }
     let dims = geometry.dims();
     Ok(Report {
         scenario: scenario.world.name.clone(),

@@ -9,9 +9,10 @@
 //! - [`MapAccuracy`]: the share of voxels whose state (unknown, free, occupied, uncertain)
 //!   matches a reference map that integrated the noise-free depth of every scan of the same run
 //!   at its true pose — the seed thesis's measure (Shade 2011, Fig. 6.19), over the whole grid
-//!   and over the voxels either map observed.
+//!   and over the voxels either map observed. [`write_map_errors`] lists the voxels behind it
+//!   (`explore --map-errors FILE`).
 
-use harmonic_core::map::VoxelMap;
+use harmonic_core::map::{Occupancy, VoxelMap};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -196,6 +197,114 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
     }
 }
 
+/// How one voxel of a map differs from the noise-free map of the same run ([`map_errors`]).
+/// The first four are [`MapAccuracy`]'s counts; the fifth holds the remaining differences
+/// (a voxel whose evidence cancels out, [`Occupancy::Uncertain`], in one map only).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum VoxelError {
+    /// Occupied here, free in the reference ([`MapAccuracy::false_occupied`]).
+    FalseOccupied,
+    /// Free here, occupied in the reference ([`MapAccuracy::false_free`]).
+    FalseFree,
+    /// Unknown here, observed in the reference ([`MapAccuracy::unseen`]).
+    Unseen,
+    /// Observed here, unknown in the reference ([`MapAccuracy::seen_only_here`]).
+    SeenOnlyHere,
+    /// Observed in both, uncertain in one of them.
+    Uncertain,
+}
+
+impl VoxelError {
+    /// The name written in the first column of [`write_map_errors`].
+    pub fn name(self) -> &'static str {
+        match self {
+            VoxelError::FalseOccupied => "false_occupied",
+            VoxelError::FalseFree => "false_free",
+            VoxelError::Unseen => "unseen",
+            VoxelError::SeenOnlyHere => "seen_only_here",
+            VoxelError::Uncertain => "uncertain",
+        }
+    }
+}
+
+/// The name of an occupancy state in [`write_map_errors`].
+fn state_name(o: Occupancy) -> &'static str {
+    match o {
+        Occupancy::Unknown => "unknown",
+        Occupancy::Free => "free",
+        Occupancy::Occupied => "occupied",
+        Occupancy::Uncertain => "uncertain",
+    }
+}
+
+/// Every voxel whose state differs between `map` and `reference` (same grid), in storage
+/// order, with how it differs. The voxels [`accuracy`] counts as not matching.
+pub fn map_errors<'m>(
+    map: &'m VoxelMap<'_>,
+    reference: &'m VoxelMap<'_>,
+) -> impl Iterator<Item = (usize, VoxelError)> + 'm {
+    (0..map.dims().len()).filter_map(move |i| {
+        let (a, b) = (map.occupancy(i), reference.occupancy(i));
+        let kind = match (a, b) {
+            _ if a == b => return None,
+            (Occupancy::Unknown, _) => VoxelError::Unseen,
+            (_, Occupancy::Unknown) => VoxelError::SeenOnlyHere,
+            (Occupancy::Occupied, Occupancy::Free) => VoxelError::FalseOccupied,
+            (Occupancy::Free, Occupancy::Occupied) => VoxelError::FalseFree,
+            _ => VoxelError::Uncertain,
+        };
+        Some((i, kind))
+    })
+}
+
+/// Header of [`write_map_errors`]'s CSV.
+pub const MAP_ERRORS_HEADER: &str =
+    "error,ix,iy,iz,x_m,y_m,z_m,map,reference,log_odds,surface_mean_half_voxels,surface_weight";
+
+/// Writes [`map_errors`] as CSV ([`MAP_ERRORS_HEADER`]), a line per voxel: how it differs, its
+/// grid index, its centre in the map frame (metres), its state in each map, the map's
+/// log-odds, and, where the map keeps a surface estimate with samples in that voxel
+/// (`--stereo-model`), the estimate's mean distance of the voxel's centre in front of the
+/// surface (half voxels: +1 in front of a surface on the voxel's far face) and the samples'
+/// weight; both empty otherwise. Returns how many lines of each kind were written, in the
+/// order of [`VoxelError`].
+pub fn write_map_errors(
+    map: &VoxelMap<'_>,
+    reference: &VoxelMap<'_>,
+    out: &mut impl std::io::Write,
+) -> std::io::Result<[usize; 5]> {
+    let geometry = map.geometry();
+    let dims = map.dims();
+    let mut counts = [0usize; 5];
+    writeln!(out, "{MAP_ERRORS_HEADER}")?;
+    for (i, kind) in map_errors(map, reference) {
+        let v = dims.voxel(i);
+        let c = geometry.center(v);
+        let (mean, weight) = match harmonic_core::integrate::surface_estimate_at(map, i) {
+            Some((m, w)) => (format!("{m:.3}"), format!("{w:.3}")),
+            None => (String::new(), String::new()),
+        };
+        writeln!(
+            out,
+            "{},{},{},{},{:.3},{:.3},{:.3},{},{},{:.3},{mean},{weight}",
+            kind.name(),
+            v.x,
+            v.y,
+            v.z,
+            c.x,
+            c.y,
+            c.z,
+            state_name(map.occupancy(i)),
+            state_name(reference.occupancy(i)),
+            map.log_odds(i),
+        )?;
+        if let Some(n) = counts.get_mut(kind as usize) {
+            *n += 1;
+        }
+    }
+    Ok(counts)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -210,6 +319,18 @@ mod tests {
         ref_hits: &[usize],
         ref_misses: &[usize],
     ) -> MapAccuracy {
+        with_maps(dims, map_hits, map_misses, ref_hits, ref_misses, accuracy)
+    }
+
+    /// `f` of a map and a reference as [`compare`] makes them.
+    fn with_maps<R>(
+        dims: Dims,
+        map_hits: &[usize],
+        map_misses: &[usize],
+        ref_hits: &[usize],
+        ref_misses: &[usize],
+        f: impl FnOnce(&VoxelMap<'_>, &VoxelMap<'_>) -> R,
+    ) -> R {
         let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
         let n = dims.len();
         let (mut lo_a, mut st_a) = (vec![0i8; n], vec![0u32; touched_words(&dims)]);
@@ -229,7 +350,7 @@ mod tests {
                 assert!(m.apply_miss(i));
             }
         }
-        accuracy(&map, &reference)
+        f(&map, &reference)
     }
 
     #[test]
@@ -240,6 +361,63 @@ mod tests {
         assert_eq!((a.false_free, a.false_occupied), (1, 0));
         assert_eq!((a.unseen, a.seen_only_here), (1, 1));
         assert_eq!(a.all_voxels, 0.25);
+    }
+
+    #[test]
+    fn map_errors_list_every_mismatch_accuracy_counts() {
+        // 3 × 1 × 4 voxels (x, z), index x + 3z. The reference: a floor (z = 0), free space
+        // (z = 1), a ceiling (z = 2) and one voxel above it (x 1, z 3). The map: a voxel on the
+        // floor (3, grown floor), the floor and the ceiling missed once each (1, 7), and two
+        // voxels the reference never saw (9 occupied, 11 free). Everything else it did not see.
+        let dims = Dims::new(3, 1, 4).unwrap();
+        let (map_hits, map_misses) = ([3, 9], [1, 7, 11]);
+        let (ref_hits, ref_misses) = ([0, 1, 2, 6, 7, 8, 10], [3, 4, 5]);
+        let (a, csv, counts) = with_maps(dims, &map_hits, &map_misses, &ref_hits, &ref_misses, |m, r| {
+            let mut csv = Vec::new();
+            let counts = write_map_errors(m, r, &mut csv).unwrap();
+            (accuracy(m, r), String::from_utf8(csv).unwrap(), counts)
+        });
+        assert_eq!(
+            counts,
+            [a.false_occupied, a.false_free, a.unseen, a.seen_only_here, 0],
+            "{a:?}"
+        );
+        assert_eq!(counts, [1, 2, 7, 2, 0]);
+        let mut lines = csv.lines();
+        assert_eq!(lines.next(), Some(MAP_ERRORS_HEADER));
+        let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+        // No voxel is in the same state in both: every one is listed, once, in storage order.
+        assert_eq!(a.all_voxels, 0.0);
+        assert_eq!(rows.len(), dims.len());
+        assert!(rows
+            .iter()
+            .all(|r| r.len() == MAP_ERRORS_HEADER.split(',').count()));
+        let row = |i: usize| rows.get(i).unwrap();
+        assert_eq!(
+            row(0)[..9],
+            ["unseen", "0", "0", "0", "0.050", "0.050", "0.050", "unknown", "occupied"]
+        );
+        assert_eq!(row(0)[9], "0.000", "an unknown voxel's log-odds");
+        // The grown floor, with the map's log-odds after one hit; no surface estimate
+        // (exact-depth rules), so its two columns are empty.
+        assert_eq!(
+            row(3)[..9],
+            [
+                "false_occupied",
+                "0",
+                "0",
+                "1",
+                "0.050",
+                "0.050",
+                "0.150",
+                "occupied",
+                "free"
+            ]
+        );
+        assert!(row(3)[9].parse::<f32>().unwrap() > 0.0);
+        assert_eq!(row(3)[10..], ["", ""]);
+        assert_eq!(row(7)[..3], ["false_free", "1", "0"]);
+        assert_eq!(row(11)[..3], ["seen_only_here", "2", "0"]);
     }
 
     #[test]
