@@ -607,6 +607,11 @@ pub enum SimError {
     Mavlink(String),
 }
 
+/// The error for `--map-errors PATH` failing to be written.
+fn map_errors_io(path: &std::path::Path, e: std::io::Error) -> SimError {
+    SimError::MapErrors(format!("{}: {e}", path.display()))
+}
+
 impl std::fmt::Display for SimError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
@@ -1279,7 +1284,7 @@ pub fn run_observed(
             ))
         }
         Some(path) => {
-            let err = |e: std::io::Error| SimError::MapErrors(format!("{}: {e}", path.display()));
+            let err = |e| map_errors_io(path, e);
             if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
                 std::fs::create_dir_all(dir).map_err(err)?;
             }
@@ -1740,7 +1745,7 @@ pub fn run_observed(
         use std::io::Write;
         crate::sensors::sensing::write_map_errors(planner.map(), r, out)
             .and_then(|_| out.flush())
-            .map_err(|e| SimError::MapErrors(format!("{}: {e}", path.display())))?;
+            .map_err(|e| map_errors_io(path, e))?;
     }
     let dims = geometry.dims();
     Ok(Report {

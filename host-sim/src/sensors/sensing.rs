@@ -157,8 +157,7 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
     };
     for i in 0..n {
         let (a, b) = (map.occupancy(i), reference.occupancy(i));
-        let (unknown_here, unknown_there) = (map.is_unknown(i), reference.is_unknown(i));
-        let seen = !(unknown_here && unknown_there);
+        let seen = !(a == Occupancy::Unknown && b == Occupancy::Unknown);
         if a == b {
             same += 1;
             if seen {
@@ -168,21 +167,21 @@ pub fn accuracy(map: &VoxelMap<'_>, reference: &VoxelMap<'_>) -> MapAccuracy {
         if seen {
             observed += 1;
         }
-        match (a, b) {
-            (Occupied, Free) => {
+        match mismatch(a, b) {
+            Some(VoxelError::FalseOccupied) => {
                 false_occupied += 1;
                 // On a surface below, under one above, beside one, away from all.
                 false_occupied_where[beside(i, Occupied, -1)] += 1;
             }
-            (Free, Occupied) => {
+            Some(VoxelError::FalseFree) => {
                 false_free += 1;
                 // Under free space, over it, beside it, inside an obstacle.
                 false_free_where[beside(i, Free, 1)] += 1;
             }
-            _ => {}
+            Some(VoxelError::Unseen) => unseen += 1,
+            Some(VoxelError::SeenOnlyHere) => seen_only_here += 1,
+            Some(VoxelError::Uncertain) | None => {}
         }
-        unseen += usize::from(unknown_here && !unknown_there);
-        seen_only_here += usize::from(!unknown_here && unknown_there);
     }
     let frac = |a: usize, b: usize| if b == 0 { 1.0 } else { a as f64 / b as f64 };
     MapAccuracy {
@@ -237,24 +236,27 @@ fn state_name(o: Occupancy) -> &'static str {
     }
 }
 
+/// How a voxel in state `a` in the map differs from the reference's `b`; `None` if it does
+/// not. The one classification [`accuracy`] counts and [`map_errors`] lists.
+fn mismatch(a: Occupancy, b: Occupancy) -> Option<VoxelError> {
+    Some(match (a, b) {
+        _ if a == b => return None,
+        (Occupancy::Unknown, _) => VoxelError::Unseen,
+        (_, Occupancy::Unknown) => VoxelError::SeenOnlyHere,
+        (Occupancy::Occupied, Occupancy::Free) => VoxelError::FalseOccupied,
+        (Occupancy::Free, Occupancy::Occupied) => VoxelError::FalseFree,
+        _ => VoxelError::Uncertain,
+    })
+}
+
 /// Every voxel whose state differs between `map` and `reference` (same grid), in storage
 /// order, with how it differs. The voxels [`accuracy`] counts as not matching.
 pub fn map_errors<'m>(
     map: &'m VoxelMap<'_>,
     reference: &'m VoxelMap<'_>,
 ) -> impl Iterator<Item = (usize, VoxelError)> + 'm {
-    (0..map.dims().len()).filter_map(move |i| {
-        let (a, b) = (map.occupancy(i), reference.occupancy(i));
-        let kind = match (a, b) {
-            _ if a == b => return None,
-            (Occupancy::Unknown, _) => VoxelError::Unseen,
-            (_, Occupancy::Unknown) => VoxelError::SeenOnlyHere,
-            (Occupancy::Occupied, Occupancy::Free) => VoxelError::FalseOccupied,
-            (Occupancy::Free, Occupancy::Occupied) => VoxelError::FalseFree,
-            _ => VoxelError::Uncertain,
-        };
-        Some((i, kind))
-    })
+    (0..map.dims().len())
+        .filter_map(move |i| mismatch(map.occupancy(i), reference.occupancy(i)).map(|kind| (i, kind)))
 }
 
 /// Header of [`write_map_errors`]'s CSV.
@@ -266,16 +268,14 @@ pub const MAP_ERRORS_HEADER: &str =
 /// log-odds, and, where the map keeps a surface estimate with samples in that voxel
 /// (`--stereo-model`), the estimate's mean distance of the voxel's centre in front of the
 /// surface (half voxels: +1 in front of a surface on the voxel's far face) and the samples'
-/// weight; both empty otherwise. Returns how many lines of each kind were written, in the
-/// order of [`VoxelError`].
+/// weight; both empty otherwise.
 pub fn write_map_errors(
     map: &VoxelMap<'_>,
     reference: &VoxelMap<'_>,
     out: &mut impl std::io::Write,
-) -> std::io::Result<[usize; 5]> {
+) -> std::io::Result<()> {
     let geometry = map.geometry();
     let dims = map.dims();
-    let mut counts = [0usize; 5];
     writeln!(out, "{MAP_ERRORS_HEADER}")?;
     for (i, kind) in map_errors(map, reference) {
         let v = dims.voxel(i);
@@ -298,11 +298,8 @@ pub fn write_map_errors(
             state_name(reference.occupancy(i)),
             map.log_odds(i),
         )?;
-        if let Some(n) = counts.get_mut(kind as usize) {
-            *n += 1;
-        }
     }
-    Ok(counts)
+    Ok(())
 }
 
 #[cfg(test)]
@@ -372,20 +369,29 @@ mod tests {
         let dims = Dims::new(3, 1, 4).unwrap();
         let (map_hits, map_misses) = ([3, 9], [1, 7, 11]);
         let (ref_hits, ref_misses) = ([0, 1, 2, 6, 7, 8, 10], [3, 4, 5]);
-        let (a, csv, counts) = with_maps(dims, &map_hits, &map_misses, &ref_hits, &ref_misses, |m, r| {
+        let (a, csv) = with_maps(dims, &map_hits, &map_misses, &ref_hits, &ref_misses, |m, r| {
             let mut csv = Vec::new();
-            let counts = write_map_errors(m, r, &mut csv).unwrap();
-            (accuracy(m, r), String::from_utf8(csv).unwrap(), counts)
+            write_map_errors(m, r, &mut csv).unwrap();
+            (accuracy(m, r), String::from_utf8(csv).unwrap())
         });
+        let mut lines = csv.lines();
+        assert_eq!(lines.next(), Some(MAP_ERRORS_HEADER));
+        let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
+        let count = |kind: VoxelError| rows.iter().filter(|r| r.first() == Some(&kind.name())).count();
+        let counts = [
+            VoxelError::FalseOccupied,
+            VoxelError::FalseFree,
+            VoxelError::Unseen,
+            VoxelError::SeenOnlyHere,
+            VoxelError::Uncertain,
+        ]
+        .map(count);
         assert_eq!(
             counts,
             [a.false_occupied, a.false_free, a.unseen, a.seen_only_here, 0],
             "{a:?}"
         );
         assert_eq!(counts, [1, 2, 7, 2, 0]);
-        let mut lines = csv.lines();
-        assert_eq!(lines.next(), Some(MAP_ERRORS_HEADER));
-        let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
         // No voxel is in the same state in both: every one is listed, once, in storage order.
         assert_eq!(a.all_voxels, 0.0);
         assert_eq!(rows.len(), dims.len());
