@@ -199,7 +199,7 @@ def main():
                   f"{its} | {np.abs(x - exact).max():.1e} | |")
             path = os.path.join(tmp, "labels.npy")
             np.save(path, g)
-            for solver in ("mg", "vc"):
+            for solver in ("mg", "flat", "vc"):
                 out = os.path.join(tmp, f"phi-{solver}.npy")
                 rs = [core_solve(args.exe, path, src, solver, args.tol, out, args.threads) for _ in range(args.repeat)]
                 r = min(rs, key=lambda r: r["setup_ms"] + r["solve_ms"])

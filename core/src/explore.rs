@@ -63,6 +63,7 @@ use crate::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening}
 use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use crate::solve::flat::Flat;
 use crate::solve::local::{resolve_near, Local, LocalParams, LocalScratch};
 use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
@@ -74,6 +75,11 @@ pub enum SolverKind {
     /// Geometric multigrid: MGPCG when Krylov storage is lent, V-cycles otherwise.
     #[default]
     Multigrid,
+    /// The host's flat multigrid ([`crate::solve::flat`]): MGPCG over the whole grid on every
+    /// plan, warm from the last field, in [`ExplorerStorage::flat`] (at least
+    /// [`crate::solve::flat::flat_scratch_len`] values; refused at construction without them).
+    /// No boxes ([`crate::solve::local`] works in the multigrid's storage).
+    Flat,
     /// Lexicographic Gauss-Seidel, the seed paper's solver (reference and baseline).
     GaussSeidel,
     /// The seed thesis's own solve ([`crate::solve::thesis`]): Jacobi sweeps from φ = 0 at every
@@ -308,6 +314,8 @@ pub struct ExplorerStorage<'a> {
     pub local_labels: &'a mut [Label],
     /// Values of that box (as many as `local_labels`).
     pub local_psi: &'a mut [f32],
+    /// The flat solver's storage ([`SolverKind::Flat`] only; otherwise it may be empty).
+    pub flat: &'a mut [f32],
 }
 
 impl ExplorerStorage<'_> {
@@ -328,6 +336,7 @@ impl ExplorerStorage<'_> {
             + size_of_val(self.jacobi)
             + size_of_val(self.local_labels)
             + size_of_val(self.local_psi)
+            + size_of_val(self.flat)
     }
 }
 
@@ -589,6 +598,8 @@ pub struct Explorer<'a> {
     phi: &'a mut [f32],
     queue: &'a mut [u32],
     multigrid: Option<Multigrid<'a>>,
+    /// The flat solver ([`SolverKind::Flat`] only).
+    flat: Option<Flat<'a>>,
     /// The thesis's Jacobi scratch (empty unless [`SolverKind::ThesisJacobi`]).
     jacobi: &'a mut [f32],
     /// The box scratch of local re-solves (empty: none).
@@ -646,6 +657,7 @@ impl<'a> Explorer<'a> {
             jacobi,
             local_labels,
             local_psi,
+            flat,
         } = storage;
         if labels.len() < n || phi.len() < n || queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
@@ -664,7 +676,7 @@ impl<'a> Explorer<'a> {
                 )
                 .map_err(ConfigError::Solver)?,
             ),
-            SolverKind::GaussSeidel => None,
+            SolverKind::GaussSeidel | SolverKind::Flat => None,
             SolverKind::ThesisJacobi => {
                 if jacobi.len() < n {
                     return Err(ConfigError::StorageTooSmall);
@@ -679,6 +691,10 @@ impl<'a> Explorer<'a> {
         let jacobi = match config.solver {
             SolverKind::ThesisJacobi => jacobi.get_mut(..n).unwrap_or_default(),
             _ => &mut [],
+        };
+        let flat = match config.solver {
+            SolverKind::Flat => Some(Flat::new(geometry.dims(), flat).map_err(ConfigError::Solver)?),
+            _ => None,
         };
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
             .map_err(ConfigError::Map)?
@@ -698,6 +714,7 @@ impl<'a> Explorer<'a> {
             phi,
             queue,
             multigrid,
+            flat,
             jacobi,
             local_labels,
             local_psi,
@@ -1238,6 +1255,10 @@ impl<'a> Explorer<'a> {
                 solved.map(|how| how.stats())
             }
             (Some(mg), _) => mg.solve(self.labels, self.phi, &params, Method::Auto),
+            (None, SolverKind::Flat) => match self.flat.as_mut() {
+                Some(flat) => flat.solve(self.labels, self.phi, &params),
+                None => Err(SolveError::ScratchTooSmall),
+            },
             (None, SolverKind::ThesisJacobi) => solve::thesis::solve(
                 &dims,
                 self.labels,

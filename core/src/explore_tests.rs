@@ -27,6 +27,7 @@ struct Buffers {
     jacobi: Vec<f32>,
     local_labels: Vec<Label>,
     local_psi: Vec<f32>,
+    flat: Vec<f32>,
 }
 
 impl Buffers {
@@ -47,6 +48,7 @@ impl Buffers {
             jacobi: Vec::new(),
             local_labels: Vec::new(),
             local_psi: Vec::new(),
+            flat: Vec::new(),
         }
     }
     fn explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Explorer<'_> {
@@ -91,6 +93,7 @@ impl Buffers {
                 jacobi: &mut self.jacobi,
                 local_labels: &mut self.local_labels,
                 local_psi: &mut self.local_psi,
+                flat: &mut self.flat,
             },
         )
     }
@@ -976,6 +979,7 @@ fn storage_bytes_count_every_buffer() {
         jacobi: &mut jacobi,
         local_labels: &mut local_labels,
         local_psi: &mut local_psi,
+        flat: &mut [],
     };
     let want = 10 + 4 + 3 * label + 8 + 20 + 14 + 11 * label + 52 + 68 + 19 + 92 + 29 * label + 4 * 31;
     assert_eq!(storage.bytes(), want);
@@ -1021,4 +1025,52 @@ fn a_re_solve_after_a_scan_works_in_a_box_around_it() {
         .fold(0.0f32, f32::max);
     assert!(worst <= 1e-4, "{worst}");
     assert!(2 * boxed_work < whole_work, "{boxed_work} against {whole_work}");
+}
+
+/// [`SolverKind::Flat`] plans on the field the multigrid solves (to within the solve's
+/// accuracy), cold and after a scan; without its storage the explorer is refused.
+#[test]
+fn the_flat_solver_solves_the_field_multigrid_does() {
+    let dims = Dims::new(96, 24, 12).unwrap();
+    let vehicle = VoxelIndex::new(60, 12, 6);
+    let mut fields = Vec::new();
+    for solver in [SolverKind::Multigrid, SolverKind::Flat] {
+        let mut b = Buffers::new(&dims);
+        if solver == SolverKind::Flat {
+            assert!(matches!(
+                b.try_explorer(
+                    dims,
+                    ExplorerConfig {
+                        solver,
+                        ..ExplorerConfig::default()
+                    }
+                ),
+                Err(ConfigError::Solver(crate::solve::SolveError::ScratchTooSmall))
+            ));
+            b.flat = vec![0.0; crate::solve::flat::flat_scratch_len(&dims)];
+        }
+        let config = ExplorerConfig {
+            solver,
+            ..ExplorerConfig::default()
+        };
+        let mut e = b.seen_explorer(dims, config, |v| v.x < 70);
+        e.build_domain(vehicle).unwrap();
+        let first = e.solve_field(vehicle).unwrap();
+        e.map.begin_frame();
+        for i in 0..dims.len() {
+            if (70..73).contains(&dims.voxel(i).x) {
+                e.map.apply_miss(i);
+            }
+        }
+        e.build_domain(vehicle).unwrap();
+        let s = e.solve_field(vehicle).unwrap();
+        assert!(first.converged && s.converged, "{solver:?}: {first:?} {s:?}");
+        fields.push(e.phi.to_vec());
+    }
+    let worst = fields[0]
+        .iter()
+        .zip(&fields[1])
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1e-4, "{worst}");
 }

@@ -315,3 +315,40 @@ fn bfloat16_coarse_levels_converge_like_f32_ones() {
         assert!(err <= 2e-5, "{case}");
     });
 }
+
+/// The host's flat solver ([`harmonic_core::solve::flat`]) on the same rooms: converged at
+/// 1e-6, within 5e-5 of the f64 solution for Laplace's equation, which it solves to its f32
+/// rounding floor (the bar is 1e-4), and within 2e-5 for the screened field.
+#[test]
+fn the_flat_solver_matches_the_f64_solution_on_rooms_with_a_small_far_frontier() {
+    use harmonic_core::solve::flat::{flat_scratch_len, Flat};
+    for &(variant, room) in &LAYOUTS {
+        let (dims, labels, _) = rooms_of(SMALL, variant, room);
+        let mut released = labels.clone();
+        harmonic_core::field::release_source(&mut released);
+        let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+        let mut flat = Flat::new(dims, &mut values).unwrap();
+        for (labels, screening, bound) in [(&labels, 0.0f32, 5e-5), (&released, 0.0918, 2e-5)] {
+            let ex = common::exact_solution(&dims, labels, f64::from(screening));
+            let mut psi = vec![0.0f32; dims.len()];
+            let params = SolveParams {
+                tolerance: 1e-6,
+                max_iterations: 1_000,
+                warm_start: false,
+                screening,
+                max_error: f32::INFINITY,
+            };
+            let stats = flat.solve(labels, &mut psi, &params).unwrap();
+            let err = max_error(&psi, &ex);
+            assert!(stats.converged, "rooms {room}, s = {screening}: {stats:?}");
+            eprintln!(
+                "rooms {room}, s = {screening}: max error {err:.3e}, {} iterations",
+                stats.iterations
+            );
+            assert!(
+                err <= bound,
+                "rooms {room}, s = {screening}: max error {err:.3e}, {stats:?}"
+            );
+        }
+    }
+}

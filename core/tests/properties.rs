@@ -20,6 +20,7 @@ use std::fmt;
 use harmonic_core::domain::{self, DomainError, DomainStats, InflationStencil, Label};
 use harmonic_core::integrate::traverse;
 use harmonic_core::map::{self, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
+use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
 use harmonic_core::solve::{
     gauss_seidel, Fork, Sequential, SolveParams, SolveStats, PSI_FRONTIER, PSI_SOURCE,
@@ -335,8 +336,47 @@ fn solve_mg_lent(
     (psi, s)
 }
 
+/// `b` solved by the flat solver ([`harmonic_core::solve::flat`], the host's fast MGPCG) from
+/// ψ = 0, with a [`Fork`] or not.
+fn solve_flat(b: &Built, tolerance: f32, screening: f32, fork: Option<&dyn Fork>) -> (Vec<f32>, SolveStats) {
+    let dims = b.dims();
+    let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+    let mut flat = Flat::new(dims, &mut values).expect("scratch sized by flat_scratch_len");
+    flat.set_fork(fork);
+    let mut psi = vec![0.0f32; dims.len()];
+    let params = SolveParams {
+        tolerance,
+        max_iterations: 2000,
+        warm_start: false,
+        screening,
+        max_error: f32::INFINITY,
+    };
+    let s = flat
+        .solve(&b.labels, &mut psi, &params)
+        .expect("valid solve inputs");
+    (psi, s)
+}
+
 proptest! {
     #![proptest_config(config(12))]
+
+    /// **The flat solver's threads change nothing but the speed** either: the same bits,
+    /// iterations and cell updates with two threads, the split without threads, and none.
+    #[test]
+    fn a_fork_gives_the_flat_solver_the_same_bits(w in prop_oneof![scattered_world(20..=30, 12..=18), box_world_in(20..=32, 12..=18, 12)]) {
+        let b = build_with_frontier(&w)?;
+        let mut s = b.clone();
+        harmonic_core::field::release_source(&mut s.labels);
+        for (problem, screening) in [(&b, 0.0), (&s, SCREENING)] {
+            let (alone, z) = solve_flat(problem, 1e-6, screening, None);
+            for fork in [&Threads as &dyn Fork, &Sequential] {
+                let (split, a) = solve_flat(problem, 1e-6, screening, Some(fork));
+                prop_assert_eq!((a.iterations, a.cell_updates), (z.iterations, z.cell_updates));
+                let differ = split.iter().zip(&alone).filter(|(p, q)| p.to_bits() != q.to_bits()).count();
+                prop_assert_eq!(differ, 0, "screening {}: {} values differ", screening, differ);
+            }
+        }
+    }
 
     /// **Two threads change nothing but the speed:** a solve lent a [`Fork`] — one that runs
     /// the halves on two threads, and [`Sequential`], the split without threads — gives every
@@ -673,6 +713,23 @@ proptest! {
             prop_assert!(stats.converged, "{method:?} did not converge: {stats:?}");
             let worst = exact.iter().zip(&u).map(|(e, m)| (e - f64::from(*m)).abs()).fold(0.0, f64::max);
             prop_assert!(worst <= 5e-5, "{method:?}: max |u − u_exact| = {worst:e}; {stats:?}");
+        }
+    }
+
+    /// **The flat solver computes the same exact discrete potential:** converged at 1e-6, its
+    /// ψ is within 1e-4 of the f64 solution (Laplace's equation, the bound the multigrid test
+    /// above holds MGPCG to) and within 5e-5 for the screened field.
+    #[test]
+    fn the_flat_solver_matches_the_exact_discrete_solution(w in world()) {
+        let b = build_with_frontier(&w)?;
+        let mut s = b.clone();
+        harmonic_core::field::release_source(&mut s.labels);
+        for (problem, screening, bound) in [(&b, 0.0, 1e-4), (&s, SCREENING, 5e-5)] {
+            let exact = solve_exact_screened(problem, f64::from(screening));
+            let (u, stats) = solve_flat(problem, 1e-6, screening, None);
+            prop_assert!(stats.converged, "screening {screening}: did not converge: {stats:?}");
+            let worst = exact.iter().zip(&u).map(|(e, m)| (e - f64::from(*m)).abs()).fold(0.0, f64::max);
+            prop_assert!(worst <= bound, "screening {screening}: max |ψ − ψ_exact| = {worst:e}; {stats:?}");
         }
     }
 

@@ -352,6 +352,7 @@ pub fn build_explorer<'a>(
             // No room for a box (half a grid's labels and values): whole-grid re-solves.
             local_labels: &mut [],
             local_psi: &mut [],
+            flat: &mut [],
         },
     )?;
     Ok((slot.write(explorer), depth))

@@ -107,6 +107,7 @@ pub fn run(data: &[u8]) {
         jacobi: &mut [],
         local_labels: &mut [],
         local_psi: &mut [],
+        flat: &mut [],
     };
     let Ok(mut explorer) = Explorer::new(geometry, config, storage) else {
         return;

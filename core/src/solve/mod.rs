@@ -30,6 +30,7 @@ use core::cell::Cell;
 use crate::domain::Label;
 use crate::map::Dims;
 
+pub mod flat;
 pub mod local;
 pub mod multigrid;
 pub mod thesis;

@@ -51,6 +51,7 @@ pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
         let mut solvers = vec![
             BenchSolver::Multigrid(Method::Pcg),
             BenchSolver::Multigrid(Method::VCycle),
+            BenchSolver::Flat,
         ];
         if dims.len() <= args.gs_max_voxels {
             solvers.push(BenchSolver::GaussSeidel);
@@ -154,6 +155,7 @@ fn solver_label(s: BenchSolver) -> &'static str {
     match s {
         BenchSolver::Multigrid(Method::VCycle) => "multigrid V-cycles",
         BenchSolver::Multigrid(_) => "MGPCG",
+        BenchSolver::Flat => "MGPCG with flat loops",
         BenchSolver::GaussSeidel => "Gauss-Seidel",
     }
 }

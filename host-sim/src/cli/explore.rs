@@ -78,9 +78,11 @@ pub struct ExploreArgs {
     /// `random-frontier`, `info-gain`, `weighted-info-gain`.
     #[arg(long, default_value = "harmonic", value_parser = PlannerKind::from_str)]
     planner: PlannerKind,
-    /// Laplace solver of the harmonic planner: `mg` (multigrid, default) or `gs` (the seed
-    /// paper's Gauss-Seidel; the same as `--planner harmonic-gs`).
-    #[arg(long, default_value = "mg", value_parser = ["mg", "gs"])]
+    /// Laplace solver of the harmonic planner: `mg` (multigrid, default), `flat` (the host's
+    /// fast multigrid, `harmonic_core::solve::flat`: whole-grid MGPCG on every plan, about 19
+    /// floats per voxel; BENCHMARKS.md) or `gs` (the seed paper's Gauss-Seidel; the same as
+    /// `--planner harmonic-gs`).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "flat", "gs"])]
     solver: String,
     /// Relative-residual tolerance of the seed's Laplace solve (`harmonic-laplace`, `harmonic-gs`); the
     /// default screened field solves to its own 1e-5 (harmonic_core::field::ScreenedParams).
@@ -222,10 +224,10 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     cfg.planner = args.planner;
     args.body.apply(&mut cfg);
     cfg.explorer.solve.tolerance = args.tol;
-    cfg.explorer.solver = if args.solver == "gs" {
-        SolverKind::GaussSeidel
-    } else {
-        SolverKind::Multigrid
+    cfg.explorer.solver = match args.solver.as_str() {
+        "gs" => SolverKind::GaussSeidel,
+        "flat" => SolverKind::Flat,
+        _ => SolverKind::Multigrid,
     };
     cfg.replan_distance = args.replan_distance;
     cfg.follow_full_path = args.follow_full_path;

@@ -16,9 +16,10 @@ pub struct SolveArgs {
     /// Source (vehicle) voxel as X,Y,Z indices.
     #[arg(long, value_parser = parse_voxel)]
     source: [usize; 3],
-    /// Solver: `mg` (multigrid-preconditioned CG, the host's), `vc` (plain V-cycles, the
-    /// firmware's) or `gs` (Gauss-Seidel reference).
-    #[arg(long, default_value = "mg", value_parser = ["mg", "vc", "gs"])]
+    /// Solver: `mg` (multigrid-preconditioned CG, the host's), `flat` (the same method with
+    /// every level's operator stored as arrays and each pass a flat loop: faster, about 19
+    /// floats per cell), `vc` (plain V-cycles, the firmware's) or `gs` (Gauss-Seidel reference).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "flat", "vc", "gs"])]
     solver: String,
     /// Relative-residual tolerance.
     #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
@@ -62,6 +63,7 @@ pub fn run(args: &SolveArgs) -> Result<(), String> {
         solver: match args.solver.as_str() {
             "gs" => SolverChoice::GaussSeidel,
             "vc" => SolverChoice::VCycle,
+            "flat" => SolverChoice::Flat,
             _ => SolverChoice::Multigrid,
         },
         tolerance: args.tol,

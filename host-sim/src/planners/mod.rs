@@ -208,6 +208,7 @@ impl MultigridScratch {
 
 /// Host-owned buffers for one explorer.
 pub struct HostStorage {
+    dims: Dims,
     log_odds: Vec<i8>,
     touched: Vec<u32>,
     labels: Vec<Label>,
@@ -223,6 +224,8 @@ pub struct HostStorage {
     local_labels: Vec<Label>,
     /// Its values.
     local_psi: Vec<f32>,
+    /// The flat solver's storage: empty until [`HostStorage::with_flat`].
+    flat: Vec<f32>,
 }
 
 impl HostStorage {
@@ -231,6 +234,7 @@ impl HostStorage {
     pub fn new(dims: &Dims) -> Self {
         let n = dims.len();
         Self {
+            dims: *dims,
             solver: MultigridScratch::new(dims),
             surface: Vec::new(),
             log_odds: vec![0; n],
@@ -241,7 +245,15 @@ impl HostStorage {
             jacobi: Vec::new(),
             local_labels: vec![Label::Outside; n / 2],
             local_psi: vec![0.0; n / 2],
+            flat: Vec::new(),
         }
+    }
+    /// Adds the storage of the flat solver ([`SolverKind::Flat`](harmonic_core::explore::SolverKind::Flat),
+    /// [`harmonic_core::solve::flat::flat_scratch_len`] values); a no-op if it is there.
+    pub fn with_flat(&mut self) -> &mut Self {
+        self.flat
+            .resize(harmonic_core::solve::flat::flat_scratch_len(&self.dims), 0.0);
+        self
     }
     /// Adds the one-per-voxel scratch the thesis's Jacobi solve needs
     /// ([`SolverKind::ThesisJacobi`]); a no-op if it is there.
@@ -273,6 +285,7 @@ impl HostStorage {
             jacobi: &mut self.jacobi,
             local_labels: &mut self.local_labels,
             local_psi: &mut self.local_psi,
+            flat: &mut self.flat,
         }
     }
 }
@@ -334,7 +347,9 @@ impl<'a> HarmonicPlanner<'a> {
         let config = explorer.config();
         let kind = match (config.field, config.solver) {
             (PlanningField::Harmonic, SolverKind::GaussSeidel) => PlannerKind::HarmonicGs,
-            (PlanningField::Harmonic, SolverKind::Multigrid) => PlannerKind::HarmonicLaplace,
+            (PlanningField::Harmonic, SolverKind::Multigrid | SolverKind::Flat) => {
+                PlannerKind::HarmonicLaplace
+            }
             (PlanningField::Harmonic, SolverKind::ThesisJacobi) => PlannerKind::HarmonicThesis,
             (PlanningField::Screened(_), _) => PlannerKind::Harmonic,
         };

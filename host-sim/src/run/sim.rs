@@ -1219,6 +1219,9 @@ fn make_planner<'s>(
                 explorer.solver = SolverKind::ThesisJacobi;
                 storage.with_jacobi();
             }
+            if explorer.solver == SolverKind::Flat {
+                storage.with_flat();
+            }
             Box::new(HarmonicPlanner::new(
                 Explorer::new(geometry, explorer, storage.lend()).map_err(config_err)?,
             ))
@@ -1757,6 +1760,7 @@ pub fn run_observed(
             PlannerKind::HarmonicThesis => "thesis-jacobi".into(),
             _ => match cfg.explorer.solver {
                 SolverKind::Multigrid => "mg".into(),
+                SolverKind::Flat => "flat".into(),
                 SolverKind::GaussSeidel => "gs".into(),
                 SolverKind::ThesisJacobi => "thesis-jacobi".into(),
             },

@@ -13,6 +13,7 @@ use std::time::Instant;
 
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
+use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::local::{resolve_near, Local, LocalParams, LocalScratch};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{gauss_seidel, Fork, SolveParams, SolveStats};
@@ -155,6 +156,8 @@ fn median(mut v: Vec<f64>) -> f64 {
 pub enum BenchSolver {
     /// Multigrid with the given method.
     Multigrid(Method),
+    /// MGPCG with flat loops ([`harmonic_core::solve::flat`]).
+    Flat,
     /// The reference Gauss-Seidel.
     GaussSeidel,
 }
@@ -164,6 +167,7 @@ impl BenchSolver {
         match self {
             BenchSolver::Multigrid(Method::VCycle) => "mg (v-cycle)",
             BenchSolver::Multigrid(_) => "mg (pcg)",
+            BenchSolver::Flat => "flat (pcg)",
             BenchSolver::GaussSeidel => "gs",
         }
     }
@@ -203,6 +207,20 @@ pub fn measure(
     // The box of `scan (local)`: half a grid, the most a box may take (as the explorer lends).
     let (mut box_labels, mut box_psi) = (vec![Label::Outside; dims.len() / 2], vec![0.0f32; dims.len() / 2]);
     let mut psi = vec![0.0f32; dims.len()];
+    // The flat solver's storage is zeroed on its first solve: a planner lends it once.
+    let mut flat_values = match solver {
+        BenchSolver::Flat => vec![0.0f32; flat_scratch_len(&dims)],
+        _ => Vec::new(),
+    };
+    let mut flat = match solver {
+        BenchSolver::Flat => {
+            Some(Flat::new(dims, &mut flat_values).expect("scratch sized by flat_scratch_len"))
+        }
+        _ => None,
+    };
+    if let Some(f) = flat.as_mut() {
+        f.set_fork(fork);
+    }
     // One solve; `boxes` re-solves in boxes around the change (multigrid, warm) and reports them.
     let mut run = |labels: &[Label], psi: &mut [f32], warm_start: bool, fmg: bool, boxes: bool| {
         let params = SolveParams {
@@ -243,6 +261,11 @@ pub fn measure(
                     },
                 };
                 (how.stats(), Some(taken))
+            }
+            BenchSolver::Flat => {
+                let _ = (fmg, boxes);
+                let flat = flat.as_mut().expect("made above for the flat solver");
+                (flat.solve(labels, psi, &params).expect("valid problem"), None)
             }
             BenchSolver::GaussSeidel => (
                 gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),

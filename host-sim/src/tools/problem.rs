@@ -10,6 +10,7 @@ use std::time::Instant;
 
 use harmonic_core::domain::{self, InflationStencil, Label};
 use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
+use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{gauss_seidel, SolveParams};
 use nalgebra::Point3;
@@ -25,6 +26,8 @@ pub enum SolverChoice {
     Multigrid,
     /// Plain multigrid V-cycles (the firmware's solver).
     VCycle,
+    /// MGPCG with flat loops ([`harmonic_core::solve::flat`]).
+    Flat,
     /// The reference Gauss-Seidel.
     GaussSeidel,
 }
@@ -212,6 +215,19 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
             })
             .map_err(ProblemError::Threads)?;
             (s, setup_ms, t1.elapsed().as_secs_f64() * 1e3, name)
+        }
+        SolverChoice::Flat => {
+            let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+            let mut flat =
+                Flat::new(dims, &mut values).map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
+            let setup_ms = t0.elapsed().as_secs_f64() * 1e3;
+            let t1 = Instant::now();
+            let s = crate::tools::fork::with_fork(req.threads, |fork| {
+                flat.set_fork(fork);
+                flat.solve(&domain_labels, &mut psi, &params)
+            })
+            .map_err(ProblemError::Threads)?;
+            (s, setup_ms, t1.elapsed().as_secs_f64() * 1e3, "flat")
         }
         SolverChoice::GaussSeidel => {
             let setup_ms = t0.elapsed().as_secs_f64() * 1e3;

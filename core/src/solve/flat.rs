@@ -1,0 +1,1684 @@
+//! A multigrid whose every pass is one flat loop over a padded plane: the host's fast solver.
+//!
+//! [`super::multigrid`] walks its levels row by row through labels, masks and stencil structs
+//! that the firmware's memory can afford; each pass costs 3–5 ns per cell on the development
+//! machine whatever its kernel (BENCHMARKS.md). This solver spends memory instead, which the host
+//! has: every level stores its operator as arrays — the `+x`, `+y`, `+z` face conductances, the
+//! diagonal and its reciprocal — on a grid padded by [`PAD`] cells of zeros on every side. Then
+//! each pass (a smoothing sweep, a residual, `A·p`) is the same seven-point formula over a
+//! whole z-plane as one contiguous loop, with no test for walls, edges or labels: a closed face
+//! is a zero weight, a cell outside the domain has a zero reciprocal diagonal and stays 0. The
+//! compiler vectorises those loops.
+//!
+//! **The discrete problem is the one [`super::multigrid`] solves** (the same rows; the tests
+//! check the solutions against each other and against exact solves). Dirichlet cells are
+//! folded into the right-hand side: an interior row keeps a frontier neighbour as `+1` in `b`
+//! and as `1` on its diagonal, a source neighbour (ψ = 0) as `1` on its diagonal only, so the
+//! unknowns are the interior cells alone and every other cell holds 0.
+//!
+//! **Smoother.** Damped Jacobi (ω = 6/7), [`SWEEPS`] sweeps before and after the coarse
+//! correction: a sweep reads the previous iterate only, so it needs no colouring and runs as one
+//! loop per plane. Pre- and post-smoothing are the same operator, so the V-cycle is a symmetric
+//! preconditioner for conjugate gradients (MGPCG, as [`super::multigrid`]).
+//!
+//! **Coarse levels** follow [`super::multigrid`]'s rules: a coarse cell is interior if any child
+//! is, else Dirichlet if any child is, else outside; a coarse face's conductance is the mean of
+//! the (up to four) child faces between interior children, at least ½ where any is open; a
+//! coarse cell's *sink* (its conductance to Dirichlet cells, whose correction is 0) is half the
+//! sum of its interior children's sinks; the screening grows fourfold per level. The transfers
+//! are trilinear interpolation renormalised over the coarse cells that are not outside, and
+//! half its transpose for the restriction, both done one axis at a time.
+//!
+//! **Cold solves** start with full multigrid: the right-hand side restricted down the levels,
+//! the coarsest level smoothed to convergence, and each finer level started from the coarser
+//! solution interpolated and given one V-cycle.
+//!
+//! **Memory** ([`flat_scratch_len`]): about 19 `f32` per fine cell of the padded grid (64 × 64
+//! × 32: 12.9 MB). The firmware keeps [`super::multigrid`].
+
+use heapless::Vec as HVec;
+
+use super::{
+    checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, Contraction, Dirichlet, Fork,
+    Residual, Screen, SolveError, SolveParams, SolveStats,
+};
+use crate::domain::Label;
+use crate::map::Dims;
+
+/// Cells of zero padding on every side of every level.
+pub const PAD: usize = 2;
+/// Damped-Jacobi sweeps before and after each coarse correction.
+pub const SWEEPS: u32 = 3;
+/// Jacobi damping.
+const OMEGA: f32 = 6.0 / 7.0;
+/// Jacobi sweeps on the coarsest level.
+const COARSEST_SWEEPS: u32 = 64;
+/// Most levels, the fine one included.
+const MAX_LEVELS: usize = 12;
+/// Most source voxels given local smoothing.
+const MAX_PINS: usize = 64;
+/// A level is coarsened again while every axis holds more than this many cells.
+const MIN_COARSE: usize = 4;
+/// Least conductance of a coarse face with any open child face (see [`super::multigrid`]).
+const MIN_OPEN_FACE: f32 = 0.5;
+/// Restarts of conjugate gradients on the true residual (defect correction), as
+/// [`super::multigrid`].
+const MAX_RESTARTS: u32 = 6;
+/// `kind` values: outside, interior, Dirichlet with ψ = 1 (frontier), Dirichlet with ψ = 0.
+const OUT: f32 = 0.0;
+const INTERIOR: f32 = 1.0;
+const FRONTIER: f32 = 2.0;
+const SOURCE: f32 = 3.0;
+
+/// Per-level arrays, in this order, each [`Grid::len`] long.
+const LEVEL_ARRAYS: usize = 12;
+/// Fine-level arrays for conjugate gradients: right-hand side, solution, residual, direction,
+/// `A·p`.
+const KRYLOV_ARRAYS: usize = 5;
+
+/// One level's padded grid.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Grid {
+    /// Cells along each axis (unpadded).
+    n: [usize; 3],
+    /// Stride between rows.
+    sy: usize,
+    /// Stride between planes.
+    sz: usize,
+    /// Cells in the padded grid.
+    len: usize,
+}
+
+impl Grid {
+    fn new(n: [usize; 3]) -> Self {
+        let sy = n[0] + 2 * PAD;
+        let sz = sy * (n[1] + 2 * PAD);
+        Grid {
+            n,
+            sy,
+            sz,
+            len: sz * (n[2] + 2 * PAD),
+        }
+    }
+
+    /// Padded index of cell `(x, y, z)`.
+    #[inline(always)]
+    fn at(&self, x: usize, y: usize, z: usize) -> usize {
+        (x + PAD) + self.sy * (y + PAD) + self.sz * (z + PAD)
+    }
+
+    /// The flat range of plane `z`'s rows, their x padding included.
+    #[inline(always)]
+    fn plane(&self, z: usize) -> core::ops::Range<usize> {
+        let start = self.sz * (z + PAD) + self.sy * PAD;
+        start..start + self.sy * self.n[1]
+    }
+
+    /// The next coarser grid.
+    fn coarser(&self) -> Self {
+        Grid::new([
+            self.n[0].div_ceil(2),
+            self.n[1].div_ceil(2),
+            self.n[2].div_ceil(2),
+        ])
+    }
+
+    /// Scratch of the transfers from this (coarse) grid to `fine`: the two intermediate grids.
+    fn transfer_len(&self, fine: &Grid) -> (usize, usize) {
+        let (cpx, cpy) = (self.n[0] + 2 * PAD, self.n[1] + 2 * PAD);
+        let fpy = fine.n[1] + 2 * PAD;
+        let fpz = fine.n[2] + 2 * PAD;
+        (cpx * cpy * fpz, cpx * fpy * fpz)
+    }
+}
+
+/// The grids of every level for a fine grid of `fine`.
+fn grids(fine: &Dims) -> HVec<Grid, MAX_LEVELS> {
+    let mut out = HVec::new();
+    let mut g = Grid::new([fine.nx(), fine.ny(), fine.nz()]);
+    let _ = out.push(g);
+    while g.n.iter().all(|&d| d > MIN_COARSE) && out.len() < MAX_LEVELS {
+        g = g.coarser();
+        let _ = out.push(g);
+    }
+    out
+}
+
+/// `f32` values [`Flat::new`] needs for a fine grid of `fine`.
+pub fn flat_scratch_len(fine: &Dims) -> usize {
+    let gs = grids(fine);
+    let mut total = 0;
+    let mut prev: Option<&Grid> = None;
+    for g in gs.iter() {
+        total += LEVEL_ARRAYS * g.len;
+        if let Some(f) = prev {
+            let (a, b) = g.transfer_len(f);
+            total += a + b;
+        }
+        prev = Some(g);
+    }
+    total + gs.first().map_or(0, |g| KRYLOV_ARRAYS * g.len)
+}
+
+/// One level's arrays, carved out of the storage.
+struct Arrays<'s> {
+    /// Current iterate (the correction on coarse levels).
+    u: &'s mut [f32],
+    /// Right-hand side.
+    b: &'s mut [f32],
+    /// Residual scratch.
+    r: &'s mut [f32],
+    /// Sweep output and interpolation scratch.
+    tmp: &'s mut [f32],
+    /// `1 / diag` on interior cells, 0 elsewhere.
+    inv: &'s mut [f32],
+    /// The diagonal on interior cells, 0 elsewhere.
+    diag: &'s mut [f32],
+    /// `1 / den` of the transfers with the next coarser level on interior cells, 0 elsewhere.
+    invden: &'s mut [f32],
+    /// `+x`, `+y`, `+z` face conductances (non-zero only between two interior cells).
+    w: [&'s mut [f32]; 3],
+    /// Cell kind ([`OUT`], [`INTERIOR`], [`FRONTIER`], [`SOURCE`]).
+    kind: &'s mut [f32],
+    /// Conductance to Dirichlet cells.
+    sink: &'s mut [f32],
+}
+
+impl<'s> Arrays<'s> {
+    /// Splits one level's block (at least `LEVEL_ARRAYS · n`) into its arrays.
+    fn carve(block: &'s mut [f32], n: usize) -> Option<Self> {
+        let mut rest = block;
+        let mut take = || -> Option<&'s mut [f32]> {
+            let (a, b) = core::mem::take(&mut rest).split_at_mut_checked(n)?;
+            rest = b;
+            Some(a)
+        };
+        Some(Arrays {
+            u: take()?,
+            b: take()?,
+            r: take()?,
+            tmp: take()?,
+            inv: take()?,
+            diag: take()?,
+            invden: take()?,
+            w: [take()?, take()?, take()?],
+            kind: take()?,
+            sink: take()?,
+        })
+    }
+
+    fn view(&self) -> Op<'_> {
+        Op {
+            w: [&*self.w[0], &*self.w[1], &*self.w[2]],
+            diag: self.diag,
+            sink: self.sink,
+        }
+    }
+}
+
+/// The operator of a level, read-only.
+#[derive(Clone, Copy)]
+struct Op<'s> {
+    w: [&'s [f32]; 3],
+    diag: &'s [f32],
+    sink: &'s [f32],
+}
+
+/// The fine level's conjugate-gradient vectors.
+struct Krylov<'s> {
+    rhs: &'s mut [f32],
+    x: &'s mut [f32],
+    r: &'s mut [f32],
+    p: &'s mut [f32],
+    q: &'s mut [f32],
+}
+
+/// The fast multigrid solver over borrowed storage ([`flat_scratch_len`] values).
+pub struct Flat<'a> {
+    fine: Dims,
+    fork: Option<&'a dyn Fork>,
+    /// Whether the storage has been zeroed (its padding must hold zeros; see [`build`]).
+    zeroed: bool,
+    grids: HVec<Grid, MAX_LEVELS>,
+    values: &'a mut [f32],
+    history: HVec<f32, 64>,
+}
+
+impl core::fmt::Debug for Flat<'_> {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.debug_struct("Flat")
+            .field("fine", &self.fine)
+            .field("levels", &self.grids.len())
+            .finish()
+    }
+}
+
+impl<'a> Flat<'a> {
+    /// A solver for grids of `fine`, working in `values` (at least [`flat_scratch_len`] long).
+    pub fn new(fine: Dims, values: &'a mut [f32]) -> Result<Self, SolveError> {
+        if values.len() < flat_scratch_len(&fine) {
+            return Err(SolveError::ScratchTooSmall);
+        }
+        Ok(Flat {
+            fine,
+            fork: None,
+            zeroed: false,
+            grids: grids(&fine),
+            values,
+            history: HVec::new(),
+        })
+    }
+
+    /// Lends a [`Fork`]: every pass over the fine level (smoothing, residuals, `A·p`, the
+    /// conjugate-gradient updates) then runs as two halves of z-planes at once. Each cell's
+    /// arithmetic is the same either way, so is the solution, to the bit.
+    pub fn set_fork(&mut self, fork: Option<&'a dyn Fork>) {
+        self.fork = fork;
+    }
+
+    /// Levels, the fine one included.
+    pub fn levels(&self) -> usize {
+        self.grids.len()
+    }
+
+    /// Relative residual after each conjugate-gradient step of the last solve (the recurrence's,
+    /// not recomputed; the first 64).
+    pub fn history(&self) -> &[f32] {
+        &self.history
+    }
+
+    /// Solves for ψ on the domain given by `labels` (Dirichlet values as
+    /// [`super::prepare`] sets them), in place in `psi`, by MGPCG to `params.tolerance` (or the
+    /// f32 rounding floor, where that lies above it) or `params.max_iterations` steps. A cold
+    /// solve (`warm_start` false) starts from full multigrid.
+    pub fn solve(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError> {
+        let (labels, psi) = checked_problem(&self.fine, labels, psi, params, Dirichlet::Standard)?;
+        self.history.clear();
+        let fork = self.fork;
+        let mut stats = SolveStats::default();
+        let screen = Screen::new(params.screening);
+        let grids = self.grids.clone();
+        let Some(fine) = grids.first().copied() else {
+            return Err(SolveError::ScratchTooSmall);
+        };
+        let level_total: usize = level_blocks(&grids).iter().sum();
+        let zero = !self.zeroed;
+        self.zeroed = true;
+        let Some((levels_store, krylov_store)) = self.values.split_at_mut_checked(level_total) else {
+            return Err(SolveError::ScratchTooSmall);
+        };
+        if zero {
+            levels_store.fill(0.0);
+            krylov_store.fill(0.0);
+        }
+        let Some(mut kr) = carve_krylov(krylov_store, fine.len) else {
+            return Err(SolveError::ScratchTooSmall);
+        };
+        // Every level's operator.
+        stats.cell_updates +=
+            build(&grids, levels_store, labels, screen.shift, kr.rhs).ok_or(SolveError::ScratchTooSmall)?;
+        let interior = interior_counts(&grids, levels_store);
+        let pins = source_pins(&self.fine, labels);
+        let b2 = sum_sq(kr.rhs);
+        for v in [&mut *kr.x, &mut *kr.r, &mut *kr.p, &mut *kr.q] {
+            v.fill(0.0);
+        }
+        if params.warm_start {
+            load(&fine, labels, psi, kr.x);
+        } else if b2 > 0.0 {
+            stats.cell_updates += full_multigrid(fork, &grids, levels_store, kr.rhs, kr.x, &interior);
+        }
+        let shift = screen.shift;
+        let residual = |store: &mut [f32], kr: &mut Krylov<'_>| {
+            level_arrays(&grids, store, 0).map_or(Residual::from_sums(0.0, 0.0, 0.0, b2), |a| {
+                true_residual(fork, &fine, a.view(), kr, b2, shift)
+            })
+        };
+        let mut res = residual(levels_store, &mut kr);
+        stats.initial_residual = res.relative;
+        stats.cell_updates += fine.len as u64;
+        let mut steps = Contraction::default();
+        let b_norm = libm::sqrt(b2);
+        if b_norm > 0.0 {
+            for pass in 0..MAX_RESTARTS {
+                if pass > 0 {
+                    res = residual(levels_store, &mut kr);
+                    stats.cell_updates += fine.len as u64;
+                }
+                let error_ok = error_met(error_estimate(&steps, &res, &screen), params.max_error);
+                if res.meets(params.tolerance) && error_ok || stats.iterations >= params.max_iterations {
+                    break;
+                }
+                let target = params.tolerance.max(res.floor);
+                let start = res.relative;
+                stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins);
+                let Some(level0) = level_arrays(&grids, levels_store, 0) else {
+                    break;
+                };
+                kr.p.copy_from_slice(level0.u);
+                let mut rho = dot(kr.r, level0.u);
+                while stats.iterations < params.max_iterations {
+                    let Some(level0) = level_arrays(&grids, levels_store, 0) else {
+                        break;
+                    };
+                    apply(fork, &fine, level0.view(), kr.p, kr.q);
+                    stats.cell_updates += fine.len as u64;
+                    let pq = dot(kr.p, kr.q);
+                    if !(pq > 0.0 && rho.is_finite()) {
+                        break;
+                    }
+                    let alpha = (rho / pq) as f32;
+                    // |α·p| = |α|·|p| exactly, so the largest step is |α|·max |p|.
+                    let change = alpha.abs() * max_abs(kr.p);
+                    let (p, q) = (&*kr.p, &*kr.q);
+                    each_half(fork, kr.x, kr.r, &|x, r, at| {
+                        let (Some(p), Some(q)) = (p.get(at..at + x.len()), q.get(at..at + x.len())) else {
+                            return;
+                        };
+                        for (((x, r), p), q) in x.iter_mut().zip(r.iter_mut()).zip(p).zip(q) {
+                            *x += alpha * p;
+                            *r -= alpha * q;
+                        }
+                    });
+                    stats.iterations += 1;
+                    let recursive = (libm::sqrt(sum_sq(kr.r)) / b_norm) as f32;
+                    steps.push_with_residual(change, recursive);
+                    let _ = self.history.push(recursive);
+                    if recursive <= target * 0.5 || recursive <= start * 1e-3 {
+                        break;
+                    }
+                    stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins);
+                    let Some(level0) = level_arrays(&grids, levels_store, 0) else {
+                        break;
+                    };
+                    let rho_new = dot(kr.r, level0.u);
+                    let beta = (rho_new / rho) as f32;
+                    rho = rho_new;
+                    let z = &*level0.u;
+                    each_half(fork, kr.p, &mut [], &|p, _, at| {
+                        let Some(z) = z.get(at..at + p.len()) else {
+                            return;
+                        };
+                        for (p, z) in p.iter_mut().zip(z) {
+                            *p = z + beta * *p;
+                        }
+                    });
+                }
+            }
+            res = residual(levels_store, &mut kr);
+            stats.cell_updates += fine.len as u64;
+        }
+        store(&fine, labels, kr.x, psi);
+        clamp_to_bounds(labels, psi);
+        stats.residual = res.relative;
+        stats.floor = res.floor;
+        stats.error_estimate = error_estimate(&steps, &res, &screen);
+        stats.converged = res.meets(params.tolerance) && error_met(stats.error_estimate, params.max_error);
+        Ok(stats)
+    }
+}
+
+/// Each level's block length (its arrays and the transfer scratch to the level above).
+fn level_blocks(grids: &[Grid]) -> HVec<usize, MAX_LEVELS> {
+    let mut out = HVec::new();
+    let mut prev: Option<&Grid> = None;
+    for g in grids {
+        let extra = prev.map_or(0, |f| {
+            let (a, b) = g.transfer_len(f);
+            a + b
+        });
+        let _ = out.push(LEVEL_ARRAYS * g.len + extra);
+        prev = Some(g);
+    }
+    out
+}
+
+/// Level `k`'s block of the storage.
+fn level_block<'s>(grids: &[Grid], store: &'s mut [f32], k: usize) -> Option<&'s mut [f32]> {
+    let blocks = level_blocks(grids);
+    let start: usize = blocks.iter().take(k).sum();
+    let len = *blocks.get(k)?;
+    store.get_mut(start..start + len)
+}
+
+/// Level `k`'s arrays.
+fn level_arrays<'s>(grids: &[Grid], store: &'s mut [f32], k: usize) -> Option<Arrays<'s>> {
+    let g = grids.get(k)?;
+    Arrays::carve(level_block(grids, store, k)?, g.len)
+}
+
+/// Levels `k` and `k + 1`: the second's arrays and its transfer scratch.
+#[allow(clippy::type_complexity)]
+fn two_levels<'s>(
+    grids: &[Grid],
+    store: &'s mut [f32],
+    k: usize,
+) -> Option<(Arrays<'s>, Arrays<'s>, &'s mut [f32], &'s mut [f32])> {
+    let blocks = level_blocks(grids);
+    let start: usize = blocks.iter().take(k).sum();
+    let (a_len, b_len) = (*blocks.get(k)?, *blocks.get(k + 1)?);
+    let (f, c) = (grids.get(k)?, grids.get(k + 1)?);
+    let block = store.get_mut(start..start + a_len + b_len)?;
+    let (fine, coarse) = block.split_at_mut(a_len);
+    let (carr, scratch) = coarse.split_at_mut_checked(LEVEL_ARRAYS * c.len)?;
+    let (t1_len, _) = c.transfer_len(f);
+    let (t1, t2) = scratch.split_at_mut_checked(t1_len)?;
+    Some((Arrays::carve(fine, f.len)?, Arrays::carve(carr, c.len)?, t1, t2))
+}
+
+fn carve_krylov(store: &mut [f32], n: usize) -> Option<Krylov<'_>> {
+    let (rhs, rest) = store.split_at_mut_checked(n)?;
+    let (x, rest) = rest.split_at_mut_checked(n)?;
+    let (r, rest) = rest.split_at_mut_checked(n)?;
+    let (p, rest) = rest.split_at_mut_checked(n)?;
+    let q = rest.get_mut(..n)?;
+    Some(Krylov { rhs, x, r, p, q })
+}
+
+/// Every level's operator from the fine labels; `rhs` gets the fine right-hand side. Returns
+/// cells touched, or `None` if the storage does not fit.
+///
+/// The padding of every array must hold zeros: [`Flat::solve`] zeroes the whole storage before
+/// its first solve, and no pass writes anything but 0 there (a padding cell has no faces, a
+/// zero diagonal and zero values around it), so it stays so.
+fn build(grids: &[Grid], store: &mut [f32], labels: &[Label], shift: f32, rhs: &mut [f32]) -> Option<u64> {
+    let fine = grids.first()?;
+    let mut work = 0u64;
+    {
+        let mut a = level_arrays(grids, store, 0)?;
+        build_fine(fine, labels, a.kind, rhs)?;
+        a.sink.fill(0.0);
+        for w in a.w.iter_mut() {
+            w.fill(0.0);
+        }
+        let kind: &[f32] = a.kind;
+        // Faces between interior cells, and the Dirichlet faces (sink) of interior cells.
+        for z in 0..fine.n[2] {
+            let range = fine.plane(z);
+            for (axis, stride) in [1, fine.sy, fine.sz].into_iter().enumerate() {
+                let w = a.w.get_mut(axis)?.get_mut(range.clone())?;
+                let (me, up) = (
+                    kind.get(range.clone())?,
+                    kind.get(range.start + stride..range.end + stride)?,
+                );
+                let down = kind.get(range.start - stride..range.end - stride)?;
+                let sink = a.sink.get_mut(range.clone())?;
+                for ((((w, &m), &u), &d), s) in w.iter_mut().zip(me).zip(up).zip(down).zip(sink.iter_mut()) {
+                    if m == INTERIOR {
+                        if u == INTERIOR {
+                            *w = 1.0;
+                        }
+                        *s += f32::from(u >= FRONTIER) + f32::from(d >= FRONTIER);
+                    }
+                }
+            }
+        }
+        finish(fine, a.kind, &a.w, a.sink, a.diag, a.inv, shift);
+        work += fine.len as u64;
+    }
+    let mut scale = 1.0f32;
+    for k in 0..grids.len().saturating_sub(1) {
+        scale *= 4.0;
+        let (f, c) = (grids.get(k)?, grids.get(k + 1)?);
+        let (fa, mut ca, t1, t2) = two_levels(grids, store, k)?;
+        coarsen(f, &fa, c, ca.kind, &mut ca.w, ca.sink);
+        finish(c, ca.kind, &ca.w, ca.sink, ca.diag, ca.inv, shift * scale);
+        // den: the coarse "not outside" mask interpolated onto the fine interior cells.
+        for (m, k) in ca.tmp.iter_mut().zip(ca.kind.iter()) {
+            *m = f32::from(*k != OUT);
+        }
+        fa.invden.fill(0.0);
+        interpolate(c, ca.tmp, f, fa.invden, t1, t2);
+        for (d, inv) in fa.invden.iter_mut().zip(fa.inv.iter()) {
+            *d = if *inv > 0.0 && *d > 0.0 { 1.0 / *d } else { 0.0 };
+        }
+        work += f.len as u64;
+    }
+    Some(work)
+}
+
+/// The fine level's kinds and right-hand side from the labels.
+fn build_fine(g: &Grid, labels: &[Label], kind: &mut [f32], rhs: &mut [f32]) -> Option<()> {
+    kind.fill(OUT);
+    rhs.fill(0.0);
+    let nx = g.n[0];
+    for z in 0..g.n[2] {
+        for y in 0..g.n[1] {
+            let row = labels.get(nx * (y + g.n[1] * z)..nx * (y + g.n[1] * z + 1))?;
+            let at = g.at(0, y, z);
+            for (k, l) in kind.get_mut(at..at + nx)?.iter_mut().zip(row) {
+                *k = match l {
+                    Label::Interior => INTERIOR,
+                    Label::Frontier => FRONTIER,
+                    Label::Source => SOURCE,
+                    _ => OUT,
+                };
+            }
+        }
+    }
+    // rhs: one per frontier neighbour of an interior cell (ψ = 1 there).
+    for z in 0..g.n[2] {
+        let range = g.plane(z);
+        let me = kind.get(range.clone())?;
+        let out = rhs.get_mut(range.clone())?;
+        for stride in [1, g.sy, g.sz] {
+            let up = kind.get(range.start + stride..range.end + stride)?;
+            let down = kind.get(range.start - stride..range.end - stride)?;
+            for (((o, &m), &u), &d) in out.iter_mut().zip(me).zip(up).zip(down) {
+                if m == INTERIOR {
+                    *o += f32::from(u == FRONTIER) + f32::from(d == FRONTIER);
+                }
+            }
+        }
+    }
+    Some(())
+}
+
+/// Diagonal and its reciprocal of every interior cell: its faces, sink and screening.
+fn finish(
+    g: &Grid,
+    kind: &[f32],
+    w: &[&mut [f32]; 3],
+    sink: &[f32],
+    diag: &mut [f32],
+    inv: &mut [f32],
+    shift: f32,
+) {
+    diag.fill(0.0);
+    inv.fill(0.0);
+    let w = [&*w[0], &*w[1], &*w[2]];
+    for z in 0..g.n[2] {
+        let range = g.plane(z);
+        let (Some(d), Some(iv), Some(k), Some(s)) = (
+            diag.get_mut(range.clone()),
+            inv.get_mut(range.clone()),
+            kind.get(range.clone()),
+            sink.get(range.clone()),
+        ) else {
+            continue;
+        };
+        for ((d, k), s) in d.iter_mut().zip(k).zip(s) {
+            if *k == INTERIOR {
+                *d = s + shift;
+            }
+        }
+        for (axis, stride) in [1, g.sy, g.sz].into_iter().enumerate() {
+            let (Some(wu), Some(wd)) = (
+                w.get(axis).and_then(|w| w.get(range.clone())),
+                w.get(axis)
+                    .and_then(|w| w.get(range.start - stride..range.end - stride)),
+            ) else {
+                continue;
+            };
+            for ((d, u), dn) in d.iter_mut().zip(wu).zip(wd) {
+                *d += u + dn;
+            }
+        }
+        for (d, iv) in d.iter().zip(iv.iter_mut()) {
+            *iv = if *d > 0.0 { 1.0 / d } else { 0.0 };
+        }
+    }
+}
+
+/// A coarse level's kinds, faces and sinks from the level below.
+fn coarsen(f: &Grid, fa: &Arrays<'_>, c: &Grid, kind: &mut [f32], w: &mut [&mut [f32]; 3], sink: &mut [f32]) {
+    kind.fill(OUT);
+    sink.fill(0.0);
+    let [wx, wy, wz] = w;
+    wx.fill(0.0);
+    wy.fill(0.0);
+    wz.fill(0.0);
+    let fkind: &[f32] = fa.kind;
+    for z in 0..f.n[2] {
+        for y in 0..f.n[1] {
+            let at = f.at(0, y, z);
+            let cat = c.at(0, y >> 1, z >> 1);
+            let (Some(row), Some(srow), Some(up_y), Some(up_z)) = (
+                fkind.get(at..at + f.n[0] + 1),
+                fa.sink.get(at..at + f.n[0]),
+                fkind.get(at + f.sy..at + f.sy + f.n[0]),
+                fkind.get(at + f.sz..at + f.sz + f.n[0]),
+            ) else {
+                continue;
+            };
+            let (Some(fwx), Some(fwy), Some(fwz)) = (
+                fa.w[0].get(at..at + f.n[0]),
+                fa.w[1].get(at..at + f.n[0]),
+                fa.w[2].get(at..at + f.n[0]),
+            ) else {
+                continue;
+            };
+            for x in 0..f.n[0] {
+                let (Some(&k), Some(&s)) = (row.get(x), srow.get(x)) else {
+                    continue;
+                };
+                if k == OUT {
+                    continue;
+                }
+                let ci = cat + (x >> 1);
+                if let Some(ck) = kind.get_mut(ci) {
+                    *ck = if k == INTERIOR || *ck == INTERIOR {
+                        INTERIOR
+                    } else {
+                        FRONTIER
+                    };
+                }
+                if k != INTERIOR {
+                    continue;
+                }
+                if let Some(cs) = sink.get_mut(ci) {
+                    *cs += 0.5 * s;
+                }
+                // Faces crossing into the next parent: from the odd child of each pair.
+                let next = |up: Option<&f32>| up.copied() == Some(INTERIOR);
+                if x & 1 == 1 && next(row.get(x + 1)) {
+                    if let (Some(cw), Some(fw)) = (wx.get_mut(ci), fwx.get(x)) {
+                        *cw += 0.25 * fw;
+                    }
+                }
+                if y & 1 == 1 && next(up_y.get(x)) {
+                    if let (Some(cw), Some(fw)) = (wy.get_mut(ci), fwy.get(x)) {
+                        *cw += 0.25 * fw;
+                    }
+                }
+                if z & 1 == 1 && next(up_z.get(x)) {
+                    if let (Some(cw), Some(fw)) = (wz.get_mut(ci), fwz.get(x)) {
+                        *cw += 0.25 * fw;
+                    }
+                }
+            }
+        }
+    }
+    // Faces only between interior cells; partly open faces at least half open.
+    for (axis, w) in [wx, wy, wz].into_iter().enumerate() {
+        let stride = [1, c.sy, c.sz].get(axis).copied().unwrap_or(1);
+        for i in 0..c.len {
+            let (Some(&me), up) = (kind.get(i), kind.get(i + stride).copied()) else {
+                continue;
+            };
+            if let Some(wi) = w.get_mut(i) {
+                if me != INTERIOR || up != Some(INTERIOR) {
+                    *wi = 0.0;
+                } else if *wi > 0.0 {
+                    *wi = wi.max(MIN_OPEN_FACE);
+                }
+            }
+        }
+    }
+    for (s, k) in sink.iter_mut().zip(kind.iter()) {
+        if *k != INTERIOR {
+            *s = 0.0;
+        }
+    }
+}
+
+/// `a[from..to]`, empty where out of range.
+#[inline(always)]
+fn sl(a: &[f32], from: usize, to: usize) -> &[f32] {
+    a.get(from..to).unwrap_or(&[])
+}
+
+/// `out[i] = f(Σ_faces w·v, v[i], e₀[i], e₁[i], e₂[i])` for every cell `i` of `range` (the
+/// seven-point sum without its centre; `out` and the extra inputs `e` cover `range` alone).
+#[inline(always)]
+fn stencil(
+    g: &Grid,
+    w: [&[f32]; 3],
+    v: &[f32],
+    range: core::ops::Range<usize>,
+    extra: [&[f32]; 3],
+    out: &mut [f32],
+    f: impl FnMut(f32, f32, f32, f32, f32) -> f32,
+) {
+    stencil_as::<false>(g, w, v, range, extra, out, f)
+}
+
+/// [`stencil`] with `FLUX`: the sum is the net flux `Σ w·(v_j − v_i)` instead, which keeps
+/// the rounding of a residual near ψ = 1 to that of the differences (see [`super`]).
+#[inline(always)]
+fn stencil_as<const FLUX: bool>(
+    g: &Grid,
+    w: [&[f32]; 3],
+    v: &[f32],
+    range: core::ops::Range<usize>,
+    extra: [&[f32]; 3],
+    out: &mut [f32],
+    mut f: impl FnMut(f32, f32, f32, f32, f32) -> f32,
+) {
+    let (s, e) = (range.start, range.end);
+    let (sy, sz) = (g.sy, g.sz);
+    let (Some(s_lo_y), Some(s_lo_z)) = (s.checked_sub(sy), s.checked_sub(sz)) else {
+        return;
+    };
+    let (c, l, r) = (sl(v, s, e), sl(v, s - 1, e - 1), sl(v, s + 1, e + 1));
+    let (ym, yp) = (sl(v, s_lo_y, e - sy), sl(v, s + sy, e + sy));
+    let (zm, zp) = (sl(v, s_lo_z, e - sz), sl(v, s + sz, e + sz));
+    let (wl, wr) = (sl(w[0], s - 1, e - 1), sl(w[0], s, e));
+    let (wym, wyp) = (sl(w[1], s_lo_y, e - sy), sl(w[1], s, e));
+    let (wzm, wzp) = (sl(w[2], s_lo_z, e - sz), sl(w[2], s, e));
+    let it = out
+        .iter_mut()
+        .zip(c)
+        .zip(l.iter().zip(r))
+        .zip(ym.iter().zip(yp))
+        .zip(zm.iter().zip(zp))
+        .zip(wl.iter().zip(wr))
+        .zip(wym.iter().zip(wyp))
+        .zip(wzm.iter().zip(wzp))
+        .zip(extra[0].iter().zip(extra[1]).zip(extra[2]));
+    for (
+        (((((((o, &c), (&l, &r)), (&ym, &yp)), (&zm, &zp)), (&wl, &wr)), (&wym, &wyp)), (&wzm, &wzp)),
+        ((&a, &b), &d),
+    ) in it
+    {
+        let sum = if FLUX {
+            wl * (l - c) + wr * (r - c) + wym * (ym - c) + wyp * (yp - c) + wzm * (zm - c) + wzp * (zp - c)
+        } else {
+            wl * l + wr * r + wym * ym + wyp * yp + wzm * zm + wzp * zp
+        };
+        *o = f(sum, c, a, b, d);
+    }
+}
+
+/// Damped-Jacobi sweeps of `A u = b`: `u ← (1 − ω)·u + ω·inv·(b + Σ w u_j)`. Cells outside
+/// the interior have `inv = 0` and hold 0. Returns interior cell updates.
+fn smooth(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>, sweeps: u32, interior: u64) -> u64 {
+    for _ in 0..sweeps {
+        {
+            let (u, b, inv) = (&*a.u, &*a.b, &*a.inv);
+            let w = [&*a.w[0], &*a.w[1], &*a.w[2]];
+            each_plane(fork, g, a.tmp, &|range, out| {
+                let (Some(b), Some(inv)) = (b.get(range.clone()), inv.get(range.clone())) else {
+                    return;
+                };
+                stencil(g, w, u, range, [b, inv, inv], out, |sum, c, b, inv, _| {
+                    (1.0 - OMEGA) * c + OMEGA * inv * (sum + b)
+                });
+            });
+        }
+        core::mem::swap(&mut a.u, &mut a.tmp);
+    }
+    u64::from(sweeps) * interior
+}
+
+/// `r = (b − A u)·invden`: the residual weighted for the restriction.
+fn residual_for_restriction(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>) {
+    let (u, b, d, den) = (&*a.u, &*a.b, &*a.diag, &*a.invden);
+    let w = [&*a.w[0], &*a.w[1], &*a.w[2]];
+    each_plane(fork, g, a.r, &|range, out| {
+        let (Some(b), Some(d), Some(den)) =
+            (b.get(range.clone()), d.get(range.clone()), den.get(range.clone()))
+        else {
+            return;
+        };
+        stencil(g, w, u, range, [b, d, den], out, |sum, c, b, d, den| {
+            (b + sum - d * c) * den
+        });
+    });
+}
+
+/// `q = A p` on the fine level.
+fn apply(fork: Option<&dyn Fork>, g: &Grid, op: Op<'_>, p: &[f32], q: &mut [f32]) {
+    each_plane(fork, g, q, &|range, out| {
+        let Some(d) = op.diag.get(range.clone()) else {
+            return;
+        };
+        stencil(g, op.w, p, range, [d, d, d], out, |sum, c, d, _, _| d * c - sum);
+    });
+}
+
+/// Runs `body(range, out)` for the flat range of every plane of `g`, `out` being that range
+/// of `whole`; in two halves of planes at once where a fork is lent (each cell is computed the
+/// same way either way).
+fn each_plane(
+    fork: Option<&dyn Fork>,
+    g: &Grid,
+    whole: &mut [f32],
+    body: &(dyn Fn(core::ops::Range<usize>, &mut [f32]) + Sync),
+) {
+    let run = |zs: core::ops::Range<usize>, part: &mut [f32], offset: usize| {
+        for z in zs {
+            let range = g.plane(z);
+            if let Some(out) = part.get_mut(range.start - offset..range.end - offset) {
+                body(range, out);
+            }
+        }
+    };
+    let nz = g.n[2];
+    match fork {
+        Some(fork) if nz >= 2 => {
+            let m = nz >> 1;
+            let at = (g.sz * (m + PAD)).min(whole.len());
+            let (lo, hi) = whole.split_at_mut(at);
+            fork.join(&mut || run(0..m, lo, 0), &mut || run(m..nz, hi, at));
+        }
+        _ => run(0..nz, whole, 0),
+    }
+}
+
+/// The work of [`each_half`] on one half: its pieces of `a` and `b` and where they start.
+type HalfBody<'b> = dyn Fn(&mut [f32], &mut [f32], usize) + Sync + 'b;
+
+/// Runs `body(a, b, start)` over `a` and `b` (the same length, or `b` empty), in two halves at
+/// once where a fork is lent; `start` is where the pieces begin.
+fn each_half(fork: Option<&dyn Fork>, a: &mut [f32], b: &mut [f32], body: &HalfBody<'_>) {
+    match fork {
+        Some(fork) => {
+            let at = (a.len() >> 1) & !15;
+            let (a_lo, a_hi) = a.split_at_mut(at);
+            let (b_lo, b_hi) = b.split_at_mut(at.min(b.len()));
+            fork.join(&mut || body(a_lo, b_lo, 0), &mut || body(a_hi, b_hi, at));
+        }
+        None => body(a, b, 0),
+    }
+}
+
+/// The true residual `rhs − A x` of the iterate into `kr.r`, with its rounding floor.
+fn true_residual(
+    fork: Option<&dyn Fork>,
+    g: &Grid,
+    op: Op<'_>,
+    kr: &mut Krylov<'_>,
+    b2: f64,
+    shift: f32,
+) -> Residual {
+    {
+        let (rhs, x) = (&*kr.rhs, &*kr.x);
+        each_plane(fork, g, kr.r, &|range, out| {
+            let (Some(rhs), Some(s)) = (rhs.get(range.clone()), op.sink.get(range.clone())) else {
+                return;
+            };
+            // As fluxes: b + Σ w·(x_j − x_i) − (sink + s)·x_i.
+            stencil_as::<true>(g, op.w, x, range, [rhs, s, s], out, |flux, c, b, sink, _| {
+                b + flux - (sink + shift) * c
+            });
+        });
+    }
+    let (mut r2, mut e2, mut max) = (0.0f64, 0.0f64, 0.0f32);
+    for z in 0..g.n[2] {
+        let range = g.plane(z);
+        let (Some(d), Some(x), Some(out)) = (
+            op.diag.get(range.clone()),
+            kr.x.get(range.clone()),
+            kr.r.get(range.clone()),
+        ) else {
+            continue;
+        };
+        r2 += sum_sq(out);
+        max = max.max(max_abs(out));
+        // Rounding: (n + n²)·c² per cell, n its in-domain neighbours (its diagonal less the
+        // screening; 0 outside the interior, where c = 0 too).
+        let mut lanes = [0.0f32; 16];
+        let (dc, xc) = (d.chunks_exact(16), x.chunks_exact(16));
+        let (dr, xr) = (dc.remainder(), xc.remainder());
+        for (d, x) in dc.zip(xc) {
+            for ((l, d), c) in lanes.iter_mut().zip(d).zip(x) {
+                let n = d - shift;
+                *l += (n + n * n) * c * c;
+            }
+        }
+        let mut pe2: f32 = lanes.iter().sum();
+        for (d, c) in dr.iter().zip(xr) {
+            let n = d - shift;
+            pe2 += (n + n * n) * c * c;
+        }
+        e2 += rounding_row(pe2);
+    }
+    Residual::from_sums(r2, e2, max, b2)
+}
+
+/// `out = P v`: `v` on the coarse grid `c` interpolated trilinearly onto the logical cells of
+/// the fine grid `f` (one axis at a time through `t1`, `t2`).
+fn interpolate(c: &Grid, v: &[f32], f: &Grid, out: &mut [f32], t1: &mut [f32], t2: &mut [f32]) {
+    let (cpx, cplane) = (c.sy, c.sz);
+    let fpy = f.n[1] + 2 * PAD;
+    // Along z: t1 holds (coarse x, coarse y, fine z).
+    for z in 0..f.n[2] {
+        let (own, other) = parents(z);
+        let (Some(a), Some(b), Some(dst)) = (
+            v.get(cplane * own..cplane * (own + 1)),
+            v.get(cplane * other..cplane * (other + 1)),
+            t1.get_mut(cplane * (z + PAD)..cplane * (z + PAD + 1)),
+        ) else {
+            continue;
+        };
+        for ((d, a), b) in dst.iter_mut().zip(a).zip(b) {
+            *d = 0.75 * a + 0.25 * b;
+        }
+    }
+    // Along y: t2 holds (coarse x, fine y, fine z).
+    for z in 0..f.n[2] {
+        let plane = cplane * (z + PAD);
+        for y in 0..f.n[1] {
+            let (own, other) = parents(y);
+            let at = cpx * (y + PAD) + cpx * fpy * (z + PAD);
+            let (Some(a), Some(b), Some(dst)) = (
+                t1.get(plane + cpx * own..plane + cpx * (own + 1)),
+                t1.get(plane + cpx * other..plane + cpx * (other + 1)),
+                t2.get_mut(at..at + cpx),
+            ) else {
+                continue;
+            };
+            for ((d, a), b) in dst.iter_mut().zip(a).zip(b) {
+                *d = 0.75 * a + 0.25 * b;
+            }
+        }
+    }
+    // Along x, into the fine rows: fine 2X takes ¾ of X and ¼ of X − 1, fine 2X + 1 ¾ of X and
+    // ¼ of X + 1.
+    for z in 0..f.n[2] {
+        for y in 0..f.n[1] {
+            let at = cpx * (y + PAD) + cpx * fpy * (z + PAD);
+            let fat = f.at(0, y, z);
+            let (Some(src), Some(dst)) = (t2.get(at + PAD - 1..at + cpx), out.get_mut(fat..fat + f.n[0]))
+            else {
+                continue;
+            };
+            for (pair, w) in dst.chunks_mut(2).zip(src.windows(3)) {
+                let (lo, mid, hi) = (w.first().copied(), w.get(1).copied(), w.get(2).copied());
+                let (Some(lo), Some(mid), Some(hi)) = (lo, mid, hi) else {
+                    continue;
+                };
+                let mut cells = pair.iter_mut();
+                if let Some(e) = cells.next() {
+                    *e = 0.75 * mid + 0.25 * lo;
+                }
+                if let Some(o) = cells.next() {
+                    *o = 0.75 * mid + 0.25 * hi;
+                }
+            }
+        }
+    }
+}
+
+/// The padded indices of a fine cell's own parent and its other parent along one axis.
+#[inline(always)]
+fn parents(fine: usize) -> (usize, usize) {
+    let own = (fine >> 1) + PAD;
+    (own, if fine & 1 == 0 { own - 1 } else { own + 1 })
+}
+
+/// `cb = ½ Pᵀ rn` on the interior cells of the coarse grid `c` (0 on the others): the transpose
+/// of [`interpolate`], one axis at a time.
+#[allow(clippy::too_many_arguments)]
+fn restrict(f: &Grid, rn: &[f32], c: &Grid, ckind: &[f32], cb: &mut [f32], t1: &mut [f32], t2: &mut [f32]) {
+    let (cpx, cplane) = (c.sy, c.sz);
+    let fpy = f.n[1] + 2 * PAD;
+    // Along x: fine rows into coarse x.
+    for z in 0..f.n[2] {
+        for y in 0..f.n[1] {
+            let fat = f.at(0, y, z);
+            let at = cpx * (y + PAD) + cpx * fpy * (z + PAD);
+            let (Some(src), Some(dst)) = (
+                rn.get(fat - 1..fat + f.n[0] + PAD),
+                t2.get_mut(at + PAD..at + PAD + c.n[0]),
+            ) else {
+                continue;
+            };
+            for (d, w) in dst.iter_mut().zip(src.windows(4).step_by(2)) {
+                if let [a, b, cc, e] = *w {
+                    *d = 0.75 * (b + cc) + 0.25 * (a + e);
+                }
+            }
+        }
+    }
+    // Along y.
+    for z in 0..f.n[2] {
+        let base = cpx * fpy * (z + PAD);
+        for cy in 0..c.n[1] {
+            let row = |y: usize| base + cpx * y;
+            let y0 = 2 * cy + PAD;
+            let at = cplane * (z + PAD) + cpx * (cy + PAD);
+            let (Some(a), Some(b), Some(m), Some(p)) = (
+                t2.get(row(y0)..row(y0) + cpx),
+                t2.get(row(y0 + 1)..row(y0 + 1) + cpx),
+                t2.get(row(y0 - 1)..row(y0 - 1) + cpx),
+                t2.get(row(y0 + 2)..row(y0 + 2) + cpx),
+            ) else {
+                continue;
+            };
+            let Some(dst) = t1.get_mut(at..at + cpx) else {
+                continue;
+            };
+            for ((((d, a), b), m), p) in dst.iter_mut().zip(a).zip(b).zip(m).zip(p) {
+                *d = 0.75 * (a + b) + 0.25 * (m + p);
+            }
+        }
+    }
+    // Along z, into the interior coarse cells.
+    for cz in 0..c.n[2] {
+        let z0 = 2 * cz + PAD;
+        let plane = |z: usize| cplane * z..cplane * (z + 1);
+        let at = cplane * (cz + PAD);
+        let (Some(a), Some(b), Some(m), Some(p), Some(k), Some(dst)) = (
+            t1.get(plane(z0)),
+            t1.get(plane(z0 + 1)),
+            t1.get(plane(z0 - 1)),
+            t1.get(plane(z0 + 2)),
+            ckind.get(at..at + cplane),
+            cb.get_mut(at..at + cplane),
+        ) else {
+            continue;
+        };
+        for (((((d, a), b), m), p), k) in dst.iter_mut().zip(a).zip(b).zip(m).zip(p).zip(k) {
+            let v = 0.5 * (0.75 * (a + b) + 0.25 * (m + p));
+            *d = if *k == INTERIOR { v } else { 0.0 };
+        }
+    }
+}
+
+/// The source voxels (Dirichlet ψ = 0; none in the screened field), the first [`MAX_PINS`].
+fn source_pins(dims: &Dims, labels: &[Label]) -> HVec<[usize; 3], MAX_PINS> {
+    let mut pins = HVec::new();
+    for (i, l) in labels.iter().enumerate() {
+        if *l == Label::Source {
+            let v = dims.voxel(i);
+            if pins
+                .push([usize::from(v.x), usize::from(v.y), usize::from(v.z)])
+                .is_err()
+            {
+                break;
+            }
+        }
+    }
+    pins
+}
+
+/// Interior cells of each level, for the work count.
+fn interior_counts(grids: &[Grid], store: &mut [f32]) -> HVec<u64, MAX_LEVELS> {
+    let mut out = HVec::new();
+    for k in 0..grids.len() {
+        let n =
+            level_arrays(grids, store, k).map_or(0, |a| a.kind.iter().filter(|&&k| k == INTERIOR).count());
+        let _ = out.push(n as u64);
+    }
+    out
+}
+
+/// One V-cycle on level `k` (and below) for `A u = b` from the `u` there. Returns cell updates.
+fn vcycle(fork: Option<&dyn Fork>, grids: &[Grid], store: &mut [f32], k: usize, interior: &[u64]) -> u64 {
+    // Only the fine level is worth splitting between threads.
+    let fk = if k == 0 { fork } else { None };
+    let (Some(f), count) = (grids.get(k), interior.get(k).copied().unwrap_or(0)) else {
+        return 0;
+    };
+    let Some(c) = grids.get(k + 1) else {
+        // Coarsest: smoothing alone.
+        return level_arrays(grids, store, k)
+            .map_or(0, |mut a| smooth_even(fk, f, &mut a, COARSEST_SWEEPS, count));
+    };
+    let mut work = 0;
+    {
+        let Some((mut fa, ca, t1, t2)) = two_levels(grids, store, k) else {
+            return work;
+        };
+        work += smooth_even(fk, f, &mut fa, SWEEPS, count);
+        residual_for_restriction(fk, f, &mut fa);
+        restrict(f, fa.r, c, ca.kind, ca.b, t1, t2);
+        ca.u.fill(0.0);
+        work += 2 * f.len as u64;
+    }
+    work += vcycle(fork, grids, store, k + 1, interior);
+    let Some((mut fa, ca, t1, t2)) = two_levels(grids, store, k) else {
+        return work;
+    };
+    interpolate(c, ca.u, f, fa.tmp, t1, t2);
+    for ((u, e), w) in fa.u.iter_mut().zip(fa.tmp.iter()).zip(fa.invden.iter()) {
+        *u += e * w;
+    }
+    work += f.len as u64;
+    work + smooth_even(fk, f, &mut fa, SWEEPS, count)
+}
+
+/// [`smooth`], leaving the result in the level's own `u` whatever the count's parity.
+fn smooth_even(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>, sweeps: u32, interior: u64) -> u64 {
+    let work = smooth(fork, g, a, sweeps, interior);
+    if sweeps & 1 == 1 {
+        // `u` and `tmp` traded places: copy back into the carved `u`.
+        a.tmp.copy_from_slice(a.u);
+        core::mem::swap(&mut a.u, &mut a.tmp);
+    }
+    work
+}
+
+/// Full multigrid for `A x = rhs` from nothing: `rhs` restricted down the levels, the coarsest
+/// smoothed, each finer level started from the one below and given a V-cycle.
+fn full_multigrid(
+    fork: Option<&dyn Fork>,
+    grids: &[Grid],
+    store: &mut [f32],
+    rhs: &[f32],
+    x: &mut [f32],
+    interior: &[u64],
+) -> u64 {
+    let mut work = 0u64;
+    if let Some(a) = level_arrays(grids, store, 0) {
+        a.b.copy_from_slice(rhs);
+    }
+    for k in 0..grids.len().saturating_sub(1) {
+        let (Some(f), Some(c)) = (grids.get(k), grids.get(k + 1)) else {
+            break;
+        };
+        let Some((fa, ca, t1, t2)) = two_levels(grids, store, k) else {
+            break;
+        };
+        for ((r, b), w) in fa.r.iter_mut().zip(fa.b.iter()).zip(fa.invden.iter()) {
+            *r = b * w;
+        }
+        restrict(f, fa.r, c, ca.kind, ca.b, t1, t2);
+        work += f.len as u64;
+    }
+    let last = grids.len().saturating_sub(1);
+    if let (Some(g), Some(mut a)) = (grids.get(last), level_arrays(grids, store, last)) {
+        a.u.fill(0.0);
+        work += smooth_even(
+            None,
+            g,
+            &mut a,
+            COARSEST_SWEEPS,
+            interior.get(last).copied().unwrap_or(0),
+        );
+    }
+    for k in (0..last).rev() {
+        let (Some(f), Some(c)) = (grids.get(k), grids.get(k + 1)) else {
+            break;
+        };
+        if let Some((fa, ca, t1, t2)) = two_levels(grids, store, k) {
+            interpolate(c, ca.u, f, fa.tmp, t1, t2);
+            for ((u, e), w) in fa.u.iter_mut().zip(fa.tmp.iter()).zip(fa.invden.iter()) {
+                *u = e * w;
+            }
+        }
+        work += f.len as u64 + vcycle(fork, grids, store, k, interior);
+    }
+    if let Some(a) = level_arrays(grids, store, 0) {
+        x.copy_from_slice(a.u);
+    }
+    work
+}
+
+/// `z = M⁻¹ r`: one V-cycle from 0 with `r` as the fine right-hand side; `z` is left in the
+/// fine level's `u`. Returns cell updates.
+fn precondition(
+    fork: Option<&dyn Fork>,
+    grids: &[Grid],
+    store: &mut [f32],
+    r: &[f32],
+    interior: &[u64],
+    pins: &[[usize; 3]],
+) -> u64 {
+    let Some(fine) = grids.first() else {
+        return 0;
+    };
+    let mut work = 0;
+    if let Some(mut a) = level_arrays(grids, store, 0) {
+        a.b.copy_from_slice(r);
+        a.u.fill(0.0);
+        work += local_smooth(fine, &mut a, pins);
+    }
+    work += vcycle(fork, grids, store, 0, interior);
+    if let Some(mut a) = level_arrays(grids, store, 0) {
+        work += local_smooth(fine, &mut a, pins);
+    }
+    work
+}
+
+/// Half-width of the box around each source voxel that gets extra smoothing.
+const LOCAL_RADIUS: usize = 3;
+
+/// Symmetric Gauss-Seidel (forward, then backward) over a small box around each source voxel of
+/// the fine level, before and after each V-cycle of the preconditioner, as
+/// [`super::multigrid`] does: the coarse levels absorb a single-voxel Dirichlet source, so the
+/// error it leaves is local and sharp, and a few local sweeps remove it. Returns cell updates.
+fn local_smooth(g: &Grid, a: &mut Arrays<'_>, pins: &[[usize; 3]]) -> u64 {
+    let mut work = 0u64;
+    let offsets = [1, g.sy, g.sz];
+    let mut update = |a: &mut Arrays<'_>, x: usize, y: usize, z: usize| {
+        let i = g.at(x, y, z);
+        let inv = a.inv.get(i).copied().unwrap_or(0.0);
+        if inv <= 0.0 {
+            return;
+        }
+        let mut sum = a.b.get(i).copied().unwrap_or(0.0);
+        for (w, step) in a.w.iter().zip(offsets.iter()) {
+            let (up, down) = (
+                w.get(i).copied().unwrap_or(0.0),
+                w.get(i - step).copied().unwrap_or(0.0),
+            );
+            sum += up * a.u.get(i + step).copied().unwrap_or(0.0)
+                + down * a.u.get(i - step).copied().unwrap_or(0.0);
+        }
+        if let Some(u) = a.u.get_mut(i) {
+            *u = inv * sum;
+        }
+        work += 1;
+    };
+    for &[px, py, pz] in pins {
+        let span = |p: usize, n: usize| p.saturating_sub(LOCAL_RADIUS)..(p + LOCAL_RADIUS + 1).min(n);
+        let (xs, ys, zs) = (span(px, g.n[0]), span(py, g.n[1]), span(pz, g.n[2]));
+        for z in zs.clone() {
+            for y in ys.clone() {
+                for x in xs.clone() {
+                    update(a, x, y, z);
+                }
+            }
+        }
+        for z in zs.clone().rev() {
+            for y in ys.clone().rev() {
+                for x in xs.clone().rev() {
+                    update(a, x, y, z);
+                }
+            }
+        }
+    }
+    work
+}
+
+/// The interior values of `psi` (a warm start; [`super::prepare`] has cleaned them) into the
+/// padded `x`.
+fn load(g: &Grid, labels: &[Label], psi: &[f32], x: &mut [f32]) {
+    let nx = g.n[0];
+    for z in 0..g.n[2] {
+        for y in 0..g.n[1] {
+            let from = nx * (y + g.n[1] * z);
+            let at = g.at(0, y, z);
+            let (Some(src), Some(l), Some(dst)) = (
+                psi.get(from..from + nx),
+                labels.get(from..from + nx),
+                x.get_mut(at..at + nx),
+            ) else {
+                continue;
+            };
+            for ((d, s), l) in dst.iter_mut().zip(src).zip(l) {
+                *d = if *l == Label::Interior { *s } else { 0.0 };
+            }
+        }
+    }
+}
+
+/// The padded `x` back into the interior cells of `psi`.
+fn store(g: &Grid, labels: &[Label], x: &[f32], psi: &mut [f32]) {
+    let nx = g.n[0];
+    for z in 0..g.n[2] {
+        for y in 0..g.n[1] {
+            let from = nx * (y + g.n[1] * z);
+            let at = g.at(0, y, z);
+            let (Some(dst), Some(l), Some(src)) = (
+                psi.get_mut(from..from + nx),
+                labels.get(from..from + nx),
+                x.get(at..at + nx),
+            ) else {
+                continue;
+            };
+            for ((d, s), l) in dst.iter_mut().zip(src).zip(l) {
+                if *l == Label::Interior {
+                    *d = *s;
+                }
+            }
+        }
+    }
+}
+
+/// `Σ aᵢbᵢ`, summed in sixteen lanes per block of 4096 (so it vectorises) and across blocks in
+/// f64.
+fn dot(a: &[f32], b: &[f32]) -> f64 {
+    let mut total = 0.0f64;
+    for (a, b) in a.chunks(4096).zip(b.chunks(4096)) {
+        let mut lanes = [0.0f32; 16];
+        let (ac, bc) = (a.chunks_exact(16), b.chunks_exact(16));
+        let (ar, br) = (ac.remainder(), bc.remainder());
+        for (x, y) in ac.zip(bc) {
+            for ((l, x), y) in lanes.iter_mut().zip(x).zip(y) {
+                *l += x * y;
+            }
+        }
+        let mut sum: f32 = lanes.iter().sum();
+        for (x, y) in ar.iter().zip(br) {
+            sum += x * y;
+        }
+        total += f64::from(sum);
+    }
+    total
+}
+
+/// `max |aᵢ|`, in sixteen lanes.
+fn max_abs(a: &[f32]) -> f32 {
+    let mut lanes = [0.0f32; 16];
+    let chunks = a.chunks_exact(16);
+    let rest = chunks.remainder();
+    for c in chunks {
+        for (l, v) in lanes.iter_mut().zip(c) {
+            let v = v.abs();
+            *l = if v > *l { v } else { *l };
+        }
+    }
+    let mut m = rest
+        .iter()
+        .fold(0.0f32, |m, v| if v.abs() > m { v.abs() } else { m });
+    for l in lanes {
+        if l > m {
+            m = l;
+        }
+    }
+    m
+}
+
+/// `Σ aᵢ²`.
+fn sum_sq(a: &[f32]) -> f64 {
+    dot(a, a)
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+    use super::*;
+    use crate::map::VoxelIndex;
+    use crate::solve::multigrid::tests::Scratch;
+    use crate::solve::multigrid::Method;
+    use crate::solve::Sequential;
+    use std::vec;
+    use std::vec::Vec;
+
+    /// Rooms behind a wall with a door and a pillar, a frontier strip in the far room, the source
+    /// in the near one. Odd sizes exercise the coarse grids' half cells.
+    fn rooms(nx: usize, ny: usize, nz: usize) -> (Dims, Vec<Label>) {
+        let dims = Dims::new(nx, ny, nz).unwrap();
+        let mut labels = vec![Label::Interior; dims.len()];
+        for (i, l) in labels.iter_mut().enumerate() {
+            let v = dims.voxel(i);
+            let (x, y, z) = (v.x as usize, v.y as usize, v.z as usize);
+            let door = (ny / 3..ny / 3 + 2).contains(&y) && z < nz.div_ceil(2);
+            let pillar = (nx / 4..nx / 4 + 2).contains(&x) && (ny / 2..ny / 2 + 2).contains(&y);
+            if x == nx / 2 && !door || pillar {
+                *l = Label::Outside;
+            }
+            if x == nx - 1 && y > ny / 2 {
+                *l = Label::Frontier;
+            }
+        }
+        labels[dims.linear(VoxelIndex::new(2, 2, (nz / 2) as u16))] = Label::Source;
+        (dims, labels)
+    }
+
+    fn params(tolerance: f32, screening: f32) -> SolveParams {
+        SolveParams {
+            tolerance,
+            max_iterations: 1_000,
+            warm_start: false,
+            screening,
+            max_error: f32::INFINITY,
+        }
+    }
+
+    /// `labels` solved by the flat solver (with `fork`) from ψ = 0.
+    fn solve_flat(
+        dims: Dims,
+        labels: &[Label],
+        p: &SolveParams,
+        fork: Option<&dyn Fork>,
+    ) -> (Vec<f32>, SolveStats) {
+        let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+        let mut flat = Flat::new(dims, &mut values).unwrap();
+        flat.set_fork(fork);
+        let mut psi = vec![0.0f32; dims.len()];
+        let s = flat.solve(labels, &mut psi, p).unwrap();
+        (psi, s)
+    }
+
+    /// The same problem by [`super::super::multigrid`]'s MGPCG.
+    fn solve_mg(dims: Dims, labels: &[Label], p: &SolveParams) -> Vec<f32> {
+        let mut scratch = Scratch::new(&dims, true);
+        let mut mg = scratch.multigrid(dims);
+        let mut psi = vec![0.0f32; dims.len()];
+        mg.solve(labels, &mut psi, p, Method::Pcg).unwrap();
+        psi
+    }
+
+    fn max_diff(a: &[f32], b: &[f32]) -> f32 {
+        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    }
+
+    /// The flat solver and the multigrid one solve the same discrete problem: Laplace's equation
+    /// and the screened field, on even and odd grids, agree to well within the tolerance's error.
+    #[test]
+    fn solves_the_problem_multigrid_solves() {
+        for (nx, ny, nz) in [(32, 24, 16), (27, 19, 13), (9, 7, 5)] {
+            let (dims, labels) = rooms(nx, ny, nz);
+            let mut released = labels.clone();
+            crate::field::release_source(&mut released);
+            for (labels, screening) in [(&labels, 0.0), (&released, 0.09)] {
+                let (flat, s) = solve_flat(dims, labels, &params(1e-7, screening), None);
+                assert!(s.converged, "{nx}x{ny}x{nz}, s = {screening}: {s:?}");
+                let mg = solve_mg(dims, labels, &params(1e-7, screening));
+                let d = max_diff(&flat, &mg);
+                assert!(
+                    d <= 2e-5,
+                    "{nx}x{ny}x{nz}, s = {screening}: max |Δψ| = {d:e}, {s:?}"
+                );
+                // Dirichlet values as `prepare` sets them, outside 0.
+                for (l, p) in labels.iter().zip(&flat) {
+                    match l {
+                        Label::Frontier => assert_eq!(*p, PSI_FRONTIER_TEST),
+                        Label::Source | Label::Outside => assert_eq!(*p, 0.0),
+                        _ => assert!((0.0..=1.0).contains(p)),
+                    }
+                }
+            }
+        }
+    }
+
+    const PSI_FRONTIER_TEST: f32 = crate::solve::PSI_FRONTIER;
+
+    /// Two threads or one: the same bits, iterations and cell updates (the fork splits every
+    /// fine pass at a plane, and no cell's arithmetic depends on where).
+    #[test]
+    fn a_fork_gives_the_same_bits() {
+        let (dims, labels) = rooms(30, 22, 14);
+        for screening in [0.0, 0.09] {
+            let p = params(1e-6, screening);
+            let (a, sa) = solve_flat(dims, &labels, &p, None);
+            let (b, sb) = solve_flat(dims, &labels, &p, Some(&Sequential));
+            assert_eq!((sa.iterations, sa.cell_updates), (sb.iterations, sb.cell_updates));
+            assert!(
+                a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "s = {screening}"
+            );
+        }
+    }
+
+    /// A warm start from the solution needs no step; one from a perturbed solution comes back.
+    #[test]
+    fn a_warm_start_from_the_solution_is_kept() {
+        let (dims, labels) = rooms(24, 20, 12);
+        let (solved, _) = solve_flat(dims, &labels, &params(1e-6, 0.0), None);
+        let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+        let mut flat = Flat::new(dims, &mut values).unwrap();
+        let warm = SolveParams {
+            warm_start: true,
+            ..params(1e-6, 0.0)
+        };
+        let mut psi = solved.clone();
+        let s = flat.solve(&labels, &mut psi, &warm).unwrap();
+        assert!(s.converged && s.iterations == 0, "{s:?}");
+        for (p, l) in psi.iter_mut().zip(&labels) {
+            if *l == Label::Interior {
+                *p *= 0.9;
+            }
+        }
+        let s = flat.solve(&labels, &mut psi, &warm).unwrap();
+        assert!(s.converged && s.iterations > 0, "{s:?}");
+        assert!(max_diff(&psi, &solved) <= 2e-5);
+    }
+
+    /// Stopped at the cap before the tolerance: not converged, and ψ still in its bounds.
+    #[test]
+    fn a_solve_stopped_at_the_cap_is_not_converged() {
+        let (dims, labels) = rooms(24, 20, 12);
+        let p = SolveParams {
+            max_iterations: 1,
+            ..params(1e-9, 0.0)
+        };
+        let (psi, s) = solve_flat(dims, &labels, &p, None);
+        assert!(!s.converged && s.iterations == 1, "{s:?}");
+        assert!(psi.iter().all(|p| (0.0..=1.0).contains(p)));
+    }
+
+    /// No interior cell touches a frontier: ψ = 0 is exact, with no step taken.
+    #[test]
+    fn no_frontier_leaves_zero() {
+        let (dims, mut labels) = rooms(16, 12, 8);
+        for l in labels.iter_mut() {
+            if *l == Label::Frontier {
+                *l = Label::Outside;
+            }
+        }
+        let (psi, s) = solve_flat(dims, &labels, &params(1e-6, 0.09), None);
+        assert!(s.converged && s.iterations == 0, "{s:?}");
+        assert!(psi.iter().all(|p| *p == 0.0));
+    }
+
+    /// Bad inputs are errors, not panics.
+    #[test]
+    fn bad_inputs_are_errors() {
+        let (dims, labels) = rooms(16, 12, 8);
+        let mut short = vec![0.0f32; flat_scratch_len(&dims) - 1];
+        assert_eq!(
+            Flat::new(dims, &mut short).err(),
+            Some(SolveError::ScratchTooSmall)
+        );
+        let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+        let mut flat = Flat::new(dims, &mut values).unwrap();
+        let mut psi = vec![0.0f32; dims.len()];
+        assert_eq!(
+            flat.solve(&labels[1..], &mut psi, &params(1e-6, 0.0)),
+            Err(SolveError::StorageTooSmall)
+        );
+        assert_eq!(
+            flat.solve(&labels, &mut psi, &params(0.0, 0.0)),
+            Err(SolveError::BadTolerance)
+        );
+        assert_eq!(
+            flat.solve(&labels, &mut psi, &params(1e-6, f32::NAN)),
+            Err(SolveError::BadScreening)
+        );
+        // NaN warm-start values are cleaned by `prepare`.
+        psi.fill(f32::NAN);
+        let warm = SolveParams {
+            warm_start: true,
+            ..params(1e-6, 0.09)
+        };
+        let s = flat.solve(&labels, &mut psi, &warm).unwrap();
+        assert!(s.converged && psi.iter().all(|p| p.is_finite()), "{s:?}");
+    }
+}
+
+#[cfg(test)]
+mod timing {
+    extern crate std;
+    use super::*;
+    use std::time::Instant;
+    use std::vec;
+
+    /// Where a cold solve's time goes (development aid; `cargo test --release -p harmonic-core
+    /// --lib flat::timing -- --ignored --nocapture`).
+    #[test]
+    #[ignore]
+    fn phases() {
+        let dims = Dims::new(64, 64, 32).unwrap();
+        let mut labels = vec![Label::Outside; dims.len()];
+        for (i, l) in labels.iter_mut().enumerate() {
+            let v = dims.voxel(i);
+            let (x, y, z) = (v.x as usize, v.y as usize, v.z as usize);
+            let shell = x == 0 || y == 0 || z == 0 || x == 63 || y == 63 || z == 31;
+            let wall =
+                (x % 16 == 0 && !(6..9).contains(&(y % 16))) || (y % 16 == 0 && !(6..9).contains(&(x % 16)));
+            if !shell && !wall {
+                *l = if x == 62 && (50..60).contains(&y) && (10..20).contains(&z) {
+                    Label::Frontier
+                } else {
+                    Label::Interior
+                };
+            }
+        }
+        let grids = grids(&dims);
+        let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+        let total: usize = level_blocks(&grids).iter().sum();
+        let (store, kstore) = values.split_at_mut(total);
+        let kr = carve_krylov(kstore, grids[0].len).unwrap();
+        let reps = 50;
+        let t = Instant::now();
+        for _ in 0..reps {
+            build(&grids, store, &labels, 0.09, kr.rhs).unwrap();
+        }
+        let build_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let interior = interior_counts(&grids, store);
+        {
+            let a = level_arrays(&grids, store, 0).unwrap();
+            let t = Instant::now();
+            for _ in 0..reps {
+                build_fine(&grids[0], &labels, a.kind, kr.rhs).unwrap();
+            }
+            let bf = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            let t = Instant::now();
+            for _ in 0..reps {
+                finish(&grids[0], a.kind, &a.w, a.sink, a.diag, a.inv, 0.09);
+            }
+            let fin = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            std::println!("build_fine {bf:.3} ms, finish {fin:.3}");
+        }
+        {
+            let (fa, mut ca, t1, t2) = two_levels(&grids, store, 0).unwrap();
+            let t = Instant::now();
+            for _ in 0..reps {
+                coarsen(&grids[0], &fa, &grids[1], ca.kind, &mut ca.w, ca.sink);
+            }
+            let co = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            let t = Instant::now();
+            for _ in 0..reps {
+                interpolate(&grids[1], ca.tmp, &grids[0], fa.invden, t1, t2);
+            }
+            let ip = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            std::println!("coarsen level 1 {co:.3} ms, interpolate to the fine level {ip:.3}");
+        }
+        let t = Instant::now();
+        for _ in 0..reps {
+            let _ = interior_counts(&grids, store);
+        }
+        let count_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let t = Instant::now();
+        for _ in 0..reps {
+            full_multigrid(None, &grids, store, kr.rhs, kr.x, &interior);
+        }
+        let fmg_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let t = Instant::now();
+        for _ in 0..reps {
+            vcycle(None, &grids, store, 0, &interior);
+        }
+        let v_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let t = Instant::now();
+        for _ in 0..reps {
+            vcycle(None, &grids, store, 1, &interior);
+        }
+        let v1_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let g = grids[0];
+        let mut a = level_arrays(&grids, store, 0).unwrap();
+        let t = Instant::now();
+        for _ in 0..reps {
+            smooth(None, &g, &mut a, 2, 0);
+        }
+        let sweep_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64 / 2.0;
+        let t = Instant::now();
+        for _ in 0..reps {
+            residual_for_restriction(None, &g, &mut a);
+        }
+        let res_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        std::println!(
+            "build {build_ms:.3} ms, counts {count_ms:.3}, fmg {fmg_ms:.3}, v-cycle {v_ms:.3} (below the fine level {v1_ms:.3}), fine sweep {sweep_ms:.3}, residual {res_ms:.3}"
+        );
+    }
+}
