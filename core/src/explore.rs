@@ -64,7 +64,7 @@ use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 use crate::solve::flat::Flat;
-use crate::solve::local::{resolve_near, Local, LocalParams, LocalScratch};
+use crate::solve::local::{resolve_near, Local, LocalParams, LocalScratch, WithMethod};
 use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
 use crate::streamline::{self, Field, StreamlineEnd, StreamlineError, StreamlineParams, Waypoints};
@@ -1245,7 +1245,14 @@ impl<'a> Explorer<'a> {
                     labels: &mut *self.local_labels,
                     psi: &mut *self.local_psi,
                 };
-                let solved = resolve_near(mg, self.labels, self.phi, &params, &local, Method::Auto, scratch);
+                let solved = resolve_near(
+                    &mut WithMethod(mg, Method::Auto),
+                    self.labels,
+                    self.phi,
+                    &params,
+                    &local,
+                    scratch,
+                );
                 if let Ok(how) = &solved {
                     match how {
                         Local::Solved(_) => self.status.local_solves += 1,

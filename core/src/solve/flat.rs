@@ -64,11 +64,11 @@ const MIN_OPEN_FACE: f32 = 0.5;
 /// Restarts of conjugate gradients on the true residual (defect correction), as
 /// [`super::multigrid`].
 const MAX_RESTARTS: u32 = 6;
-/// `kind` values: outside, interior, Dirichlet with ψ = 1 (frontier), Dirichlet with ψ = 0.
+/// `kind` values: the [`Label`] codes outside (0), interior (1), frontier (2) and source (3);
+/// the Dirichlet kinds are the last two, coarse Dirichlet cells take the frontier's.
 const OUT: f32 = 0.0;
 const INTERIOR: f32 = 1.0;
 const FRONTIER: f32 = 2.0;
-const SOURCE: f32 = 3.0;
 
 /// Per-level arrays, in this order, each [`Grid::len`] long.
 const LEVEL_ARRAYS: usize = 12;
@@ -297,7 +297,44 @@ impl<'a> Flat<'a> {
         psi: &mut [f32],
         params: &SolveParams,
     ) -> Result<SolveStats, SolveError> {
-        let (labels, psi) = checked_problem(&self.fine, labels, psi, params, Dirichlet::Standard)?;
+        self.solve_with(labels, psi, params, Dirichlet::Standard)
+    }
+
+    /// Lays the levels out again for a grid of `fine`, which the storage must fit (any grid
+    /// no larger along each axis than the one it was made for does): [`super::local`] solves
+    /// boxes cut out of the grid in the same storage.
+    pub(crate) fn relayout(&mut self, fine: Dims) -> Result<(), SolveError> {
+        if self.values.len() < flat_scratch_len(&fine) {
+            return Err(SolveError::ScratchTooSmall);
+        }
+        if fine != self.fine {
+            self.fine = fine;
+            self.grids = grids(&fine);
+            // The arrays move: their padding must be zeroed again.
+            self.zeroed = false;
+        }
+        Ok(())
+    }
+
+    /// The grid the levels are laid out for.
+    pub(crate) fn fine_dims(&self) -> Dims {
+        self.fine
+    }
+
+    /// [`Flat::solve`] with the Dirichlet values taken as `dirichlet` says (given ones start
+    /// warm).
+    pub(crate) fn solve_with(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+        dirichlet: Dirichlet,
+    ) -> Result<SolveStats, SolveError> {
+        let params = &SolveParams {
+            warm_start: params.warm_start || dirichlet == Dirichlet::Given,
+            ..*params
+        };
+        let (labels, psi) = checked_problem(&self.fine, labels, psi, params, dirichlet)?;
         self.history.clear();
         let fork = self.fork;
         let mut stats = SolveStats::default();
@@ -314,14 +351,16 @@ impl<'a> Flat<'a> {
         };
         if zero {
             levels_store.fill(0.0);
-            krylov_store.fill(0.0);
+            if let Some(k) = krylov_store.get_mut(..KRYLOV_ARRAYS * fine.len) {
+                k.fill(0.0);
+            }
         }
         let Some(mut kr) = carve_krylov(krylov_store, fine.len) else {
             return Err(SolveError::ScratchTooSmall);
         };
         // Every level's operator.
-        stats.cell_updates +=
-            build(&grids, levels_store, labels, screen.shift, kr.rhs).ok_or(SolveError::ScratchTooSmall)?;
+        stats.cell_updates += build(&grids, levels_store, (labels, psi), screen.shift, kr.rhs)
+            .ok_or(SolveError::ScratchTooSmall)?;
         let interior = interior_counts(&grids, levels_store);
         let pins = source_pins(&self.fine, labels);
         let b2 = sum_sq(kr.rhs);
@@ -486,39 +525,18 @@ fn carve_krylov(store: &mut [f32], n: usize) -> Option<Krylov<'_>> {
 /// The padding of every array must hold zeros: [`Flat::solve`] zeroes the whole storage before
 /// its first solve, and no pass writes anything but 0 there (a padding cell has no faces, a
 /// zero diagonal and zero values around it), so it stays so.
-fn build(grids: &[Grid], store: &mut [f32], labels: &[Label], shift: f32, rhs: &mut [f32]) -> Option<u64> {
+fn build(
+    grids: &[Grid],
+    store: &mut [f32],
+    problem: (&[Label], &[f32]),
+    shift: f32,
+    rhs: &mut [f32],
+) -> Option<u64> {
     let fine = grids.first()?;
     let mut work = 0u64;
     {
         let mut a = level_arrays(grids, store, 0)?;
-        build_fine(fine, labels, a.kind, rhs)?;
-        a.sink.fill(0.0);
-        for w in a.w.iter_mut() {
-            w.fill(0.0);
-        }
-        let kind: &[f32] = a.kind;
-        // Faces between interior cells, and the Dirichlet faces (sink) of interior cells.
-        for z in 0..fine.n[2] {
-            let range = fine.plane(z);
-            for (axis, stride) in [1, fine.sy, fine.sz].into_iter().enumerate() {
-                let w = a.w.get_mut(axis)?.get_mut(range.clone())?;
-                let (me, up) = (
-                    kind.get(range.clone())?,
-                    kind.get(range.start + stride..range.end + stride)?,
-                );
-                let down = kind.get(range.start - stride..range.end - stride)?;
-                let sink = a.sink.get_mut(range.clone())?;
-                for ((((w, &m), &u), &d), s) in w.iter_mut().zip(me).zip(up).zip(down).zip(sink.iter_mut()) {
-                    if m == INTERIOR {
-                        if u == INTERIOR {
-                            *w = 1.0;
-                        }
-                        *s += f32::from(u >= FRONTIER) + f32::from(d >= FRONTIER);
-                    }
-                }
-            }
-        }
-        finish(fine, a.kind, &a.w, a.sink, a.diag, a.inv, shift);
+        build_fine(fine, problem, &mut a, rhs, shift)?;
         work += fine.len as u64;
     }
     let mut scale = 1.0f32;
@@ -543,37 +561,79 @@ fn build(grids: &[Grid], store: &mut [f32], labels: &[Label], shift: f32, rhs: &
 }
 
 /// The fine level's kinds and right-hand side from the labels.
-fn build_fine(g: &Grid, labels: &[Label], kind: &mut [f32], rhs: &mut [f32]) -> Option<()> {
-    kind.fill(OUT);
-    rhs.fill(0.0);
+fn build_fine(
+    g: &Grid,
+    (labels, psi): (&[Label], &[f32]),
+    a: &mut Arrays<'_>,
+    rhs: &mut [f32],
+    shift: f32,
+) -> Option<()> {
     let nx = g.n[0];
+    // Kinds, and the Dirichlet values (in `r`, 0 on every other cell).
     for z in 0..g.n[2] {
         for y in 0..g.n[1] {
-            let row = labels.get(nx * (y + g.n[1] * z)..nx * (y + g.n[1] * z + 1))?;
+            let from = nx * (y + g.n[1] * z);
+            let (row, values) = (labels.get(from..from + nx)?, psi.get(from..from + nx)?);
             let at = g.at(0, y, z);
-            for (k, l) in kind.get_mut(at..at + nx)?.iter_mut().zip(row) {
-                *k = match l {
-                    Label::Interior => INTERIOR,
-                    Label::Frontier => FRONTIER,
-                    Label::Source => SOURCE,
-                    _ => OUT,
+            let cells = a
+                .kind
+                .get_mut(at..at + nx)?
+                .iter_mut()
+                .zip(a.r.get_mut(at..at + nx)?);
+            for ((k, d), (l, v)) in cells.zip(row.iter().zip(values)) {
+                // After the domain build only these four remain (`Label` is `repr(u8)`).
+                let code = *l as u8;
+                *k = if code <= Label::Source as u8 {
+                    f32::from(code)
+                } else {
+                    OUT
                 };
+                *d = if *k >= FRONTIER { *v } else { 0.0 };
             }
         }
     }
-    // rhs: one per frontier neighbour of an interior cell (ψ = 1 there).
+    let dval: &[f32] = a.r;
+    // Per interior cell and axis: the face to an interior neighbour (w), the Dirichlet faces
+    // (sink), the values they bring (rhs) and the in-domain neighbours (the diagonal).
+    let kind: &[f32] = a.kind;
     for z in 0..g.n[2] {
         let range = g.plane(z);
         let me = kind.get(range.clone())?;
-        let out = rhs.get_mut(range.clone())?;
-        for stride in [1, g.sy, g.sz] {
+        let (rhs, sink, diag) = (
+            rhs.get_mut(range.clone())?,
+            a.sink.get_mut(range.clone())?,
+            a.diag.get_mut(range.clone())?,
+        );
+        rhs.fill(0.0);
+        sink.fill(0.0);
+        for (d, m) in diag.iter_mut().zip(me) {
+            *d = if *m == INTERIOR { shift } else { 0.0 };
+        }
+        for (axis, stride) in [1, g.sy, g.sz].into_iter().enumerate() {
+            let w = a.w.get_mut(axis)?.get_mut(range.clone())?;
             let up = kind.get(range.start + stride..range.end + stride)?;
             let down = kind.get(range.start - stride..range.end - stride)?;
-            for (((o, &m), &u), &d) in out.iter_mut().zip(me).zip(up).zip(down) {
-                if m == INTERIOR {
-                    *o += f32::from(u == FRONTIER) + f32::from(d == FRONTIER);
-                }
+            let (vu, vd) = (
+                dval.get(range.start + stride..range.end + stride)?,
+                dval.get(range.start - stride..range.end - stride)?,
+            );
+            let cells = w
+                .iter_mut()
+                .zip(rhs.iter_mut())
+                .zip(sink.iter_mut())
+                .zip(diag.iter_mut());
+            let around = me.iter().zip(up).zip(down).zip(vu.iter().zip(vd));
+            for ((((w, b), s), d), (((&m, &u), &dn), (&vu, &vd))) in cells.zip(around) {
+                let i = f32::from(m == INTERIOR);
+                *w = i * f32::from(u == INTERIOR);
+                *s += i * (f32::from(u >= FRONTIER) + f32::from(dn >= FRONTIER));
+                *b += i * (vu + vd);
+                *d += i * (f32::from(u != OUT) + f32::from(dn != OUT));
             }
+        }
+        let inv = a.inv.get_mut(range)?;
+        for (iv, d) in inv.iter_mut().zip(diag.iter()) {
+            *iv = if *d > 0.0 { 1.0 / d } else { 0.0 };
         }
     }
     Some(())
@@ -633,86 +693,87 @@ fn coarsen(f: &Grid, fa: &Arrays<'_>, c: &Grid, kind: &mut [f32], w: &mut [&mut 
     wx.fill(0.0);
     wy.fill(0.0);
     wz.fill(0.0);
-    let fkind: &[f32] = fa.kind;
-    for z in 0..f.n[2] {
-        for y in 0..f.n[1] {
-            let at = f.at(0, y, z);
-            let cat = c.at(0, y >> 1, z >> 1);
-            let (Some(row), Some(srow), Some(up_y), Some(up_z)) = (
-                fkind.get(at..at + f.n[0] + 1),
-                fa.sink.get(at..at + f.n[0]),
-                fkind.get(at + f.sy..at + f.sy + f.n[0]),
-                fkind.get(at + f.sz..at + f.sz + f.n[0]),
+    let cn = c.n[0];
+    // Row by row of the coarse grid, from the (up to) four fine rows under it.
+    for cz in 0..c.n[2] {
+        for cy in 0..c.n[1] {
+            let at = c.at(0, cy, cz);
+            let (Some(ck), Some(cs), Some(cwx), Some(cwy), Some(cwz)) = (
+                kind.get_mut(at..at + cn),
+                sink.get_mut(at..at + cn),
+                wx.get_mut(at..at + cn),
+                wy.get_mut(at..at + cn),
+                wz.get_mut(at..at + cn),
             ) else {
                 continue;
             };
-            let (Some(fwx), Some(fwy), Some(fwz)) = (
-                fa.w[0].get(at..at + f.n[0]),
-                fa.w[1].get(at..at + f.n[0]),
-                fa.w[2].get(at..at + f.n[0]),
-            ) else {
-                continue;
-            };
-            for x in 0..f.n[0] {
-                let (Some(&k), Some(&s)) = (row.get(x), srow.get(x)) else {
-                    continue;
-                };
-                if k == OUT {
+            for (dy, dz) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                let (y, z) = (2 * cy + dy, 2 * cz + dz);
+                if y >= f.n[1] || z >= f.n[2] {
                     continue;
                 }
-                let ci = cat + (x >> 1);
-                if let Some(ck) = kind.get_mut(ci) {
-                    *ck = if k == INTERIOR || *ck == INTERIOR {
-                        INTERIOR
-                    } else {
-                        FRONTIER
-                    };
-                }
-                if k != INTERIOR {
-                    continue;
-                }
-                if let Some(cs) = sink.get_mut(ci) {
-                    *cs += 0.5 * s;
-                }
-                // Faces crossing into the next parent: from the odd child of each pair.
-                let next = |up: Option<&f32>| up.copied() == Some(INTERIOR);
-                if x & 1 == 1 && next(row.get(x + 1)) {
-                    if let (Some(cw), Some(fw)) = (wx.get_mut(ci), fwx.get(x)) {
-                        *cw += 0.25 * fw;
+                // Two fine cells per coarse one; an odd last one pairs with the zero padding.
+                let from = f.at(0, y, z);
+                let to = from + 2 * cn;
+                let (fk, fs, fwx, fwy, fwz) = (
+                    sl(fa.kind, from, to),
+                    sl(fa.sink, from, to),
+                    sl(fa.w[0], from, to),
+                    sl(fa.w[1], from, to),
+                    sl(fa.w[2], from, to),
+                );
+                let cells = ck.iter_mut().zip(cs.iter_mut()).zip(cwx.iter_mut());
+                let fine = fk
+                    .chunks_exact(2)
+                    .zip(fs.chunks_exact(2))
+                    .zip(fwx.chunks_exact(2));
+                for (((k, s), wxc), ((kp, sp), wxp)) in cells.zip(fine) {
+                    if let (&[k0, k1], &[s0, s1], &[_, wx1]) = (kp, sp, wxp) {
+                        // Interior wins, else Dirichlet.
+                        if k0 == INTERIOR || k1 == INTERIOR {
+                            *k = INTERIOR;
+                        } else if (k0 >= FRONTIER || k1 >= FRONTIER) && *k != INTERIOR {
+                            *k = FRONTIER;
+                        }
+                        // Half the interior children's sinks; the +x face from the odd child.
+                        *s += 0.5 * (s0 + s1);
+                        *wxc += 0.25 * wx1;
                     }
                 }
-                if y & 1 == 1 && next(up_y.get(x)) {
-                    if let (Some(cw), Some(fw)) = (wy.get_mut(ci), fwy.get(x)) {
-                        *cw += 0.25 * fw;
+                if dy == 1 {
+                    for (cw, pair) in cwy.iter_mut().zip(fwy.chunks_exact(2)) {
+                        if let &[a, b] = pair {
+                            *cw += 0.25 * (a + b);
+                        }
                     }
                 }
-                if z & 1 == 1 && next(up_z.get(x)) {
-                    if let (Some(cw), Some(fw)) = (wz.get_mut(ci), fwz.get(x)) {
-                        *cw += 0.25 * fw;
+                if dz == 1 {
+                    for (cw, pair) in cwz.iter_mut().zip(fwz.chunks_exact(2)) {
+                        if let &[a, b] = pair {
+                            *cw += 0.25 * (a + b);
+                        }
                     }
                 }
             }
         }
     }
-    // Faces only between interior cells; partly open faces at least half open.
-    for (axis, w) in [wx, wy, wz].into_iter().enumerate() {
-        let stride = [1, c.sy, c.sz].get(axis).copied().unwrap_or(1);
-        for i in 0..c.len {
-            let (Some(&me), up) = (kind.get(i), kind.get(i + stride).copied()) else {
-                continue;
-            };
-            if let Some(wi) = w.get_mut(i) {
-                if me != INTERIOR || up != Some(INTERIOR) {
-                    *wi = 0.0;
-                } else if *wi > 0.0 {
-                    *wi = wi.max(MIN_OPEN_FACE);
-                }
-            }
-        }
-    }
-    for (s, k) in sink.iter_mut().zip(kind.iter()) {
+    // Faces are open only between interior children, so between interior coarse cells;
+    // partly open ones are at least half open. Sinks stay on interior cells only (the
+    // children's are 0 elsewhere).
+    for ((((k, s), x), y), z) in kind
+        .iter()
+        .zip(sink.iter_mut())
+        .zip(wx.iter_mut())
+        .zip(wy.iter_mut())
+        .zip(wz.iter_mut())
+    {
         if *k != INTERIOR {
             *s = 0.0;
+        }
+        for w in [x, y, z] {
+            if *w > 0.0 {
+                *w = w.max(MIN_OPEN_FACE);
+            }
         }
     }
 }
@@ -1606,6 +1667,10 @@ mod timing {
             }
         }
         let grids = grids(&dims);
+        let psi: std::vec::Vec<f32> = labels
+            .iter()
+            .map(|l| if *l == Label::Frontier { 1.0 } else { 0.0 })
+            .collect();
         let mut values = vec![0.0f32; flat_scratch_len(&dims)];
         let total: usize = level_blocks(&grids).iter().sum();
         let (store, kstore) = values.split_at_mut(total);
@@ -1613,15 +1678,15 @@ mod timing {
         let reps = 50;
         let t = Instant::now();
         for _ in 0..reps {
-            build(&grids, store, &labels, 0.09, kr.rhs).unwrap();
+            build(&grids, store, (&labels, &psi), 0.09, kr.rhs).unwrap();
         }
         let build_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let interior = interior_counts(&grids, store);
         {
-            let a = level_arrays(&grids, store, 0).unwrap();
+            let mut a = level_arrays(&grids, store, 0).unwrap();
             let t = Instant::now();
             for _ in 0..reps {
-                build_fine(&grids[0], &labels, a.kind, kr.rhs).unwrap();
+                build_fine(&grids[0], (&labels, &psi), &mut a, kr.rhs, 0.09).unwrap();
             }
             let bf = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
             let t = Instant::now();

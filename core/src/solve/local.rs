@@ -23,6 +23,7 @@
 //! Laplace's equation (no screening) changes everywhere when anything does, so it always
 //! goes to the whole grid.
 
+use super::flat::Flat;
 use super::multigrid::{Method, Multigrid};
 use super::{
     error_estimate, error_met, for_each_row, rounding2, rounding_row, row_residuals, Active, Contraction,
@@ -282,18 +283,94 @@ fn for_each_cell(dims: &Dims, cells: &Cells, mut f: impl FnMut(usize, usize, boo
     }
 }
 
+/// A solver that can solve boxes cut out of its grid in its own storage: the multigrid
+/// ([`WithMethod`]) or the host's flat solver ([`Flat`]).
+pub trait BoxSolver {
+    /// The grid the solver is laid out for.
+    fn grid(&self) -> Dims;
+    /// Lays the solver out for a grid of `fine` (no larger along any axis than the one its
+    /// storage was made for).
+    fn lay_out(&mut self, fine: Dims) -> Result<(), SolveError>;
+    /// Solves a box whose Dirichlet cells hold the values in `psi` (warm).
+    fn solve_box(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError>;
+    /// Solves the whole grid (standard Dirichlet values).
+    fn solve_whole(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError>;
+}
+
+/// The multigrid with the method its solves use.
+pub struct WithMethod<'m, 'a>(pub &'m mut Multigrid<'a>, pub Method);
+
+impl BoxSolver for WithMethod<'_, '_> {
+    fn grid(&self) -> Dims {
+        self.0.fine_dims()
+    }
+    fn lay_out(&mut self, fine: Dims) -> Result<(), SolveError> {
+        self.0.relayout(fine)
+    }
+    fn solve_box(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError> {
+        self.0.solve_with(labels, psi, params, self.1, Dirichlet::Given)
+    }
+    fn solve_whole(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError> {
+        self.0.solve(labels, psi, params, self.1)
+    }
+}
+
+impl BoxSolver for Flat<'_> {
+    fn grid(&self) -> Dims {
+        self.fine_dims()
+    }
+    fn lay_out(&mut self, fine: Dims) -> Result<(), SolveError> {
+        self.relayout(fine)
+    }
+    fn solve_box(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError> {
+        self.solve_with(labels, psi, params, Dirichlet::Given)
+    }
+    fn solve_whole(
+        &mut self,
+        labels: &[Label],
+        psi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError> {
+        self.solve(labels, psi, params)
+    }
+}
+
 /// Re-solves the problem `labels` in `psi` (holding the last solution, the warm start) with
-/// `mg` (laid out for the whole grid, which it is again on return) in boxes around what
+/// `solver` (laid out for the whole grid, which it is again on return) in boxes around what
 /// changed, or over the whole grid where the boxes give up; see the [module
 /// documentation](self). `params` are the whole-grid solve's (`warm_start` is implied); the box
 /// scratch must hold [`LocalParams::max_share`] of the grid's cells.
 pub fn resolve_near(
-    mg: &mut Multigrid<'_>,
+    solver: &mut impl BoxSolver,
     labels: &[Label],
     psi: &mut [f32],
     params: &SolveParams,
     local: &LocalParams,
-    method: Method,
     scratch: LocalScratch<'_>,
 ) -> Result<Local, SolveError> {
     let warm = SolveParams {
@@ -303,28 +380,26 @@ pub fn resolve_near(
     let mut work = 0u64;
     // A box solve that fails (never seen) writes nothing back, so `psi` is still a warm start
     // for the whole grid, whose solve reports any error of its own.
-    if let Ok(Some(s)) = in_boxes(mg, labels, psi, &warm, local, method, scratch, &mut work) {
+    if let Ok(Some(s)) = in_boxes(solver, labels, psi, &warm, local, scratch, &mut work) {
         return Ok(Local::Solved(s));
     }
-    let mut s = mg.solve(labels, psi, &warm, method)?;
+    let mut s = solver.solve_whole(labels, psi, &warm)?;
     s.cell_updates += work;
     Ok(Local::Whole(s))
 }
 
 /// The boxes of [`resolve_near`]: the stats if they met the tolerance, `None` where they gave
 /// up; `work` counts the cell updates spent either way.
-#[allow(clippy::too_many_arguments)]
 fn in_boxes(
-    mg: &mut Multigrid<'_>,
+    solver: &mut impl BoxSolver,
     labels: &[Label],
     psi: &mut [f32],
     params: &SolveParams,
     local: &LocalParams,
-    method: Method,
     scratch: LocalScratch<'_>,
     work: &mut u64,
 ) -> Result<Option<LocalStats>, SolveError> {
-    let dims = mg.fine_dims();
+    let dims = solver.grid();
     let n = dims.len();
     let (labels, psi) = super::checked_problem(&dims, labels, psi, params, Dirichlet::Standard)?;
     let screen = Screen::new(params.screening);
@@ -405,9 +480,9 @@ fn in_boxes(
             max_error: f32::INFINITY,
             ..*params
         };
-        mg.relayout(box_dims)?;
-        let result = mg.solve_with(bl, bp, &box_params, method, Dirichlet::Given);
-        mg.relayout(dims)?;
+        solver.lay_out(box_dims)?;
+        let result = solver.solve_box(bl, bp, &box_params);
+        solver.lay_out(dims)?;
         let s = result?;
         out.boxes += 1;
         out.box_cells = cells.len();
@@ -535,12 +610,11 @@ mod tests {
         let local = LocalParams::for_screening(screening, 1e-5);
         let mut mg = storage.multigrid(dims);
         let out = resolve_near(
-            &mut mg,
+            &mut WithMethod(&mut mg, Method::Auto),
             labels,
             psi,
             &params(1e-5, true, screening),
             &local,
-            Method::Auto,
             scratch,
         );
         assert_eq!(
@@ -643,5 +717,67 @@ mod tests {
         assert!(matches!(out, Ok(Local::Whole(s)) if s.converged), "{out:?}");
         let checked = screened_residual(&dims, &after, &psi, SCREENING);
         assert!(checked.relative <= 1e-5, "{checked:?}");
+    }
+
+    /// The host's flat solver in the same boxes: the whole grid at its tolerance, as close to
+    /// the exact field as the multigrid's boxes, for less work than its own whole-grid
+    /// re-solve; laid out for the whole grid again afterwards, whose next solve is unchanged.
+    #[test]
+    fn the_flat_solver_re_solves_a_scan_in_boxes() {
+        use crate::solve::flat::{flat_scratch_len, Flat};
+        let (dims, old, mut storage) = solved_before(SCREENING);
+        let (_, after) = rooms(true);
+        let mut values = vec![0.0f32; flat_scratch_len(&dims)];
+        let mut flat = Flat::new(dims, &mut values).unwrap();
+        let (mut bl, mut bp) = (vec![Label::Outside; dims.len()], vec![0.0; dims.len()]);
+        let mut local = old.clone();
+        let out = resolve_near(
+            &mut flat,
+            &after,
+            &mut local,
+            &params(1e-5, true, SCREENING),
+            &LocalParams::for_screening(SCREENING, 1e-5),
+            LocalScratch {
+                labels: &mut bl,
+                psi: &mut bp,
+            },
+        );
+        let Ok(Local::Solved(s)) = out else {
+            panic!("a scan at the far wall is re-solved locally: {out:?}");
+        };
+        assert_eq!(flat.fine_dims(), dims);
+        assert!(
+            s.boxes >= 1 && s.stats.converged && s.box_cells < dims.len() / 2,
+            "{s:?}"
+        );
+        let checked = screened_residual(&dims, &after, &local, SCREENING);
+        assert!(checked.relative <= 1e-5, "{checked:?}");
+        let mut whole = old.clone();
+        let w = flat
+            .solve(&after, &mut whole, &params(1e-5, true, SCREENING))
+            .unwrap();
+        let mut exact = old.clone();
+        storage
+            .multigrid(dims)
+            .solve(&after, &mut exact, &params(1e-8, true, SCREENING), Method::Auto)
+            .unwrap();
+        let worst = |v: &[f32]| {
+            v.iter()
+                .zip(&exact)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max)
+        };
+        assert!(
+            worst(&local) <= 2e-5 && worst(&whole) <= 2e-5,
+            "local {} whole {}",
+            worst(&local),
+            worst(&whole)
+        );
+        assert!(
+            s.stats.cell_updates < w.cell_updates,
+            "{} against {}",
+            s.stats.cell_updates,
+            w.cell_updates
+        );
     }
 }

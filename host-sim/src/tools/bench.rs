@@ -14,7 +14,7 @@ use std::time::Instant;
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
-use harmonic_core::solve::local::{resolve_near, Local, LocalParams, LocalScratch};
+use harmonic_core::solve::local::{resolve_near, Local, LocalParams, LocalScratch, WithMethod};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{gauss_seidel, Fork, SolveParams, SolveStats};
 use serde::Serialize;
@@ -146,6 +146,24 @@ pub struct LocalBoxes {
     pub whole: bool,
 }
 
+impl LocalBoxes {
+    /// What `how` took, on a grid of `cells`.
+    fn of(how: &Local, cells: usize) -> Self {
+        match how {
+            Local::Solved(s) => LocalBoxes {
+                boxes: s.boxes,
+                last_cells: s.box_cells,
+                whole: false,
+            },
+            Local::Whole(_) => LocalBoxes {
+                boxes: 0,
+                last_cells: cells,
+                whole: true,
+            },
+        }
+    }
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
@@ -246,26 +264,30 @@ pub fn measure(
                     labels: &mut box_labels,
                     psi: &mut box_psi,
                 };
-                let how = resolve_near(&mut mg, labels, psi, &params, &local, method, scratch)
-                    .expect("valid problem");
-                let taken = match how {
-                    Local::Solved(s) => LocalBoxes {
-                        boxes: s.boxes,
-                        last_cells: s.box_cells,
-                        whole: false,
-                    },
-                    Local::Whole(_) => LocalBoxes {
-                        boxes: 0,
-                        last_cells: dims.len(),
-                        whole: true,
-                    },
-                };
-                (how.stats(), Some(taken))
+                let how = resolve_near(
+                    &mut WithMethod(&mut mg, method),
+                    labels,
+                    psi,
+                    &params,
+                    &local,
+                    scratch,
+                )
+                .expect("valid problem");
+                (how.stats(), Some(LocalBoxes::of(&how, dims.len())))
             }
             BenchSolver::Flat => {
-                let _ = (fmg, boxes);
+                let _ = fmg;
                 let flat = flat.as_mut().expect("made above for the flat solver");
-                (flat.solve(labels, psi, &params).expect("valid problem"), None)
+                if !boxes {
+                    return (flat.solve(labels, psi, &params).expect("valid problem"), None);
+                }
+                let local = LocalParams::for_screening(screening, tolerance);
+                let scratch = LocalScratch {
+                    labels: &mut box_labels,
+                    psi: &mut box_psi,
+                };
+                let how = resolve_near(flat, labels, psi, &params, &local, scratch).expect("valid problem");
+                (how.stats(), Some(LocalBoxes::of(&how, dims.len())))
             }
             BenchSolver::GaussSeidel => (
                 gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),
@@ -289,6 +311,7 @@ pub fn measure(
         local: None,
     };
     let is_mg = matches!(solver, BenchSolver::Multigrid(_));
+    let boxes = is_mg || solver == BenchSolver::Flat;
     let (mut local_times, mut local_stats) = (Vec::new(), (SolveStats::default(), None));
     let (mut cold_times, mut zero_times, mut warm_times, mut scan_times) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -314,7 +337,7 @@ pub fn measure(
             let t = Instant::now();
             scan_stats = run(&scan.labels, &mut after, true, true, false).0;
             scan_times.push(t.elapsed().as_secs_f64() * 1e3);
-            if is_mg {
+            if boxes {
                 let mut after = psi.clone();
                 let t = Instant::now();
                 local_stats = run(&scan.labels, &mut after, true, true, true);
