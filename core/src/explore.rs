@@ -75,10 +75,10 @@ pub enum SolverKind {
     /// Geometric multigrid: MGPCG when Krylov storage is lent, V-cycles otherwise.
     #[default]
     Multigrid,
-    /// The host's flat multigrid ([`crate::solve::flat`]): MGPCG over the whole grid on every
-    /// plan, warm from the last field, in [`ExplorerStorage::flat`] (at least
-    /// [`crate::solve::flat::flat_scratch_len`] values; refused at construction without them).
-    /// No boxes ([`crate::solve::local`] works in the multigrid's storage).
+    /// The host's flat multigrid ([`crate::solve::flat`]): MGPCG, warm from the last field, in
+    /// [`ExplorerStorage::flat`] (at least [`crate::solve::flat::flat_scratch_len`] values;
+    /// refused at construction without them); re-solves go to boxes around what changed as the
+    /// multigrid's do, where the box scratch is lent.
     Flat,
     /// Lexicographic Gauss-Seidel, the seed paper's solver (reference and baseline).
     GaussSeidel,
@@ -1236,10 +1236,10 @@ impl<'a> Explorer<'a> {
         let dims = self.map.geometry().dims();
         let same_field = self.solved_screening == Some(screening);
         self.solved_screening = None;
+        // A re-solve of the same screened field may work in boxes around what changed.
+        let local_ok = same_field && params.warm_start && screening > 0.0 && !self.local_labels.is_empty();
         let solved = match (self.multigrid.as_mut(), self.config.solver) {
-            (Some(mg), _)
-                if same_field && params.warm_start && screening > 0.0 && !self.local_labels.is_empty() =>
-            {
+            (Some(mg), _) if local_ok => {
                 let local = LocalParams::for_screening(screening, tolerance);
                 let scratch = LocalScratch {
                     labels: &mut *self.local_labels,
@@ -1263,6 +1263,21 @@ impl<'a> Explorer<'a> {
             }
             (Some(mg), _) => mg.solve(self.labels, self.phi, &params, Method::Auto),
             (None, SolverKind::Flat) => match self.flat.as_mut() {
+                Some(flat) if local_ok => {
+                    let local = LocalParams::for_screening(screening, tolerance);
+                    let scratch = LocalScratch {
+                        labels: &mut *self.local_labels,
+                        psi: &mut *self.local_psi,
+                    };
+                    let solved = resolve_near(flat, self.labels, self.phi, &params, &local, scratch);
+                    if let Ok(how) = &solved {
+                        match how {
+                            Local::Solved(_) => self.status.local_solves += 1,
+                            Local::Whole(_) => self.status.local_given_up += 1,
+                        }
+                    }
+                    solved.map(|how| how.stats())
+                }
                 Some(flat) => flat.solve(self.labels, self.phi, &params),
                 None => Err(SolveError::ScratchTooSmall),
             },

@@ -33,8 +33,9 @@
 //! the coarsest level smoothed to convergence, and each finer level started from the coarser
 //! solution interpolated and given one V-cycle.
 //!
-//! **Memory** ([`flat_scratch_len`]): about 19 `f32` per fine cell of the padded grid (64 × 64
-//! × 32: 12.9 MB). The firmware keeps [`super::multigrid`].
+//! **Memory** ([`flat_scratch_len`]): about 26 `f32` per voxel (64 × 64 × 32: 3.37 million,
+//! 12.9 MiB), against about 5 bytes per voxel for [`super::multigrid`], which the firmware
+//! keeps.
 
 use heapless::Vec as HVec;
 
