@@ -50,7 +50,7 @@ enum Command {
     FwBudget(FwBudgetArgs),
     /// Run every planner on every scenario from the same random starts (parallel); write one
     /// CSV row per run and the thesis-style tables. `bench merge` joins shards.
-    Bench(BenchArgs),
+    Bench(Box<BenchArgs>),
     /// Integrate a recorded depth sequence (ours, or TUM RGB-D style) through the core and write
     /// the map (map.npy labels, map.ply occupied voxel centres).
     Replay(ReplayArgs),
