@@ -62,6 +62,9 @@ const MAX_PINS: usize = 64;
 const MIN_COARSE: usize = 4;
 /// Least conductance of a coarse face with any open child face (see [`super::multigrid`]).
 const MIN_OPEN_FACE: f32 = 0.5;
+/// A conjugate-gradient pass stops once its recursive residual is this share of the target
+/// (the true residual decides after it).
+const STOP_SHARE: f32 = 0.9;
 /// Restarts of conjugate gradients on the true residual (defect correction), as
 /// [`super::multigrid`].
 const MAX_RESTARTS: u32 = 6;
@@ -429,7 +432,7 @@ impl<'a> Flat<'a> {
                     let recursive = (libm::sqrt(sum_sq(kr.r)) / b_norm) as f32;
                     steps.push_with_residual(change, recursive);
                     let _ = self.history.push(recursive);
-                    if recursive <= target * 0.5 || recursive <= start * 1e-3 {
+                    if recursive <= target * STOP_SHARE || recursive <= start * 1e-3 {
                         break;
                     }
                     stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins);
