@@ -572,30 +572,27 @@ fn build_fine(
     rhs: &mut [f32],
     shift: f32,
 ) -> Option<()> {
-    let nx = g.n[0];
     // Kinds, and the Dirichlet values (in `r`, 0 on every other cell).
-    for z in 0..g.n[2] {
-        for y in 0..g.n[1] {
-            let from = nx * (y + g.n[1] * z);
-            let (row, values) = (labels.get(from..from + nx)?, psi.get(from..from + nx)?);
-            let at = g.at(0, y, z);
-            let cells = a
-                .kind
-                .get_mut(at..at + nx)?
-                .iter_mut()
-                .zip(a.r.get_mut(at..at + nx)?);
-            for ((k, d), (l, v)) in cells.zip(row.iter().zip(values)) {
-                // After the domain build only these four remain (`Label` is `repr(u8)`).
-                let code = *l as u8;
-                *k = if code <= Label::Source as u8 {
-                    f32::from(code)
-                } else {
-                    OUT
-                };
-                *d = if *k >= FRONTIER { *v } else { 0.0 };
-            }
+    each_row(g, |row, padded| {
+        let (Some(l), Some(v), Some(k), Some(d)) = (
+            labels.get(row.clone()),
+            psi.get(row),
+            a.kind.get_mut(padded.clone()),
+            a.r.get_mut(padded),
+        ) else {
+            return;
+        };
+        for ((k, d), (l, v)) in k.iter_mut().zip(d.iter_mut()).zip(l.iter().zip(v)) {
+            // After the domain build only these four remain (`Label` is `repr(u8)`).
+            let code = *l as u8;
+            *k = if code <= Label::Source as u8 {
+                f32::from(code)
+            } else {
+                OUT
+            };
+            *d = if *k >= FRONTIER { *v } else { 0.0 };
         }
-    }
+    });
     let dval: &[f32] = a.r;
     // Per interior cell and axis: the face to an interior neighbour (w), the Dirichlet faces
     // (sink), the values they bring (rhs) and the in-domain neighbours (the diagonal).
@@ -1323,70 +1320,45 @@ fn local_smooth(g: &Grid, a: &mut Arrays<'_>, pins: &[[usize; 3]]) -> u64 {
         }
         work += 1;
     };
-    for &[px, py, pz] in pins {
-        let span = |p: usize, n: usize| p.saturating_sub(LOCAL_RADIUS)..(p + LOCAL_RADIUS + 1).min(n);
-        let (xs, ys, zs) = (span(px, g.n[0]), span(py, g.n[1]), span(pz, g.n[2]));
-        for z in zs.clone() {
-            for y in ys.clone() {
-                for x in xs.clone() {
-                    update(a, x, y, z);
-                }
-            }
-        }
-        for z in zs.clone().rev() {
-            for y in ys.clone().rev() {
-                for x in xs.clone().rev() {
-                    update(a, x, y, z);
-                }
-            }
+    super::symmetric_box_sweep(pins, g.n, LOCAL_RADIUS, |x, y, z| update(a, x, y, z));
+    work
+}
+
+/// Calls `f(psi range, padded range)` for every row of the grid: where a row of a caller's
+/// unpadded array lies, and where it lies in the padded one.
+fn each_row(g: &Grid, mut f: impl FnMut(core::ops::Range<usize>, core::ops::Range<usize>)) {
+    let nx = g.n[0];
+    for z in 0..g.n[2] {
+        for y in 0..g.n[1] {
+            let (from, at) = (nx * (y + g.n[1] * z), g.at(0, y, z));
+            f(from..from + nx, at..at + nx);
         }
     }
-    work
 }
 
 /// The interior values of `psi` (a warm start; [`super::prepare`] has cleaned them) into the
 /// padded `x`.
 fn load(g: &Grid, labels: &[Label], psi: &[f32], x: &mut [f32]) {
-    let nx = g.n[0];
-    for z in 0..g.n[2] {
-        for y in 0..g.n[1] {
-            let from = nx * (y + g.n[1] * z);
-            let at = g.at(0, y, z);
-            let (Some(src), Some(l), Some(dst)) = (
-                psi.get(from..from + nx),
-                labels.get(from..from + nx),
-                x.get_mut(at..at + nx),
-            ) else {
-                continue;
-            };
+    each_row(g, |row, padded| {
+        if let (Some(src), Some(l), Some(dst)) = (psi.get(row.clone()), labels.get(row), x.get_mut(padded)) {
             for ((d, s), l) in dst.iter_mut().zip(src).zip(l) {
                 *d = if *l == Label::Interior { *s } else { 0.0 };
             }
         }
-    }
+    });
 }
 
 /// The padded `x` back into the interior cells of `psi`.
 fn store(g: &Grid, labels: &[Label], x: &[f32], psi: &mut [f32]) {
-    let nx = g.n[0];
-    for z in 0..g.n[2] {
-        for y in 0..g.n[1] {
-            let from = nx * (y + g.n[1] * z);
-            let at = g.at(0, y, z);
-            let (Some(dst), Some(l), Some(src)) = (
-                psi.get_mut(from..from + nx),
-                labels.get(from..from + nx),
-                x.get(at..at + nx),
-            ) else {
-                continue;
-            };
+    each_row(g, |row, padded| {
+        if let (Some(dst), Some(l), Some(src)) = (psi.get_mut(row.clone()), labels.get(row), x.get(padded)) {
             for ((d, s), l) in dst.iter_mut().zip(src).zip(l) {
                 if *l == Label::Interior {
                     *d = *s;
                 }
             }
         }
-    }
+    });
 }
 
 /// `Σ aᵢbᵢ`, summed in sixteen lanes per block of 4096 (so it vectorises) and across blocks in

@@ -625,6 +625,26 @@ mod tests {
         out
     }
 
+    /// How far a field is from `after` solved tightly (to 1e-8, warm from `old`).
+    fn off_the_tight_solve(
+        storage: &mut Storage,
+        dims: Dims,
+        after: &[Label],
+        old: &[f32],
+    ) -> impl Fn(&[f32]) -> f32 {
+        let mut exact = old.to_vec();
+        storage
+            .multigrid(dims)
+            .solve(after, &mut exact, &params(1e-8, true, SCREENING), Method::Auto)
+            .unwrap();
+        move |v: &[f32]| {
+            v.iter()
+                .zip(&exact)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max)
+        }
+    }
+
     /// The property the explorer relies on: a re-solve confined to boxes around the scan
     /// leaves the whole grid at the tolerance a whole-grid solve stops at, as close to the exact
     /// field as that solve, for a fraction of its work.
@@ -655,17 +675,7 @@ mod tests {
             .multigrid(dims)
             .solve(&after, &mut whole, &params(1e-5, true, SCREENING), Method::Auto)
             .unwrap();
-        let mut exact = old.clone();
-        storage
-            .multigrid(dims)
-            .solve(&after, &mut exact, &params(1e-8, true, SCREENING), Method::Auto)
-            .unwrap();
-        let worst = |v: &[f32]| {
-            v.iter()
-                .zip(&exact)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0f32, f32::max)
-        };
+        let worst = off_the_tight_solve(&mut storage, dims, &after, &old);
         assert!(
             worst(&local) <= 2e-5,
             "local {} whole {}",
@@ -756,17 +766,7 @@ mod tests {
         let w = flat
             .solve(&after, &mut whole, &params(1e-5, true, SCREENING))
             .unwrap();
-        let mut exact = old.clone();
-        storage
-            .multigrid(dims)
-            .solve(&after, &mut exact, &params(1e-8, true, SCREENING), Method::Auto)
-            .unwrap();
-        let worst = |v: &[f32]| {
-            v.iter()
-                .zip(&exact)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0f32, f32::max)
-        };
+        let worst = off_the_tight_solve(&mut storage, dims, &after, &old);
         assert!(
             worst(&local) <= 2e-5 && worst(&whole) <= 2e-5,
             "local {} whole {}",

@@ -595,6 +595,36 @@ fn residual_rows<const MASKS: bool>(
     Residual::from_sums(r2, e2, max, b2)
 }
 
+/// Visits every cell of the box of half-width `radius` around each of `pins` (clipped to a
+/// grid of `n` cells per axis) forward, then backward: a symmetric Gauss-Seidel sweep when
+/// `update` relaxes the cell it is given. Both multigrid solvers smooth around a point source
+/// with it.
+pub(crate) fn symmetric_box_sweep(
+    pins: &[[usize; 3]],
+    n: [usize; 3],
+    radius: usize,
+    mut update: impl FnMut(usize, usize, usize),
+) {
+    for &[px, py, pz] in pins {
+        let span = |p: usize, n: usize| p.saturating_sub(radius)..(p + radius + 1).min(n);
+        let (xs, ys, zs) = (span(px, n[0]), span(py, n[1]), span(pz, n[2]));
+        for z in zs.clone() {
+            for y in ys.clone() {
+                for x in xs.clone() {
+                    update(x, y, z);
+                }
+            }
+        }
+        for z in zs.clone().rev() {
+            for y in ys.clone().rev() {
+                for x in xs.clone().rev() {
+                    update(x, y, z);
+                }
+            }
+        }
+    }
+}
+
 /// A cell's share of the rounding floor ([`Residual`]) before the factor `ε²/12`: a cell of
 /// value `c` with `n` in-domain neighbours, `Σⱼ ψⱼ² + n²·ψᵢ² ≈ (n + n²)·c²`.
 #[inline(always)]

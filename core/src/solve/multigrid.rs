@@ -1837,28 +1837,7 @@ fn local_smooth(v: &mut View<'_>, pins: &[[usize; 3]]) -> u64 {
         }
         work += 1;
     };
-    for &[px, py, pz] in pins {
-        let lo = |p: usize| p.saturating_sub(LOCAL_RADIUS);
-        let (xs, ys, zs) = (
-            lo(px)..(px + LOCAL_RADIUS + 1).min(nx),
-            lo(py)..(py + LOCAL_RADIUS + 1).min(ny),
-            lo(pz)..(pz + LOCAL_RADIUS + 1).min(nz),
-        );
-        for z in zs.clone() {
-            for y in ys.clone() {
-                for x in xs.clone() {
-                    update(v, x, y, z);
-                }
-            }
-        }
-        for z in zs.clone().rev() {
-            for y in ys.clone().rev() {
-                for x in xs.clone().rev() {
-                    update(v, x, y, z);
-                }
-            }
-        }
-    }
+    super::symmetric_box_sweep(pins, [nx, ny, nz], LOCAL_RADIUS, |x, y, z| update(v, x, y, z));
     work
 }
 
