@@ -1163,7 +1163,18 @@ fn interior_counts(grids: &[Grid], store: &mut [f32]) -> HVec<u64, MAX_LEVELS> {
 }
 
 /// One V-cycle on level `k` (and below) for `A u = b` from the `u` there. Returns cell updates.
-fn vcycle(fork: Option<&dyn Fork>, grids: &[Grid], store: &mut [f32], k: usize, interior: &[u64]) -> u64 {
+///
+/// `Start::Zero` stands for `u = 0` without its having been written: the first sweep from 0
+/// reads only `b` (its neighbour sum is 0) and writes `u` in place, the same values as a sweep
+/// of a zeroed `u`.
+fn vcycle(
+    fork: Option<&dyn Fork>,
+    grids: &[Grid],
+    store: &mut [f32],
+    k: usize,
+    interior: &[u64],
+    start: Start,
+) -> u64 {
     // Only the fine level is worth splitting between threads.
     let fk = if k == 0 { fork } else { None };
     let (Some(f), count) = (grids.get(k), interior.get(k).copied().unwrap_or(0)) else {
@@ -1171,21 +1182,21 @@ fn vcycle(fork: Option<&dyn Fork>, grids: &[Grid], store: &mut [f32], k: usize, 
     };
     let Some(c) = grids.get(k + 1) else {
         // Coarsest: smoothing alone.
-        return level_arrays(grids, store, k)
-            .map_or(0, |mut a| smooth_even(fk, f, &mut a, COARSEST_SWEEPS, count));
+        return level_arrays(grids, store, k).map_or(0, |mut a| {
+            pre_smooth(fk, f, &mut a, COARSEST_SWEEPS, count, start)
+        });
     };
     let mut work = 0;
     {
         let Some((mut fa, ca, t1, t2)) = two_levels(grids, store, k) else {
             return work;
         };
-        work += smooth_even(fk, f, &mut fa, SWEEPS, count);
+        work += pre_smooth(fk, f, &mut fa, SWEEPS, count, start);
         residual_for_restriction(fk, f, &mut fa);
         restrict(f, fa.r, c, ca.kind, ca.b, t1, t2);
-        ca.u.fill(0.0);
         work += 2 * f.len as u64;
     }
-    work += vcycle(fork, grids, store, k + 1, interior);
+    work += vcycle(fork, grids, store, k + 1, interior, Start::Zero);
     let Some((mut fa, ca, t1, t2)) = two_levels(grids, store, k) else {
         return work;
     };
@@ -1195,6 +1206,38 @@ fn vcycle(fork: Option<&dyn Fork>, grids: &[Grid], store: &mut [f32], k: usize, 
     }
     work += f.len as u64;
     work + smooth_even(fk, f, &mut fa, SWEEPS, count)
+}
+
+/// Where a V-cycle starts from.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Start {
+    /// The level's `u` as it holds.
+    Given,
+    /// `u = 0`, not written yet.
+    Zero,
+}
+
+/// `sweeps` sweeps of [`smooth`] from `start`, the result in the level's own `u`.
+fn pre_smooth(
+    fork: Option<&dyn Fork>,
+    g: &Grid,
+    a: &mut Arrays<'_>,
+    sweeps: u32,
+    interior: u64,
+    start: Start,
+) -> u64 {
+    if start == Start::Given {
+        return smooth_even(fork, g, a, sweeps, interior);
+    }
+    if sweeps == 0 {
+        a.u.fill(0.0);
+        return 0;
+    }
+    // The first sweep from 0: u = ω·inv·b (the neighbour sum is 0), in place.
+    for ((u, b), inv) in a.u.iter_mut().zip(a.b.iter()).zip(a.inv.iter()) {
+        *u = OMEGA * inv * b;
+    }
+    interior + smooth_even(fork, g, a, sweeps - 1, interior)
 }
 
 /// [`smooth`], leaving the result in the level's own `u` whatever the count's parity.
@@ -1256,7 +1299,7 @@ fn full_multigrid(
                 *u = e * w;
             }
         }
-        work += f.len as u64 + vcycle(fork, grids, store, k, interior);
+        work += f.len as u64 + vcycle(fork, grids, store, k, interior, Start::Given);
     }
     if let Some(a) = level_arrays(grids, store, 0) {
         x.copy_from_slice(a.u);
@@ -1278,12 +1321,20 @@ fn precondition(
         return 0;
     };
     let mut work = 0;
+    // From 0; written first only where the smoothing at a source reads it.
+    let start = if pins.is_empty() {
+        Start::Zero
+    } else {
+        Start::Given
+    };
     if let Some(mut a) = level_arrays(grids, store, 0) {
         a.b.copy_from_slice(r);
-        a.u.fill(0.0);
-        work += local_smooth(fine, &mut a, pins);
+        if start == Start::Given {
+            a.u.fill(0.0);
+            work += local_smooth(fine, &mut a, pins);
+        }
     }
-    work += vcycle(fork, grids, store, 0, interior);
+    work += vcycle(fork, grids, store, 0, interior, start);
     if let Some(mut a) = level_arrays(grids, store, 0) {
         work += local_smooth(fine, &mut a, pins);
     }
@@ -1698,12 +1749,12 @@ mod timing {
         let fmg_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let t = Instant::now();
         for _ in 0..reps {
-            vcycle(None, &grids, store, 0, &interior);
+            vcycle(None, &grids, store, 0, &interior, Start::Given);
         }
         let v_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let t = Instant::now();
         for _ in 0..reps {
-            vcycle(None, &grids, store, 1, &interior);
+            vcycle(None, &grids, store, 1, &interior, Start::Given);
         }
         let v1_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let g = grids[0];
