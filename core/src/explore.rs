@@ -64,7 +64,7 @@ use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 use crate::solve::flat::Flat;
-use crate::solve::local::{resolve_near, Local, LocalParams, LocalScratch, WithMethod};
+use crate::solve::local::{resolve_near, BoxSolver, Local, LocalParams, LocalScratch, WithMethod};
 use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
 use crate::streamline::{self, Field, StreamlineEnd, StreamlineError, StreamlineParams, Waypoints};
@@ -587,6 +587,32 @@ pub fn check_frame_timing(
     };
     errors.frames_rejected = errors.frames_rejected.saturating_add(1);
     Err(error)
+}
+
+/// A re-solve in boxes around what changed ([`resolve_near`]) with the explorer's box scratch,
+/// counted in its status.
+struct Boxes<'b> {
+    local: LocalParams,
+    scratch: LocalScratch<'b>,
+    status: &'b mut Status,
+}
+
+impl Boxes<'_> {
+    fn solve(
+        self,
+        solver: &mut impl BoxSolver,
+        labels: &[Label],
+        phi: &mut [f32],
+        params: &SolveParams,
+    ) -> Result<SolveStats, SolveError> {
+        let solved = resolve_near(solver, labels, phi, params, &self.local, self.scratch);
+        match &solved {
+            Ok(Local::Solved(_)) => self.status.local_solves += 1,
+            Ok(Local::Whole(_)) => self.status.local_given_up += 1,
+            Err(_) => {}
+        }
+        solved.map(|how| how.stats())
+    }
 }
 
 /// The exploration core.
@@ -1238,57 +1264,31 @@ impl<'a> Explorer<'a> {
         self.solved_screening = None;
         // A re-solve of the same screened field may work in boxes around what changed.
         let local_ok = same_field && params.warm_start && screening > 0.0 && !self.local_labels.is_empty();
+        let (labels, phi) = (&*self.labels, &mut *self.phi);
+        let boxes = Boxes {
+            local: LocalParams::for_screening(screening, tolerance),
+            scratch: LocalScratch {
+                labels: &mut *self.local_labels,
+                psi: &mut *self.local_psi,
+            },
+            status: &mut self.status,
+        };
         let solved = match (self.multigrid.as_mut(), self.config.solver) {
-            (Some(mg), _) if local_ok => {
-                let local = LocalParams::for_screening(screening, tolerance);
-                let scratch = LocalScratch {
-                    labels: &mut *self.local_labels,
-                    psi: &mut *self.local_psi,
-                };
-                let solved = resolve_near(
-                    &mut WithMethod(mg, Method::Auto),
-                    self.labels,
-                    self.phi,
-                    &params,
-                    &local,
-                    scratch,
-                );
-                if let Ok(how) = &solved {
-                    match how {
-                        Local::Solved(_) => self.status.local_solves += 1,
-                        Local::Whole(_) => self.status.local_given_up += 1,
-                    }
-                }
-                solved.map(|how| how.stats())
-            }
-            (Some(mg), _) => mg.solve(self.labels, self.phi, &params, Method::Auto),
+            (Some(mg), _) if local_ok => boxes.solve(&mut WithMethod(mg, Method::Auto), labels, phi, &params),
+            (Some(mg), _) => mg.solve(labels, phi, &params, Method::Auto),
             (None, SolverKind::Flat) => match self.flat.as_mut() {
-                Some(flat) if local_ok => {
-                    let local = LocalParams::for_screening(screening, tolerance);
-                    let scratch = LocalScratch {
-                        labels: &mut *self.local_labels,
-                        psi: &mut *self.local_psi,
-                    };
-                    let solved = resolve_near(flat, self.labels, self.phi, &params, &local, scratch);
-                    if let Ok(how) = &solved {
-                        match how {
-                            Local::Solved(_) => self.status.local_solves += 1,
-                            Local::Whole(_) => self.status.local_given_up += 1,
-                        }
-                    }
-                    solved.map(|how| how.stats())
-                }
-                Some(flat) => flat.solve(self.labels, self.phi, &params),
+                Some(flat) if local_ok => boxes.solve(flat, labels, phi, &params),
+                Some(flat) => flat.solve(labels, phi, &params),
                 None => Err(SolveError::ScratchTooSmall),
             },
             (None, SolverKind::ThesisJacobi) => solve::thesis::solve(
                 &dims,
-                self.labels,
-                self.phi,
+                labels,
+                phi,
                 self.jacobi,
                 &solve::thesis::ThesisParams::default(),
             ),
-            (None, _) => solve::gauss_seidel(&dims, self.labels, self.phi, &params),
+            (None, _) => solve::gauss_seidel(&dims, labels, phi, &params),
         };
         if solved.is_ok() {
             self.solved_screening = Some(screening);

@@ -39,6 +39,7 @@
 
 use heapless::Vec as HVec;
 
+use super::multigrid::{source_pins, LOCAL_RADIUS, MAX_RESTARTS};
 use super::{
     checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, Contraction, Dirichlet, Fork,
     Residual, Screen, SolveError, SolveParams, SolveStats,
@@ -56,8 +57,6 @@ const OMEGA: f32 = 6.0 / 7.0;
 const COARSEST_SWEEPS: u32 = 64;
 /// Most levels, the fine one included.
 const MAX_LEVELS: usize = 12;
-/// Most source voxels given local smoothing.
-const MAX_PINS: usize = 64;
 /// A level is coarsened again while every axis holds more than this many cells.
 const MIN_COARSE: usize = 4;
 /// Least conductance of a coarse face with any open child face (see [`super::multigrid`]).
@@ -65,9 +64,6 @@ const MIN_OPEN_FACE: f32 = 0.5;
 /// A conjugate-gradient pass stops once its recursive residual is this share of the target
 /// (the true residual decides after it).
 const STOP_SHARE: f32 = 0.9;
-/// Restarts of conjugate gradients on the true residual (defect correction), as
-/// [`super::multigrid`].
-const MAX_RESTARTS: u32 = 6;
 /// `kind` values: the [`Label`] codes outside (0), interior (1), frontier (2) and source (3);
 /// the Dirichlet kinds are the last two, coarse Dirichlet cells take the frontier's.
 const OUT: f32 = 0.0;
@@ -151,17 +147,7 @@ fn grids(fine: &Dims) -> HVec<Grid, MAX_LEVELS> {
 /// `f32` values [`Flat::new`] needs for a fine grid of `fine`.
 pub fn flat_scratch_len(fine: &Dims) -> usize {
     let gs = grids(fine);
-    let mut total = 0;
-    let mut prev: Option<&Grid> = None;
-    for g in gs.iter() {
-        total += LEVEL_ARRAYS * g.len;
-        if let Some(f) = prev {
-            let (a, b) = g.transfer_len(f);
-            total += a + b;
-        }
-        prev = Some(g);
-    }
-    total + gs.first().map_or(0, |g| KRYLOV_ARRAYS * g.len)
+    level_blocks(&gs).iter().sum::<usize>() + gs.first().map_or(0, |g| KRYLOV_ARRAYS * g.len)
 }
 
 /// One level's arrays, carved out of the storage.
@@ -368,13 +354,14 @@ impl<'a> Flat<'a> {
         let interior = interior_counts(&grids, levels_store);
         let pins = source_pins(&self.fine, labels);
         let b2 = sum_sq(kr.rhs);
-        for v in [&mut *kr.x, &mut *kr.r, &mut *kr.p, &mut *kr.q] {
-            v.fill(0.0);
-        }
+        // Every pass writes what it reads later (the padding stays zero, see `build`); only the
+        // iterate needs a value here.
         if params.warm_start {
             load(&fine, labels, psi, kr.x);
         } else if b2 > 0.0 {
             stats.cell_updates += full_multigrid(fork, &grids, levels_store, kr.rhs, kr.x, &interior);
+        } else {
+            kr.x.fill(0.0);
         }
         let shift = screen.shift;
         let residual = |store: &mut [f32], kr: &mut Krylov<'_>| {
@@ -388,10 +375,13 @@ impl<'a> Flat<'a> {
         let mut steps = Contraction::default();
         let b_norm = libm::sqrt(b2);
         if b_norm > 0.0 {
-            for pass in 0..MAX_RESTARTS {
-                if pass > 0 {
+            // Whether `res` is the true residual of the iterate as it stands.
+            let mut current = true;
+            for _ in 0..MAX_RESTARTS {
+                if !current {
                     res = residual(levels_store, &mut kr);
                     stats.cell_updates += fine.len as u64;
+                    current = true;
                 }
                 let error_ok = error_met(error_estimate(&steps, &res, &screen), params.max_error);
                 if res.meets(params.tolerance) && error_ok || stats.iterations >= params.max_iterations {
@@ -399,6 +389,7 @@ impl<'a> Flat<'a> {
                 }
                 let target = params.tolerance.max(res.floor);
                 let start = res.relative;
+                current = false;
                 stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins);
                 let Some(level0) = level_arrays(&grids, levels_store, 0) else {
                     break;
@@ -453,8 +444,11 @@ impl<'a> Flat<'a> {
                     });
                 }
             }
-            res = residual(levels_store, &mut kr);
-            stats.cell_updates += fine.len as u64;
+            // Report the true residual, not the recurrence's.
+            if !current {
+                res = residual(levels_store, &mut kr);
+                stats.cell_updates += fine.len as u64;
+            }
         }
         store(&fine, labels, kr.x, psi);
         clamp_to_bounds(labels, psi);
@@ -543,13 +537,19 @@ fn build(
         build_fine(fine, problem, &mut a, rhs, shift)?;
         work += fine.len as u64;
     }
-    let mut scale = 1.0f32;
     for k in 0..grids.len().saturating_sub(1) {
-        scale *= 4.0;
         let (f, c) = (grids.get(k)?, grids.get(k + 1)?);
         let (fa, mut ca, t1, t2) = two_levels(grids, store, k)?;
         coarsen(f, &fa, c, ca.kind, &mut ca.w, ca.sink);
-        finish(c, ca.kind, &ca.w, ca.sink, ca.diag, ca.inv, shift * scale);
+        finish(
+            c,
+            ca.kind,
+            &ca.w,
+            ca.sink,
+            ca.diag,
+            ca.inv,
+            Screen::new(shift).coarser(k + 1).shift,
+        );
         // den: the coarse "not outside" mask interpolated onto the fine interior cells.
         for (m, k) in ca.tmp.iter_mut().zip(ca.kind.iter()) {
             *m = f32::from(*k != OUT);
@@ -1134,23 +1134,6 @@ fn restrict(f: &Grid, rn: &[f32], c: &Grid, ckind: &[f32], cb: &mut [f32], t1: &
     }
 }
 
-/// The source voxels (Dirichlet ψ = 0; none in the screened field), the first [`MAX_PINS`].
-fn source_pins(dims: &Dims, labels: &[Label]) -> HVec<[usize; 3], MAX_PINS> {
-    let mut pins = HVec::new();
-    for (i, l) in labels.iter().enumerate() {
-        if *l == Label::Source {
-            let v = dims.voxel(i);
-            if pins
-                .push([usize::from(v.x), usize::from(v.y), usize::from(v.z)])
-                .is_err()
-            {
-                break;
-            }
-        }
-    }
-    pins
-}
-
 /// Interior cells of each level, for the work count.
 fn interior_counts(grids: &[Grid], store: &mut [f32]) -> HVec<u64, MAX_LEVELS> {
     let mut out = HVec::new();
@@ -1340,9 +1323,6 @@ fn precondition(
     }
     work
 }
-
-/// Half-width of the box around each source voxel that gets extra smoothing.
-const LOCAL_RADIUS: usize = 3;
 
 /// Symmetric Gauss-Seidel (forward, then backward) over a small box around each source voxel of
 /// the fine level, before and after each V-cycle of the preconditioner, as

@@ -74,9 +74,9 @@ pub const MAX_LEVELS: usize = 12;
 const PRE_SWEEPS: u32 = 3;
 const POST_SWEEPS: u32 = 3;
 /// Most CG restarts from the true residual (defect-correction passes) per solve.
-const MAX_RESTARTS: u32 = 6;
+pub(crate) const MAX_RESTARTS: u32 = 6;
 /// Source voxels that pin the coarse potentials of a full-multigrid start.
-const MAX_PINS: usize = 64;
+pub(crate) const MAX_PINS: usize = 64;
 /// A V-cycle solve whose residual grows past this multiple of its start is reported diverged.
 const DIVERGED: f32 = 1e3;
 /// Plain V-cycles that reach the f32 rounding floor (but not the tolerance) keep cycling until
@@ -607,19 +607,7 @@ impl<'a> Multigrid<'a> {
     /// Coarse labels and face conductances from the fine labels. Returns cells touched.
     fn build_labels(&mut self, fine_labels: &[Label]) -> u64 {
         let mut work = 0u64;
-        self.pins.clear();
-        for (i, l) in fine_labels.iter().enumerate() {
-            if *l == Label::Source {
-                let v = self.fine.voxel(i);
-                if self
-                    .pins
-                    .push([usize::from(v.x), usize::from(v.y), usize::from(v.z)])
-                    .is_err()
-                {
-                    break;
-                }
-            }
-        }
+        self.pins = source_pins(&self.fine, fine_labels);
         let mut prev_dims = self.fine;
         let mut prev_offset: Option<usize> = None;
         for level in self.levels.iter_mut() {
@@ -1788,8 +1776,26 @@ fn interpolate_planes<T: Stored, U: Stored>(
     largest
 }
 
+/// The source voxels of `labels` (Dirichlet ψ = 0; none in the screened field), the first
+/// [`MAX_PINS`]: where both multigrid solvers smooth locally.
+pub(crate) fn source_pins(dims: &Dims, labels: &[Label]) -> HVec<[usize; 3], MAX_PINS> {
+    let mut pins = HVec::new();
+    for (i, l) in labels.iter().enumerate() {
+        if *l == Label::Source {
+            let v = dims.voxel(i);
+            if pins
+                .push([usize::from(v.x), usize::from(v.y), usize::from(v.z)])
+                .is_err()
+            {
+                break;
+            }
+        }
+    }
+    pins
+}
+
 /// Half-width of the box around each source voxel that gets extra smoothing.
-const LOCAL_RADIUS: usize = 3;
+pub(crate) const LOCAL_RADIUS: usize = 3;
 
 /// Symmetric Gauss-Seidel sweeps (forward, then backward) over a small box around each source
 /// voxel of the fine level. A single-voxel Dirichlet source is invisible to the coarse levels

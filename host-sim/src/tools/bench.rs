@@ -14,7 +14,7 @@ use std::time::Instant;
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
-use harmonic_core::solve::local::{resolve_near, Local, LocalParams, LocalScratch, WithMethod};
+use harmonic_core::solve::local::{resolve_near, BoxSolver, Local, LocalParams, LocalScratch, WithMethod};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{gauss_seidel, Fork, SolveParams, SolveStats};
 use serde::Serialize;
@@ -164,6 +164,24 @@ impl LocalBoxes {
     }
 }
 
+/// `solver`'s re-solve of `labels` in boxes around the change ([`resolve_near`], warm from
+/// `psi`), and what it took.
+fn in_boxes(
+    solver: &mut impl BoxSolver,
+    labels: &[Label],
+    psi: &mut [f32],
+    params: &SolveParams,
+    (box_labels, box_psi): (&mut [Label], &mut [f32]),
+) -> (SolveStats, Option<LocalBoxes>) {
+    let local = LocalParams::for_screening(params.screening, params.tolerance);
+    let scratch = LocalScratch {
+        labels: box_labels,
+        psi: box_psi,
+    };
+    let how = resolve_near(solver, labels, psi, params, &local, scratch).expect("valid problem");
+    (how.stats(), Some(LocalBoxes::of(&how, solver.grid().len())))
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]
@@ -259,21 +277,13 @@ pub fn measure(
                         None,
                     );
                 }
-                let local = LocalParams::for_screening(screening, tolerance);
-                let scratch = LocalScratch {
-                    labels: &mut box_labels,
-                    psi: &mut box_psi,
-                };
-                let how = resolve_near(
+                in_boxes(
                     &mut WithMethod(&mut mg, method),
                     labels,
                     psi,
                     &params,
-                    &local,
-                    scratch,
+                    (&mut box_labels, &mut box_psi),
                 )
-                .expect("valid problem");
-                (how.stats(), Some(LocalBoxes::of(&how, dims.len())))
             }
             BenchSolver::Flat => {
                 let _ = fmg;
@@ -281,13 +291,7 @@ pub fn measure(
                 if !boxes {
                     return (flat.solve(labels, psi, &params).expect("valid problem"), None);
                 }
-                let local = LocalParams::for_screening(screening, tolerance);
-                let scratch = LocalScratch {
-                    labels: &mut box_labels,
-                    psi: &mut box_psi,
-                };
-                let how = resolve_near(flat, labels, psi, &params, &local, scratch).expect("valid problem");
-                (how.stats(), Some(LocalBoxes::of(&how, dims.len())))
+                in_boxes(flat, labels, psi, &params, (&mut box_labels, &mut box_psi))
             }
             BenchSolver::GaussSeidel => (
                 gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),
