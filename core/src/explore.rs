@@ -63,6 +63,7 @@ use crate::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening}
 use crate::field::{self, PlanningField};
 use crate::integrate::{self, IntegrateError, IntegrationParams, IntegrationStats};
 use crate::map::{LogOddsParams, MapCounts, MapError, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+#[cfg(feature = "flat")]
 use crate::solve::flat::Flat;
 use crate::solve::local::{resolve_near, BoxSolver, Local, LocalParams, LocalScratch, WithMethod};
 use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
@@ -78,7 +79,9 @@ pub enum SolverKind {
     /// The host's flat multigrid ([`crate::solve::flat`]): MGPCG, warm from the last field, in
     /// [`ExplorerStorage::flat`] (at least [`crate::solve::flat::flat_scratch_len`] values;
     /// refused at construction without them); re-solves go to boxes around what changed as the
-    /// multigrid's do, where the box scratch is lent.
+    /// multigrid's do, where the box scratch is lent. Only with the `flat` feature (on by
+    /// default; the firmware leaves it off, which keeps the solver out of its flash).
+    #[cfg(feature = "flat")]
     Flat,
     /// Lexicographic Gauss-Seidel, the seed paper's solver (reference and baseline).
     GaussSeidel,
@@ -314,7 +317,8 @@ pub struct ExplorerStorage<'a> {
     pub local_labels: &'a mut [Label],
     /// Values of that box (as many as `local_labels`).
     pub local_psi: &'a mut [f32],
-    /// The flat solver's storage ([`SolverKind::Flat`] only; otherwise it may be empty).
+    /// The flat solver's storage (`SolverKind::Flat` only, with the `flat` feature; otherwise
+    /// it may be empty and is not used).
     pub flat: &'a mut [f32],
 }
 
@@ -625,6 +629,7 @@ pub struct Explorer<'a> {
     queue: &'a mut [u32],
     multigrid: Option<Multigrid<'a>>,
     /// The flat solver ([`SolverKind::Flat`] only).
+    #[cfg(feature = "flat")]
     flat: Option<Flat<'a>>,
     /// The thesis's Jacobi scratch (empty unless [`SolverKind::ThesisJacobi`]).
     jacobi: &'a mut [f32],
@@ -702,7 +707,9 @@ impl<'a> Explorer<'a> {
                 )
                 .map_err(ConfigError::Solver)?,
             ),
-            SolverKind::GaussSeidel | SolverKind::Flat => None,
+            SolverKind::GaussSeidel => None,
+            #[cfg(feature = "flat")]
+            SolverKind::Flat => None,
             SolverKind::ThesisJacobi => {
                 if jacobi.len() < n {
                     return Err(ConfigError::StorageTooSmall);
@@ -718,10 +725,13 @@ impl<'a> Explorer<'a> {
             SolverKind::ThesisJacobi => jacobi.get_mut(..n).unwrap_or_default(),
             _ => &mut [],
         };
+        #[cfg(feature = "flat")]
         let flat = match config.solver {
             SolverKind::Flat => Some(Flat::new(geometry.dims(), flat).map_err(ConfigError::Solver)?),
             _ => None,
         };
+        #[cfg(not(feature = "flat"))]
+        let _ = flat;
         let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
             .map_err(ConfigError::Map)?
             .with_surface(surface);
@@ -740,6 +750,7 @@ impl<'a> Explorer<'a> {
             phi,
             queue,
             multigrid,
+            #[cfg(feature = "flat")]
             flat,
             jacobi,
             local_labels,
@@ -1276,6 +1287,7 @@ impl<'a> Explorer<'a> {
         let solved = match (self.multigrid.as_mut(), self.config.solver) {
             (Some(mg), _) if local_ok => boxes.solve(&mut WithMethod(mg, Method::Auto), labels, phi, &params),
             (Some(mg), _) => mg.solve(labels, phi, &params, Method::Auto),
+            #[cfg(feature = "flat")]
             (None, SolverKind::Flat) => match self.flat.as_mut() {
                 Some(flat) if local_ok => boxes.solve(flat, labels, phi, &params),
                 Some(flat) => flat.solve(labels, phi, &params),

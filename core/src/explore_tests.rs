@@ -1029,6 +1029,7 @@ fn a_re_solve_after_a_scan_works_in_a_box_around_it() {
 
 /// [`SolverKind::Flat`] plans on the field the multigrid solves (to within the solve's
 /// accuracy), cold and after a scan; without its storage the explorer is refused.
+#[cfg(feature = "flat")]
 #[test]
 fn the_flat_solver_solves_the_field_multigrid_does() {
     let dims = Dims::new(96, 24, 12).unwrap();

@@ -319,6 +319,7 @@ fn bfloat16_coarse_levels_converge_like_f32_ones() {
 /// The host's flat solver ([`harmonic_core::solve::flat`]) on the same rooms: converged at
 /// 1e-6, within 5e-5 of the f64 solution for Laplace's equation, which it solves to its f32
 /// rounding floor (the bar is 1e-4), and within 2e-5 for the screened field.
+#[cfg(feature = "flat")]
 #[test]
 fn the_flat_solver_matches_the_f64_solution_on_rooms_with_a_small_far_frontier() {
     use harmonic_core::solve::flat::{flat_scratch_len, Flat};

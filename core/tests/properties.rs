@@ -20,6 +20,7 @@ use std::fmt;
 use harmonic_core::domain::{self, DomainError, DomainStats, InflationStencil, Label};
 use harmonic_core::integrate::traverse;
 use harmonic_core::map::{self, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
+#[cfg(feature = "flat")]
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
 use harmonic_core::solve::{
@@ -338,6 +339,7 @@ fn solve_mg_lent(
 
 /// `b` solved by the flat solver ([`harmonic_core::solve::flat`], the host's fast MGPCG) from
 /// ψ = 0, with a [`Fork`] or not.
+#[cfg(feature = "flat")]
 fn solve_flat(b: &Built, tolerance: f32, screening: f32, fork: Option<&dyn Fork>) -> (Vec<f32>, SolveStats) {
     let dims = b.dims();
     let mut values = vec![0.0f32; flat_scratch_len(&dims)];
@@ -362,6 +364,7 @@ proptest! {
 
     /// **The flat solver's threads change nothing but the speed** either: the same bits,
     /// iterations and cell updates with two threads, the split without threads, and none.
+    #[cfg(feature = "flat")]
     #[test]
     fn a_fork_gives_the_flat_solver_the_same_bits(w in prop_oneof![scattered_world(20..=30, 12..=18), box_world_in(20..=32, 12..=18, 12)]) {
         let b = build_with_frontier(&w)?;
@@ -719,6 +722,7 @@ proptest! {
     /// **The flat solver computes the same exact discrete potential:** converged at 1e-6, its
     /// ψ is within 1e-4 of the f64 solution (Laplace's equation, the bound the multigrid test
     /// above holds MGPCG to) and within 5e-5 for the screened field.
+    #[cfg(feature = "flat")]
     #[test]
     fn the_flat_solver_matches_the_exact_discrete_solution(w in world()) {
         let b = build_with_frontier(&w)?;

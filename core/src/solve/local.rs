@@ -23,6 +23,7 @@
 //! Laplace's equation (no screening) changes everywhere when anything does, so it always
 //! goes to the whole grid.
 
+#[cfg(feature = "flat")]
 use super::flat::Flat;
 use super::multigrid::{Method, Multigrid};
 use super::{
@@ -335,6 +336,7 @@ impl BoxSolver for WithMethod<'_, '_> {
     }
 }
 
+#[cfg(feature = "flat")]
 impl BoxSolver for Flat<'_> {
     fn grid(&self) -> Dims {
         self.fine_dims()
@@ -732,6 +734,7 @@ mod tests {
     /// The host's flat solver in the same boxes: the whole grid at its tolerance, as close to
     /// the exact field as the multigrid's boxes, for less work than its own whole-grid
     /// re-solve; laid out for the whole grid again afterwards, whose next solve is unchanged.
+    #[cfg(feature = "flat")]
     #[test]
     fn the_flat_solver_re_solves_a_scan_in_boxes() {
         use crate::solve::flat::{flat_scratch_len, Flat};

@@ -30,6 +30,7 @@ use core::cell::Cell;
 use crate::domain::Label;
 use crate::map::Dims;
 
+#[cfg(feature = "flat")]
 pub mod flat;
 pub mod local;
 pub mod multigrid;
