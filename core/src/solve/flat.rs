@@ -18,8 +18,10 @@
 //!
 //! **Smoother.** Damped Jacobi (ω = 6/7), [`SWEEPS`] sweeps before and after the coarse
 //! correction: a sweep reads the previous iterate only, so it needs no colouring and runs as one
-//! loop per plane. Pre- and post-smoothing are the same operator, so the V-cycle is a symmetric
-//! preconditioner for conjugate gradients (MGPCG, as [`super::multigrid`]).
+//! loop per plane. Pre- and post-smoothing are the same operator, so the cycle is a symmetric
+//! preconditioner for conjugate gradients (MGPCG, as [`super::multigrid`]): a V-cycle for the
+//! screened field, a W-cycle (each coarse level solved twice) for Laplace's equation, whose
+//! nearly singular coarse levels one visit leaves far from solved ([`Cycle`]).
 //!
 //! **Coarse levels** follow [`super::multigrid`]'s rules: a coarse cell is interior if any child
 //! is, else Dirichlet if any child is, else outside; a coarse face's conductance is the mean of
@@ -31,7 +33,7 @@
 //!
 //! **Cold solves** start with full multigrid: the right-hand side restricted down the levels,
 //! the coarsest level smoothed to convergence, and each finer level started from the coarser
-//! solution interpolated and given one V-cycle.
+//! solution interpolated and given one cycle.
 //!
 //! **Memory** ([`flat_scratch_len`]): about 26 `f32` per voxel (64 × 64 × 32: 3.37 million,
 //! 12.9 MiB), against about 5 bytes per voxel for [`super::multigrid`], which the firmware
@@ -353,13 +355,14 @@ impl<'a> Flat<'a> {
             .ok_or(SolveError::ScratchTooSmall)?;
         let interior = interior_counts(&grids, levels_store);
         let pins = source_pins(&self.fine, labels);
+        let cycle = if screen.shift > 0.0 { Cycle::V } else { Cycle::W };
         let b2 = sum_sq(kr.rhs);
         // Every pass writes what it reads later (the padding stays zero, see `build`); only the
         // iterate needs a value here.
         if params.warm_start {
             load(&fine, labels, psi, kr.x);
         } else if b2 > 0.0 {
-            stats.cell_updates += full_multigrid(fork, &grids, levels_store, kr.rhs, kr.x, &interior);
+            stats.cell_updates += full_multigrid(fork, &grids, levels_store, kr.rhs, kr.x, &interior, cycle);
         } else {
             kr.x.fill(0.0);
         }
@@ -390,7 +393,7 @@ impl<'a> Flat<'a> {
                 let target = params.tolerance.max(res.floor);
                 let start = res.relative;
                 current = false;
-                stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins);
+                stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins, cycle);
                 let Some(level0) = level_arrays(&grids, levels_store, 0) else {
                     break;
                 };
@@ -426,7 +429,8 @@ impl<'a> Flat<'a> {
                     if recursive <= target * STOP_SHARE || recursive <= start * 1e-3 {
                         break;
                     }
-                    stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins);
+                    stats.cell_updates +=
+                        precondition(fork, &grids, levels_store, kr.r, &interior, &pins, cycle);
                     let Some(level0) = level_arrays(&grids, levels_store, 0) else {
                         break;
                     };
@@ -1145,7 +1149,8 @@ fn interior_counts(grids: &[Grid], store: &mut [f32]) -> HVec<u64, MAX_LEVELS> {
     out
 }
 
-/// One V-cycle on level `k` (and below) for `A u = b` from the `u` there. Returns cell updates.
+/// One V- or W-cycle on level `k` (and below) for `A u = b` from the `u` there. Returns cell
+/// updates.
 ///
 /// `Start::Zero` stands for `u = 0` without its having been written: the first sweep from 0
 /// reads only `b` (its neighbour sum is 0) and writes `u` in place, the same values as a sweep
@@ -1157,6 +1162,7 @@ fn vcycle(
     k: usize,
     interior: &[u64],
     start: Start,
+    cycle: Cycle,
 ) -> u64 {
     // Only the fine level is worth splitting between threads.
     let fk = if k == 0 { fork } else { None };
@@ -1179,7 +1185,10 @@ fn vcycle(
         restrict(f, fa.r, c, ca.kind, ca.b, t1, t2);
         work += 2 * f.len as u64;
     }
-    work += vcycle(fork, grids, store, k + 1, interior, Start::Zero);
+    work += vcycle(fork, grids, store, k + 1, interior, Start::Zero, cycle);
+    if cycle == Cycle::W {
+        work += vcycle(fork, grids, store, k + 1, interior, Start::Given, cycle);
+    }
     let Some((mut fa, ca, t1, t2)) = two_levels(grids, store, k) else {
         return work;
     };
@@ -1191,7 +1200,21 @@ fn vcycle(
     work + smooth_even(fk, f, &mut fa, SWEEPS, count)
 }
 
-/// Where a V-cycle starts from.
+/// How often a cycle solves on the next coarser level: once (a V-cycle) or twice (a W-cycle).
+///
+/// Laplace's equation on a map with long walls and a small frontier is nearly singular, and
+/// one V-cycle leaves each coarse level's problem far from solved: on the houses of
+/// `scripts/pyamg_compare.py` (64³ and 96³, 100 frontier voxels) MGPCG took 25–31 steps with
+/// V-cycles and 15–19 with W-cycles, close to the 16–21 of an exactly solved second level. The
+/// screened field's coarse levels carry a shift that grows fourfold per level, and a V-cycle
+/// solves them well enough: W-cycles there gave the same step counts for a fifth more work.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Cycle {
+    V,
+    W,
+}
+
+/// Where a cycle starts from.
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum Start {
     /// The level's `u` as it holds.
@@ -1235,7 +1258,7 @@ fn smooth_even(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>, sweeps: u3
 }
 
 /// Full multigrid for `A x = rhs` from nothing: `rhs` restricted down the levels, the coarsest
-/// smoothed, each finer level started from the one below and given a V-cycle.
+/// smoothed, each finer level started from the one below and given a cycle.
 fn full_multigrid(
     fork: Option<&dyn Fork>,
     grids: &[Grid],
@@ -1243,6 +1266,7 @@ fn full_multigrid(
     rhs: &[f32],
     x: &mut [f32],
     interior: &[u64],
+    cycle: Cycle,
 ) -> u64 {
     let mut work = 0u64;
     if let Some(a) = level_arrays(grids, store, 0) {
@@ -1282,7 +1306,7 @@ fn full_multigrid(
                 *u = e * w;
             }
         }
-        work += f.len as u64 + vcycle(fork, grids, store, k, interior, Start::Given);
+        work += f.len as u64 + vcycle(fork, grids, store, k, interior, Start::Given, cycle);
     }
     if let Some(a) = level_arrays(grids, store, 0) {
         x.copy_from_slice(a.u);
@@ -1290,7 +1314,7 @@ fn full_multigrid(
     work
 }
 
-/// `z = M⁻¹ r`: one V-cycle from 0 with `r` as the fine right-hand side; `z` is left in the
+/// `z = M⁻¹ r`: one cycle from 0 with `r` as the fine right-hand side; `z` is left in the
 /// fine level's `u`. Returns cell updates.
 fn precondition(
     fork: Option<&dyn Fork>,
@@ -1299,6 +1323,7 @@ fn precondition(
     r: &[f32],
     interior: &[u64],
     pins: &[[usize; 3]],
+    cycle: Cycle,
 ) -> u64 {
     let Some(fine) = grids.first() else {
         return 0;
@@ -1317,7 +1342,7 @@ fn precondition(
             work += local_smooth(fine, &mut a, pins);
         }
     }
-    work += vcycle(fork, grids, store, 0, interior, start);
+    work += vcycle(fork, grids, store, 0, interior, start, cycle);
     if let Some(mut a) = level_arrays(grids, store, 0) {
         work += local_smooth(fine, &mut a, pins);
     }
@@ -1724,17 +1749,17 @@ mod timing {
         let count_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let t = Instant::now();
         for _ in 0..reps {
-            full_multigrid(None, &grids, store, kr.rhs, kr.x, &interior);
+            full_multigrid(None, &grids, store, kr.rhs, kr.x, &interior, Cycle::V);
         }
         let fmg_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let t = Instant::now();
         for _ in 0..reps {
-            vcycle(None, &grids, store, 0, &interior, Start::Given);
+            vcycle(None, &grids, store, 0, &interior, Start::Given, Cycle::V);
         }
         let v_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let t = Instant::now();
         for _ in 0..reps {
-            vcycle(None, &grids, store, 1, &interior, Start::Given);
+            vcycle(None, &grids, store, 1, &interior, Start::Given, Cycle::V);
         }
         let v1_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let g = grids[0];
