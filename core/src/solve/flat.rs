@@ -28,8 +28,9 @@
 //! the (up to four) child faces between interior children, at least ½ where any is open; a
 //! coarse cell's *sink* (its conductance to Dirichlet cells, whose correction is 0) is half the
 //! sum of its interior children's sinks; the screening grows fourfold per level. The transfers
-//! are trilinear interpolation renormalised over the coarse cells that are not outside, and
-//! half its transpose for the restriction, both done one axis at a time.
+//! are trilinear interpolation renormalised over the coarse cells that are not outside, except
+//! that a fine cell takes nothing from a coarse neighbour behind a wall ([`Transfer`]), and half
+//! its transpose for the restriction, both done one axis at a time.
 //!
 //! **Cold solves** start with full multigrid: the right-hand side restricted down the levels,
 //! the coarsest level smoothed to convergence, and each finer level started from the coarser
@@ -73,7 +74,7 @@ const INTERIOR: f32 = 1.0;
 const FRONTIER: f32 = 2.0;
 
 /// Per-level arrays, in this order, each [`Grid::len`] long.
-const LEVEL_ARRAYS: usize = 12;
+const LEVEL_ARRAYS: usize = 13;
 /// Fine-level arrays for conjugate gradients: right-hand side, solution, residual, direction,
 /// `A·p`.
 const KRYLOV_ARRAYS: usize = 5;
@@ -172,6 +173,9 @@ struct Arrays<'s> {
     w: [&'s mut [f32]; 3],
     /// Cell kind ([`OUT`], [`INTERIOR`], [`FRONTIER`], [`SOURCE`]).
     kind: &'s mut [f32],
+    /// The weight of each cell's other parent along x in the transfers with the next coarser
+    /// level ([`Transfer`]).
+    ox: &'s mut [f32],
     /// Conductance to Dirichlet cells.
     sink: &'s mut [f32],
 }
@@ -195,6 +199,7 @@ impl<'s> Arrays<'s> {
             invden: take()?,
             w: [take()?, take()?, take()?],
             kind: take()?,
+            ox: take()?,
             sink: take()?,
         })
     }
@@ -469,9 +474,10 @@ fn level_blocks(grids: &[Grid]) -> HVec<usize, MAX_LEVELS> {
     let mut out = HVec::new();
     let mut prev: Option<&Grid> = None;
     for g in grids {
+        // The two intermediate grids, and a weight per cell of each.
         let extra = prev.map_or(0, |f| {
             let (a, b) = g.transfer_len(f);
-            a + b
+            2 * (a + b)
         });
         let _ = out.push(LEVEL_ARRAYS * g.len + extra);
         prev = Some(g);
@@ -493,13 +499,28 @@ fn level_arrays<'s>(grids: &[Grid], store: &'s mut [f32], k: usize) -> Option<Ar
     Arrays::carve(level_block(grids, store, k)?, g.len)
 }
 
+/// The transfers between a level and the next coarser one, done one axis at a time through two
+/// intermediate grids: `t1` (coarse x, coarse y, fine z) and `t2` (coarse x, fine y, fine z).
+///
+/// A fine cell takes ¾ of its own parent along each axis and up to ¼ of the other parent (the
+/// coarse neighbour on its side): `oz` (on `t1`'s grid), `oy` (on `t2`'s) and the fine level's
+/// [`Arrays::ox`] hold that weight, ¼ times the share of the face towards the other parent that
+/// no wall closes. Geometric trilinear interpolation would give a cell beside a wall a quarter
+/// of the correction of the room behind it; here it takes none, as operator-dependent
+/// interpolation does. The restriction is the transpose, with the same weights.
+struct Transfer<'s> {
+    t1: &'s mut [f32],
+    t2: &'s mut [f32],
+    oz: &'s mut [f32],
+    oy: &'s mut [f32],
+}
+
 /// Levels `k` and `k + 1`: the second's arrays and its transfer scratch.
-#[allow(clippy::type_complexity)]
 fn two_levels<'s>(
     grids: &[Grid],
     store: &'s mut [f32],
     k: usize,
-) -> Option<(Arrays<'s>, Arrays<'s>, &'s mut [f32], &'s mut [f32])> {
+) -> Option<(Arrays<'s>, Arrays<'s>, Transfer<'s>)> {
     let blocks = level_blocks(grids);
     let start: usize = blocks.iter().take(k).sum();
     let (a_len, b_len) = (*blocks.get(k)?, *blocks.get(k + 1)?);
@@ -507,9 +528,16 @@ fn two_levels<'s>(
     let block = store.get_mut(start..start + a_len + b_len)?;
     let (fine, coarse) = block.split_at_mut(a_len);
     let (carr, scratch) = coarse.split_at_mut_checked(LEVEL_ARRAYS * c.len)?;
-    let (t1_len, _) = c.transfer_len(f);
-    let (t1, t2) = scratch.split_at_mut_checked(t1_len)?;
-    Some((Arrays::carve(fine, f.len)?, Arrays::carve(carr, c.len)?, t1, t2))
+    let (t1_len, t2_len) = c.transfer_len(f);
+    let (t1, rest) = scratch.split_at_mut_checked(t1_len)?;
+    let (t2, rest) = rest.split_at_mut_checked(t2_len)?;
+    let (oz, rest) = rest.split_at_mut_checked(t1_len)?;
+    let oy = rest.get_mut(..t2_len)?;
+    Some((
+        Arrays::carve(fine, f.len)?,
+        Arrays::carve(carr, c.len)?,
+        Transfer { t1, t2, oz, oy },
+    ))
 }
 
 fn carve_krylov(store: &mut [f32], n: usize) -> Option<Krylov<'_>> {
@@ -543,7 +571,7 @@ fn build(
     }
     for k in 0..grids.len().saturating_sub(1) {
         let (f, c) = (grids.get(k)?, grids.get(k + 1)?);
-        let (fa, mut ca, t1, t2) = two_levels(grids, store, k)?;
+        let (fa, mut ca, mut tr) = two_levels(grids, store, k)?;
         coarsen(f, &fa, c, ca.kind, &mut ca.w, ca.sink);
         finish(
             c,
@@ -559,7 +587,8 @@ fn build(
             *m = f32::from(*k != OUT);
         }
         fa.invden.fill(0.0);
-        interpolate(c, ca.tmp, f, fa.invden, t1, t2);
+        transfer_weights(f, fa.kind, fa.ox, c, &mut tr);
+        interpolate(c, ca.tmp, f, fa.invden, fa.ox, &mut tr);
         for (d, inv) in fa.invden.iter_mut().zip(fa.inv.iter()) {
             *d = if *inv > 0.0 && *d > 0.0 { 1.0 / *d } else { 0.0 };
         }
@@ -998,23 +1027,26 @@ fn true_residual(
     Residual::from_sums(r2, e2, max, b2)
 }
 
-/// `out = P v`: `v` on the coarse grid `c` interpolated trilinearly onto the logical cells of
-/// the fine grid `f` (one axis at a time through `t1`, `t2`).
-fn interpolate(c: &Grid, v: &[f32], f: &Grid, out: &mut [f32], t1: &mut [f32], t2: &mut [f32]) {
+/// `out = P v`: `v` on the coarse grid `c` interpolated onto the logical cells of the fine grid
+/// `f`, one axis at a time through the [`Transfer`]'s grids, with its weights (`ox` the fine
+/// level's).
+fn interpolate(c: &Grid, v: &[f32], f: &Grid, out: &mut [f32], ox: &[f32], tr: &mut Transfer<'_>) {
     let (cpx, cplane) = (c.sy, c.sz);
     let fpy = f.n[1] + 2 * PAD;
     // Along z: t1 holds (coarse x, coarse y, fine z).
     for z in 0..f.n[2] {
         let (own, other) = parents(z);
-        let (Some(a), Some(b), Some(dst)) = (
+        let plane = cplane * (z + PAD)..cplane * (z + PAD + 1);
+        let (Some(a), Some(b), Some(w), Some(dst)) = (
             v.get(cplane * own..cplane * (own + 1)),
             v.get(cplane * other..cplane * (other + 1)),
-            t1.get_mut(cplane * (z + PAD)..cplane * (z + PAD + 1)),
+            tr.oz.get(plane.clone()),
+            tr.t1.get_mut(plane),
         ) else {
             continue;
         };
-        for ((d, a), b) in dst.iter_mut().zip(a).zip(b) {
-            *d = 0.75 * a + 0.25 * b;
+        for (((d, a), b), w) in dst.iter_mut().zip(a).zip(b).zip(w) {
+            *d = 0.75 * a + w * b;
         }
     }
     // Along y: t2 holds (coarse x, fine y, fine z).
@@ -1023,40 +1055,108 @@ fn interpolate(c: &Grid, v: &[f32], f: &Grid, out: &mut [f32], t1: &mut [f32], t
         for y in 0..f.n[1] {
             let (own, other) = parents(y);
             let at = cpx * (y + PAD) + cpx * fpy * (z + PAD);
-            let (Some(a), Some(b), Some(dst)) = (
-                t1.get(plane + cpx * own..plane + cpx * (own + 1)),
-                t1.get(plane + cpx * other..plane + cpx * (other + 1)),
-                t2.get_mut(at..at + cpx),
+            let (Some(a), Some(b), Some(w), Some(dst)) = (
+                tr.t1.get(plane + cpx * own..plane + cpx * (own + 1)),
+                tr.t1.get(plane + cpx * other..plane + cpx * (other + 1)),
+                tr.oy.get(at..at + cpx),
+                tr.t2.get_mut(at..at + cpx),
             ) else {
                 continue;
             };
-            for ((d, a), b) in dst.iter_mut().zip(a).zip(b) {
-                *d = 0.75 * a + 0.25 * b;
+            for (((d, a), b), w) in dst.iter_mut().zip(a).zip(b).zip(w) {
+                *d = 0.75 * a + w * b;
             }
         }
     }
-    // Along x, into the fine rows: fine 2X takes ¾ of X and ¼ of X − 1, fine 2X + 1 ¾ of X and
-    // ¼ of X + 1.
+    // Along x, into the fine rows: fine 2X takes ¾ of X and its weight of X − 1, fine 2X + 1
+    // ¾ of X and its weight of X + 1.
     for z in 0..f.n[2] {
         for y in 0..f.n[1] {
             let at = cpx * (y + PAD) + cpx * fpy * (z + PAD);
             let fat = f.at(0, y, z);
-            let (Some(src), Some(dst)) = (t2.get(at + PAD - 1..at + cpx), out.get_mut(fat..fat + f.n[0]))
-            else {
+            let (Some(src), Some(w), Some(dst)) = (
+                tr.t2.get(at + PAD - 1..at + cpx),
+                ox.get(fat..fat + f.n[0]),
+                out.get_mut(fat..fat + f.n[0]),
+            ) else {
                 continue;
             };
-            for (pair, w) in dst.chunks_mut(2).zip(src.windows(3)) {
-                let (lo, mid, hi) = (w.first().copied(), w.get(1).copied(), w.get(2).copied());
+            for ((pair, w), s) in dst.chunks_mut(2).zip(w.chunks(2)).zip(src.windows(3)) {
+                let (lo, mid, hi) = (s.first().copied(), s.get(1).copied(), s.get(2).copied());
                 let (Some(lo), Some(mid), Some(hi)) = (lo, mid, hi) else {
                     continue;
                 };
-                let mut cells = pair.iter_mut();
-                if let Some(e) = cells.next() {
-                    *e = 0.75 * mid + 0.25 * lo;
+                let mut cells = pair.iter_mut().zip(w);
+                if let Some((e, w)) = cells.next() {
+                    *e = 0.75 * mid + w * lo;
                 }
-                if let Some(o) = cells.next() {
-                    *o = 0.75 * mid + 0.25 * hi;
+                if let Some((o, w)) = cells.next() {
+                    *o = 0.75 * mid + w * hi;
                 }
+            }
+        }
+    }
+}
+
+/// The [`Transfer`] weights from the kinds of the fine level `f` (`ox` its own): ¼ of the
+/// share of the faces towards a cell's other parent whose two sides are both in the domain,
+/// over the children the intermediate cell stands for that are in it.
+fn transfer_weights(f: &Grid, kind: &[f32], ox: &mut [f32], c: &Grid, tr: &mut Transfer<'_>) {
+    let in_domain = |i: usize| kind.get(i).is_some_and(|k| *k != OUT);
+    // The face from fine cell `i` towards its other parent along the axis of `stride`, by the
+    // parity of its coordinate there: in the domain on both sides (1) or not (0).
+    let open = |i: usize, coord: usize, stride: usize| {
+        let other = if coord & 1 == 0 {
+            i.wrapping_sub(stride)
+        } else {
+            i + stride
+        };
+        f32::from(in_domain(i) && in_domain(other))
+    };
+    let [nx, ny, nz] = f.n;
+    let (cpx, cplane) = (c.sy, c.sz);
+    let fpy = ny + 2 * PAD;
+    ox.fill(0.0);
+    tr.oy.fill(0.0);
+    tr.oz.fill(0.0);
+    for z in 0..nz {
+        for y in 0..ny {
+            let row = f.at(0, y, z);
+            if let Some(w) = ox.get_mut(row..row + nx) {
+                for (x, w) in w.iter_mut().enumerate() {
+                    *w = 0.25 * open(row + x, x, 1);
+                }
+            }
+            // oy: over the (up to) two fine x under each coarse x.
+            let at = cpx * (y + PAD) + cpx * fpy * (z + PAD) + PAD;
+            if let Some(w) = tr.oy.get_mut(at..at + c.n[0]) {
+                for (cx, w) in w.iter_mut().enumerate() {
+                    let (mut cells, mut faces) = (0.0f32, 0.0f32);
+                    for x in (2 * cx..2 * cx + 2).filter(|&x| x < nx) {
+                        let i = row + x;
+                        cells += f32::from(in_domain(i));
+                        faces += open(i, y, f.sy);
+                    }
+                    *w = if cells > 0.0 { 0.25 * faces / cells } else { 0.0 };
+                }
+            }
+        }
+        // oz: over the (up to) four fine (x, y) under each coarse (x, y).
+        for cy in 0..c.n[1] {
+            let at = cplane * (z + PAD) + cpx * (cy + PAD) + PAD;
+            let Some(w) = tr.oz.get_mut(at..at + c.n[0]) else {
+                continue;
+            };
+            for (cx, w) in w.iter_mut().enumerate() {
+                let (mut cells, mut faces) = (0.0f32, 0.0f32);
+                for y in (2 * cy..2 * cy + 2).filter(|&y| y < ny) {
+                    for x in (2 * cx..2 * cx + 2).filter(|&x| x < nx) {
+                        let i = f.at(x, y, z);
+                        cells += f32::from(in_domain(i));
+                        faces += open(i, z, f.sz);
+                    }
+                }
+                *w = if cells > 0.0 { 0.25 * faces / cells } else { 0.0 };
             }
         }
     }
@@ -1072,23 +1172,37 @@ fn parents(fine: usize) -> (usize, usize) {
 /// `cb = ½ Pᵀ rn` on the interior cells of the coarse grid `c` (0 on the others): the transpose
 /// of [`interpolate`], one axis at a time.
 #[allow(clippy::too_many_arguments)]
-fn restrict(f: &Grid, rn: &[f32], c: &Grid, ckind: &[f32], cb: &mut [f32], t1: &mut [f32], t2: &mut [f32]) {
+fn restrict(
+    f: &Grid,
+    rn: &[f32],
+    ox: &[f32],
+    c: &Grid,
+    ckind: &[f32],
+    cb: &mut [f32],
+    tr: &mut Transfer<'_>,
+) {
     let (cpx, cplane) = (c.sy, c.sz);
     let fpy = f.n[1] + 2 * PAD;
-    // Along x: fine rows into coarse x.
+    // Along x: fine rows into coarse x. Coarse X gathers fine 2X and 2X + 1 (¾ each) and, with
+    // their weights, 2X − 1 and 2X + 2, whose other parent it is.
     for z in 0..f.n[2] {
         for y in 0..f.n[1] {
             let fat = f.at(0, y, z);
             let at = cpx * (y + PAD) + cpx * fpy * (z + PAD);
-            let (Some(src), Some(dst)) = (
+            let (Some(src), Some(w), Some(dst)) = (
                 rn.get(fat - 1..fat + f.n[0] + PAD),
-                t2.get_mut(at + PAD..at + PAD + c.n[0]),
+                ox.get(fat - 1..fat + f.n[0] + PAD),
+                tr.t2.get_mut(at + PAD..at + PAD + c.n[0]),
             ) else {
                 continue;
             };
-            for (d, w) in dst.iter_mut().zip(src.windows(4).step_by(2)) {
-                if let [a, b, cc, e] = *w {
-                    *d = 0.75 * (b + cc) + 0.25 * (a + e);
+            for ((d, v), w) in dst
+                .iter_mut()
+                .zip(src.windows(4).step_by(2))
+                .zip(w.windows(4).step_by(2))
+            {
+                if let (&[a, b, cc, e], &[wa, _, _, we]) = (v, w) {
+                    *d = 0.75 * (b + cc) + wa * a + we * e;
                 }
             }
         }
@@ -1097,22 +1211,26 @@ fn restrict(f: &Grid, rn: &[f32], c: &Grid, ckind: &[f32], cb: &mut [f32], t1: &
     for z in 0..f.n[2] {
         let base = cpx * fpy * (z + PAD);
         for cy in 0..c.n[1] {
-            let row = |y: usize| base + cpx * y;
+            let row = |y: usize| base + cpx * y..base + cpx * (y + 1);
             let y0 = 2 * cy + PAD;
             let at = cplane * (z + PAD) + cpx * (cy + PAD);
-            let (Some(a), Some(b), Some(m), Some(p)) = (
-                t2.get(row(y0)..row(y0) + cpx),
-                t2.get(row(y0 + 1)..row(y0 + 1) + cpx),
-                t2.get(row(y0 - 1)..row(y0 - 1) + cpx),
-                t2.get(row(y0 + 2)..row(y0 + 2) + cpx),
+            let (t2, oy) = (&*tr.t2, &*tr.oy);
+            let (Some(a), Some(b), Some(m), Some(p), Some(wm), Some(wp)) = (
+                t2.get(row(y0)),
+                t2.get(row(y0 + 1)),
+                t2.get(row(y0 - 1)),
+                t2.get(row(y0 + 2)),
+                oy.get(row(y0 - 1)),
+                oy.get(row(y0 + 2)),
             ) else {
                 continue;
             };
-            let Some(dst) = t1.get_mut(at..at + cpx) else {
+            let Some(dst) = tr.t1.get_mut(at..at + cpx) else {
                 continue;
             };
-            for ((((d, a), b), m), p) in dst.iter_mut().zip(a).zip(b).zip(m).zip(p) {
-                *d = 0.75 * (a + b) + 0.25 * (m + p);
+            let sides = m.iter().zip(p).zip(wm.iter().zip(wp));
+            for (((d, a), b), ((m, p), (wm, wp))) in dst.iter_mut().zip(a).zip(b).zip(sides) {
+                *d = 0.75 * (a + b) + wm * m + wp * p;
             }
         }
     }
@@ -1121,18 +1239,23 @@ fn restrict(f: &Grid, rn: &[f32], c: &Grid, ckind: &[f32], cb: &mut [f32], t1: &
         let z0 = 2 * cz + PAD;
         let plane = |z: usize| cplane * z..cplane * (z + 1);
         let at = cplane * (cz + PAD);
-        let (Some(a), Some(b), Some(m), Some(p), Some(k), Some(dst)) = (
+        let (t1, oz) = (&*tr.t1, &*tr.oz);
+        let (Some(a), Some(b), Some(m), Some(p), Some(wm), Some(wp)) = (
             t1.get(plane(z0)),
             t1.get(plane(z0 + 1)),
             t1.get(plane(z0 - 1)),
             t1.get(plane(z0 + 2)),
-            ckind.get(at..at + cplane),
-            cb.get_mut(at..at + cplane),
+            oz.get(plane(z0 - 1)),
+            oz.get(plane(z0 + 2)),
         ) else {
             continue;
         };
-        for (((((d, a), b), m), p), k) in dst.iter_mut().zip(a).zip(b).zip(m).zip(p).zip(k) {
-            let v = 0.5 * (0.75 * (a + b) + 0.25 * (m + p));
+        let (Some(k), Some(dst)) = (ckind.get(at..at + cplane), cb.get_mut(at..at + cplane)) else {
+            continue;
+        };
+        let sides = m.iter().zip(p).zip(wm.iter().zip(wp));
+        for ((((d, a), b), ((m, p), (wm, wp))), k) in dst.iter_mut().zip(a).zip(b).zip(sides).zip(k) {
+            let v = 0.5 * (0.75 * (a + b) + wm * m + wp * p);
             *d = if *k == INTERIOR { v } else { 0.0 };
         }
     }
@@ -1177,22 +1300,22 @@ fn vcycle(
     };
     let mut work = 0;
     {
-        let Some((mut fa, ca, t1, t2)) = two_levels(grids, store, k) else {
+        let Some((mut fa, ca, mut tr)) = two_levels(grids, store, k) else {
             return work;
         };
         work += pre_smooth(fk, f, &mut fa, SWEEPS, count, start);
         residual_for_restriction(fk, f, &mut fa);
-        restrict(f, fa.r, c, ca.kind, ca.b, t1, t2);
+        restrict(f, fa.r, fa.ox, c, ca.kind, ca.b, &mut tr);
         work += 2 * f.len as u64;
     }
     work += vcycle(fork, grids, store, k + 1, interior, Start::Zero, cycle);
     if cycle == Cycle::W {
         work += vcycle(fork, grids, store, k + 1, interior, Start::Given, cycle);
     }
-    let Some((mut fa, ca, t1, t2)) = two_levels(grids, store, k) else {
+    let Some((mut fa, ca, mut tr)) = two_levels(grids, store, k) else {
         return work;
     };
-    interpolate(c, ca.u, f, fa.tmp, t1, t2);
+    interpolate(c, ca.u, f, fa.tmp, fa.ox, &mut tr);
     for ((u, e), w) in fa.u.iter_mut().zip(fa.tmp.iter()).zip(fa.invden.iter()) {
         *u += e * w;
     }
@@ -1204,10 +1327,11 @@ fn vcycle(
 ///
 /// Laplace's equation on a map with long walls and a small frontier is nearly singular, and
 /// one V-cycle leaves each coarse level's problem far from solved: on the houses of
-/// `scripts/pyamg_compare.py` (64³ and 96³, 100 frontier voxels) MGPCG took 25–31 steps with
-/// V-cycles and 15–19 with W-cycles, close to the 16–21 of an exactly solved second level. The
-/// screened field's coarse levels carry a shift that grows fourfold per level, and a V-cycle
-/// solves them well enough: W-cycles there gave the same step counts for a fifth more work.
+/// `scripts/pyamg_compare.py` (64³ and 96³, 100 frontier voxels) MGPCG took 18–27 steps with
+/// V-cycles and 9–11 with W-cycles (25–31 and 15–19 before the transfers stopped at walls,
+/// where an exactly solved second level gave 16–21). The screened field's coarse levels carry
+/// a shift that grows fourfold per level, and a V-cycle solves them well enough: W-cycles
+/// there took as many steps or one fewer for a fifth more work.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Cycle {
     V,
@@ -1276,13 +1400,13 @@ fn full_multigrid(
         let (Some(f), Some(c)) = (grids.get(k), grids.get(k + 1)) else {
             break;
         };
-        let Some((fa, ca, t1, t2)) = two_levels(grids, store, k) else {
+        let Some((fa, ca, mut tr)) = two_levels(grids, store, k) else {
             break;
         };
         for ((r, b), w) in fa.r.iter_mut().zip(fa.b.iter()).zip(fa.invden.iter()) {
             *r = b * w;
         }
-        restrict(f, fa.r, c, ca.kind, ca.b, t1, t2);
+        restrict(f, fa.r, fa.ox, c, ca.kind, ca.b, &mut tr);
         work += f.len as u64;
     }
     let last = grids.len().saturating_sub(1);
@@ -1300,8 +1424,8 @@ fn full_multigrid(
         let (Some(f), Some(c)) = (grids.get(k), grids.get(k + 1)) else {
             break;
         };
-        if let Some((fa, ca, t1, t2)) = two_levels(grids, store, k) {
-            interpolate(c, ca.u, f, fa.tmp, t1, t2);
+        if let Some((fa, ca, mut tr)) = two_levels(grids, store, k) {
+            interpolate(c, ca.u, f, fa.tmp, fa.ox, &mut tr);
             for ((u, e), w) in fa.u.iter_mut().zip(fa.tmp.iter()).zip(fa.invden.iter()) {
                 *u = e * w;
             }
@@ -1729,7 +1853,7 @@ mod timing {
             std::println!("build_fine {bf:.3} ms, finish {fin:.3}");
         }
         {
-            let (fa, mut ca, t1, t2) = two_levels(&grids, store, 0).unwrap();
+            let (fa, mut ca, mut tr) = two_levels(&grids, store, 0).unwrap();
             let t = Instant::now();
             for _ in 0..reps {
                 coarsen(&grids[0], &fa, &grids[1], ca.kind, &mut ca.w, ca.sink);
@@ -1737,7 +1861,7 @@ mod timing {
             let co = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
             let t = Instant::now();
             for _ in 0..reps {
-                interpolate(&grids[1], ca.tmp, &grids[0], fa.invden, t1, t2);
+                interpolate(&grids[1], ca.tmp, &grids[0], fa.invden, fa.ox, &mut tr);
             }
             let ip = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
             std::println!("coarsen level 1 {co:.3} ms, interpolate to the fine level {ip:.3}");
