@@ -36,8 +36,8 @@
 //! the coarsest level smoothed to convergence, and each finer level started from the coarser
 //! solution interpolated and given one cycle.
 //!
-//! **Memory** ([`flat_scratch_len`]): about 26 `f32` per voxel (64 × 64 × 32: 3.37 million,
-//! 12.9 MiB), against about 5 bytes per voxel for [`super::multigrid`], which the firmware
+//! **Memory** ([`flat_scratch_len`]): about 28 `f32` per voxel (64 × 64 × 32: 3.73 million,
+//! 14.2 MiB), against about 5 bytes per voxel for [`super::multigrid`], which the firmware
 //! keeps.
 
 use heapless::Vec as HVec;
@@ -1100,63 +1100,75 @@ fn interpolate(c: &Grid, v: &[f32], f: &Grid, out: &mut [f32], ox: &[f32], tr: &
 
 /// The [`Transfer`] weights from the kinds of the fine level `f` (`ox` its own): ¼ of the
 /// share of the faces towards a cell's other parent whose two sides are both in the domain,
-/// over the children the intermediate cell stands for that are in it.
+/// over the children the intermediate cell stands for that are in it. Only logical cells are
+/// written: the padding keeps the zeros it holds (see [`build`]).
 fn transfer_weights(f: &Grid, kind: &[f32], ox: &mut [f32], c: &Grid, tr: &mut Transfer<'_>) {
-    let in_domain = |i: usize| kind.get(i).is_some_and(|k| *k != OUT);
-    // The face from fine cell `i` towards its other parent along the axis of `stride`, by the
-    // parity of its coordinate there: in the domain on both sides (1) or not (0).
-    let open = |i: usize, coord: usize, stride: usize| {
-        let other = if coord & 1 == 0 {
-            i.wrapping_sub(stride)
-        } else {
-            i + stride
-        };
-        f32::from(in_domain(i) && in_domain(other))
-    };
+    // In the domain (1) or not (0): the kinds are 0 outside, 1 or more inside.
+    let m = |k: &f32| k.min(1.0);
     let [nx, ny, nz] = f.n;
-    let (cpx, cplane) = (c.sy, c.sz);
+    let (cpx, cplane, cnx) = (c.sy, c.sz, c.n[0]);
     let fpy = ny + 2 * PAD;
-    ox.fill(0.0);
-    tr.oy.fill(0.0);
-    tr.oz.fill(0.0);
+    // Fine row `(y, z)` of the kinds, in padded coordinates, from x = −1 to x = 2·cnx (the
+    // padding included).
+    let row = |yp: usize, zp: usize| {
+        let at = PAD + f.sy * yp + f.sz * zp;
+        kind.get(at - 1..at + 2 * cnx + 1).unwrap_or(&[])
+    };
+    // The padded coordinate of the cell towards the other parent of fine coordinate `c`: below
+    // for even, above for odd (the padding where that is past the edge).
+    let other = |c: usize| if c & 1 == 0 { c + PAD - 1 } else { c + PAD + 1 };
     for z in 0..nz {
+        let (zp, zo) = (z + PAD, other(z));
         for y in 0..ny {
-            let row = f.at(0, y, z);
-            if let Some(w) = ox.get_mut(row..row + nx) {
-                for (x, w) in w.iter_mut().enumerate() {
-                    *w = 0.25 * open(row + x, x, 1);
+            let (k, ky) = (row(y + PAD, zp), row(other(y), zp));
+            // ox: fine 2X looks at 2X − 1, fine 2X + 1 at 2X + 2.
+            let at = f.at(0, y, z);
+            if let Some(w) = ox.get_mut(at..at + nx) {
+                for (pair, k) in w.chunks_mut(2).zip(k.windows(4).step_by(2)) {
+                    if let &[lo, a, b, hi] = k {
+                        let mut cells = pair.iter_mut();
+                        if let Some(e) = cells.next() {
+                            *e = 0.25 * m(&a) * m(&lo);
+                        }
+                        if let Some(o) = cells.next() {
+                            *o = 0.25 * m(&b) * m(&hi);
+                        }
+                    }
                 }
             }
-            // oy: over the (up to) two fine x under each coarse x.
+            // oy: over the two fine x under each coarse x (the second may be padding).
             let at = cpx * (y + PAD) + cpx * fpy * (z + PAD) + PAD;
-            if let Some(w) = tr.oy.get_mut(at..at + c.n[0]) {
-                for (cx, w) in w.iter_mut().enumerate() {
-                    let (mut cells, mut faces) = (0.0f32, 0.0f32);
-                    for x in (2 * cx..2 * cx + 2).filter(|&x| x < nx) {
-                        let i = row + x;
-                        cells += f32::from(in_domain(i));
-                        faces += open(i, y, f.sy);
-                    }
-                    *w = if cells > 0.0 { 0.25 * faces / cells } else { 0.0 };
+            let (Some(w), Some(k), Some(ko)) = (tr.oy.get_mut(at..at + cnx), k.get(1..), ky.get(1..)) else {
+                continue;
+            };
+            for ((w, k), ko) in w.iter_mut().zip(k.chunks_exact(2)).zip(ko.chunks_exact(2)) {
+                if let (&[a, b], &[ao, bo]) = (k, ko) {
+                    let cells = m(&a) + m(&b);
+                    *w = 0.25 * (m(&a) * m(&ao) + m(&b) * m(&bo)) / cells.max(1.0);
                 }
             }
         }
-        // oz: over the (up to) four fine (x, y) under each coarse (x, y).
+        // oz: over the four fine (x, y) under each coarse (x, y).
         for cy in 0..c.n[1] {
             let at = cplane * (z + PAD) + cpx * (cy + PAD) + PAD;
-            let Some(w) = tr.oz.get_mut(at..at + c.n[0]) else {
+            let (y0, y1) = (2 * cy + PAD, 2 * cy + 1 + PAD);
+            let (Some(w), Some(k0), Some(k1), Some(o0), Some(o1)) = (
+                tr.oz.get_mut(at..at + cnx),
+                row(y0, zp).get(1..),
+                row(y1, zp).get(1..),
+                row(y0, zo).get(1..),
+                row(y1, zo).get(1..),
+            ) else {
                 continue;
             };
-            for (cx, w) in w.iter_mut().enumerate() {
-                let (mut cells, mut faces) = (0.0f32, 0.0f32);
-                for y in (2 * cy..2 * cy + 2).filter(|&y| y < ny) {
-                    for x in (2 * cx..2 * cx + 2).filter(|&x| x < nx) {
-                        let i = f.at(x, y, z);
-                        cells += f32::from(in_domain(i));
-                        faces += open(i, z, f.sz);
-                    }
+            let pairs = k0.chunks_exact(2).zip(k1.chunks_exact(2));
+            let others = o0.chunks_exact(2).zip(o1.chunks_exact(2));
+            for ((w, (k0, k1)), (o0, o1)) in w.iter_mut().zip(pairs).zip(others) {
+                if let (&[a, b], &[c, d], &[ao, bo], &[co, do_]) = (k0, k1, o0, o1) {
+                    let cells = m(&a) + m(&b) + m(&c) + m(&d);
+                    let faces = m(&a) * m(&ao) + m(&b) * m(&bo) + m(&c) * m(&co) + m(&d) * m(&do_);
+                    *w = 0.25 * faces / cells.max(1.0);
                 }
-                *w = if cells > 0.0 { 0.25 * faces / cells } else { 0.0 };
             }
         }
     }
@@ -1886,6 +1898,22 @@ mod timing {
             vcycle(None, &grids, store, 1, &interior, Start::Given, Cycle::V);
         }
         let v1_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let t = Instant::now();
+        for _ in 0..reps {
+            vcycle(None, &grids, store, 0, &interior, Start::Given, Cycle::W);
+        }
+        let w_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let t = Instant::now();
+        for _ in 0..reps {
+            vcycle(None, &grids, store, 1, &interior, Start::Given, Cycle::W);
+        }
+        let w1_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        let last = grids.len() - 1;
+        let t = Instant::now();
+        for _ in 0..reps {
+            vcycle(None, &grids, store, last, &interior, Start::Given, Cycle::W);
+        }
+        let coarsest_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let g = grids[0];
         let mut a = level_arrays(&grids, store, 0).unwrap();
         let t = Instant::now();
@@ -1901,5 +1929,6 @@ mod timing {
         std::println!(
             "build {build_ms:.3} ms, counts {count_ms:.3}, fmg {fmg_ms:.3}, v-cycle {v_ms:.3} (below the fine level {v1_ms:.3}), fine sweep {sweep_ms:.3}, residual {res_ms:.3}"
         );
+        std::println!("w-cycle {w_ms:.3} ms (below the fine level {w1_ms:.3}; the coarsest level once {coarsest_ms:.3})");
     }
 }
