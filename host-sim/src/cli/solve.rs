@@ -17,7 +17,7 @@ pub struct SolveArgs {
     #[arg(long, value_parser = parse_voxel)]
     source: [usize; 3],
     /// Solver: `mg` (multigrid-preconditioned CG, the host's), `flat` (the same method with
-    /// every level's operator stored as arrays and each pass a flat loop: faster, about 26
+    /// every level's operator stored as arrays and each pass a flat loop: faster, about 28
     /// floats per voxel), `vc` (plain V-cycles, the firmware's) or `gs` (Gauss-Seidel reference).
     #[arg(long, default_value = "mg", value_parser = ["mg", "flat", "vc", "gs"])]
     solver: String,
