@@ -51,10 +51,9 @@ pub struct BenchArgs {
     field: FieldArgs,
     #[command(flatten)]
     body: BodyArgs,
-    /// Solver of the harmonic planners' field: `flat` (the host's fast multigrid, the default
-    /// since 2026-12-06) or `mg` (the firmware's multigrid, the default before); see `explore
-    /// --solver`.
-    #[arg(long, default_value = "flat", value_parser = ["flat", "mg"])]
+    /// Solver of the harmonic planners' field: `mg` (multigrid, default) or `flat` (the host's
+    /// fast multigrid; see `explore --solver`).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "flat"])]
     solver: String,
     /// No per-run progress lines.
     #[arg(long)]
@@ -94,11 +93,9 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
     args.body.apply(&mut sim);
     sim.max_scans = args.max_scans;
     sim.follow_full_path = args.follow_full_path;
-    sim.explorer.solver = if args.solver == "mg" {
-        harmonic_core::explore::SolverKind::Multigrid
-    } else {
-        harmonic_core::explore::SolverKind::Flat
-    };
+    if args.solver == "flat" {
+        sim.explorer.solver = harmonic_core::explore::SolverKind::Flat;
+    }
     let planners = PlannerKind::parse_list(&args.planners).map_err(|e| format!("--planners: {e}"))?;
     let cfg = batch::BenchConfig {
         scenarios: batch::parse_scenarios(&args.scenarios)?,

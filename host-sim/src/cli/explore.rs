@@ -78,12 +78,11 @@ pub struct ExploreArgs {
     /// `random-frontier`, `info-gain`, `weighted-info-gain`.
     #[arg(long, default_value = "harmonic", value_parser = PlannerKind::from_str)]
     planner: PlannerKind,
-    /// Laplace solver of the harmonic planner: `flat` (the host's fast multigrid,
-    /// `harmonic_core::solve::flat`, about 28 floats per voxel; the default since 2026-12-06),
-    /// `mg` (the multigrid the firmware runs, 5 bytes per voxel; the default before, which the
-    /// tables recorded before then used) or `gs` (the seed paper's Gauss-Seidel; the same as
-    /// `--planner harmonic-gs`). Both multigrids re-solve in boxes around what a scan changed.
-    #[arg(long, default_value = "flat", value_parser = ["flat", "mg", "gs"])]
+    /// Laplace solver of the harmonic planner: `mg` (multigrid, default), `flat` (the host's
+    /// fast multigrid, `harmonic_core::solve::flat`, about 28 floats per voxel; re-solves in
+    /// boxes as `mg`'s; BENCHMARKS.md) or `gs` (the seed paper's Gauss-Seidel; the same as
+    /// `--planner harmonic-gs`).
+    #[arg(long, default_value = "mg", value_parser = ["mg", "flat", "gs"])]
     solver: String,
     /// Relative-residual tolerance of the seed's Laplace solve (`harmonic-laplace`, `harmonic-gs`); the
     /// default screened field solves to its own 1e-5 (harmonic_core::field::ScreenedParams).
@@ -227,8 +226,8 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     cfg.explorer.solve.tolerance = args.tol;
     cfg.explorer.solver = match args.solver.as_str() {
         "gs" => SolverKind::GaussSeidel,
-        "mg" => SolverKind::Multigrid,
-        _ => SolverKind::Flat,
+        "flat" => SolverKind::Flat,
+        _ => SolverKind::Multigrid,
     };
     cfg.replan_distance = args.replan_distance;
     cfg.follow_full_path = args.follow_full_path;

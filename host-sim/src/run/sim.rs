@@ -106,8 +106,7 @@ pub struct SimConfig {
     /// lends the storage, two words per voxel; see [`harmonic_core::integrate`]). Only the
     /// core's stereo sensor model uses it.
     pub surface_estimate: bool,
-    /// Core configuration (vehicle radius, solver, …). The solver defaults to the flat
-    /// multigrid ([`SolverKind::Flat`]), the host's fastest; the firmware has the multigrid only.
+    /// Core configuration (vehicle radius, solver, …).
     pub explorer: ExplorerConfig,
     /// Depth camera.
     pub camera: DepthCamera,
@@ -301,12 +300,7 @@ impl Default for SimConfig {
             baseline_looks: false,
             baseline_remnants: false,
             surface_estimate: false,
-            // The host plans with the flat multigrid (the firmware's core has only the
-            // multigrid, the core's default); `--solver mg` in the CLI for the other.
-            explorer: ExplorerConfig {
-                solver: SolverKind::Flat,
-                ..ExplorerConfig::default()
-            },
+            explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
             body_radius: 0.15,
             max_speed: 1.0,
