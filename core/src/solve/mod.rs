@@ -336,6 +336,17 @@ pub(crate) enum Dirichlet {
     Given,
 }
 
+impl Dirichlet {
+    /// `params` as a solve with these Dirichlet values runs them: given values start warm
+    /// (full multigrid solves for the standard ones only).
+    pub(crate) fn params(self, params: &SolveParams) -> SolveParams {
+        SolveParams {
+            warm_start: params.warm_start || self == Dirichlet::Given,
+            ..*params
+        }
+    }
+}
+
 /// [`prepare`] for a warm start whose Dirichlet cells keep the values in the buffer where they
 /// lie in [0, 1] (others take the standard ones).
 pub(crate) fn prepare_given(labels: &[Label], psi: &mut [f32]) {

@@ -465,11 +465,7 @@ impl<'a> Multigrid<'a> {
         dirichlet: Dirichlet,
     ) -> Result<SolveStats, SolveError> {
         let n = self.fine.len();
-        let params = &SolveParams {
-            // Full multigrid solves for standard Dirichlet values; given ones start warm.
-            warm_start: params.warm_start || dirichlet == Dirichlet::Given,
-            ..*params
-        };
+        let params = &dirichlet.params(params);
         let (labels, phi) = super::checked_problem(&self.fine, labels, phi, params, dirichlet)?;
         self.history.clear();
         let mut stats = SolveStats::default();
