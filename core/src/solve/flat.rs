@@ -16,10 +16,11 @@
 //! and as `1` on its diagonal, a source neighbour (ψ = 0) as `1` on its diagonal only, so the
 //! unknowns are the interior cells alone and every other cell holds 0.
 //!
-//! **Smoother.** Damped Jacobi (ω = 6/7), [`SWEEPS`] sweeps before and after the coarse
-//! correction: a sweep reads the previous iterate only, so it needs no colouring and runs as one
-//! loop per plane. Pre- and post-smoothing are the same operator, so the cycle is a symmetric
-//! preconditioner for conjugate gradients (MGPCG, as [`super::multigrid`]): a V-cycle for the
+//! **Smoother.** Chebyshev polynomial steps in the Jacobi-preconditioned operator ([`Smoother`];
+//! [`W_SWEEPS`] or [`V_SWEEPS`] before and after the coarse correction): a step reads the two
+//! previous iterates only, so it needs no colouring and runs as one loop per plane. Pre- and
+//! post-smoothing are the same polynomial, so the cycle is a symmetric preconditioner for
+//! conjugate gradients (MGPCG, as [`super::multigrid`]): a V-cycle for the
 //! screened field, a W-cycle (each coarse level solved twice) for Laplace's equation, whose
 //! nearly singular coarse levels one visit leaves far from solved ([`Cycle`]).
 //!
@@ -52,10 +53,39 @@ use crate::map::Dims;
 
 /// Cells of zero padding on every side of every level.
 pub const PAD: usize = 2;
-/// Damped-Jacobi sweeps before and after each coarse correction.
-pub const SWEEPS: u32 = 3;
-/// Jacobi damping.
+/// Chebyshev smoothing steps before and after each coarse correction of a W-cycle (Laplace's
+/// equation; see [`Cycle`]).
+pub const W_SWEEPS: u32 = 3;
+/// The same for a V-cycle (the screened field).
+pub const V_SWEEPS: u32 = 2;
+/// Jacobi damping (the coarsest level's sweeps).
 const OMEGA: f32 = 6.0 / 7.0;
+/// The Chebyshev smoother damps the eigenvalues of `D⁻¹A` in `[CHEB_MAX / CHEB_RATIO,
+/// CHEB_MAX]`. Every row's diagonal is at least the sum of its face weights, so no eigenvalue
+/// exceeds 2 (Gershgorin); on a seven-point grid the modes the next coarser level cannot hold
+/// (some wavenumber above π/2) have eigenvalues of at least 1/3 of that, hence the ratio 6.
+/// This is the textbook interval, not a value fitted to any world: on the houses of
+/// `scripts/pyamg_compare.py` ratio 4 took one or two more MGPCG steps, ratio 10 as many or one
+/// more.
+const CHEB_MAX: f32 = 2.0;
+/// See [`CHEB_MAX`].
+const CHEB_RATIO: f32 = 6.0;
+/// Centre of the Chebyshev interval.
+const CHEB_THETA: f32 = (CHEB_MAX + CHEB_MAX / CHEB_RATIO) / 2.0;
+/// Half-width of the Chebyshev interval.
+const CHEB_DELTA: f32 = (CHEB_MAX - CHEB_MAX / CHEB_RATIO) / 2.0;
+
+/// How a level is smoothed.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Smoother {
+    /// Damped Jacobi, ω = [`OMEGA`]: the coarsest level, which is smoothed to a solution.
+    Jacobi,
+    /// Chebyshev polynomial steps in `D⁻¹A` on the interval of [`CHEB_MAX`]: each step costs a
+    /// Jacobi sweep and one more array read, and damps the modes the coarse levels miss
+    /// better. Damped Jacobi leaves `5/7` of the worst such mode per sweep, `0.36` after
+    /// three; Chebyshev leaves `0.34` after two steps and `0.15` after three.
+    Chebyshev,
+}
 /// Jacobi sweeps on the coarsest level.
 const COARSEST_SWEEPS: u32 = 64;
 /// Most levels, the fine one included.
@@ -825,7 +855,7 @@ fn stencil(
     range: core::ops::Range<usize>,
     extra: [&[f32]; 3],
     out: &mut [f32],
-    f: impl FnMut(f32, f32, f32, f32, f32) -> f32,
+    f: impl FnMut(f32, f32, f32, f32, f32, f32) -> f32,
 ) {
     stencil_as::<false>(g, w, v, range, extra, out, f)
 }
@@ -840,7 +870,7 @@ fn stencil_as<const FLUX: bool>(
     range: core::ops::Range<usize>,
     extra: [&[f32]; 3],
     out: &mut [f32],
-    mut f: impl FnMut(f32, f32, f32, f32, f32) -> f32,
+    mut f: impl FnMut(f32, f32, f32, f32, f32, f32) -> f32,
 ) {
     let (s, e) = (range.start, range.end);
     let (sy, sz) = (g.sy, g.sz);
@@ -873,26 +903,88 @@ fn stencil_as<const FLUX: bool>(
         } else {
             wl * l + wr * r + wym * ym + wyp * yp + wzm * zm + wzp * zp
         };
-        *o = f(sum, c, a, b, d);
+        *o = f(sum, c, a, b, d, *o);
     }
 }
 
-/// Damped-Jacobi sweeps of `A u = b`: `u ← (1 − ω)·u + ω·inv·(b + Σ w u_j)`. Cells outside
-/// the interior have `inv = 0` and hold 0. Returns interior cell updates.
-fn smooth(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>, sweeps: u32, interior: u64) -> u64 {
-    for _ in 0..sweeps {
-        {
-            let (u, b, inv) = (&*a.u, &*a.b, &*a.inv);
-            let w = [&*a.w[0], &*a.w[1], &*a.w[2]];
-            each_plane(fork, g, a.tmp, &|range, out| {
-                let (Some(b), Some(inv)) = (b.get(range.clone()), inv.get(range.clone())) else {
-                    return;
-                };
-                stencil(g, w, u, range, [b, inv, inv], out, |sum, c, b, inv, _| {
-                    (1.0 - OMEGA) * c + OMEGA * inv * (sum + b)
-                });
+/// One smoothing step of `A u = b` into `tmp`:
+/// `tmp ← u + c1·(u − old) + c2·(inv·(b + Σ w u_j) − u)`, `old` being the iterate before `u`,
+/// held in `tmp` (or 0 where `old_zero`). Jacobi is `c1 = 0`, `c2 = ω`. Cells outside the
+/// interior have `inv = 0` and hold 0 in `u` and `old`, so they stay 0.
+fn sweep(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>, c1: f32, c2: f32, old_zero: bool) {
+    let (u, b, inv) = (&*a.u, &*a.b, &*a.inv);
+    let w = [&*a.w[0], &*a.w[1], &*a.w[2]];
+    each_plane(fork, g, a.tmp, &|range, out| {
+        let (Some(b), Some(inv)) = (b.get(range.clone()), inv.get(range.clone())) else {
+            return;
+        };
+        if old_zero || c1 == 0.0 {
+            let keep = 1.0 + c1 - c2;
+            stencil(g, w, u, range, [b, inv, inv], out, |sum, c, b, inv, _, _| {
+                keep * c + c2 * inv * (sum + b)
+            });
+        } else {
+            let keep = 1.0 + c1 - c2;
+            stencil(g, w, u, range, [b, inv, inv], out, |sum, c, b, inv, _, old| {
+                keep * c - c1 * old + c2 * inv * (sum + b)
             });
         }
+    });
+}
+
+/// `sweeps` smoothing steps of `A u = b` from `start` ([`Smoother`]), the result in the level's
+/// own `u`. Returns interior cell updates.
+fn smooth(
+    fork: Option<&dyn Fork>,
+    g: &Grid,
+    a: &mut Arrays<'_>,
+    sweeps: u32,
+    interior: u64,
+    start: Start,
+    smoother: Smoother,
+) -> u64 {
+    if sweeps == 0 {
+        if start == Start::Zero {
+            a.u.fill(0.0);
+        }
+        return 0;
+    }
+    let first = match smoother {
+        Smoother::Chebyshev => 1.0 / CHEB_THETA,
+        Smoother::Jacobi => OMEGA,
+    };
+    let mut swapped = false;
+    if start == Start::Zero {
+        // The first step from 0: u = c2·inv·b (the neighbour sum is 0), in place.
+        for ((u, b), inv) in a.u.iter_mut().zip(a.b.iter()).zip(a.inv.iter()) {
+            *u = first * inv * b;
+        }
+    } else {
+        sweep(fork, g, a, 0.0, first, true);
+        core::mem::swap(&mut a.u, &mut a.tmp);
+        swapped = true;
+    }
+    let mut old_zero = start == Start::Zero;
+    let sigma = CHEB_THETA / CHEB_DELTA;
+    let mut rho_old = 1.0 / sigma;
+    for _ in 1..sweeps {
+        let (c1, c2) = match smoother {
+            Smoother::Chebyshev => {
+                let rho = 1.0 / (2.0 * sigma - rho_old);
+                let c = (rho * rho_old, 2.0 * rho / CHEB_DELTA);
+                rho_old = rho;
+                c
+            }
+            Smoother::Jacobi => (0.0, OMEGA),
+        };
+        sweep(fork, g, a, c1, c2, old_zero);
+        core::mem::swap(&mut a.u, &mut a.tmp);
+        swapped = !swapped;
+        old_zero = false;
+    }
+    if swapped {
+        // `u` and `tmp` traded places: copy back into the carved `u`.
+        a.tmp.copy_from_slice(a.u);
         core::mem::swap(&mut a.u, &mut a.tmp);
     }
     u64::from(sweeps) * interior
@@ -908,7 +1000,7 @@ fn residual_for_restriction(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_
         else {
             return;
         };
-        stencil(g, w, u, range, [b, d, den], out, |sum, c, b, d, den| {
+        stencil(g, w, u, range, [b, d, den], out, |sum, c, b, d, den, _| {
             (b + sum - d * c) * den
         });
     });
@@ -920,7 +1012,9 @@ fn apply(fork: Option<&dyn Fork>, g: &Grid, op: Op<'_>, p: &[f32], q: &mut [f32]
         let Some(d) = op.diag.get(range.clone()) else {
             return;
         };
-        stencil(g, op.w, p, range, [d, d, d], out, |sum, c, d, _, _| d * c - sum);
+        stencil(g, op.w, p, range, [d, d, d], out, |sum, c, d, _, _, _| {
+            d * c - sum
+        });
     });
 }
 
@@ -986,7 +1080,7 @@ fn true_residual(
                 return;
             };
             // As fluxes: b + Σ w·(x_j − x_i) − (sink + s)·x_i.
-            stencil_as::<true>(g, op.w, x, range, [rhs, s, s], out, |flux, c, b, sink, _| {
+            stencil_as::<true>(g, op.w, x, range, [rhs, s, s], out, |flux, c, b, sink, _, _| {
                 b + flux - (sink + shift) * c
             });
         });
@@ -1304,7 +1398,7 @@ fn vcycle(
     let Some(c) = grids.get(k + 1) else {
         // Coarsest: smoothing alone.
         return level_arrays(grids, store, k).map_or(0, |mut a| {
-            pre_smooth(fk, f, &mut a, COARSEST_SWEEPS, count, start)
+            smooth(fk, f, &mut a, COARSEST_SWEEPS, count, start, Smoother::Jacobi)
         });
     };
     let mut work = 0;
@@ -1312,7 +1406,7 @@ fn vcycle(
         let Some((mut fa, ca, mut tr)) = two_levels(grids, store, k) else {
             return work;
         };
-        work += pre_smooth(fk, f, &mut fa, SWEEPS, count, start);
+        work += smooth(fk, f, &mut fa, cycle.sweeps(), count, start, Smoother::Chebyshev);
         residual_for_restriction(fk, f, &mut fa);
         restrict(f, fa.r, fa.ox, c, ca.kind, ca.b, &mut tr);
         work += 2 * f.len as u64;
@@ -1329,22 +1423,41 @@ fn vcycle(
         *u += e * w;
     }
     work += f.len as u64;
-    work + smooth_even(fk, f, &mut fa, SWEEPS, count)
+    work + smooth(
+        fk,
+        f,
+        &mut fa,
+        cycle.sweeps(),
+        count,
+        Start::Given,
+        Smoother::Chebyshev,
+    )
 }
 
 /// How often a cycle solves on the next coarser level: once (a V-cycle) or twice (a W-cycle).
 ///
 /// Laplace's equation on a map with long walls and a small frontier is nearly singular, and
 /// one V-cycle leaves each coarse level's problem far from solved: on the houses of
-/// `scripts/pyamg_compare.py` (64³ and 96³, 100 frontier voxels) MGPCG took 18–27 steps with
-/// V-cycles and 9–11 with W-cycles (25–31 and 15–19 before the transfers stopped at walls,
-/// where an exactly solved second level gave 16–21). The screened field's coarse levels carry
-/// a shift that grows fourfold per level, and a V-cycle solves them well enough: W-cycles
-/// there took as many steps or one fewer for a fifth more work.
+/// `scripts/pyamg_compare.py` (64³ and 96³, 100 frontier voxels) MGPCG takes 14–21 steps with
+/// V-cycles and 8 with W-cycles, both with three Chebyshev steps (with three Jacobi sweeps:
+/// 18–27 and 9–11; 25–31 and 15–19 before the transfers stopped at walls, where an exactly
+/// solved second level gave 16–21). The screened field's coarse levels carry a shift that
+/// grows fourfold per level, and a V-cycle solves them well enough: W-cycles there took as many
+/// steps or one fewer for a fifth more work.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 enum Cycle {
     V,
     W,
+}
+
+impl Cycle {
+    /// Smoothing steps before and after each coarse correction.
+    fn sweeps(self) -> u32 {
+        match self {
+            Cycle::V => V_SWEEPS,
+            Cycle::W => W_SWEEPS,
+        }
+    }
 }
 
 /// Where a cycle starts from.
@@ -1354,40 +1467,6 @@ enum Start {
     Given,
     /// `u = 0`, not written yet.
     Zero,
-}
-
-/// `sweeps` sweeps of [`smooth`] from `start`, the result in the level's own `u`.
-fn pre_smooth(
-    fork: Option<&dyn Fork>,
-    g: &Grid,
-    a: &mut Arrays<'_>,
-    sweeps: u32,
-    interior: u64,
-    start: Start,
-) -> u64 {
-    if start == Start::Given {
-        return smooth_even(fork, g, a, sweeps, interior);
-    }
-    if sweeps == 0 {
-        a.u.fill(0.0);
-        return 0;
-    }
-    // The first sweep from 0: u = ω·inv·b (the neighbour sum is 0), in place.
-    for ((u, b), inv) in a.u.iter_mut().zip(a.b.iter()).zip(a.inv.iter()) {
-        *u = OMEGA * inv * b;
-    }
-    interior + smooth_even(fork, g, a, sweeps - 1, interior)
-}
-
-/// [`smooth`], leaving the result in the level's own `u` whatever the count's parity.
-fn smooth_even(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>, sweeps: u32, interior: u64) -> u64 {
-    let work = smooth(fork, g, a, sweeps, interior);
-    if sweeps & 1 == 1 {
-        // `u` and `tmp` traded places: copy back into the carved `u`.
-        a.tmp.copy_from_slice(a.u);
-        core::mem::swap(&mut a.u, &mut a.tmp);
-    }
-    work
 }
 
 /// Full multigrid for `A x = rhs` from nothing: `rhs` restricted down the levels, the coarsest
@@ -1421,12 +1500,14 @@ fn full_multigrid(
     let last = grids.len().saturating_sub(1);
     if let (Some(g), Some(mut a)) = (grids.get(last), level_arrays(grids, store, last)) {
         a.u.fill(0.0);
-        work += smooth_even(
+        work += smooth(
             None,
             g,
             &mut a,
             COARSEST_SWEEPS,
             interior.get(last).copied().unwrap_or(0),
+            Start::Given,
+            Smoother::Jacobi,
         );
     }
     for k in (0..last).rev() {
@@ -1900,7 +1981,7 @@ mod timing {
         let mut a = level_arrays(&grids, store, 0).unwrap();
         let t = Instant::now();
         for _ in 0..reps {
-            smooth(None, &g, &mut a, 2, 0);
+            smooth(None, &g, &mut a, 2, 0, Start::Given, Smoother::Chebyshev);
         }
         let sweep_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64 / 2.0;
         let t = Instant::now();
