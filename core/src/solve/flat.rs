@@ -16,13 +16,13 @@
 //! and as `1` on its diagonal, a source neighbour (ψ = 0) as `1` on its diagonal only, so the
 //! unknowns are the interior cells alone and every other cell holds 0.
 //!
-//! **Smoother.** Chebyshev polynomial steps in the Jacobi-preconditioned operator ([`Smoother`];
+//! **Smoother.** Chebyshev polynomial steps in the Jacobi-preconditioned operator (`Smoother`;
 //! [`W_SWEEPS`] or [`V_SWEEPS`] before and after the coarse correction): a step reads the two
 //! previous iterates only, so it needs no colouring and runs as one loop per plane. Pre- and
 //! post-smoothing are the same polynomial, so the cycle is a symmetric preconditioner for
 //! conjugate gradients (MGPCG, as [`super::multigrid`]): a V-cycle for the
 //! screened field, a W-cycle (each coarse level solved twice) for Laplace's equation, whose
-//! nearly singular coarse levels one visit leaves far from solved ([`Cycle`]).
+//! nearly singular coarse levels one visit leaves far from solved (`Cycle`).
 //!
 //! **Coarse levels** follow [`super::multigrid`]'s rules: a coarse cell is interior if any child
 //! is, else Dirichlet if any child is, else outside; a coarse face's conductance is the mean of
@@ -30,17 +30,18 @@
 //! coarse cell's *sink* (its conductance to Dirichlet cells, whose correction is 0) is half the
 //! sum of its interior children's sinks; the screening grows fourfold per level. The transfers
 //! are trilinear interpolation renormalised over the coarse cells that are not outside, except
-//! that a fine cell takes nothing from a coarse neighbour behind a wall ([`Transfer`]), and half
+//! that a fine cell takes nothing from a coarse neighbour behind a wall (`Transfer`), and half
 //! its transpose for the restriction, both done one axis at a time.
 //!
 //! **Cold solves** start with full multigrid: the right-hand side restricted down the levels,
 //! the coarsest level smoothed to convergence, and each finer level started from the coarser
 //! solution interpolated and given one cycle.
 //!
-//! **Memory** ([`flat_scratch_len`]): about 23 `f32` per voxel (64 × 64 × 32: 3.07 million,
-//! 11.7 MiB), against about 5 bytes per voxel for [`super::multigrid`], which the firmware
+//! **Memory** ([`flat_scratch_len`]): about 22 `f32` per voxel (64 × 64 × 32: 2.90 million,
+//! 11.1 MiB), against about 5 bytes per voxel for [`super::multigrid`], which the firmware
 //! keeps. The fine level stores no face conductances (its faces are its interior mask,
-//! [`Arrays::w`]), and conjugate gradients keep `A·p` in its sweep scratch.
+//! `Arrays::w`), and conjugate gradients keep their residual in its right-hand side and
+//! `A·p` in its sweep scratch (`KRYLOV_ARRAYS`).
 
 use heapless::Vec as HVec;
 
@@ -55,7 +56,7 @@ use crate::map::Dims;
 /// Cells of zero padding on every side of every level.
 pub const PAD: usize = 2;
 /// Chebyshev smoothing steps before and after each coarse correction of a W-cycle (Laplace's
-/// equation; see [`Cycle`]).
+/// equation, whose nearly singular coarse levels one visit leaves far from solved).
 pub const W_SWEEPS: u32 = 3;
 /// The same for a V-cycle (the screened field).
 pub const V_SWEEPS: u32 = 2;
@@ -109,9 +110,10 @@ const LEVEL_ARRAYS: usize = 13;
 /// The fine level's: the same but the face conductances, which are its interior mask (see
 /// [`Arrays::w`]).
 const FINE_ARRAYS: usize = LEVEL_ARRAYS - 3;
-/// Fine-level arrays for conjugate gradients: right-hand side, solution, residual, direction
-/// (`A·p` goes to the fine level's `tmp`, free between preconditioner calls).
-const KRYLOV_ARRAYS: usize = 4;
+/// Fine-level arrays for conjugate gradients: right-hand side, solution, direction. The
+/// residual is the fine level's `b`, which the preconditioner solves for (so it needs no copy),
+/// and `A·p` goes to the fine level's `tmp`, free between preconditioner calls.
+const KRYLOV_ARRAYS: usize = 3;
 
 /// One level's padded grid.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -247,13 +249,16 @@ impl<'s> Arrays<'s> {
         })
     }
 
-    fn view(&self) -> Op<'_> {
-        Op {
+    /// The operator, with the two vectors conjugate gradients keep on the fine level: `tmp`
+    /// (for `A·p`) and `b` (the residual).
+    fn split(&mut self) -> (Op<'_>, &mut [f32], &mut [f32]) {
+        let op = Op {
             w: [&*self.w[0], &*self.w[1], &*self.w[2]],
             diag: self.diag,
             sink: self.sink,
             kind: self.kind,
-        }
+        };
+        (op, &mut *self.tmp, &mut *self.b)
     }
 }
 
@@ -266,11 +271,10 @@ struct Op<'s> {
     kind: &'s [f32],
 }
 
-/// The fine level's conjugate-gradient vectors.
+/// The fine level's conjugate-gradient vectors (the residual is the fine level's `b`).
 struct Krylov<'s> {
     rhs: &'s mut [f32],
     x: &'s mut [f32],
-    r: &'s mut [f32],
     p: &'s mut [f32],
 }
 
@@ -414,8 +418,9 @@ impl<'a> Flat<'a> {
         }
         let shift = screen.shift;
         let residual = |store: &mut [f32], kr: &mut Krylov<'_>| {
-            level_arrays(&grids, store, 0).map_or(Residual::from_sums(0.0, 0.0, 0.0, b2), |a| {
-                true_residual(fork, &fine, a.view(), kr, b2, shift)
+            level_arrays(&grids, store, 0).map_or(Residual::from_sums(0.0, 0.0, 0.0, b2), |mut a| {
+                let (op, _, r) = a.split();
+                true_residual(fork, &fine, op, (kr.rhs, kr.x), r, b2, shift)
             })
         };
         let mut res = residual(levels_store, &mut kr);
@@ -439,24 +444,18 @@ impl<'a> Flat<'a> {
                 let target = params.tolerance.max(res.floor);
                 let start = res.relative;
                 current = false;
-                stats.cell_updates += precondition(fork, &grids, levels_store, kr.r, &interior, &pins, cycle);
+                stats.cell_updates += precondition(fork, &grids, levels_store, &interior, &pins, cycle);
                 let Some(level0) = level_arrays(&grids, levels_store, 0) else {
                     break;
                 };
                 kr.p.copy_from_slice(level0.u);
-                let mut rho = dot(kr.r, level0.u);
+                let mut rho = dot(level0.b, level0.u);
                 while stats.iterations < params.max_iterations {
-                    let Some(level0) = level_arrays(&grids, levels_store, 0) else {
+                    let Some(mut level0) = level_arrays(&grids, levels_store, 0) else {
                         break;
                     };
                     // q = A·p, in the fine level's sweep scratch.
-                    let op = Op {
-                        w: [&*level0.w[0], &*level0.w[1], &*level0.w[2]],
-                        diag: level0.diag,
-                        sink: level0.sink,
-                        kind: level0.kind,
-                    };
-                    let q = level0.tmp;
+                    let (op, q, r) = level0.split();
                     apply(fork, &fine, op, kr.p, q);
                     stats.cell_updates += fine.len as u64;
                     let pq = dot(kr.p, q);
@@ -467,7 +466,7 @@ impl<'a> Flat<'a> {
                     // |α·p| = |α|·|p| exactly, so the largest step is |α|·max |p|.
                     let change = alpha.abs() * max_abs(kr.p);
                     let (p, q) = (&*kr.p, &*q);
-                    each_half(fork, kr.x, kr.r, &|x, r, at| {
+                    each_half(fork, kr.x, r, &|x, r, at| {
                         let (Some(p), Some(q)) = (p.get(at..at + x.len()), q.get(at..at + x.len())) else {
                             return;
                         };
@@ -477,18 +476,17 @@ impl<'a> Flat<'a> {
                         }
                     });
                     stats.iterations += 1;
-                    let recursive = (libm::sqrt(sum_sq(kr.r)) / b_norm) as f32;
+                    let recursive = (libm::sqrt(sum_sq(r)) / b_norm) as f32;
                     steps.push_with_residual(change, recursive);
                     let _ = self.history.push(recursive);
                     if recursive <= target * STOP_SHARE || recursive <= start * 1e-3 {
                         break;
                     }
-                    stats.cell_updates +=
-                        precondition(fork, &grids, levels_store, kr.r, &interior, &pins, cycle);
+                    stats.cell_updates += precondition(fork, &grids, levels_store, &interior, &pins, cycle);
                     let Some(level0) = level_arrays(&grids, levels_store, 0) else {
                         break;
                     };
-                    let rho_new = dot(kr.r, level0.u);
+                    let rho_new = dot(level0.b, level0.u);
                     let beta = (rho_new / rho) as f32;
                     rho = rho_new;
                     let z = &*level0.u;
@@ -593,9 +591,8 @@ fn two_levels<'s>(
 fn carve_krylov(store: &mut [f32], n: usize) -> Option<Krylov<'_>> {
     let (rhs, rest) = store.split_at_mut_checked(n)?;
     let (x, rest) = rest.split_at_mut_checked(n)?;
-    let (r, rest) = rest.split_at_mut_checked(n)?;
     let p = rest.get_mut(..n)?;
-    Some(Krylov { rhs, x, r, p })
+    Some(Krylov { rhs, x, p })
 }
 
 /// Every level's operator from the fine labels; `rhs` gets the fine right-hand side. Returns
@@ -906,16 +903,15 @@ fn stencil(
     f: impl FnMut(f32, f32, f32, f32, f32, f32) -> f32,
 ) {
     if w[0].is_empty() {
-        stencil_as::<false, false>(g, w, v, range, extra, out, f)
+        stencil_as::<false>(g, w, v, range, extra, out, f)
     } else {
-        stencil_as::<false, true>(g, w, v, range, extra, out, f)
+        stencil_as::<true>(g, w, v, range, extra, out, f)
     }
 }
 
-/// `f(Σ_j m_j (v_j − v_i), …)` with `m_j` 1 for an interior neighbour, else 0, on interior cells
-/// (0 elsewhere): [`stencil_as`]'s flux on the fine level, whose faces are the interior mask
-/// ([`Arrays::w`]) and whose `v` holds 0 outside the interior, from `kind`. The same numbers as
-/// the weighted flux with the fine level's conductances, term for term.
+/// `f(Σ_j w_j (v_j − v_i), v_i, e₀, e₁)` on the fine level, `w_j` its face conductances (1
+/// between two interior cells, else 0: [`Arrays::w`]) taken from `kind`: the net flux, whose
+/// rounding near ψ = 1 is that of the differences (see [`super`]), for the true residual.
 #[inline(always)]
 fn fine_flux(
     g: &Grid,
@@ -966,12 +962,9 @@ fn fine_flux(
     }
 }
 
-/// [`stencil`] with `FLUX`: the sum is the net flux `Σ w·(v_j − v_i)` instead, which keeps
-/// the rounding of a residual near ψ = 1 to that of the differences (see [`super`]); with
-/// `WEIGHTED` false the weights are not read and the sum is the plain one (not with `FLUX`,
-/// whose fine-level form is [`fine_flux`]).
+/// [`stencil`]; with `WEIGHTED` false the weights are not read and the sum is the plain one.
 #[inline(always)]
-fn stencil_as<const FLUX: bool, const WEIGHTED: bool>(
+fn stencil_as<const WEIGHTED: bool>(
     g: &Grid,
     w: [&[f32]; 3],
     v: &[f32],
@@ -995,11 +988,7 @@ fn stencil_as<const FLUX: bool, const WEIGHTED: bool>(
         .zip(l.iter().zip(r))
         .zip(ym.iter().zip(yp))
         .zip(zm.iter().zip(zp));
-    if !WEIGHTED || FLUX && w[0].is_empty() {
-        if FLUX {
-            // No plain flux: see `fine_flux`.
-            return;
-        }
+    if !WEIGHTED {
         for (((((o, &c), (&l, &r)), (&ym, &yp)), (&zm, &zp)), ((&a, &b), &d)) in around.zip(extra) {
             *o = f(l + r + ym + yp + zm + zp, c, a, b, d, *o);
         }
@@ -1018,11 +1007,7 @@ fn stencil_as<const FLUX: bool, const WEIGHTED: bool>(
         ((&a, &b), &d),
     ) in it
     {
-        let sum = if FLUX {
-            wl * (l - c) + wr * (r - c) + wym * (ym - c) + wyp * (yp - c) + wzm * (zm - c) + wzp * (zp - c)
-        } else {
-            wl * l + wr * r + wym * ym + wyp * yp + wzm * zm + wzp * zp
-        };
+        let sum = wl * l + wr * r + wym * ym + wyp * yp + wzm * zm + wzp * zp;
         *o = f(sum, c, a, b, d, *o);
     }
 }
@@ -1073,16 +1058,40 @@ fn smooth(
         Smoother::Chebyshev => 1.0 / CHEB_THETA,
         Smoother::Jacobi => OMEGA,
     };
+    // Whether `a.u` is the carved `tmp`. Each step after the first trades the two, so the
+    // first step's result is put where the last one lands in the carved `u` without a copy
+    // (except from a given `u` with an odd count).
     let mut swapped = false;
-    if start == Start::Zero {
-        // The first step from 0: u = c2·inv·b (the neighbour sum is 0), in place.
-        for ((u, b), inv) in a.u.iter_mut().zip(a.b.iter()).zip(a.inv.iter()) {
-            *u = first * inv * b;
-        }
-    } else {
-        sweep(fork, g, a, 0.0, first, true);
+    let mut trade = |a: &mut Arrays<'_>| {
         core::mem::swap(&mut a.u, &mut a.tmp);
-        swapped = true;
+        swapped = !swapped;
+    };
+    match start {
+        Start::Zero => {
+            // The first step from 0: u = c2·inv·b (the neighbour sum is 0), in place.
+            if sweeps & 1 == 0 {
+                trade(a);
+            }
+            for ((u, b), inv) in a.u.iter_mut().zip(a.b.iter()).zip(a.inv.iter()) {
+                *u = first * inv * b;
+            }
+        }
+        Start::Given | Start::Corrected => {
+            if start == Start::Corrected {
+                if sweeps & 1 == 1 {
+                    for ((t, u), w) in a.tmp.iter_mut().zip(a.u.iter()).zip(a.invden.iter()) {
+                        *t = u + *t * w;
+                    }
+                    trade(a);
+                } else {
+                    for ((u, e), w) in a.u.iter_mut().zip(a.tmp.iter()).zip(a.invden.iter()) {
+                        *u += e * w;
+                    }
+                }
+            }
+            sweep(fork, g, a, 0.0, first, true);
+            trade(a);
+        }
     }
     let mut old_zero = start == Start::Zero;
     let sigma = CHEB_THETA / CHEB_DELTA;
@@ -1098,8 +1107,7 @@ fn smooth(
             Smoother::Jacobi => (0.0, OMEGA),
         };
         sweep(fork, g, a, c1, c2, old_zero);
-        core::mem::swap(&mut a.u, &mut a.tmp);
-        swapped = !swapped;
+        trade(a);
         old_zero = false;
     }
     if swapped {
@@ -1190,40 +1198,32 @@ fn each_half(fork: Option<&dyn Fork>, a: &mut [f32], b: &mut [f32], body: &HalfB
     }
 }
 
-/// The true residual `rhs − A x` of the iterate into `kr.r`, with its rounding floor.
+/// The true residual `rhs − A x` of the iterate `x` into `r`, with its rounding floor.
 fn true_residual(
     fork: Option<&dyn Fork>,
     g: &Grid,
     op: Op<'_>,
-    kr: &mut Krylov<'_>,
+    (rhs, x): (&[f32], &[f32]),
+    r: &mut [f32],
     b2: f64,
     shift: f32,
 ) -> Residual {
-    {
-        let (rhs, x) = (&*kr.rhs, &*kr.x);
-        each_plane(fork, g, kr.r, &|range, out| {
-            let (Some(rhs), Some(s)) = (rhs.get(range.clone()), op.sink.get(range.clone())) else {
-                return;
-            };
-            // As fluxes: b + Σ w·(x_j − x_i) − (sink + s)·x_i.
-            if op.w[0].is_empty() {
-                fine_flux(g, op.kind, x, range, [rhs, s], out, |flux, c, b, sink| {
-                    b + flux - (sink + shift) * c
-                });
-            } else {
-                stencil_as::<true, true>(g, op.w, x, range, [rhs, s, s], out, |flux, c, b, sink, _, _| {
-                    b + flux - (sink + shift) * c
-                });
-            }
+    each_plane(fork, g, r, &|range, out| {
+        let (Some(rhs), Some(s)) = (rhs.get(range.clone()), op.sink.get(range.clone())) else {
+            return;
+        };
+        // As fluxes: b + Σ w·(x_j − x_i) − (sink + s)·x_i.
+        fine_flux(g, op.kind, x, range, [rhs, s], out, |flux, c, b, sink| {
+            b + flux - (sink + shift) * c
         });
-    }
+    });
     let (mut r2, mut e2, mut max) = (0.0f64, 0.0f64, 0.0f32);
     for z in 0..g.n[2] {
         let range = g.plane(z);
         let (Some(d), Some(x), Some(out)) = (
             op.diag.get(range.clone()),
-            kr.x.get(range.clone()),
-            kr.r.get(range.clone()),
+            x.get(range.clone()),
+            r.get(range.clone()),
         ) else {
             continue;
         };
@@ -1551,9 +1551,6 @@ fn vcycle(
         return work;
     };
     interpolate(c, ca.u, f, fa.tmp, fa.ox, &mut tr);
-    for ((u, e), w) in fa.u.iter_mut().zip(fa.tmp.iter()).zip(fa.invden.iter()) {
-        *u += e * w;
-    }
     work += f.len as u64;
     work + smooth(
         fk,
@@ -1561,7 +1558,7 @@ fn vcycle(
         &mut fa,
         cycle.sweeps(),
         count,
-        Start::Given,
+        Start::Corrected,
         Smoother::Chebyshev,
     )
 }
@@ -1599,6 +1596,9 @@ enum Start {
     Given,
     /// `u = 0`, not written yet.
     Zero,
+    /// `u + tmp·invden`: the level's `u` corrected by the coarse correction interpolated
+    /// into `tmp` (only where the level has a coarser one).
+    Corrected,
 }
 
 /// Full multigrid for `A x = rhs` from nothing: `rhs` restricted down the levels, the coarsest
@@ -1666,7 +1666,6 @@ fn precondition(
     fork: Option<&dyn Fork>,
     grids: &[Grid],
     store: &mut [f32],
-    r: &[f32],
     interior: &[u64],
     pins: &[[usize; 3]],
     cycle: Cycle,
@@ -1681,9 +1680,8 @@ fn precondition(
     } else {
         Start::Given
     };
-    if let Some(mut a) = level_arrays(grids, store, 0) {
-        a.b.copy_from_slice(r);
-        if start == Start::Given {
+    if start == Start::Given {
+        if let Some(mut a) = level_arrays(grids, store, 0) {
             a.u.fill(0.0);
             work += local_smooth(fine, &mut a, pins);
         }
