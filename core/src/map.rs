@@ -134,9 +134,14 @@ impl Dims {
     }
     /// Calls `f` with the linear index of every face neighbour of `v` that is inside the grid.
     #[inline]
-    pub fn for_each_face_neighbour(&self, v: VoxelIndex, mut f: impl FnMut(usize)) {
-        // In the order of FACE_OFFSETS, as linear steps from `v`'s index.
-        let (x, y, z) = (usize::from(v.x), usize::from(v.y), usize::from(v.z));
+    pub fn for_each_face_neighbour(&self, v: VoxelIndex, f: impl FnMut(usize)) {
+        self.for_each_face_neighbour_of([usize::from(v.x), usize::from(v.y), usize::from(v.z)], f);
+    }
+    /// [`Dims::for_each_face_neighbour`] of the voxel at `[x, y, z]` (none if it is outside
+    /// the grid).
+    #[inline]
+    pub fn for_each_face_neighbour_of(&self, [x, y, z]: [usize; 3], mut f: impl FnMut(usize)) {
+        // In the order of FACE_OFFSETS, as linear steps from the voxel's index.
         let (nx, ny, nz) = (self.nx(), self.ny(), self.nz());
         if x >= nx || y >= ny || z >= nz {
             return;

@@ -1799,8 +1799,8 @@ pub(crate) const LOCAL_RADIUS: usize = 3;
 /// only about half per cycle. A few local sweeps remove it at negligible cost. Applied before
 /// and after each fine-level V-cycle, which keeps the preconditioner symmetric.
 fn local_smooth(v: &mut View<'_>, pins: &[[usize; 3]]) -> u64 {
-    let (nx, ny, nz) = (v.dims.nx(), v.dims.ny(), v.dims.nz());
-    let nxy = nx * ny;
+    let dims = v.dims;
+    let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
     let mut work = 0u64;
     let mut update = |v: &mut View<'_>, x: usize, y: usize, z: usize| {
         let i = x + nx * (y + ny * z);
@@ -1815,24 +1815,7 @@ fn local_smooth(v: &mut View<'_>, pins: &[[usize; 3]]) -> u64 {
                 n += 1;
             }
         };
-        if x > 0 {
-            add(i - 1);
-        }
-        if x + 1 < nx {
-            add(i + 1);
-        }
-        if y > 0 {
-            add(i - nx);
-        }
-        if y + 1 < ny {
-            add(i + nx);
-        }
-        if z > 0 {
-            add(i - nxy);
-        }
-        if z + 1 < nz {
-            add(i + nxy);
-        }
+        dims.for_each_face_neighbour_of([x, y, z], &mut add);
         let b = v.b.map_or(0.0, |b| b.at(i));
         if let Some(xi) = v.x.get_mut(i) {
             *xi = c + (flux - v.screen.shift * c + b) * v.screen.inv(n);
