@@ -458,25 +458,16 @@ impl<'a> Flat<'a> {
                     let (op, q, r) = level0.split();
                     apply(fork, &fine, op, kr.p, q);
                     stats.cell_updates += fine.len as u64;
-                    let pq = dot(kr.p, q);
+                    let (pq, max_p) = dot_max(kr.p, q);
                     if !(pq > 0.0 && rho.is_finite()) {
                         break;
                     }
                     let alpha = (rho / pq) as f32;
                     // |α·p| = |α|·|p| exactly, so the largest step is |α|·max |p|.
-                    let change = alpha.abs() * max_abs(kr.p);
-                    let (p, q) = (&*kr.p, &*q);
-                    each_half(fork, kr.x, r, &|x, r, at| {
-                        let (Some(p), Some(q)) = (p.get(at..at + x.len()), q.get(at..at + x.len())) else {
-                            return;
-                        };
-                        for (((x, r), p), q) in x.iter_mut().zip(r.iter_mut()).zip(p).zip(q) {
-                            *x += alpha * p;
-                            *r -= alpha * q;
-                        }
-                    });
+                    let change = alpha.abs() * max_p;
+                    let r2 = step_and_norm(fork, (kr.x, r), (kr.p, q), alpha);
                     stats.iterations += 1;
-                    let recursive = (libm::sqrt(sum_sq(r)) / b_norm) as f32;
+                    let recursive = (libm::sqrt(r2) / b_norm) as f32;
                     steps.push_with_residual(change, recursive);
                     let _ = self.history.push(recursive);
                     if recursive <= target * STOP_SHARE || recursive <= start * 1e-3 {
@@ -1778,6 +1769,98 @@ fn dot(a: &[f32], b: &[f32]) -> f64 {
         total += f64::from(sum);
     }
     total
+}
+
+/// [`dot`]`(a, b)` and [`max_abs`]`(a)` in one pass, the same numbers.
+fn dot_max(a: &[f32], b: &[f32]) -> (f64, f32) {
+    let mut total = 0.0f64;
+    let mut top = [0.0f32; 16];
+    let mut m = 0.0f32;
+    for (a, b) in a.chunks(4096).zip(b.chunks(4096)) {
+        let mut lanes = [0.0f32; 16];
+        let (ac, bc) = (a.chunks_exact(16), b.chunks_exact(16));
+        let (ar, br) = (ac.remainder(), bc.remainder());
+        for (x, y) in ac.zip(bc) {
+            for (((l, t), x), y) in lanes.iter_mut().zip(top.iter_mut()).zip(x).zip(y) {
+                *l += x * y;
+                let v = x.abs();
+                *t = if v > *t { v } else { *t };
+            }
+        }
+        let mut sum: f32 = lanes.iter().sum();
+        for (x, y) in ar.iter().zip(br) {
+            sum += x * y;
+            m = if x.abs() > m { x.abs() } else { m };
+        }
+        total += f64::from(sum);
+    }
+    for t in top {
+        if t > m {
+            m = t;
+        }
+    }
+    (total, m)
+}
+
+/// The conjugate-gradient step `x += α·p`, `r −= α·q`, returning `Σ rᵢ²` of the new `r`: one
+/// pass, in two halves at a block boundary of [`dot`] (on two threads where a fork is lent,
+/// one after the other otherwise; the same bits either way), each block summed as [`dot`]
+/// sums it.
+fn step_and_norm(
+    fork: Option<&dyn Fork>,
+    (x, r): (&mut [f32], &mut [f32]),
+    (p, q): (&[f32], &[f32]),
+    alpha: f32,
+) -> f64 {
+    let at = (x.len() >> 1) & !4095;
+    let (x_lo, x_hi) = x.split_at_mut(at.min(x.len()));
+    let (r_lo, r_hi) = r.split_at_mut(at.min(r.len()));
+    let (p_lo, p_hi) = p.split_at(at.min(p.len()));
+    let (q_lo, q_hi) = q.split_at(at.min(q.len()));
+    let half = |x: &mut [f32], r: &mut [f32], p: &[f32], q: &[f32]| -> f64 {
+        let mut total = 0.0f64;
+        let blocks = x
+            .chunks_mut(4096)
+            .zip(r.chunks_mut(4096))
+            .zip(p.chunks(4096).zip(q.chunks(4096)));
+        for ((x, r), (p, q)) in blocks {
+            let mut lanes = [0.0f32; 16];
+            let (mut xc, mut rc) = (x.chunks_exact_mut(16), r.chunks_exact_mut(16));
+            let (pc, qc) = (p.chunks_exact(16), q.chunks_exact(16));
+            let (pr, qr) = (pc.remainder(), qc.remainder());
+            for ((x, r), (p, q)) in xc.by_ref().zip(rc.by_ref()).zip(pc.zip(qc)) {
+                for ((l, (x, r)), (p, q)) in lanes
+                    .iter_mut()
+                    .zip(x.iter_mut().zip(r.iter_mut()))
+                    .zip(p.iter().zip(q))
+                {
+                    *x += alpha * p;
+                    *r -= alpha * q;
+                    *l += *r * *r;
+                }
+            }
+            let mut sum: f32 = lanes.iter().sum();
+            let rest = xc.into_remainder().iter_mut().zip(rc.into_remainder().iter_mut());
+            for ((x, r), (p, q)) in rest.zip(pr.iter().zip(qr)) {
+                *x += alpha * p;
+                *r -= alpha * q;
+                sum += *r * *r;
+            }
+            total += f64::from(sum);
+        }
+        total
+    };
+    let (mut lo, mut hi) = (0.0f64, 0.0f64);
+    match fork {
+        Some(fork) => fork.join(&mut || lo = half(x_lo, r_lo, p_lo, q_lo), &mut || {
+            hi = half(x_hi, r_hi, p_hi, q_hi)
+        }),
+        None => {
+            lo = half(x_lo, r_lo, p_lo, q_lo);
+            hi = half(x_hi, r_hi, p_hi, q_hi);
+        }
+    }
+    lo + hi
 }
 
 /// `max |aᵢ|`, in sixteen lanes.
