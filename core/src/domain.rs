@@ -580,10 +580,22 @@ pub fn build_doubting(
     fill.push(labels, vehicle_i);
     loop {
         while let Some(i) = fill.pop() {
-            let v = dims.voxel(i);
+            // One walk over the faces: whether one borders the unknown (a safe voxel does if a
+            // face neighbour is fringe or itself unexplored), and which are not reached yet.
+            let (mut touches, mut next, mut count) = (false, [0usize; 6], 0usize);
+            dims.for_each_face_neighbour(dims.voxel(i), |nb| match labels.get(nb) {
+                Some(Label::Candidate) => {
+                    if let Some(slot) = next.get_mut(count) {
+                        *slot = nb;
+                        count += 1;
+                    }
+                }
+                Some(Label::Fringe) => touches = true,
+                _ => touches |= map.is_unexplored(nb),
+            });
             let label = if i == vehicle_i {
                 Label::Source
-            } else if touches_unexplored(map, labels, v) {
+            } else if touches {
                 Label::Frontier
             } else {
                 Label::Interior
@@ -597,11 +609,9 @@ pub fn build_doubting(
                 _ => {}
             }
             if label != Label::Frontier {
-                dims.for_each_face_neighbour(v, |nb| {
-                    if labels.get(nb) == Some(&Label::Candidate) {
-                        fill.push(labels, nb);
-                    }
-                });
+                for &nb in next.iter().take(count) {
+                    fill.push(labels, nb);
+                }
             }
         }
         if !fill.overflow {
@@ -678,15 +688,6 @@ fn is_certain_frontier(
         frontier |= map.is_unexplored(i) || (map.is_free(i) && fringe(dims.voxel(i)));
     });
     frontier && is_safe(map, stencil, v)
-}
-
-/// A safe voxel borders the unknown if a face neighbour is fringe or itself unexplored.
-fn touches_unexplored(map: &VoxelMap<'_>, labels: &[Label], v: VoxelIndex) -> bool {
-    let mut touches = false;
-    map.dims().for_each_face_neighbour(v, |n| {
-        touches |= labels.get(n) == Some(&Label::Fringe) || map.is_unexplored(n);
-    });
-    touches
 }
 
 /// True for unexplored voxels with an observed voxel among their 26 neighbours: the nearest
