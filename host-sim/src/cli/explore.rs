@@ -79,7 +79,7 @@ pub struct ExploreArgs {
     #[arg(long, default_value = "harmonic", value_parser = PlannerKind::from_str)]
     planner: PlannerKind,
     /// Laplace solver of the harmonic planner: `mg` (multigrid, default), `flat` (the host's
-    /// fast multigrid, `harmonic_core::solve::flat`, about 28 floats per voxel; re-solves in
+    /// fast multigrid, `harmonic_core::solve::flat`, about 22 floats per voxel; re-solves in
     /// boxes as `mg`'s; BENCHMARKS.md) or `gs` (the seed paper's Gauss-Seidel; the same as
     /// `--planner harmonic-gs`).
     #[arg(long, default_value = "mg", value_parser = ["mg", "flat", "gs"])]
