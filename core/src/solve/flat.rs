@@ -873,6 +873,25 @@ fn coarsen(
     }
 }
 
+/// The cells of `range` in `v` and their six face neighbours' (`[centre, −x, +x, −y, +y, −z,
+/// +z]`), each as long as `range`; `None` for a range in the first plane or row (never one of
+/// [`Grid::plane`]'s).
+#[inline(always)]
+fn faces<'v>(g: &Grid, v: &'v [f32], range: &core::ops::Range<usize>) -> Option<[&'v [f32]; 7]> {
+    let (s, e) = (range.start, range.end);
+    let (sy, sz) = (g.sy, g.sz);
+    let (s_lo_y, s_lo_z) = (s.checked_sub(sy)?, s.checked_sub(sz)?);
+    Some([
+        sl(v, s, e),
+        sl(v, s - 1, e - 1),
+        sl(v, s + 1, e + 1),
+        sl(v, s_lo_y, e - sy),
+        sl(v, s + sy, e + sy),
+        sl(v, s_lo_z, e - sz),
+        sl(v, s + sz, e + sz),
+    ])
+}
+
 /// `a[from..to]`, empty where out of range.
 #[inline(always)]
 fn sl(a: &[f32], from: usize, to: usize) -> &[f32] {
@@ -913,18 +932,12 @@ fn fine_flux(
     out: &mut [f32],
     mut f: impl FnMut(f32, f32, f32, f32) -> f32,
 ) {
-    let (s, e) = (range.start, range.end);
-    let (sy, sz) = (g.sy, g.sz);
-    let (Some(s_lo_y), Some(s_lo_z)) = (s.checked_sub(sy), s.checked_sub(sz)) else {
+    let m = |k: f32| f32::from(k == INTERIOR);
+    let (Some([c, l, r, ym, yp, zm, zp]), Some([kc, kl, kr, kym, kyp, kzm, kzp])) =
+        (faces(g, v, &range), faces(g, kind, &range))
+    else {
         return;
     };
-    let m = |k: f32| f32::from(k == INTERIOR);
-    let (c, l, r) = (sl(v, s, e), sl(v, s - 1, e - 1), sl(v, s + 1, e + 1));
-    let (ym, yp) = (sl(v, s_lo_y, e - sy), sl(v, s + sy, e + sy));
-    let (zm, zp) = (sl(v, s_lo_z, e - sz), sl(v, s + sz, e + sz));
-    let (kc, kl, kr) = (sl(kind, s, e), sl(kind, s - 1, e - 1), sl(kind, s + 1, e + 1));
-    let (kym, kyp) = (sl(kind, s_lo_y, e - sy), sl(kind, s + sy, e + sy));
-    let (kzm, kzp) = (sl(kind, s_lo_z, e - sz), sl(kind, s + sz, e + sz));
     let it = out
         .iter_mut()
         .zip(c.iter().zip(kc))
@@ -964,14 +977,9 @@ fn stencil_as<const WEIGHTED: bool>(
     out: &mut [f32],
     mut f: impl FnMut(f32, f32, f32, f32, f32, f32) -> f32,
 ) {
-    let (s, e) = (range.start, range.end);
-    let (sy, sz) = (g.sy, g.sz);
-    let (Some(s_lo_y), Some(s_lo_z)) = (s.checked_sub(sy), s.checked_sub(sz)) else {
+    let Some([c, l, r, ym, yp, zm, zp]) = faces(g, v, &range) else {
         return;
     };
-    let (c, l, r) = (sl(v, s, e), sl(v, s - 1, e - 1), sl(v, s + 1, e + 1));
-    let (ym, yp) = (sl(v, s_lo_y, e - sy), sl(v, s + sy, e + sy));
-    let (zm, zp) = (sl(v, s_lo_z, e - sz), sl(v, s + sz, e + sz));
     let extra = extra[0].iter().zip(extra[1]).zip(extra[2]);
     let around = out
         .iter_mut()
@@ -985,9 +993,14 @@ fn stencil_as<const WEIGHTED: bool>(
         }
         return;
     }
-    let (wl, wr) = (sl(w[0], s - 1, e - 1), sl(w[0], s, e));
-    let (wym, wyp) = (sl(w[1], s_lo_y, e - sy), sl(w[1], s, e));
-    let (wzm, wzp) = (sl(w[2], s_lo_z, e - sz), sl(w[2], s, e));
+    // A cell's face towards +axis is its own weight, towards −axis its neighbour's.
+    let (Some([wr, wl, ..]), Some([wyp, _, _, wym, ..]), Some([wzp, .., wzm, _])) = (
+        faces(g, w[0], &range),
+        faces(g, w[1], &range),
+        faces(g, w[2], &range),
+    ) else {
+        return;
+    };
     let it = around
         .zip(wl.iter().zip(wr))
         .zip(wym.iter().zip(wyp))
@@ -1014,13 +1027,12 @@ fn sweep(fork: Option<&dyn Fork>, g: &Grid, a: &mut Arrays<'_>, c1: f32, c2: f32
         let (Some(b), Some(inv)) = (b.get(range.clone()), inv.get(range.clone())) else {
             return;
         };
+        let keep = 1.0 + c1 - c2;
         if old_zero || c1 == 0.0 {
-            let keep = 1.0 + c1 - c2;
             stencil(g, w, u, range, [b, inv, inv], out, |sum, c, b, inv, _, _| {
                 keep * c + c2 * inv * (sum + b)
             });
         } else {
-            let keep = 1.0 + c1 - c2;
             stencil(g, w, u, range, [b, inv, inv], out, |sum, c, b, inv, _, old| {
                 keep * c - c1 * old + c2 * inv * (sum + b)
             });
