@@ -5,13 +5,19 @@
 //! only near it (BENCHMARKS.md, "How far a scan reaches"). A whole-grid warm start still pays
 //! for every cell, every cycle. [`resolve_near`] instead
 //!
-//! 1. computes the residual of the new problem at the old solution and the box around the
-//!    cells where it is large ([`LocalParams::threshold`]), widened by
-//!    [`LocalParams::margin`] voxels on every side;
-//! 2. cuts that box out into lent scratch, its rim (the box's outer layer, where it is not
+//! 1. computes the residual of the new problem at the old solution, and the box around the
+//!    cells whose residual is large, from the largest down until the cells left outside carry
+//!    no more than [`LocalParams::left_outside`] of the allowed residual (the old solution's
+//!    own residual, spread thin, may stay), widened by [`LocalParams::margin`] voxels on
+//!    every side;
+//! 2. solves first a small box around the cells whose residual alone exceeds the allowed
+//!    residual (what the scan changed), [`LocalParams::inner_margin`] voxels wider: it takes
+//!    out the sharp local jump, so the big box starts from a smooth remainder;
+//! 3. cuts each box out into lent scratch, its rim (the box's outer layer, where it is not
 //!    the grid's border) made Dirichlet cells that hold the values outside, and solves it with
-//!    the caller's [`Multigrid`], laid out again for the box in the same storage;
-//! 3. writes the box's interior back and checks the *whole grid's* residual against the same
+//!    the caller's solver, laid out again for the box in the same storage, to what is left of
+//!    the allowed residual after the cells outside it and the rim's share;
+//! 4. writes the box's interior back and checks the *whole grid's* residual against the same
 //!    tolerance a whole-grid solve stops at: a solution this accepts meets the rule a global
 //!    solve's does. Where the check fails (the change reached the rim) each rim face that
 //!    still carries the change moves out by the distance `e^{−κr}` needs to bring it down to
@@ -27,8 +33,8 @@
 use super::flat::Flat;
 use super::multigrid::{Method, Multigrid};
 use super::{
-    error_estimate, error_met, for_each_row, rounding2, rounding_row, row_residuals, Active, Contraction,
-    Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats,
+    error_estimate, error_met, for_each_row, rounding2, rounding_row, row_residual_chunks, Active, ChunkSink,
+    Contraction, Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats, CHUNK,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -45,12 +51,25 @@ pub struct LocalScratch<'a> {
 /// How far a local re-solve reaches.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LocalParams {
-    /// Cells whose residual exceeds this share of the whole grid's allowed residual
-    /// (`tolerance · ‖b‖`) must lie in the box.
+    /// Cells whose residual is at or below this share of the whole grid's allowed residual
+    /// (`tolerance · ‖b‖`) never need a box.
     pub threshold: f32,
+    /// The share of the allowed residual the cells left outside the first box may keep: the
+    /// box takes the cells above the threshold from the largest residual down until what is
+    /// left carries no more than this. A warm start is the last solution, whose own residual
+    /// (within the last solve's tolerance) lies spread around the frontier: the box is for
+    /// what the scan changed, not for that.
+    pub left_outside: f32,
     /// Voxels added on every side of those cells: how far the change is let spread.
     pub margin: usize,
-    /// Boxes tried before the whole grid is solved instead.
+    /// Voxels added on every side of the cells whose residual alone exceeds the whole grid's
+    /// allowed residual (what the scan changed: a solution that met the tolerance has no such
+    /// cell) for a small box solved first. It takes out the sharp local jump the change left
+    /// (a relative residual of ~0.3 at a warm start, against ~0.04 where full multigrid
+    /// starts a cold solve), so the box around it starts from a smooth remainder and takes
+    /// fewer steps.
+    pub inner_margin: usize,
+    /// Boxes tried before the whole grid is solved instead (the inner box not counted).
     pub max_boxes: u8,
     /// Largest box worth solving on its own, as a share of the grid's cells.
     pub max_share: f32,
@@ -69,9 +88,17 @@ impl LocalParams {
         } else {
             64
         };
+        // One decay length: the change falls by e across it.
+        let inner_margin = if kappa > 0.0 {
+            libm::ceilf(1.0 / kappa).clamp(2.0, 16.0) as usize
+        } else {
+            16
+        };
         Self {
             threshold: 0.01,
+            left_outside: 0.5,
             margin,
+            inner_margin,
             max_boxes: 3,
             max_share: 0.5,
         }
@@ -148,31 +175,6 @@ impl Cells {
         self.grown([m; 6], dims)
     }
 
-    fn contains(&self, p: [usize; 3]) -> bool {
-        p.iter()
-            .zip(self.lo.iter().zip(&self.hi))
-            .all(|(c, (lo, hi))| lo <= c && c < hi)
-    }
-
-    /// The rim faces (bits −x, +x, −y, +y, −z, +z) `p` lies on: the box's outer layer where
-    /// the grid of `n` cells goes on beyond it.
-    fn rim_faces(&self, p: [usize; 3], n: &[usize; 3]) -> u8 {
-        if !self.contains(p) {
-            return 0;
-        }
-        let mut f = 0;
-        let axes = p.iter().zip(&self.lo).zip(&self.hi).zip(n);
-        for (a, (((&c, &lo), &hi), &n)) in axes.enumerate() {
-            if c == lo && c > 0 {
-                f |= 1 << (2 * a);
-            }
-            if c + 1 == hi && c + 1 < n {
-                f |= 1 << (2 * a + 1);
-            }
-        }
-        f
-    }
-
     /// Each face moved out by `by` (−x, +x, −y, +y, −z, +z), within `dims`.
     fn grown(self, by: [usize; 6], dims: &Dims) -> Self {
         let [mx, px, my, py, mz, pz] = by;
@@ -200,6 +202,10 @@ impl Cells {
 struct Scan {
     /// Sum of the squared residuals of the region's interior rows.
     r2: f64,
+    /// The part of `r2` from residuals at or below the threshold. The larger ones are summed
+    /// apart in `f64`: a row's `f32` sum would lose the small ones beside a large one, and the
+    /// scans before and after a box solve must agree on the rest to the last bit.
+    r2_low: f64,
     /// Sum of their rows' rounding terms ([`rounding_row`]).
     e2: f64,
     /// Largest residual above the threshold, and at or below it.
@@ -214,55 +220,288 @@ struct Scan {
     rim_cells: usize,
 }
 
-/// The residual of the cells of `region`, those beyond `within` whose residual exceeds `tau`,
-/// and the residual on `within`'s rim.
+/// Residual size classes of a scan: class `k` holds the residuals in `(τ·4ᵏ, τ·4ᵏ⁺¹]` (the
+/// last, everything above), with the sum of their squares, the largest and their box.
+const CLASSES: usize = 16;
+
+/// The residuals above the threshold `τ` of a scan, by [size class](CLASSES).
+#[derive(Debug, Clone, Copy, Default)]
+struct Classes {
+    r2: [f64; CLASSES],
+    max: [f32; CLASSES],
+    cells: [Option<Cells>; CLASSES],
+    /// The box around the cells whose residual exceeds `hot_level`.
+    hot: Option<Cells>,
+    hot_level: f32,
+}
+
+impl Classes {
+    /// Notes a cell at `p` whose residual `a` is `q = a / τ > 1` times the threshold.
+    fn note(&mut self, p: [usize; 3], a: f32, q: f32) {
+        // The exponent of q (≥ 0 since q > 1), halved: powers of 4.
+        let e = ((q.to_bits() >> 23) & 0xff).saturating_sub(127) >> 1;
+        let k = (e as usize).min(CLASSES - 1);
+        let c = Cells::point(p);
+        if a > self.hot_level {
+            self.hot = Some(self.hot.map_or(c, |b| b.union(c)));
+        }
+        if let (Some(r2), Some(m), Some(b)) = (self.r2.get_mut(k), self.max.get_mut(k), self.cells.get_mut(k))
+        {
+            *r2 += f64::from(a) * f64::from(a);
+            *m = m.max(a);
+            *b = Some(b.map_or(c, |b| b.union(c)));
+        }
+    }
+
+    /// The cells the first box must hold: those of the classes above the lowest one whose
+    /// cells, with `rest` (the squared residual at or below `τ`), may stay outside within
+    /// `budget` (a sum of squares). Returns their box, the threshold they start at, and the
+    /// largest residual of the cells left outside (`below`: those at or below `τ`).
+    fn pick(&self, rest: f64, budget: f64, tau: f32, below: f32) -> (Option<Cells>, f32, f32) {
+        let (mut left, mut max, mut from) = (rest, below, 0);
+        for (k, (r2, m)) in self.r2.iter().zip(&self.max).enumerate() {
+            if left + r2 > budget {
+                break;
+            }
+            left += r2;
+            max = max.max(*m);
+            from = k + 1;
+        }
+        let cells = self
+            .cells
+            .iter()
+            .skip(from)
+            .flatten()
+            .copied()
+            .reduce(Cells::union);
+        (cells, tau * libm::powf(4.0, from as f32), max)
+    }
+}
+
+/// The residual of the cells of `region`, those beyond `within` whose residual exceeds
+/// `large`, and the residual on `within`'s rim; `classes`, if given, gets the residuals above
+/// `tau` by size. Residuals above `tau` are summed one by one in `f64`, the rest by rows in
+/// `f32`.
 fn scan(
     dims: &Dims,
     screen: &Screen,
     (labels, psi): (&[Label], &[f32]),
     region: &Cells,
-    tau: f32,
+    (tau, large, mut classes): (f32, f32, Option<&mut Classes>),
     within: Option<&Cells>,
 ) -> Scan {
     let mut out = Scan::default();
     let n = axes(dims);
     let active = Active::bounded(dims, region.lo, region.hi);
     let xs = active.xs();
+    let wx = within.map_or(0..0, |b| b.lo[0]..b.hi[0]);
+    let mut below = 0.0f32;
     for_each_row(dims, &active, screen, labels, psi, |st, row| {
-        let (mut row_r, mut row_e) = (0.0f32, 0.0f32);
-        row_residuals(st, row, None, |x, r, k| {
-            if !xs.contains(&x) {
-                // The grid's edge cells, which every row visits.
-                return;
-            }
-            row_r += r * r;
-            row_e += rounding2(k, row.get(x).copied().unwrap_or(0.0));
-            let p = [x, st.y, st.z];
-            let faces = within.map_or(0u8, |b| b.rim_faces(p, &n));
-            if faces != 0 {
-                out.rim_cells += 1;
-                for (f, m) in out.rim.iter_mut().enumerate() {
-                    if faces & (1 << f) != 0 {
-                        *m = m.max(r.abs());
-                    }
+        let rim = rim_row(within, &n, st.y, st.z);
+        // The cells that need more than the sums: a row's −x/+x rim cells, every cell of a
+        // row on a −y/+y/−z/+z rim face (only such rows have `faces` bits), and (tested per
+        // cell) a large residual.
+        let (faces, first, last) = rim.unwrap_or((0, usize::MAX, usize::MAX));
+        let mut sums = RowScan {
+            r2: 0.0,
+            e2: 0.0,
+            below: 0.0,
+            lanes: [(0.0, 0.0, 0.0); CHUNK],
+            tau,
+            xs: xs.clone(),
+            ends: [first, last],
+            whole_row: if faces != 0 { wx.clone() } else { 0..0 },
+            labels: st.labels,
+            rare: Rare {
+                out: &mut out,
+                classes: classes.as_deref_mut(),
+                tau,
+                large,
+                rim,
+                wx: wx.clone(),
+                yz: [st.y, st.z],
+            },
+        };
+        row_residual_chunks(st, row, &mut sums);
+        let RowScan {
+            r2,
+            e2,
+            below: b,
+            lanes,
+            ..
+        } = sums;
+        let (r2, e2, b) = lanes
+            .iter()
+            .fold((r2, e2, b), |(r, e, m), l| (r + l.0, e + l.1, m.max(l.2)));
+        out.r2 += f64::from(r2);
+        out.r2_low += f64::from(r2);
+        out.e2 += rounding_row(e2);
+        below = below.max(b);
+    });
+    out.max[1] = out.max[1].max(below);
+    out
+}
+
+/// One row of a [`scan`]: its sums, and where the cells are that need more than them.
+struct RowScan<'s, 'c, 'l> {
+    /// Squared residuals at or below `tau` (the larger go to `rare`, in `f64`).
+    r2: f32,
+    /// Rounding terms ([`rounding2`]).
+    e2: f32,
+    /// The largest residual at or below `tau` of the cells not noted.
+    below: f32,
+    /// [`RowScan::chunk`]'s `r2`, `e2` and `below`, per lane of the chunk.
+    lanes: [(f32, f32, f32); CHUNK],
+    tau: f32,
+    /// The region's x range.
+    xs: core::ops::Range<usize>,
+    /// The row's −x and +x rim cells (`usize::MAX` for none).
+    ends: [usize; 2],
+    /// The cells of a row on a −y/+y/−z/+z rim face (empty for any other row).
+    whole_row: core::ops::Range<usize>,
+    labels: &'l [Label],
+    rare: Rare<'s, 'c>,
+}
+
+impl ChunkSink for RowScan<'_, '_, '_> {
+    #[inline(always)]
+    fn chunk(&mut self, x0: usize, from: usize, r: &[f32; CHUNK], n: &[f32; CHUNK], c: &[f32; CHUNK]) {
+        let x1 = x0 + CHUNK;
+        let [first, last] = self.ends;
+        // A chunk with a rim cell or a cell outside the range takes its cells one by one.
+        let plain = self.xs.start <= from
+            && x1 <= self.xs.end
+            && !(from..x1).contains(&first)
+            && !(from..x1).contains(&last)
+            && (self.whole_row.end <= from || x1 <= self.whole_row.start);
+        if !plain {
+            for (x, ((r, n), c)) in (x0..x1).zip(r.iter().zip(n).zip(c)) {
+                if x >= from && self.labels.get(x) == Some(&Label::Interior) {
+                    self.single(x, *r, *n as u32, *c);
                 }
             }
-            let large = r.abs() > tau;
-            let [above, below] = &mut out.max;
-            if large {
-                *above = above.max(r.abs());
-            } else {
-                *below = below.max(r.abs());
+            return;
+        }
+        let mut other = 0u32;
+        let tau = self.tau;
+        // Lane by lane (a sum over the lanes would not vectorise: it fixes the order).
+        let lanes = self.lanes.iter_mut().zip(r.iter().zip(n).zip(c));
+        for ((sum, e, max), ((r, k), c)) in lanes {
+            let a = r.abs();
+            let small = a <= tau;
+            *sum += if small { r * r } else { 0.0 };
+            *e += (k + k * k) * c * c;
+            *max = max.max(if small { a } else { 0.0 });
+            other += u32::from(!small);
+        }
+        if other > 0 {
+            // Residuals above the threshold (or NaN): those cells are noted.
+            for (x, r) in (x0..x1).zip(r) {
+                if above(r.abs(), tau) {
+                    self.rare.note(x, r.abs());
+                }
             }
-            if large && !within.is_some_and(|b| b.contains(p)) {
-                let p = Cells::point(p);
-                out.large = Some(out.large.map_or(p, |b| b.union(p)));
+        }
+    }
+
+    #[inline(always)]
+    fn single(&mut self, x: usize, r: f32, n: u32, c: f32) {
+        if !self.xs.contains(&x) {
+            // The grid's edge cells, which every row visits.
+            return;
+        }
+        self.e2 += rounding2(n, c);
+        let a = r.abs();
+        if a <= self.tau {
+            self.r2 += r * r;
+        }
+        let [first, last] = self.ends;
+        // A NaN is noted too, and makes the sums NaN: the check fails on it.
+        if above(a, self.tau) || x == first || x == last || self.whole_row.contains(&x) {
+            self.rare.note(x, a);
+        } else {
+            self.below = self.below.max(a);
+        }
+    }
+}
+
+/// What [`scan`] needs for the cells of one row on `within`'s rim or above the threshold.
+struct Rare<'s, 'c> {
+    out: &'s mut Scan,
+    classes: Option<&'c mut Classes>,
+    tau: f32,
+    /// Cells outside `within` above this go into [`Scan::large`].
+    large: f32,
+    /// The row's rim ([`rim_row`]).
+    rim: Option<(u8, usize, usize)>,
+    /// `within`'s x range.
+    wx: core::ops::Range<usize>,
+    yz: [usize; 2],
+}
+
+impl Rare<'_, '_> {
+    /// Records the cell `x` of the row, whose residual is `a`.
+    #[cold]
+    #[inline(never)]
+    fn note(&mut self, x: usize, a: f32) {
+        let [y, z] = self.yz;
+        let p = [x, y, z];
+        let inside = self.rim.is_some() && self.wx.contains(&x);
+        let out = &mut *self.out;
+        let [max_above, max_below] = &mut out.max;
+        if above(a, self.tau) {
+            out.r2 += f64::from(a) * f64::from(a);
+            *max_above = max_above.max(a);
+            if !inside && a > self.large {
+                let c = Cells::point(p);
+                out.large = Some(out.large.map_or(c, |b| b.union(c)));
             }
-        });
-        out.r2 += f64::from(row_r);
-        out.e2 += rounding_row(row_e);
-    });
-    out
+            if let Some(c) = self.classes.as_deref_mut() {
+                c.note(p, a, a / self.tau);
+            }
+        } else {
+            *max_below = max_below.max(a);
+        }
+        let Some((faces, first, last)) = self.rim.filter(|_| inside) else {
+            return;
+        };
+        let faces = faces | u8::from(x == first) | u8::from(x == last) << 1;
+        if faces != 0 {
+            out.rim_cells += 1;
+            for (f, m) in out.rim.iter_mut().enumerate() {
+                if faces & (1 << f) != 0 {
+                    *m = m.max(a);
+                }
+            }
+        }
+    }
+}
+
+/// `a > tau`, or `a` is NaN: a NaN residual is treated as a large one, so it reaches the sums
+/// (making them NaN, which fails the check) instead of being passed over.
+#[inline(always)]
+fn above(a: f32, tau: f32) -> bool {
+    a > tau || a.is_nan()
+}
+
+/// The rim of `within` along row `(y, z)`: the face bits the whole row shares (−y/+y/−z/+z)
+/// and the x of its −x and +x rim cells (`usize::MAX` where the grid ends there instead), or
+/// `None` for a row outside `within`.
+fn rim_row(within: Option<&Cells>, n: &[usize; 3], y: usize, z: usize) -> Option<(u8, usize, usize)> {
+    let b = within?;
+    let [nx, ny, nz] = *n;
+    let [_, ly, lz] = b.lo;
+    let [hx, hy, hz] = b.hi;
+    if !((ly..hy).contains(&y) && (lz..hz).contains(&z)) {
+        return None;
+    }
+    let side = |c: usize, lo: usize, hi: usize, n: usize, bit: u8| {
+        u8::from(c == lo && c > 0) << bit | u8::from(c + 1 == hi && c + 1 < n) << (bit + 1)
+    };
+    let faces = side(y, ly, hy, ny, 2) | side(z, lz, hz, nz, 4);
+    let first = if b.lo[0] > 0 { b.lo[0] } else { usize::MAX };
+    let last = if hx < nx { hx - 1 } else { usize::MAX };
+    Some((faces, first, last))
 }
 
 /// Calls `f(grid index, box index, on the rim)` for every cell of `cells`, row by row.
@@ -416,13 +655,30 @@ fn in_boxes(
         lo: [0; 3],
         hi: axes(&dims),
     };
-    let first = scan(&dims, &screen, (labels, psi), &grid, tau, None);
+    let mut classes = Classes {
+        hot_level: allowed,
+        ..Classes::default()
+    };
+    let first = scan(
+        &dims,
+        &screen,
+        (labels, psi),
+        &grid,
+        (tau, tau, Some(&mut classes)),
+        None,
+    );
     *work += n as u64;
+    // The cells the first box must hold, and from there on the threshold above which a
+    // cell outside the boxes is one more to take.
+    let rest = first.r2_low;
+    let kept_outside = f64::from(local.left_outside * allowed);
+    let budget = kept_outside * kept_outside;
+    let (large, take, max_still) = classes.pick(rest, budget, tau, first.max[1]);
+
     // The whole grid's sums, kept up to date from the region each box solve can change (the
     // box and the cells beside it): every other cell keeps its residual, which the first
     // pass found at or below `max_still` unless it lies in the first box.
     let (mut r2, mut e2) = (first.r2, first.e2);
-    let [_, max_still] = first.max;
     let mut res = Residual::from_sums(r2, e2, first.max[0].max(max_still), b2);
     let done = |res: &Residual| {
         let estimate = error_estimate(&Contraction::default(), res, &screen);
@@ -437,14 +693,19 @@ fn in_boxes(
     };
     let capacity = scratch.labels.len().min(scratch.psi.len());
     let limit = ((local.max_share.clamp(0.0, 1.0) * n as f32) as usize).min(capacity);
-    let mut next = first.large.map(|c| c.widened(local.margin, &dims));
+    // The box every box after the inner one holds.
+    let main = large.map(|c| c.widened(local.margin, &dims));
+    let inner = classes.hot.map(|c| c.widened(local.inner_margin, &dims));
+    let inner = inner.filter(|i| local.inner_margin > 0 && main.is_some_and(|m| i.len() < m.len()));
+    let mut next = inner.or(main);
+    let max_boxes = local.max_boxes.saturating_add(u8::from(inner.is_some()));
     let mut solved: Option<Cells> = None;
     while !done(&res) {
         let Some(cells) = next.filter(|c| Some(*c) != solved) else {
             // Residual spread thin everywhere (a changed κ), or a box that cannot grow.
             return Ok(None);
         };
-        if out.boxes >= local.max_boxes || cells.len() > limit {
+        if out.boxes >= max_boxes || cells.len() > limit {
             return Ok(None);
         }
         let [ex, ey, ez] = cells.extent();
@@ -458,7 +719,7 @@ fn in_boxes(
             return Ok(None);
         };
         let region = cells.widened(1, &dims);
-        let before = scan(&dims, &screen, (labels, psi), &region, tau, None);
+        let before = scan(&dims, &screen, (labels, psi), &region, (tau, take, None), None);
         for_each_cell(&dims, &cells, |i, j, rim| {
             let l = labels.get(i).copied().unwrap_or(Label::Outside);
             if let (Some(bl), Some(bp)) = (bl.get_mut(j), bp.get_mut(j)) {
@@ -472,10 +733,15 @@ fn in_boxes(
             }
         });
         let b2_box = super::dirichlet_norm2_given(&box_dims, bl, bp);
+        // The box's share of the whole grid's allowed residual: what is left after the cells
+        // outside the region (whose residual the box cannot change) and the rim's share, the
+        // half the rim growth below aims each face's residual at; never below a quarter.
+        let allowed2 = f64::from(allowed) * f64::from(allowed);
+        let outside = (r2 - before.r2).max(0.0);
+        let share = libm::sqrt((0.75 * allowed2 - outside).max(allowed2 / 16.0)) as f32;
         let box_params = SolveParams {
-            // Leave half the whole grid's allowed residual to the rest of it.
             tolerance: if b2_box > 0.0 {
-                0.5 * allowed / libm::sqrt(b2_box) as f32
+                share / libm::sqrt(b2_box) as f32
             } else {
                 params.tolerance
             },
@@ -497,7 +763,14 @@ fn in_boxes(
                 }
             }
         });
-        let after = scan(&dims, &screen, (labels, psi), &region, tau, Some(&cells));
+        let after = scan(
+            &dims,
+            &screen,
+            (labels, psi),
+            &region,
+            (tau, take, None),
+            Some(&cells),
+        );
         *work += 2 * region.len() as u64;
         r2 += after.r2 - before.r2;
         e2 += after.e2 - before.e2;
@@ -516,6 +789,7 @@ fn in_boxes(
             }
         });
         let grown = cells.grown(by, &dims);
+        let grown = main.map_or(grown, |m| grown.union(m));
         next = Some(
             after
                 .large

@@ -1175,6 +1175,118 @@ pub(crate) fn row_residuals_masked<T: Stored, F: FnMut(usize, f32, u32)>(
     edge_residual(st, row, b, nx - 1, &mut f);
 }
 
+/// Cells per chunk of [`row_residual_chunks`].
+pub(crate) const CHUNK: usize = 8;
+
+/// What takes [`row_residual_chunks`]' residuals.
+pub(crate) trait ChunkSink {
+    /// The residuals of cells `x0..x0 + CHUNK` (0 for a cell that is not interior), their
+    /// in-domain neighbour counts (0 likewise) and their values. The cells before `from`
+    /// were given already (a row's last chunk can overlap the one before): their residual and
+    /// count are 0, and they are not to be counted again.
+    fn chunk(&mut self, x0: usize, from: usize, r: &[f32; CHUNK], n: &[f32; CHUNK], c: &[f32; CHUNK]);
+    /// The residual `r`, neighbour count `n` and value `c` of the interior cell `x`.
+    fn single(&mut self, x: usize, r: f32, n: u32, c: f32);
+}
+
+/// [`row_residuals`] (no right-hand side) of an `f32` row in chunks of [`CHUNK`] cells that
+/// the compiler vectorises, given to `sink`: [`ChunkSink::chunk`] for the chunks and
+/// [`ChunkSink::single`] for each interior cell of the rest of the stencil's range (the row's
+/// ends, the rows at the grid's y/z edges, and what is left after the last chunk). Each
+/// residual has the same bits as [`row_residuals`]' (the same sums in the same order; a
+/// neighbour outside the domain adds `0·(v − c) = 0`).
+#[inline(always)]
+pub(crate) fn row_residual_chunks<S: ChunkSink>(st: &Stencil<'_, f32>, row: &[f32], sink: &mut S) {
+    let nx = row.len();
+    let one = |sink: &mut S, x: usize| {
+        let c = row.get(x).copied().unwrap_or(0.0);
+        edge_residual(st, row, None, x, &mut |x, r, n| sink.single(x, r, n, c));
+    };
+    let cut = st.inner().filter(|_| nx >= 3).and_then(|inner| inner.cut(nx));
+    let Some(cut) = cut else {
+        for x in st.x0..st.x1.min(nx) {
+            one(sink, x);
+        }
+        return;
+    };
+    // Chunks over 1..nx − 1 within the stencil's range: every cell there has both x
+    // neighbours in the row.
+    let (start, end) = (st.x0.max(1), st.x1.min(nx - 1));
+    if st.x0 == 0 && st.x1 > 0 {
+        one(sink, 0);
+    }
+    let mut x = start;
+    while x + CHUNK <= end {
+        if let Some((r, n, c)) = chunk_residuals(&cut, row, st.screen.shift, x) {
+            sink.chunk(x, x, &r, &n, &c);
+        }
+        x += CHUNK;
+    }
+    // The rest as a last chunk that ends at `end`, its cells before `x` (done already) zeroed;
+    // one by one where the range is shorter than a chunk.
+    let last = end.checked_sub(CHUNK).filter(|&l| l >= start && x < end);
+    match last.and_then(|l| Some((l, chunk_residuals(&cut, row, st.screen.shift, l)?))) {
+        Some((l, (mut r, mut n, c))) => {
+            for (r, n) in r.iter_mut().zip(&mut n).take(x - l) {
+                (*r, *n) = (0.0, 0.0);
+            }
+            sink.chunk(l, x, &r, &n, &c);
+        }
+        None => {
+            for x in x..end {
+                one(sink, x);
+            }
+        }
+    }
+    if st.x1 >= nx && nx > start {
+        one(sink, nx - 1);
+    }
+}
+
+/// The residuals, in-domain neighbour counts and values of cells `x0..x0 + CHUNK` of a row
+/// (`0 < x0`, `x0 + CHUNK < nx`), branch-free; `None` if the slices are shorter.
+#[inline(always)]
+fn chunk_residuals(
+    cut: &Cut<'_, f32>,
+    row: &[f32],
+    shift: f32,
+    x0: usize,
+) -> Option<([f32; CHUNK], [f32; CHUNK], [f32; CHUNK])> {
+    let span =
+        |s: &[f32], from: usize| -> Option<[f32; CHUNK]> { s.get(from..from + CHUNK)?.try_into().ok() };
+    let weights = |l: &[Label], from: usize| -> Option<[f32; CHUNK]> {
+        let l: &[Label; CHUNK] = l.get(from..from + CHUNK)?.try_into().ok()?;
+        Some(l.map(|l| f32::from(u8::from(weight(l)))))
+    };
+    let c = span(row, x0)?;
+    let interior: &[Label; CHUNK] = cut.l.get(x0..x0 + CHUNK)?.try_into().ok()?;
+    let interior = interior.map(|l| f32::from(u8::from(l == Label::Interior)));
+    // The six neighbours in the order of `Cut::flux`: −x, +x, then the four rows.
+    let [l0, l1, l2, l3] = cut.nl;
+    let [v0, v1, v2, v3] = cut.nv;
+    let nb = [
+        (weights(cut.l, x0 - 1)?, span(row, x0 - 1)?),
+        (weights(cut.l, x0 + 1)?, span(row, x0 + 1)?),
+        (weights(l0, x0)?, span(v0, x0)?),
+        (weights(l1, x0)?, span(v1, x0)?),
+        (weights(l2, x0)?, span(v2, x0)?),
+        (weights(l3, x0)?, span(v3, x0)?),
+    ];
+    let (mut flux, mut n) = ([0.0f32; CHUNK], [0.0f32; CHUNK]);
+    for (w, v) in &nb {
+        for ((f, k), ((w, v), c)) in flux.iter_mut().zip(&mut n).zip(w.iter().zip(v).zip(&c)) {
+            *f += *w * (*v - *c);
+            *k += *w;
+        }
+    }
+    let mut r = [0.0f32; CHUNK];
+    for ((r, k), ((f, c), i)) in r.iter_mut().zip(&mut n).zip(flux.iter().zip(&c).zip(&interior)) {
+        *r = *i * (*f - shift * *c);
+        *k *= *i;
+    }
+    Some((r, n, c))
+}
+
 /// Calls `f(x, r, n)` with the residual of cell `x` if it is interior, by the stencil's label
 /// tests: the row's two end cells, and every cell of the rows at the grid's y/z edges.
 #[inline(always)]
@@ -1715,6 +1827,71 @@ mod tests {
             seed ^= seed >> 7;
             seed ^= seed << 17;
             seed
+        }
+    }
+
+    /// What a scan relies on: the chunked residuals give every interior cell of the range once,
+    /// with the bits of [`row_residuals`], for every row (edge rows too) and any x range
+    /// (shorter than a chunk, a chunk and a bit, the whole row).
+    #[test]
+    fn chunked_residuals_give_every_interior_cell_once_with_the_same_bits() {
+        struct Got {
+            cells: [(f32, u32, u32); 40],
+        }
+        impl ChunkSink for Got {
+            fn chunk(
+                &mut self,
+                x0: usize,
+                from: usize,
+                r: &[f32; CHUNK],
+                n: &[f32; CHUNK],
+                c: &[f32; CHUNK],
+            ) {
+                for (x, ((r, n), _)) in (x0..).zip(r.iter().zip(n).zip(c)) {
+                    if let Some(g) = self.cells.get_mut(x).filter(|_| x >= from) {
+                        *g = (*r, *n as u32, g.2 + 1);
+                    }
+                }
+            }
+            fn single(&mut self, x: usize, r: f32, n: u32, _: f32) {
+                if let Some(g) = self.cells.get_mut(x) {
+                    *g = (r, n, g.2 + 1);
+                }
+            }
+        }
+        let dims = Dims::new(40, 5, 4).unwrap();
+        let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
+        let mut next = xorshift(0x2545_F491_4F6C_DD1D);
+        let screen = Screen::new(0.09);
+        for _ in 0..20 {
+            let (labels, values) = random_grid::<{ 40 * 5 * 4 }>(&mut next);
+            for xs in [0..nx, 3..9, 1..nx - 1, 5..5 + CHUNK + 3, 0..CHUNK, 17..nx] {
+                for (y, z) in (0..nz).flat_map(|z| (0..ny).map(move |y| (y, z))) {
+                    let start = nx * (y + ny * z);
+                    let (before, rest) = values.split_at(start);
+                    let (row, after) = rest.split_at(nx);
+                    let st = Stencil::new(&dims, &screen, y, z, &labels, before, after).within(xs.clone());
+                    let mut got = Got {
+                        cells: [(0.0, 0, 0); 40],
+                    };
+                    row_residual_chunks(&st, row, &mut got);
+                    let mut want = [(0.0f32, 0u32, 0u32); 40];
+                    row_residuals(&st, row, None, |x, r, n| want[x] = (r, n, 1));
+                    for x in 0..nx {
+                        let (g, w) = (got.cells[x], want[x]);
+                        if !xs.contains(&x) {
+                            continue;
+                        }
+                        if labels[start + x] == Label::Interior {
+                            assert_eq!(g.2, 1, "({x}, {y}, {z}) in {xs:?}: given {} times", g.2);
+                            assert_eq!((g.0.to_bits(), g.1), (w.0.to_bits(), w.1), "({x}, {y}, {z})");
+                        } else {
+                            // In a chunk, as zeros (once); never as a cell of its own.
+                            assert!(g.2 <= 1 && g.0 == 0.0 && g.1 == 0, "({x}, {y}, {z}): {g:?}");
+                        }
+                    }
+                }
+            }
         }
     }
 
