@@ -92,6 +92,44 @@ fn explore_writes_a_report_with_the_documented_fields() {
     let _ = std::fs::remove_dir_all(dir);
 }
 
+/// `solve --repeat N` solves N times in one process and reports the fastest run with the
+/// first run's total beside it; φ is the same as one run's.
+#[test]
+fn solve_repeats_in_one_process_and_reports_the_fastest_run() {
+    let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/labels_4x3x2.npy");
+    let dir = std::env::temp_dir();
+    let mut phis = Vec::new();
+    for repeat in ["1", "3"] {
+        let out_path = dir.join(format!("harmonic-phi-repeat{repeat}-{}.npy", std::process::id()));
+        let out = sim()
+            .args([
+                "solve", "--labels", fixture, "--source", "0,0,0", "--solver", "flat",
+            ])
+            .args(["--repeat", repeat, "--out"])
+            .arg(&out_path)
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let line: serde_json::Value =
+            serde_json::from_str(String::from_utf8(out.stdout).unwrap().trim()).unwrap();
+        assert_eq!(line["runs"].as_u64(), Some(repeat.parse().unwrap()), "{line}");
+        let total = line["setup_ms"].as_f64().unwrap() + line["solve_ms"].as_f64().unwrap();
+        let first = line["first_ms"].as_f64().unwrap();
+        assert!(
+            total <= first + 1e-9,
+            "the fastest run is at most the first: {line}"
+        );
+        phis.push(std::fs::read(&out_path).unwrap());
+        let _ = std::fs::remove_file(out_path);
+    }
+    assert_eq!(phis[0], phis[1], "the same φ");
+    let bad = sim()
+        .args(["solve", "--labels", fixture, "--source", "0,0,0", "--repeat", "0"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success(), "--repeat 0 is refused");
+}
+
 #[test]
 fn solve_round_trips_a_numpy_label_grid() {
     let fixture = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/labels_4x3x2.npy");
