@@ -1526,7 +1526,7 @@ pub(crate) mod tests {
     }
 
     /// A xorshift64 generator: the randomised tests' maps, the same on every run.
-    fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
+    pub(crate) fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
         move || {
             seed ^= seed << 13;
             seed ^= seed >> 7;

@@ -1653,6 +1653,7 @@ pub fn gauss_seidel(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::domain::tests::xorshift;
 
     /// A one-voxel corridor of `N` voxels: source at x = 0, frontier at x = N − 1.
     fn corridor<const N: usize>() -> (Dims, [Label; N]) {
@@ -1744,13 +1745,7 @@ mod tests {
         // Mostly interior cells with some of every other label, so that runs of all kinds occur.
         let dims = Dims::new(24, 7, 6).unwrap();
         let (nx, ny, nz) = (dims.nx(), dims.ny(), dims.nz());
-        let mut seed = 0x9E37_79B9_7F4A_7C15u64;
-        let mut next = move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        };
+        let mut next = xorshift(0x9E37_79B9_7F4A_7C15);
         let (mut open, mut closed) = (0, 0);
         for _ in 0..40 {
             let labels: [Label; 24 * 7 * 6] = core::array::from_fn(|_| match next() % 40 {
@@ -1819,15 +1814,6 @@ mod tests {
             }
         }
         (labels, values)
-    }
-
-    fn xorshift(mut seed: u64) -> impl FnMut() -> u64 {
-        move || {
-            seed ^= seed << 13;
-            seed ^= seed >> 7;
-            seed ^= seed << 17;
-            seed
-        }
     }
 
     /// What a scan relies on: the chunked residuals give every interior cell of the range once,
