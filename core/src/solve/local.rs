@@ -293,7 +293,6 @@ fn scan(
     let mut out = Scan::default();
     let n = axes(dims);
     let active = Active::bounded(dims, region.lo, region.hi);
-    let xs = active.xs();
     let wx = within.map_or(0..0, |b| b.lo[0]..b.hi[0]);
     let mut below = 0.0f32;
     for_each_row(dims, &active, screen, labels, psi, |st, row| {
@@ -308,7 +307,6 @@ fn scan(
             below: 0.0,
             lanes: [(0.0, 0.0, 0.0); CHUNK],
             tau,
-            xs: xs.clone(),
             ends: [first, last],
             whole_row: if faces != 0 { wx.clone() } else { 0..0 },
             labels: st.labels,
@@ -353,8 +351,6 @@ struct RowScan<'s, 'c, 'l> {
     /// [`RowScan::chunk`]'s `r2`, `e2` and `below`, per lane of the chunk.
     lanes: [(f32, f32, f32); CHUNK],
     tau: f32,
-    /// The region's x range.
-    xs: core::ops::Range<usize>,
     /// The row's −x and +x rim cells (`usize::MAX` for none).
     ends: [usize; 2],
     /// The cells of a row on a −y/+y/−z/+z rim face (empty for any other row).
@@ -368,10 +364,9 @@ impl ChunkSink for RowScan<'_, '_, '_> {
     fn chunk(&mut self, x0: usize, from: usize, r: &[f32; CHUNK], n: &[f32; CHUNK], c: &[f32; CHUNK]) {
         let x1 = x0 + CHUNK;
         let [first, last] = self.ends;
-        // A chunk with a rim cell or a cell outside the range takes its cells one by one.
-        let plain = self.xs.start <= from
-            && x1 <= self.xs.end
-            && !(from..x1).contains(&first)
+        // A chunk with a rim cell takes its cells one by one (`row_residual_chunks` gives
+        // only cells of the region's x range).
+        let plain = !(from..x1).contains(&first)
             && !(from..x1).contains(&last)
             && (self.whole_row.end <= from || x1 <= self.whole_row.start);
         if !plain {
@@ -406,10 +401,6 @@ impl ChunkSink for RowScan<'_, '_, '_> {
 
     #[inline(always)]
     fn single(&mut self, x: usize, r: f32, n: u32, c: f32) {
-        if !self.xs.contains(&x) {
-            // The grid's edge cells, which every row visits.
-            return;
-        }
         self.e2 += rounding2(n, c);
         let a = r.abs();
         if a <= self.tau {
