@@ -48,7 +48,7 @@ use heapless::Vec as HVec;
 use super::multigrid::{source_pins, LOCAL_RADIUS, MAX_RESTARTS};
 use super::{
     checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, Contraction, Dirichlet, Fork,
-    Residual, Screen, SolveError, SolveParams, SolveStats,
+    Residual, Screen, SolveError, SolveParams, SolveStats, Solved,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -342,7 +342,7 @@ impl<'a> Flat<'a> {
         psi: &mut [f32],
         params: &SolveParams,
     ) -> Result<SolveStats, SolveError> {
-        self.solve_with(labels, psi, params, Dirichlet::Standard)
+        Ok(self.solve_with(labels, psi, params, Dirichlet::Standard)?.stats)
     }
 
     /// Lays the levels out again for a grid of `fine`, which the storage must fit (any grid
@@ -374,7 +374,7 @@ impl<'a> Flat<'a> {
         psi: &mut [f32],
         params: &SolveParams,
         dirichlet: Dirichlet,
-    ) -> Result<SolveStats, SolveError> {
+    ) -> Result<Solved, SolveError> {
         let params = &dirichlet.params(params);
         let (labels, psi) = checked_problem(&self.fine, labels, psi, params, dirichlet)?;
         self.history.clear();
@@ -407,6 +407,7 @@ impl<'a> Flat<'a> {
         let pins = source_pins(&self.fine, labels);
         let cycle = if screen.shift > 0.0 { Cycle::V } else { Cycle::W };
         let b2 = sum_sq(kr.rhs);
+        let params = &dirichlet.tolerance(params, b2);
         // Every pass writes what it reads later (the padding stays zero, see `build`); only the
         // iterate needs a value here.
         if params.warm_start {
@@ -503,7 +504,11 @@ impl<'a> Flat<'a> {
         stats.floor = res.floor;
         stats.error_estimate = error_estimate(&steps, &res, &screen);
         stats.converged = res.meets(params.tolerance) && error_met(stats.error_estimate, params.max_error);
-        Ok(stats)
+        Ok(Solved {
+            stats,
+            residual: res,
+            b2,
+        })
     }
 }
 

@@ -19,7 +19,11 @@
 //!    the allowed residual after the cells outside it and the rim's share;
 //! 4. writes the box's interior back and checks the *whole grid's* residual against the same
 //!    tolerance a whole-grid solve stops at: a solution this accepts meets the rule a global
-//!    solve's does. Where the check fails (the change reached the rim) each rim face that
+//!    solve's does. The whole grid's sums are kept up to date without a pass over it: the
+//!    box's cells before the solve, its rim after it, and its interior as the solve's own
+//!    final residual reports it (a residual that small sums the same in either order, to far
+//!    below the tolerance; the sums before must come from the same pass as the first one,
+//!    which they cancel). Where the check fails (the change reached the rim) each rim face that
 //!    still carries the change moves out by the distance `e^{−κr}` needs to bring it down to
 //!    its share, and the box is solved again, up to [`LocalParams::max_boxes`] boxes or
 //!    [`LocalParams::max_share`] of the grid; beyond that (or if a box solve fails) it solves
@@ -33,8 +37,9 @@
 use super::flat::Flat;
 use super::multigrid::{Method, Multigrid};
 use super::{
-    error_estimate, error_met, for_each_row, rounding2, rounding_row, row_residual_chunks, Active, ChunkSink,
-    Contraction, Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats, CHUNK,
+    cell_residual, error_estimate, error_met, for_each_row, rounding2, rounding_row, row_residual_chunks,
+    Active, ChunkSink, Contraction, Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats, Solved,
+    CHUNK,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -210,13 +215,10 @@ struct Scan {
     e2: f64,
     /// Largest residual above the threshold, and at or below it.
     max: [f32; 2],
-    /// The box around the cells outside `within` whose residual exceeds the threshold (inside
-    /// it, the rim is measured by face and the rest is the box solve's concern).
-    large: Option<Cells>,
-    /// Largest residual on each rim face of `within` (−x, +x, −y, +y, −z, +z): how far the
-    /// change still is from fading where the box held the values fixed.
+    /// Largest residual on each rim face of the region (−x, +x, −y, +y, −z, +z), in a scan of
+    /// its rim: how far the change still is from fading where the box held the values fixed.
     rim: [f32; 6],
-    /// Cells on `within`'s rim.
+    /// Cells on the region's rim (in a scan of its rim).
     rim_cells: usize,
 }
 
@@ -255,9 +257,9 @@ impl Classes {
 
     /// The cells the first box must hold: those of the classes above the lowest one whose
     /// cells, with `rest` (the squared residual at or below `τ`), may stay outside within
-    /// `budget` (a sum of squares). Returns their box, the threshold they start at, and the
-    /// largest residual of the cells left outside (`below`: those at or below `τ`).
-    fn pick(&self, rest: f64, budget: f64, tau: f32, below: f32) -> (Option<Cells>, f32, f32) {
+    /// `budget` (a sum of squares). Returns their box and the largest residual of the cells
+    /// left outside (`below`: those at or below `τ`).
+    fn pick(&self, rest: f64, budget: f64, below: f32) -> (Option<Cells>, f32) {
         let (mut left, mut max, mut from) = (rest, below, 0);
         for (k, (r2, m)) in self.r2.iter().zip(&self.max).enumerate() {
             if left + r2 > budget {
@@ -274,25 +276,29 @@ impl Classes {
             .flatten()
             .copied()
             .reduce(Cells::union);
-        (cells, tau * libm::powf(4.0, from as f32), max)
+        (cells, max)
     }
 }
 
-/// The residual of the cells of `region`, those beyond `within` whose residual exceeds
-/// `large`, and the residual on `within`'s rim; `classes`, if given, gets the residuals above
-/// `tau` by size. Residuals above `tau` are summed one by one in `f64`, the rest by rows in
-/// `f32`.
+/// The residual of the cells of `region`, or with `rim` only those on the rim of `region`
+/// (the box a solve held them fixed on: rows on a −y/+y/−z/+z rim face whole, the −x/+x
+/// end cells of every other row) and the largest residual on each rim face; `classes`, if
+/// given, gets the residuals above `tau` by size. Residuals above `tau` are summed one by one
+/// in `f64`, the rest by rows in `f32`. Never inlined: its callers are not hot, and inlined,
+/// its row loop compiled a third slower.
+#[inline(never)]
 fn scan(
     dims: &Dims,
     screen: &Screen,
     (labels, psi): (&[Label], &[f32]),
     region: &Cells,
-    (tau, large, mut classes): (f32, f32, Option<&mut Classes>),
-    within: Option<&Cells>,
+    (tau, mut classes): (f32, Option<&mut Classes>),
+    rim: bool,
 ) -> Scan {
     let mut out = Scan::default();
     let n = axes(dims);
     let active = Active::bounded(dims, region.lo, region.hi);
+    let within = rim.then_some(region);
     let wx = within.map_or(0..0, |b| b.lo[0]..b.hi[0]);
     let mut below = 0.0f32;
     for_each_row(dims, &active, screen, labels, psi, |st, row| {
@@ -314,13 +320,19 @@ fn scan(
                 out: &mut out,
                 classes: classes.as_deref_mut(),
                 tau,
-                large,
                 rim,
                 wx: wx.clone(),
                 yz: [st.y, st.z],
             },
         };
-        row_residual_chunks(st, row, &mut sums);
+        if within.is_some() && faces == 0 {
+            // A row off the rim faces: its two end cells.
+            for x in [first, last] {
+                cell_residual(st, row, x, &mut sums);
+            }
+        } else {
+            row_residual_chunks(st, row, &mut sums);
+        }
         let RowScan {
             r2,
             e2,
@@ -416,16 +428,15 @@ impl ChunkSink for RowScan<'_, '_, '_> {
     }
 }
 
-/// What [`scan`] needs for the cells of one row on `within`'s rim or above the threshold.
+/// What [`scan`] needs for the cells of one row on the region's rim (in a scan of it) or
+/// above the threshold.
 struct Rare<'s, 'c> {
     out: &'s mut Scan,
     classes: Option<&'c mut Classes>,
     tau: f32,
-    /// Cells outside `within` above this go into [`Scan::large`].
-    large: f32,
     /// The row's rim ([`rim_row`]).
     rim: Option<(u8, usize, usize)>,
-    /// `within`'s x range.
+    /// The region's x range, in a scan of its rim (else empty).
     wx: core::ops::Range<usize>,
     yz: [usize; 2],
 }
@@ -443,10 +454,6 @@ impl Rare<'_, '_> {
         if above(a, self.tau) {
             out.r2 += f64::from(a) * f64::from(a);
             *max_above = max_above.max(a);
-            if !inside && a > self.large {
-                let c = Cells::point(p);
-                out.large = Some(out.large.map_or(c, |b| b.union(c)));
-            }
             if let Some(c) = self.classes.as_deref_mut() {
                 c.note(p, a, a / self.tau);
             }
@@ -495,21 +502,43 @@ fn rim_row(within: Option<&Cells>, n: &[usize; 3], y: usize, z: usize) -> Option
     Some((faces, first, last))
 }
 
-/// Calls `f(grid index, box index, on the rim)` for every cell of `cells`, row by row.
-fn for_each_cell(dims: &Dims, cells: &Cells, mut f: impl FnMut(usize, usize, bool)) {
+/// One x-row of a box ([`for_each_row_of`]).
+struct BoxRow {
+    /// The row's cells in the grid (linear indices).
+    grid: core::ops::Range<usize>,
+    /// Where the row starts in the box.
+    at: usize,
+    /// The whole row lies on a −y/+y/−z/+z rim face.
+    rim: bool,
+    /// Its first and its last cell lie on the −x and the +x rim face.
+    ends: [bool; 2],
+}
+
+impl BoxRow {
+    /// The row's cells in the box.
+    fn in_box(&self) -> core::ops::Range<usize> {
+        self.at..self.at + self.grid.len()
+    }
+}
+
+/// Calls `f` with every x-row of `cells`, in the box's order.
+fn for_each_row_of(dims: &Dims, cells: &Cells, mut f: impl FnMut(BoxRow)) {
     let ([x0, y0, z0], [x1, y1, z1]) = (cells.lo, cells.hi);
     let [nx, ny, nz] = axes(dims);
     // A face of the box is a rim where the grid goes on beyond it.
     let rim = |c: usize, lo: usize, hi: usize, n: usize| (c == lo && c > 0) || (c + 1 == hi && c + 1 < n);
-    let mut j = 0;
+    let ends = [x0 > 0, x1 < nx];
+    let mut at = 0;
     for z in z0..z1 {
         for y in y0..y1 {
             let start = nx * (y + ny * z);
-            let row_rim = rim(y, y0, y1, ny) || rim(z, z0, z1, nz);
-            for x in x0..x1 {
-                f(start + x, j, row_rim || rim(x, x0, x1, nx));
-                j += 1;
-            }
+            f(BoxRow {
+                grid: start + x0..start + x1,
+                at,
+                rim: rim(y, y0, y1, ny) || rim(z, z0, z1, nz),
+                ends,
+            });
+            at += x1 - x0;
         }
     }
 }
@@ -522,13 +551,15 @@ pub trait BoxSolver {
     /// Lays the solver out for a grid of `fine` (no larger along any axis than the one its
     /// storage was made for).
     fn lay_out(&mut self, fine: Dims) -> Result<(), SolveError>;
-    /// Solves a box whose Dirichlet cells hold the values in `psi` (warm).
+    /// Solves a box whose Dirichlet cells hold the values in `psi` (warm), to the residual
+    /// norm `residual` (`params.tolerance` where the box's `‖b‖` is 0).
     fn solve_box(
         &mut self,
         labels: &[Label],
         psi: &mut [f32],
         params: &SolveParams,
-    ) -> Result<SolveStats, SolveError>;
+        residual: f32,
+    ) -> Result<Solved, SolveError>;
     /// Solves the whole grid (standard Dirichlet values).
     fn solve_whole(
         &mut self,
@@ -553,8 +584,10 @@ impl BoxSolver for WithMethod<'_, '_> {
         labels: &[Label],
         psi: &mut [f32],
         params: &SolveParams,
-    ) -> Result<SolveStats, SolveError> {
-        self.0.solve_with(labels, psi, params, self.1, Dirichlet::Given)
+        residual: f32,
+    ) -> Result<Solved, SolveError> {
+        self.0
+            .solve_with(labels, psi, params, self.1, Dirichlet::Given { residual })
     }
     fn solve_whole(
         &mut self,
@@ -579,8 +612,9 @@ impl BoxSolver for Flat<'_> {
         labels: &[Label],
         psi: &mut [f32],
         params: &SolveParams,
-    ) -> Result<SolveStats, SolveError> {
-        self.solve_with(labels, psi, params, Dirichlet::Given)
+        residual: f32,
+    ) -> Result<Solved, SolveError> {
+        self.solve_with(labels, psi, params, Dirichlet::Given { residual })
     }
     fn solve_whole(
         &mut self,
@@ -655,20 +689,19 @@ fn in_boxes(
         &screen,
         (labels, psi),
         &grid,
-        (tau, tau, Some(&mut classes)),
-        None,
+        (tau, Some(&mut classes)),
+        false,
     );
     *work += n as u64;
-    // The cells the first box must hold, and from there on the threshold above which a
-    // cell outside the boxes is one more to take.
+    // The cells the first box must hold.
     let rest = first.r2_low;
     let kept_outside = f64::from(local.left_outside * allowed);
     let budget = kept_outside * kept_outside;
-    let (large, take, max_still) = classes.pick(rest, budget, tau, first.max[1]);
+    let (large, max_still) = classes.pick(rest, budget, first.max[1]);
 
-    // The whole grid's sums, kept up to date from the region each box solve can change (the
-    // box and the cells beside it): every other cell keeps its residual, which the first
-    // pass found at or below `max_still` unless it lies in the first box.
+    // The whole grid's sums, kept up to date from the cells each box solve can change (the
+    // box's: its interior, and its rim beside it): every other cell keeps its residual, which
+    // the first pass found at or below `max_still` unless it lies in the first box.
     let (mut r2, mut e2) = (first.r2, first.e2);
     let mut res = Residual::from_sums(r2, e2, first.max[0].max(max_still), b2);
     let done = |res: &Residual| {
@@ -709,65 +742,86 @@ fn in_boxes(
         ) else {
             return Ok(None);
         };
-        let region = cells.widened(1, &dims);
-        let before = scan(&dims, &screen, (labels, psi), &region, (tau, take, None), None);
-        for_each_cell(&dims, &cells, |i, j, rim| {
-            let l = labels.get(i).copied().unwrap_or(Label::Outside);
-            if let (Some(bl), Some(bp)) = (bl.get_mut(j), bp.get_mut(j)) {
-                // The rim holds the values outside the box fixed.
-                *bl = if rim && l == Label::Interior {
-                    Label::Frontier
-                } else {
-                    l
-                };
-                *bp = psi.get(i).copied().unwrap_or(0.0);
+        let before = scan(&dims, &screen, (labels, psi), &cells, (tau, None), false);
+        for_each_row_of(&dims, &cells, |row| {
+            let (Some(l), Some(p), Some(bl), Some(bp)) = (
+                labels.get(row.grid.clone()),
+                psi.get(row.grid.clone()),
+                bl.get_mut(row.in_box()),
+                bp.get_mut(row.in_box()),
+            ) else {
+                return;
+            };
+            bl.copy_from_slice(l);
+            bp.copy_from_slice(p);
+            // The rim holds the values outside the box fixed.
+            let fix = |l: &mut Label| {
+                if *l == Label::Interior {
+                    *l = Label::Frontier;
+                }
+            };
+            if row.rim {
+                bl.iter_mut().for_each(fix);
+                return;
+            }
+            let [first, last] = row.ends;
+            if let Some(l) = bl.first_mut().filter(|_| first) {
+                fix(l);
+            }
+            if let Some(l) = bl.last_mut().filter(|_| last) {
+                fix(l);
             }
         });
-        let b2_box = super::dirichlet_norm2_given(&box_dims, bl, bp);
         // The box's share of the whole grid's allowed residual: what is left after the cells
-        // outside the region (whose residual the box cannot change) and the rim's share, the
+        // outside it (whose residual the box cannot change) and the rim's share, the
         // half the rim growth below aims each face's residual at; never below a quarter.
         let allowed2 = f64::from(allowed) * f64::from(allowed);
         let outside = (r2 - before.r2).max(0.0);
         let share = libm::sqrt((0.75 * allowed2 - outside).max(allowed2 / 16.0)) as f32;
         let box_params = SolveParams {
-            tolerance: if b2_box > 0.0 {
-                share / libm::sqrt(b2_box) as f32
-            } else {
-                params.tolerance
-            },
             max_error: f32::INFINITY,
             ..*params
         };
         solver.lay_out(box_dims)?;
-        let result = solver.solve_box(bl, bp, &box_params);
+        let result = solver.solve_box(bl, bp, &box_params, share);
         solver.lay_out(dims)?;
-        let s = result?;
+        let solved_box = result?;
+        let s = solved_box.stats;
         out.boxes += 1;
         out.box_cells = cells.len();
         out.stats.iterations += s.iterations;
         *work += s.cell_updates;
-        for_each_cell(&dims, &cells, |i, j, rim| {
-            if !rim && labels.get(i) == Some(&Label::Interior) {
-                if let (Some(p), Some(v)) = (psi.get_mut(i), bp.get(j)) {
-                    *p = *v;
-                }
+        for_each_row_of(&dims, &cells, |row| {
+            // The interior cells off the rim take the box's values.
+            if row.rim {
+                return;
+            }
+            let [first, last] = row.ends.map(usize::from);
+            let (g, b) = (row.grid, row.at);
+            let Some(len) = g.len().checked_sub(first + last) else {
+                return;
+            };
+            let (g, b) = (g.start + first..g.start + first + len, b + first..b + first + len);
+            let (Some(p), Some(v), Some(l)) = (psi.get_mut(g.clone()), bp.get(b), labels.get(g)) else {
+                return;
+            };
+            for ((p, v), l) in p.iter_mut().zip(v).zip(l) {
+                // A select, not a branch: it vectorises.
+                *p = if *l == Label::Interior { *v } else { *p };
             }
         });
-        let after = scan(
-            &dims,
-            &screen,
-            (labels, psi),
-            &region,
-            (tau, take, None),
-            Some(&cells),
-        );
-        *work += 2 * region.len() as u64;
-        r2 += after.r2 - before.r2;
-        e2 += after.e2 - before.e2;
+        // The box's interior rows have the residual its solve ended at (the same rows, summed
+        // in the solver's order: a residual that small sums the same to far below the
+        // tolerance); its rim, the residual its new values leave beside them.
+        let after = scan(&dims, &screen, (labels, psi), &cells, (tau, None), true);
+        *work += (cells.len() + after.rim_cells) as u64;
+        r2 += after.r2 + solved_box.r2() - before.r2;
+        e2 += after.e2 + solved_box.e2() - before.e2;
         // Rounding can leave the sums a hair below zero; a NaN passes, and fails the check.
         let kept = |sum: f64| if sum < 0.0 { 0.0 } else { sum };
-        let max = after.max[0].max(after.max[1]).max(max_still);
+        let max = (after.max[0].max(after.max[1]))
+            .max(solved_box.residual.max)
+            .max(max_still);
         res = Residual::from_sums(kept(r2), kept(e2), max, b2);
         // Where the rim still carries the change, move that face out by the distance over
         // which e^{−κr} brings it down to its share of the allowed residual.
@@ -780,12 +834,7 @@ fn in_boxes(
             }
         });
         let grown = cells.grown(by, &dims);
-        let grown = main.map_or(grown, |m| grown.union(m));
-        next = Some(
-            after
-                .large
-                .map_or(grown, |l| grown.union(l.widened(local.margin, &dims))),
-        );
+        next = Some(main.map_or(grown, |m| grown.union(m)));
         solved = Some(cells);
     }
     out.stats.cell_updates = *work;
@@ -927,7 +976,7 @@ mod tests {
         assert!(s.box_cells < dims.len() / 2, "{s:?}");
         let checked = screened_residual(&dims, &after, &local, SCREENING);
         assert!(checked.relative <= 1e-5, "{checked:?}");
-        // Kept up to date from the boxes' regions, the same residual as a whole-grid pass.
+        // Kept up to date from the boxes, the same residual as a whole-grid pass.
         assert!(
             (checked.relative - s.stats.residual).abs() <= 1e-3 * checked.relative,
             "{checked:?} {s:?}"
@@ -1082,6 +1131,13 @@ mod tests {
         );
         let checked = screened_residual(&dims, &after, &local, SCREENING);
         assert!(checked.relative <= 1e-5, "{checked:?}");
+        // Kept up to date with the flat solver's own sums for the boxes' interiors: the same
+        // residual as a whole-grid pass, but for the rows' rounding (its arithmetic is not
+        // the scans'; 0.014 of the floor on this problem).
+        assert!(
+            (checked.relative - s.stats.residual).abs() <= 1e-3 * checked.relative + 0.05 * checked.floor,
+            "{checked:?} {s:?}"
+        );
         let mut whole = old.clone();
         let w = flat
             .solve(&after, &mut whole, &params(1e-5, true, SCREENING))

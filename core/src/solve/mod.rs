@@ -153,6 +153,34 @@ pub struct SolveStats {
     pub error_estimate: Option<f32>,
 }
 
+/// A box solve's outcome ([`local::BoxSolver::solve_box`]): its stats, and the residual of its
+/// interior rows at the end, which [`local::resolve_near`] adds to the whole grid's sums in place
+/// of a pass of its own over them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Solved {
+    /// What the solve did.
+    pub stats: SolveStats,
+    /// The true residual of the solution it returned (before the clamp into [0, 1], which
+    /// moves a value by an ulp at most).
+    pub residual: Residual,
+    /// Its `‖b‖²`.
+    pub b2: f64,
+}
+
+impl Solved {
+    /// The sum of the squared residuals of the interior rows.
+    pub fn r2(&self) -> f64 {
+        let r = f64::from(self.residual.relative);
+        r * r * self.b2
+    }
+
+    /// The sum of the rows' rounding terms ([`rounding_row`]).
+    pub fn e2(&self) -> f64 {
+        let f = f64::from(self.residual.floor);
+        f * f * self.b2
+    }
+}
+
 /// Largest changes of successive solver steps, for [`SolveStats::error_estimate`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Contraction {
@@ -317,23 +345,27 @@ pub const PSI_FRONTIER: f32 = 1.0;
 /// Sets Dirichlet values of ψ, zeroes it outside the domain and, unless warm-starting, in the
 /// interior. Non-finite or out-of-range warm-start values are reset to 0.
 pub fn prepare(labels: &[Label], psi: &mut [f32], warm_start: bool) {
+    // Selects, not a match: the loop vectorises.
     for (l, p) in labels.iter().zip(psi.iter_mut()) {
-        *p = match l {
-            Label::Frontier => PSI_FRONTIER,
-            Label::Interior if warm_start && (0.0..=1.0).contains(p) => *p,
-            _ => 0.0,
-        };
+        let kept = warm_start && *l == Label::Interior && (0.0..=1.0).contains(p);
+        let v = if kept { *p } else { 0.0 };
+        *p = if *l == Label::Frontier { PSI_FRONTIER } else { v };
     }
 }
 
 /// Where a solve takes its Dirichlet values from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) enum Dirichlet {
     /// Frontiers ψ = 1, the source ψ = 0 ([`prepare`]).
     Standard,
     /// As the buffer holds them (in [0, 1]; anything else takes the standard value): a box cut
-    /// out of a larger grid, whose rim holds the values outside it ([`local`]).
-    Given,
+    /// out of a larger grid, whose rim holds the values outside it ([`local`]). The solve
+    /// stops at the residual norm `‖r‖ ≤ residual` (not a tolerance relative to `‖b‖`, which
+    /// only the solve computes), or at `params.tolerance` where `‖b‖` is 0.
+    Given {
+        /// The residual norm to reach.
+        residual: f32,
+    },
 }
 
 impl Dirichlet {
@@ -341,8 +373,20 @@ impl Dirichlet {
     /// (full multigrid solves for the standard ones only).
     pub(crate) fn params(self, params: &SolveParams) -> SolveParams {
         SolveParams {
-            warm_start: params.warm_start || self == Dirichlet::Given,
+            warm_start: params.warm_start || matches!(self, Dirichlet::Given { .. }),
             ..*params
+        }
+    }
+
+    /// `params` with the tolerance a given residual norm sets, once the solve knows its `‖b‖²`
+    /// (`b2`): unchanged for the standard values.
+    pub(crate) fn tolerance(self, params: &SolveParams, b2: f64) -> SolveParams {
+        match self {
+            Dirichlet::Given { residual } if b2 > 0.0 => SolveParams {
+                tolerance: residual / libm::sqrt(b2) as f32,
+                ..*params
+            },
+            _ => *params,
         }
     }
 }
@@ -1187,10 +1231,7 @@ pub(crate) trait ChunkSink {
 #[inline(always)]
 pub(crate) fn row_residual_chunks<S: ChunkSink>(st: &Stencil<'_, f32>, row: &[f32], sink: &mut S) {
     let nx = row.len();
-    let one = |sink: &mut S, x: usize| {
-        let c = row.get(x).copied().unwrap_or(0.0);
-        edge_residual(st, row, None, x, &mut |x, r, n| sink.single(x, r, n, c));
-    };
+    let one = |sink: &mut S, x: usize| cell_residual(st, row, x, sink);
     let cut = st.inner().filter(|_| nx >= 3).and_then(|inner| inner.cut(nx));
     let Some(cut) = cut else {
         for x in st.x0..st.x1.min(nx) {
@@ -1230,6 +1271,14 @@ pub(crate) fn row_residual_chunks<S: ChunkSink>(st: &Stencil<'_, f32>, row: &[f3
     if st.x1 >= nx && nx > start {
         one(sink, nx - 1);
     }
+}
+
+/// Gives `sink` the residual of cell `x` of a row if it is interior (nothing for an `x` beyond
+/// the row), by the stencil's label tests: the bits [`row_residual_chunks`] gives for it.
+#[inline(always)]
+pub(crate) fn cell_residual<S: ChunkSink>(st: &Stencil<'_, f32>, row: &[f32], x: usize, sink: &mut S) {
+    let c = row.get(x).copied().unwrap_or(0.0);
+    edge_residual(st, row, None, x, &mut |x, r, n| sink.single(x, r, n, c));
 }
 
 /// The residuals, in-domain neighbour counts and values of cells `x0..x0 + CHUNK` of a row
@@ -1405,6 +1454,7 @@ impl Active {
 }
 
 /// Calls `f(stencil, row)` for every x-row of `values` (read-only).
+#[inline(always)]
 pub(crate) fn for_each_row<T: Stored>(
     dims: &Dims,
     active: &Active,
@@ -1574,7 +1624,7 @@ pub(crate) fn checked_problem<'l, 'p>(
     }
     match dirichlet {
         Dirichlet::Standard => prepare(labels, psi, params.warm_start),
-        Dirichlet::Given => prepare_given(labels, psi),
+        Dirichlet::Given { .. } => prepare_given(labels, psi),
     }
     Ok((labels, psi))
 }

@@ -62,7 +62,7 @@ use heapless::Vec as HVec;
 use super::{
     build_masks, error_estimate, error_met, for_each_row_mut_split, for_each_row_out_split, residual_with,
     split_plane, Active, Bf16, Contraction, Dirichlet, Fork, Residual, RowValues, Screen, SolveError,
-    SolveParams, SolveStats, Stencil, Stored, MASK_INTERIOR, MASK_OPEN, OPEN_RUN,
+    SolveParams, SolveStats, Solved, Stencil, Stored, MASK_INTERIOR, MASK_OPEN, OPEN_RUN,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -425,7 +425,9 @@ impl<'a> Multigrid<'a> {
         params: &SolveParams,
         method: Method,
     ) -> Result<SolveStats, SolveError> {
-        self.solve_with(labels, phi, params, method, Dirichlet::Standard)
+        Ok(self
+            .solve_with(labels, phi, params, method, Dirichlet::Standard)?
+            .stats)
     }
 
     /// Lays the coarse levels out again for a fine grid of `fine`, which the storage lent to
@@ -463,7 +465,7 @@ impl<'a> Multigrid<'a> {
         params: &SolveParams,
         method: Method,
         dirichlet: Dirichlet,
-    ) -> Result<SolveStats, SolveError> {
+    ) -> Result<Solved, SolveError> {
         let n = self.fine.len();
         let params = &dirichlet.params(params);
         let (labels, phi) = super::checked_problem(&self.fine, labels, phi, params, dirichlet)?;
@@ -477,8 +479,9 @@ impl<'a> Multigrid<'a> {
         let active = self.fine_active;
         let b2 = match dirichlet {
             Dirichlet::Standard => super::dirichlet_norm2(&self.fine, labels),
-            Dirichlet::Given => super::dirichlet_norm2_given(&self.fine, labels, phi),
+            Dirichlet::Given { .. } => super::dirichlet_norm2_given(&self.fine, labels, phi),
         };
+        let params = &dirichlet.tolerance(params, b2);
         if b2 == 0.0 {
             // No interior cell touches a frontier (or a Dirichlet value above 0): every
             // interior component holds only the value 0, and ψ = 0 there is the exact solution.
@@ -574,7 +577,11 @@ impl<'a> Multigrid<'a> {
         stats.error_estimate = error_estimate(&steps, &res, &screen);
         // At the cap with the residual still falling below the floor is not converged.
         stats.converged = reached || res.relative <= params.tolerance && error_ok(&steps, &res);
-        Ok(stats)
+        Ok(Solved {
+            stats,
+            residual: res,
+            b2,
+        })
     }
 
     /// Full multigrid start for a cold solve (see [`full_multigrid`]). Returns cell updates.
