@@ -638,7 +638,10 @@ fn build(
         transfer_weights(f, fa.kind, fa.ox, c, &mut tr);
         interpolate(c, ca.tmp, f, fa.invden, fa.ox, &mut tr);
         for (d, inv) in fa.invden.iter_mut().zip(fa.inv.iter()) {
-            *d = if *inv > 0.0 && *d > 0.0 { 1.0 / *d } else { 0.0 };
+            // Divided everywhere and selected (the loop vectorises; a branch around the
+            // division kept it scalar).
+            let r = 1.0 / *d;
+            *d = if *inv > 0.0 && *d > 0.0 { r } else { 0.0 };
         }
         work += f.len as u64;
     }
@@ -669,12 +672,13 @@ fn build_fine(
         };
         for ((k, d), (l, v)) in k.iter_mut().zip(d.iter_mut()).zip(l.iter().zip(v)) {
             // After the domain build only these four remain (`Label` is `repr(u8)`).
+            // The code selected before its conversion: the loop vectorises.
             let code = *l as u8;
-            *k = if code <= Label::Source as u8 {
-                f32::from(code)
+            *k = f32::from(if code <= Label::Source as u8 {
+                code
             } else {
-                OUT
-            };
+                OUT as u8
+            });
             *d = if *k >= FRONTIER { *v } else { 0.0 };
         }
     });
@@ -724,7 +728,9 @@ fn build_fine(
         }
         let inv = a.inv.get_mut(range)?;
         for (iv, d) in inv.iter_mut().zip(diag.iter()) {
-            *iv = if *d > 0.0 { 1.0 / d } else { 0.0 };
+            // Divided everywhere and selected: the loop vectorises.
+            let r = 1.0 / d;
+            *iv = if *d > 0.0 { r } else { 0.0 };
         }
     }
     Some(())
