@@ -326,7 +326,8 @@ fn scan(
             },
         };
         if within.is_some() && faces == 0 {
-            // A row off the rim faces: its two end cells.
+            // A row off the rim faces: its two end cells (one, if the box is a cell wide).
+            let last = if last == first { usize::MAX } else { last };
             for x in [first, last] {
                 cell_residual(st, row, x, &mut sums);
             }
