@@ -299,7 +299,6 @@ fn scan(
     let n = axes(dims);
     let active = Active::bounded(dims, region.lo, region.hi);
     let within = rim.then_some(region);
-    let wx = within.map_or(0..0, |b| b.lo[0]..b.hi[0]);
     let mut below = 0.0f32;
     for_each_row(dims, &active, screen, labels, psi, |st, row| {
         let rim = rim_row(within, &n, st.y, st.z);
@@ -314,14 +313,13 @@ fn scan(
             lanes: Lanes::default(),
             tau,
             ends: [first, last],
-            whole_row: if faces != 0 { wx.clone() } else { 0..0 },
+            whole_row: faces != 0,
             labels: st.labels,
             rare: Rare {
                 out: &mut out,
                 classes: classes.as_deref_mut(),
                 tau,
                 rim,
-                wx: wx.clone(),
                 yz: [st.y, st.z],
             },
         };
@@ -381,8 +379,8 @@ struct RowScan<'s, 'c, 'l> {
     tau: f32,
     /// The row's −x and +x rim cells (`usize::MAX` for none).
     ends: [usize; 2],
-    /// The cells of a row on a −y/+y/−z/+z rim face (empty for any other row).
-    whole_row: core::ops::Range<usize>,
+    /// The row lies on a −y/+y/−z/+z rim face: all its cells are rim cells.
+    whole_row: bool,
     labels: &'l [Label],
     rare: Rare<'s, 'c>,
 }
@@ -392,11 +390,8 @@ impl ChunkSink for RowScan<'_, '_, '_> {
     fn chunk(&mut self, x0: usize, from: usize, r: &[f32; CHUNK], n: &[f32; CHUNK], c: &[f32; CHUNK]) {
         let x1 = x0 + CHUNK;
         let [first, last] = self.ends;
-        // A chunk with a rim cell takes its cells one by one (`row_residual_chunks` gives
-        // only cells of the region's x range).
-        let plain = !(from..x1).contains(&first)
-            && !(from..x1).contains(&last)
-            && (self.whole_row.end <= from || x1 <= self.whole_row.start);
+        // A chunk with a rim cell takes its cells one by one.
+        let plain = !(from..x1).contains(&first) && !(from..x1).contains(&last) && !self.whole_row;
         if !plain {
             for (x, ((r, n), c)) in (x0..x1).zip(r.iter().zip(n).zip(c)) {
                 if x >= from && self.labels.get(x) == Some(&Label::Interior) {
@@ -439,7 +434,7 @@ impl ChunkSink for RowScan<'_, '_, '_> {
         }
         let [first, last] = self.ends;
         // A NaN is noted too, and makes the sums NaN: the check fails on it.
-        if above(a, self.tau) || x == first || x == last || self.whole_row.contains(&x) {
+        if above(a, self.tau) || x == first || x == last || self.whole_row {
             self.rare.note(x, a);
         } else {
             self.below = self.below.max(a);
@@ -453,10 +448,9 @@ struct Rare<'s, 'c> {
     out: &'s mut Scan,
     classes: Option<&'c mut Classes>,
     tau: f32,
-    /// The row's rim ([`rim_row`]).
+    /// The row's rim ([`rim_row`]; `None` unless the scan is of the rim, whose cells
+    /// `row_residual_chunks` and the end cells keep within the region's x range).
     rim: Option<(u8, usize, usize)>,
-    /// The region's x range, in a scan of its rim (else empty).
-    wx: core::ops::Range<usize>,
     yz: [usize; 2],
 }
 
@@ -467,7 +461,6 @@ impl Rare<'_, '_> {
     fn note(&mut self, x: usize, a: f32) {
         let [y, z] = self.yz;
         let p = [x, y, z];
-        let inside = self.rim.is_some() && self.wx.contains(&x);
         let out = &mut *self.out;
         let [max_above, max_below] = &mut out.max;
         if above(a, self.tau) {
@@ -479,7 +472,7 @@ impl Rare<'_, '_> {
         } else {
             *max_below = max_below.max(a);
         }
-        let Some((faces, first, last)) = self.rim.filter(|_| inside) else {
+        let Some((faces, first, last)) = self.rim else {
             return;
         };
         let faces = faces | u8::from(x == first) | u8::from(x == last) << 1;
@@ -513,12 +506,26 @@ fn rim_row(within: Option<&Cells>, n: &[usize; 3], y: usize, z: usize) -> Option
         return None;
     }
     let side = |c: usize, lo: usize, hi: usize, n: usize, bit: u8| {
-        u8::from(c == lo && c > 0) << bit | u8::from(c + 1 == hi && c + 1 < n) << (bit + 1)
+        let [low, high] = on_rim(c, lo, hi, n);
+        u8::from(low) << bit | u8::from(high) << (bit + 1)
     };
     let faces = side(y, ly, hy, ny, 2) | side(z, lz, hz, nz, 4);
-    let first = if b.lo[0] > 0 { b.lo[0] } else { usize::MAX };
-    let last = if hx < nx { hx - 1 } else { usize::MAX };
+    let [low, high] = rim_ends(b.lo[0], hx, nx);
+    let first = if low { b.lo[0] } else { usize::MAX };
+    let last = if high { hx - 1 } else { usize::MAX };
     Some((faces, first, last))
+}
+
+/// Whether a box spanning `lo..hi` of an axis of `n` cells has a rim at its low and its high
+/// end: a face of the box is a rim where the grid goes on beyond it.
+fn rim_ends(lo: usize, hi: usize, n: usize) -> [bool; 2] {
+    [lo > 0, hi < n]
+}
+
+/// Whether cell `c` of that axis lies on the box's low and its high rim face ([`rim_ends`]).
+fn on_rim(c: usize, lo: usize, hi: usize, n: usize) -> [bool; 2] {
+    let [low, high] = rim_ends(lo, hi, n);
+    [low && c == lo, high && c + 1 == hi]
 }
 
 /// One x-row of a box ([`for_each_row_of`]).
@@ -544,9 +551,8 @@ impl BoxRow {
 fn for_each_row_of(dims: &Dims, cells: &Cells, mut f: impl FnMut(BoxRow)) {
     let ([x0, y0, z0], [x1, y1, z1]) = (cells.lo, cells.hi);
     let [nx, ny, nz] = axes(dims);
-    // A face of the box is a rim where the grid goes on beyond it.
-    let rim = |c: usize, lo: usize, hi: usize, n: usize| (c == lo && c > 0) || (c + 1 == hi && c + 1 < n);
-    let ends = [x0 > 0, x1 < nx];
+    let rim = |c: usize, lo: usize, hi: usize, n: usize| on_rim(c, lo, hi, n).contains(&true);
+    let ends = rim_ends(x0, x1, nx);
     let mut at = 0;
     for z in z0..z1 {
         for y in y0..y1 {
