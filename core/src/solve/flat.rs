@@ -33,6 +33,12 @@
 //! that a fine cell takes nothing from a coarse neighbour behind a wall (`Transfer`), and half
 //! its transpose for the restriction, both done one axis at a time.
 //!
+//! **The box of the domain.** Each solve lays its levels out for the box of the interior
+//! cells and the cells next to them (`Crop`), not for the whole grid: every cell beyond it is
+//! outside the domain, which the padding stands for exactly, so the discrete problem is the
+//! same and a domain that fills part of the grid (early in an exploration; a box
+//! [`super::local`] cuts out across a frontier into unknown space) costs only its box.
+//!
 //! **Cold solves** start with full multigrid: the right-hand side restricted down the levels,
 //! the coarsest level smoothed to convergence, and each finer level started from the coarser
 //! solution interpolated and given one cycle.
@@ -47,8 +53,8 @@ use heapless::Vec as HVec;
 
 use super::multigrid::{source_pins, LOCAL_RADIUS, MAX_RESTARTS};
 use super::{
-    checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, Contraction, Dirichlet, Fork,
-    Residual, Screen, SolveError, SolveParams, SolveStats, Solved,
+    checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, Active, Contraction,
+    Dirichlet, Fork, Residual, Screen, SolveError, SolveParams, SolveStats, Solved,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -171,10 +177,10 @@ impl Grid {
     }
 }
 
-/// The grids of every level for a fine grid of `fine`.
-fn grids(fine: &Dims) -> HVec<Grid, MAX_LEVELS> {
+/// The grids of every level for a fine grid of `fine` cells along x, y, z.
+fn grids(fine: [usize; 3]) -> HVec<Grid, MAX_LEVELS> {
     let mut out = HVec::new();
-    let mut g = Grid::new([fine.nx(), fine.ny(), fine.nz()]);
+    let mut g = Grid::new(fine);
     let _ = out.push(g);
     while g.n.iter().all(|&d| d > MIN_COARSE) && out.len() < MAX_LEVELS {
         g = g.coarser();
@@ -185,7 +191,7 @@ fn grids(fine: &Dims) -> HVec<Grid, MAX_LEVELS> {
 
 /// `f32` values [`Flat::new`] needs for a fine grid of `fine`.
 pub fn flat_scratch_len(fine: &Dims) -> usize {
-    let gs = grids(fine);
+    let gs = grids(axes(fine));
     level_blocks(&gs).iter().sum::<usize>() + gs.first().map_or(0, |g| KRYLOV_ARRAYS * g.len)
 }
 
@@ -278,9 +284,72 @@ struct Krylov<'s> {
     p: &'s mut [f32],
 }
 
+/// The grid's extent along x, y, z.
+fn axes(dims: &Dims) -> [usize; 3] {
+    [dims.nx(), dims.ny(), dims.nz()]
+}
+
+/// The part of the problem's grid the levels are laid out for: the box of its interior cells
+/// and their neighbours (every cell beyond it is outside the domain, which the padding of
+/// zeros stands for exactly), so a domain that fills part of the grid (early in an
+/// exploration, or a box [`super::local`] cut out across a frontier into unknown space) costs
+/// only its own box.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Crop {
+    /// The box's first cell in the problem's grid.
+    lo: [usize; 3],
+    /// Its cells along x, y, z.
+    n: [usize; 3],
+    /// The problem grid's row and plane strides.
+    sy: usize,
+    sz: usize,
+}
+
+impl Crop {
+    /// The whole of `dims`.
+    fn all(dims: &Dims) -> Self {
+        Self {
+            lo: [0; 3],
+            n: axes(dims),
+            sy: dims.nx(),
+            sz: dims.nx() * dims.ny(),
+        }
+    }
+
+    /// The box of the interior cells of `labels` widened by one cell within `dims` (the
+    /// Dirichlet cells they touch); the whole grid where there is no interior cell.
+    fn of(dims: &Dims, labels: &[Label]) -> Self {
+        let active = Active::of(dims, labels);
+        let (xs, ys, zs) = (active.xs(), active.ys(), active.zs());
+        if xs.is_empty() || ys.is_empty() || zs.is_empty() {
+            return Self::all(dims);
+        }
+        let widened = |r: core::ops::Range<usize>, n: usize| (r.start.saturating_sub(1), (r.end + 1).min(n));
+        let [(x0, x1), (y0, y1), (z0, z1)] = [
+            widened(xs, dims.nx()),
+            widened(ys, dims.ny()),
+            widened(zs, dims.nz()),
+        ];
+        Self {
+            lo: [x0, y0, z0],
+            n: [x1 - x0, y1 - y0, z1 - z0],
+            ..Self::all(dims)
+        }
+    }
+
+    /// Where row `(y, z)` of the box starts in the problem's grid.
+    #[inline(always)]
+    fn row_start(&self, y: usize, z: usize) -> usize {
+        let [lx, ly, lz] = self.lo;
+        lx + self.sy * (y + ly) + self.sz * (z + lz)
+    }
+}
+
 /// The fast multigrid solver over borrowed storage ([`flat_scratch_len`] values).
 pub struct Flat<'a> {
     fine: Dims,
+    /// The box of `fine` the levels are laid out for (that of the last solve's domain).
+    crop: Crop,
     fork: Option<&'a dyn Fork>,
     /// Whether the storage has been zeroed (its padding must hold zeros; see [`build`]).
     zeroed: bool,
@@ -306,9 +375,10 @@ impl<'a> Flat<'a> {
         }
         Ok(Flat {
             fine,
+            crop: Crop::all(&fine),
             fork: None,
             zeroed: false,
-            grids: grids(&fine),
+            grids: grids(axes(&fine)),
             values,
             history: HVec::new(),
         })
@@ -321,7 +391,8 @@ impl<'a> Flat<'a> {
         self.fork = fork;
     }
 
-    /// Levels, the fine one included.
+    /// Levels, the fine one included, of the last solve (they are laid out for the box of its
+    /// domain; before any solve, for the whole grid).
     pub fn levels(&self) -> usize {
         self.grids.len()
     }
@@ -352,13 +423,18 @@ impl<'a> Flat<'a> {
         if self.values.len() < flat_scratch_len(&fine) {
             return Err(SolveError::ScratchTooSmall);
         }
-        if fine != self.fine {
-            self.fine = fine;
-            self.grids = grids(&fine);
+        self.fine = fine;
+        Ok(())
+    }
+
+    /// Lays the levels out for `crop` of the problem's grid, unless they are already.
+    fn lay_out(&mut self, crop: Crop) {
+        if crop != self.crop {
+            self.crop = crop;
+            self.grids = grids(crop.n);
             // The arrays move: their padding must be zeroed again.
             self.zeroed = false;
         }
-        Ok(())
     }
 
     /// The grid the levels are laid out for.
@@ -377,6 +453,8 @@ impl<'a> Flat<'a> {
     ) -> Result<Solved, SolveError> {
         let params = &dirichlet.params(params);
         let (labels, psi) = checked_problem(&self.fine, labels, psi, params, dirichlet)?;
+        self.lay_out(Crop::of(&self.fine, labels));
+        let crop = self.crop;
         self.history.clear();
         let fork = self.fork;
         let mut stats = SolveStats::default();
@@ -401,17 +479,28 @@ impl<'a> Flat<'a> {
             return Err(SolveError::ScratchTooSmall);
         };
         // Every level's operator.
-        stats.cell_updates += build(&grids, levels_store, (labels, psi), screen.shift, kr.rhs)
+        stats.cell_updates += build(&grids, &crop, levels_store, (labels, psi), screen.shift, kr.rhs)
             .ok_or(SolveError::ScratchTooSmall)?;
         let interior = interior_counts(&grids, levels_store);
-        let pins = source_pins(&self.fine, labels);
+        // The source cells in the box (one beyond it touches no interior cell).
+        let mut pins = source_pins(&self.fine, labels);
+        pins.retain_mut(|p| {
+            let inside = p
+                .iter()
+                .zip(crop.lo.iter().zip(&crop.n))
+                .all(|(c, (lo, n))| (*lo..lo + n).contains(c));
+            for (c, lo) in p.iter_mut().zip(&crop.lo) {
+                *c = c.saturating_sub(*lo);
+            }
+            inside
+        });
         let cycle = if screen.shift > 0.0 { Cycle::V } else { Cycle::W };
         let b2 = sum_sq(kr.rhs);
         let params = &dirichlet.tolerance(params, b2);
         // Every pass writes what it reads later (the padding stays zero, see `build`); only the
         // iterate needs a value here.
         if params.warm_start {
-            load(&fine, labels, psi, kr.x);
+            load(&fine, &crop, labels, psi, kr.x);
         } else if b2 > 0.0 {
             stats.cell_updates += full_multigrid(fork, &grids, levels_store, kr.rhs, kr.x, &interior, cycle);
         } else {
@@ -498,7 +587,7 @@ impl<'a> Flat<'a> {
                 stats.cell_updates += fine.len as u64;
             }
         }
-        store(&fine, labels, kr.x, psi);
+        store(&fine, &crop, labels, kr.x, psi);
         clamp_to_bounds(labels, psi);
         stats.residual = res.relative;
         stats.floor = res.floor;
@@ -599,6 +688,7 @@ fn carve_krylov(store: &mut [f32], n: usize) -> Option<Krylov<'_>> {
 /// zero diagonal and zero values around it), so it stays so.
 fn build(
     grids: &[Grid],
+    crop: &Crop,
     store: &mut [f32],
     problem: (&[Label], &[f32]),
     shift: f32,
@@ -608,7 +698,7 @@ fn build(
     let mut work = 0u64;
     {
         let mut a = level_arrays(grids, store, 0)?;
-        build_fine(fine, problem, &mut a, rhs, shift)?;
+        build_fine(fine, crop, problem, &mut a, rhs, shift)?;
         work += fine.len as u64;
     }
     for k in 0..grids.len().saturating_sub(1) {
@@ -655,13 +745,14 @@ fn build(
 /// padding is too.
 fn build_fine(
     g: &Grid,
+    crop: &Crop,
     (labels, psi): (&[Label], &[f32]),
     a: &mut Arrays<'_>,
     rhs: &mut [f32],
     shift: f32,
 ) -> Option<()> {
     // Kinds, and the Dirichlet values (in `r`, 0 on every other cell).
-    each_row(g, |row, padded| {
+    each_row(g, crop, |row, padded| {
         let (Some(l), Some(v), Some(k), Some(d)) = (
             labels.get(row.clone()),
             psi.get(row),
@@ -1735,13 +1826,14 @@ fn local_smooth(g: &Grid, a: &mut Arrays<'_>, pins: &[[usize; 3]]) -> u64 {
     work
 }
 
-/// Calls `f(psi range, padded range)` for every row of the grid: where a row of a caller's
-/// unpadded array lies, and where it lies in the padded one.
-fn each_row(g: &Grid, mut f: impl FnMut(core::ops::Range<usize>, core::ops::Range<usize>)) {
+/// Calls `f(psi range, padded range)` for every row of the grid laid out for `crop`: where
+/// a row lies in the caller's unpadded arrays of the problem's grid, and where in the padded
+/// one.
+fn each_row(g: &Grid, crop: &Crop, mut f: impl FnMut(core::ops::Range<usize>, core::ops::Range<usize>)) {
     let nx = g.n[0];
     for z in 0..g.n[2] {
         for y in 0..g.n[1] {
-            let (from, at) = (nx * (y + g.n[1] * z), g.at(0, y, z));
+            let (from, at) = (crop.row_start(y, z), g.at(0, y, z));
             f(from..from + nx, at..at + nx);
         }
     }
@@ -1749,8 +1841,8 @@ fn each_row(g: &Grid, mut f: impl FnMut(core::ops::Range<usize>, core::ops::Rang
 
 /// The interior values of `psi` (a warm start; [`super::prepare`] has cleaned them) into the
 /// padded `x`.
-fn load(g: &Grid, labels: &[Label], psi: &[f32], x: &mut [f32]) {
-    each_row(g, |row, padded| {
+fn load(g: &Grid, crop: &Crop, labels: &[Label], psi: &[f32], x: &mut [f32]) {
+    each_row(g, crop, |row, padded| {
         if let (Some(src), Some(l), Some(dst)) = (psi.get(row.clone()), labels.get(row), x.get_mut(padded)) {
             for ((d, s), l) in dst.iter_mut().zip(src).zip(l) {
                 *d = if *l == Label::Interior { *s } else { 0.0 };
@@ -1760,8 +1852,8 @@ fn load(g: &Grid, labels: &[Label], psi: &[f32], x: &mut [f32]) {
 }
 
 /// The padded `x` back into the interior cells of `psi`.
-fn store(g: &Grid, labels: &[Label], x: &[f32], psi: &mut [f32]) {
-    each_row(g, |row, padded| {
+fn store(g: &Grid, crop: &Crop, labels: &[Label], x: &[f32], psi: &mut [f32]) {
+    each_row(g, crop, |row, padded| {
         if let (Some(dst), Some(l), Some(src)) = (psi.get_mut(row.clone()), labels.get(row), x.get(padded)) {
             for ((d, s), l) in dst.iter_mut().zip(src).zip(l) {
                 // A select, not a branch around the store: the loop vectorises.
@@ -1997,6 +2089,53 @@ mod tests {
 
     const PSI_FRONTIER_TEST: f32 = crate::solve::PSI_FRONTIER;
 
+    /// A domain that fills part of the grid costs its own box: the rooms placed at two odd
+    /// offsets in a grid six times their size, solved one after the other by one solver (its
+    /// levels laid out again for the second box), give the rooms' own solution, with about the
+    /// cell updates of a solve on a grid of the rooms' size, and leave every cell outside the
+    /// domain as it was.
+    #[test]
+    fn a_domain_in_part_of_the_grid_is_solved_in_its_box() {
+        let (small, rooms) = rooms(20, 14, 9);
+        for screening in [0.0, 0.09] {
+            let p = params(1e-7, screening);
+            let (alone, s_alone) = solve_flat(small, &rooms, &p, None);
+            let big = Dims::new(40, 30, 18).unwrap();
+            let mut values = vec![0.0f32; flat_scratch_len(&big)];
+            let mut flat = Flat::new(big, &mut values).unwrap();
+            for offset in [(13usize, 9usize, 5usize), (3, 15, 8)] {
+                let mut labels = vec![Label::Outside; big.len()];
+                let at = |i: usize| {
+                    let v = small.voxel(i);
+                    big.linear(VoxelIndex::new(
+                        v.x + offset.0 as u16,
+                        v.y + offset.1 as u16,
+                        v.z + offset.2 as u16,
+                    ))
+                };
+                for (i, l) in rooms.iter().enumerate() {
+                    labels[at(i)] = *l;
+                }
+                let mut psi = vec![0.0f32; big.len()];
+                let s = flat.solve(&labels, &mut psi, &p).unwrap();
+                assert!(s.converged, "{offset:?}, s = {screening}: {s:?}");
+                let mut within = vec![false; big.len()];
+                for (i, a) in alone.iter().enumerate() {
+                    within[at(i)] = true;
+                    let d = (psi[at(i)] - a).abs();
+                    assert!(d <= 2e-5, "{offset:?}, s = {screening}: |Δψ| = {d:e} at {i}");
+                }
+                assert!(psi.iter().zip(&within).all(|(p, w)| *w || *p == 0.0));
+                assert!(
+                    s.cell_updates <= s_alone.cell_updates * 3 / 2,
+                    "{offset:?}, s = {screening}: {} cell updates, {} on the rooms' own grid",
+                    s.cell_updates,
+                    s_alone.cell_updates
+                );
+            }
+        }
+    }
+
     /// Two threads or one: the same bits, iterations and cell updates (the fork splits every
     /// fine pass at a plane, and no cell's arithmetic depends on where).
     #[test]
@@ -2128,7 +2267,8 @@ mod timing {
                 };
             }
         }
-        let grids = grids(&dims);
+        let grids = grids(axes(&dims));
+        let crop = Crop::all(&dims);
         let psi: std::vec::Vec<f32> = labels
             .iter()
             .map(|l| if *l == Label::Frontier { 1.0 } else { 0.0 })
@@ -2140,7 +2280,7 @@ mod timing {
         let reps = 50;
         let t = Instant::now();
         for _ in 0..reps {
-            build(&grids, store, (&labels, &psi), 0.09, kr.rhs).unwrap();
+            build(&grids, &crop, store, (&labels, &psi), 0.09, kr.rhs).unwrap();
         }
         let build_ms = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let interior = interior_counts(&grids, store);
@@ -2148,7 +2288,7 @@ mod timing {
             let mut a = level_arrays(&grids, store, 0).unwrap();
             let t = Instant::now();
             for _ in 0..reps {
-                build_fine(&grids[0], (&labels, &psi), &mut a, kr.rhs, 0.09).unwrap();
+                build_fine(&grids[0], &crop, (&labels, &psi), &mut a, kr.rhs, 0.09).unwrap();
             }
             let bf = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
             std::println!("build_fine {bf:.3} ms");
