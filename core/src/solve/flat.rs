@@ -316,23 +316,15 @@ impl Crop {
         }
     }
 
-    /// The box of the interior cells of `labels` widened by one cell within `dims` (the
-    /// Dirichlet cells they touch); the whole grid where there is no interior cell.
+    /// The box of the domain of `labels` ([`Active::domain`]); the whole grid where there is
+    /// no interior cell.
     fn of(dims: &Dims, labels: &[Label]) -> Self {
-        let active = Active::of(dims, labels);
-        let (xs, ys, zs) = (active.xs(), active.ys(), active.zs());
-        if xs.is_empty() || ys.is_empty() || zs.is_empty() {
+        let Some((lo, hi)) = Active::domain(dims, labels) else {
             return Self::all(dims);
-        }
-        let widened = |r: core::ops::Range<usize>, n: usize| (r.start.saturating_sub(1), (r.end + 1).min(n));
-        let [(x0, x1), (y0, y1), (z0, z1)] = [
-            widened(xs, dims.nx()),
-            widened(ys, dims.ny()),
-            widened(zs, dims.nz()),
-        ];
+        };
         Self {
-            lo: [x0, y0, z0],
-            n: [x1 - x0, y1 - y0, z1 - z0],
+            lo,
+            n: zip_sub(hi, lo),
             ..Self::all(dims)
         }
     }
@@ -343,6 +335,16 @@ impl Crop {
         let [lx, ly, lz] = self.lo;
         lx + self.sy * (y + ly) + self.sz * (z + lz)
     }
+}
+
+/// `a − b` per axis (0 where `b` is larger).
+fn zip_sub(a: [usize; 3], b: [usize; 3]) -> [usize; 3] {
+    let ([a0, a1, a2], [b0, b1, b2]) = (a, b);
+    [
+        a0.saturating_sub(b0),
+        a1.saturating_sub(b1),
+        a2.saturating_sub(b2),
+    ]
 }
 
 /// The fast multigrid solver over borrowed storage ([`flat_scratch_len`] values).

@@ -9,7 +9,8 @@
 //!    cells whose residual is large, from the largest down until the cells left outside carry
 //!    no more than [`LocalParams::left_outside`] of the allowed residual (the old solution's
 //!    own residual, spread thin, may stay), widened by [`LocalParams::margin`] voxels on
-//!    every side;
+//!    every side; every box stays within the box of the domain (its interior cells and the
+//!    cells next to them), beyond which no cell has a residual or changes;
 //! 2. solves first a small box around the cells whose residual alone exceeds the allowed
 //!    residual (what the scan changed), [`LocalParams::inner_margin`] voxels wider: it takes
 //!    out the sharp local jump, so the big box starts from a smooth remainder;
@@ -191,6 +192,20 @@ impl Cells {
                 usize::min,
             ),
         }
+    }
+
+    /// The cells of both boxes (empty, `lo == hi` on some axis, where they do not meet).
+    fn within(self, o: &Self) -> Self {
+        let lo = zip3(self.lo, o.lo, usize::max);
+        Self {
+            lo,
+            hi: zip3(zip3(self.hi, o.hi, usize::min), lo, usize::max),
+        }
+    }
+
+    /// The box of the domain of `labels` ([`Active::domain`]).
+    fn domain(dims: &Dims, labels: &[Label]) -> Option<Self> {
+        Active::domain(dims, labels).map(|(lo, hi)| Self { lo, hi })
     }
 
     fn extent(&self) -> [usize; 3] {
@@ -701,9 +716,10 @@ fn in_boxes(
     let allowed = params.tolerance * libm::sqrt(b2) as f32;
     let tau = local.threshold * allowed;
     let kappa = libm::sqrtf(screen.shift);
-    let grid = Cells {
-        lo: [0; 3],
-        hi: axes(&dims),
+    // Boxes stay within the domain's: the cells beyond it are outside the domain, and a box
+    // over them would cost (and count against `max_share`) for nothing.
+    let Some(domain) = Cells::domain(&dims, labels) else {
+        return Ok(None);
     };
     let mut classes = Classes {
         hot_level: allowed,
@@ -713,11 +729,11 @@ fn in_boxes(
         &dims,
         &screen,
         (labels, psi),
-        &grid,
+        &domain,
         (tau, Some(&mut classes)),
         false,
     );
-    *work += n as u64;
+    *work += domain.len() as u64;
     // The cells the first box must hold.
     let rest = first.r2_low;
     let kept_outside = f64::from(local.left_outside * allowed);
@@ -743,8 +759,10 @@ fn in_boxes(
     let capacity = scratch.labels.len().min(scratch.psi.len());
     let limit = ((local.max_share.clamp(0.0, 1.0) * n as f32) as usize).min(capacity);
     // The box every box after the inner one holds.
-    let main = large.map(|c| c.widened(local.margin, &dims));
-    let inner = classes.hot.map(|c| c.widened(local.inner_margin, &dims));
+    let main = large.map(|c| c.widened(local.margin, &dims).within(&domain));
+    let inner = classes
+        .hot
+        .map(|c| c.widened(local.inner_margin, &dims).within(&domain));
     let inner = inner.filter(|i| local.inner_margin > 0 && main.is_some_and(|m| i.len() < m.len()));
     let mut next = inner.or(main);
     let max_boxes = local.max_boxes.saturating_add(u8::from(inner.is_some()));
@@ -858,7 +876,7 @@ fn in_boxes(
                 0
             }
         });
-        let grown = cells.grown(by, &dims);
+        let grown = cells.grown(by, &dims).within(&domain);
         next = Some(main.map_or(grown, |m| grown.union(m)));
         solved = Some(cells);
     }
@@ -1031,6 +1049,41 @@ mod tests {
         );
         // The scan did change the field.
         assert!(worst(&old) > 1e-2);
+    }
+
+    /// A box never reaches past the domain: with 30 columns of unknown space (outside the
+    /// domain) beyond the frontier wall, the scan is re-solved in the same boxes, for the same
+    /// work and to the same field, as when the grid ends at the wall.
+    #[test]
+    fn boxes_stay_within_the_domain() {
+        let (dims, old, mut storage) = solved_before(SCREENING);
+        let (_, after) = rooms(true);
+        let mut plain = old.clone();
+        let Local::Solved(p) = resolve(&mut storage, dims, &after, &mut plain, SCREENING) else {
+            panic!("a scan at the far wall is re-solved locally");
+        };
+        let wide = Dims::new(150, 24, 16).unwrap();
+        let at = |i: usize| {
+            let v = dims.voxel(i);
+            usize::from(v.x) + 150 * (usize::from(v.y) + 24 * usize::from(v.z))
+        };
+        let (mut labels, mut psi) = (vec![Label::Outside; wide.len()], vec![0.0; wide.len()]);
+        for (i, (l, v)) in after.iter().zip(&old).enumerate() {
+            labels[at(i)] = *l;
+            psi[at(i)] = *v;
+        }
+        let mut storage = Storage::new(&wide, true);
+        let Local::Solved(w) = resolve(&mut storage, wide, &labels, &mut psi, SCREENING) else {
+            panic!("the same scan beside unknown space is re-solved locally");
+        };
+        assert_eq!((w.boxes, w.box_cells), (p.boxes, p.box_cells), "{w:?} {p:?}");
+        assert_eq!(w.stats.cell_updates, p.stats.cell_updates, "{w:?} {p:?}");
+        let worst = plain
+            .iter()
+            .enumerate()
+            .map(|(i, v)| (psi[at(i)] - v).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst <= 1e-6, "{worst:e}");
     }
 
     /// The first box holds what the residual budget needs. Residual the last solve left

@@ -1407,6 +1407,24 @@ impl Active {
         }
     }
 
+    /// The box of the interior cells of `labels` and of the cells next to them, within `dims`,
+    /// as its first cell and the cell past its last (`None` without an interior cell). Every
+    /// cell beyond it is outside the domain: no row of the problem reads it.
+    pub(crate) fn domain(dims: &Dims, labels: &[Label]) -> Option<([usize; 3], [usize; 3])> {
+        let a = Self::of(dims, labels);
+        if a.x0 >= a.x1 || a.y0 >= a.y1 || a.z0 >= a.z1 {
+            return None;
+        }
+        Some((
+            [a.x0, a.y0, a.z0].map(|c| c.saturating_sub(1)),
+            [
+                (a.x1 + 1).min(dims.nx()),
+                (a.y1 + 1).min(dims.ny()),
+                (a.z1 + 1).min(dims.nz()),
+            ],
+        ))
+    }
+
     /// The rows of the box `lo..hi` (cells `lo[0]..hi[0]` of each), within `dims`.
     pub(crate) fn bounded(dims: &Dims, lo: [usize; 3], hi: [usize; 3]) -> Self {
         let [x1, y1, z1] = [hi[0].min(dims.nx()), hi[1].min(dims.ny()), hi[2].min(dims.nz())];
