@@ -316,12 +316,15 @@ impl Crop {
         }
     }
 
-    /// The box of the domain of `labels` ([`Active::domain`]); the whole grid where there is
-    /// no interior cell.
+    /// The box of the domain of `labels` ([`Active::domain`]), from an even cell on each
+    /// axis; the whole grid where there is no interior cell.
     fn of(dims: &Dims, labels: &[Label]) -> Self {
         let Some((lo, hi)) = Active::domain(dims, labels) else {
             return Self::all(dims);
         };
+        // From an even cell: the first coarse level pairs the cells as it would over the
+        // whole grid.
+        let lo = lo.map(|c| c & !1);
         Self {
             lo,
             n: zip_sub(hi, lo),
