@@ -475,4 +475,3 @@ fn a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end() {
         );
     }
 }
-
