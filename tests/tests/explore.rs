@@ -323,14 +323,21 @@ fn office_explored_over_a_noisy_link_that_loses_a_tenth_of_its_frames() {
     assert!(l.rows_per_chunk_mean < 2.0 && l.rows_per_chunk_last == 1, "{l:?}");
     // What the injector did is what the receiver saw: each frame dropped or damaged is lost
     // (the delimiters on both sides of a frame keep damage from spreading to its neighbours),
-    // and shows as a gap in the sequence numbers (unless it was the very last frame).
+    // and shows as a gap in the sequence numbers, unless no frame came intact after it: the
+    // frames lost at the very end show no gap. At this loss rate (about a quarter of the
+    // frames) a run of k such frames has probability ~4^-k (eight: ~1.5e-5); this seed's run
+    // ends on two since the re-solves' boxes were kept within the domain (session 39).
     assert_eq!(
         u64::from(c.frames_ok),
         l.link_frames_sent - injected.frames_dropped - injected.frames_damaged,
         "{c:?} {injected:?}"
     );
     let lost = injected.frames_dropped + injected.frames_damaged;
-    assert!(u64::from(c.sequence_gaps) <= lost && u64::from(c.sequence_gaps) + 1 >= lost);
+    assert!(
+        u64::from(c.sequence_gaps) <= lost && u64::from(c.sequence_gaps) + 8 >= lost,
+        "{lost} frames lost, {} gaps: {c:?} {injected:?}",
+        c.sequence_gaps
+    );
     assert!(r.steps.iter().all(|s| s.frames_integrated == 1));
 }
 
