@@ -1783,14 +1783,22 @@ fn interpolate_planes<T: Stored, U: Stored>(
 /// [`MAX_PINS`]: where both multigrid solvers smooth locally.
 pub(crate) fn source_pins(dims: &Dims, labels: &[Label]) -> HVec<[usize; 3], MAX_PINS> {
     let mut pins = HVec::new();
-    for (i, l) in labels.iter().enumerate() {
-        if *l == Label::Source {
-            let v = dims.voxel(i);
-            if pins
-                .push([usize::from(v.x), usize::from(v.y), usize::from(v.z)])
-                .is_err()
-            {
-                break;
+    let nx = dims.nx().max(1);
+    for (r, row) in labels.chunks(nx).enumerate() {
+        // Most rows have no source (the screened field has none at all): a test without an
+        // early exit, which vectorises, before the cell-by-cell search.
+        if !row.iter().fold(false, |any, l| any | (*l == Label::Source)) {
+            continue;
+        }
+        for (x, l) in row.iter().enumerate() {
+            if *l == Label::Source {
+                let v = dims.voxel(r * nx + x);
+                if pins
+                    .push([usize::from(v.x), usize::from(v.y), usize::from(v.z)])
+                    .is_err()
+                {
+                    return pins;
+                }
             }
         }
     }
