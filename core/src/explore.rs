@@ -311,7 +311,8 @@ pub struct ExplorerStorage<'a> {
     /// entry per voxel then; otherwise it may be empty).
     pub jacobi: &'a mut [f32],
     /// Labels of the box a local re-solve cuts out ([`crate::solve::local`]; optional, like
-    /// `krylov`): with this and `local_psi` lent (half a grid each is enough), a re-solve of
+    /// `krylov`): with this and `local_psi` lent ([`crate::solve::local::box_scratch_len`] of
+    /// the grid each, or less: a box never exceeds what is lent), a re-solve of
     /// the screened field after a scan works in boxes around what changed. Empty: every solve
     /// sweeps the whole grid.
     pub local_labels: &'a mut [Label],

@@ -431,7 +431,7 @@ fn million_triangle_mesh_loads_in_seconds() {
 /// px, the stereo sensor model, 0.25 m radius), noisy returns leave weakly seen occupied voxels
 /// where the vehicle's safe space ends. Without the reopening rule the runs end `complete` at
 /// 39.0 % and 40.0 % of the free space; with it (the default) the explorer looks at those
-/// voxels again, finds the way open and explores the rest (89.0 % and 89.3 %, measured),
+/// voxels again, finds the way open and explores the rest (88.6 % and 90.1 %, measured),
 /// without a collision. (Which starts close depends on the exact path: until the re-solves in
 /// boxes, 2026-12-06, they were starts 9 and 2, then 33 and 11 until the boxes' budget and
 /// inner box, 2026-12-07, then 9 and 44 until the boxes were kept within the domain's box,

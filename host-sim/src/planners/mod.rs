@@ -219,8 +219,8 @@ pub struct HostStorage {
     surface: Vec<[i32; 2]>,
     /// The thesis's Jacobi scratch: empty until [`HostStorage::with_jacobi`].
     jacobi: Vec<f32>,
-    /// The box of local re-solves: half a grid, the most
-    /// [`LocalParams::max_share`](harmonic_core::solve::local::LocalParams::max_share) lets a box take.
+    /// The box of local re-solves: three quarters of a grid, the most
+    /// [`MAX_SHARE`](harmonic_core::solve::local::MAX_SHARE) lets a box take.
     local_labels: Vec<Label>,
     /// Its values.
     local_psi: Vec<f32>,
@@ -243,8 +243,8 @@ impl HostStorage {
             phi: vec![0.0; n],
             queue: vec![0; 16 * 1024],
             jacobi: Vec::new(),
-            local_labels: vec![Label::Outside; n / 2],
-            local_psi: vec![0.0; n / 2],
+            local_labels: vec![Label::Outside; harmonic_core::solve::local::box_scratch_len(n)],
+            local_psi: vec![0.0; harmonic_core::solve::local::box_scratch_len(n)],
             flat: Vec::new(),
         }
     }

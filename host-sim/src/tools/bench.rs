@@ -240,8 +240,9 @@ pub fn measure(
         harmonic_core::field::release_source(&mut scan.labels);
     }
     let mut scratch = MultigridScratch::new(&dims);
-    // The box of `scan (local)`: half a grid, the most a box may take (as the explorer lends).
-    let (mut box_labels, mut box_psi) = (vec![Label::Outside; dims.len() / 2], vec![0.0f32; dims.len() / 2]);
+    // The box of `scan (local)`: the most a box may take, as the explorer lends.
+    let cells = harmonic_core::solve::local::box_scratch_len(dims.len());
+    let (mut box_labels, mut box_psi) = (vec![Label::Outside; cells], vec![0.0f32; cells]);
     let mut psi = vec![0.0f32; dims.len()];
     // The flat solver's storage is zeroed on its first solve: a planner lends it once.
     let mut flat_values = match solver {
