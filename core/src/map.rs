@@ -92,6 +92,10 @@ impl Dims {
     pub fn nz(&self) -> usize {
         self.nz.get()
     }
+    /// Voxels along x, y and z.
+    pub fn extent(&self) -> [usize; 3] {
+        [self.nx(), self.ny(), self.nz()]
+    }
     /// Total number of voxels.
     pub fn len(&self) -> usize {
         self.nx() * self.ny() * self.nz()
@@ -203,7 +207,7 @@ impl MapGeometry {
         }
         // Far from zero, f32 steps grow: a grid there could not tell its voxels apart (a goal
         // at a voxel centre would convert back to another voxel, or outside the grid).
-        let extent = [dims.nx(), dims.ny(), dims.nz()];
+        let extent = dims.extent();
         let resolvable = origin.coords.iter().zip(extent).all(|(o, n)| {
             let far = o.abs() + n as f32 * resolution;
             far.is_finite() && far * f32::EPSILON <= resolution / 64.0

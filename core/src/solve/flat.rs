@@ -51,9 +51,9 @@
 
 use heapless::Vec as HVec;
 
-use super::multigrid::{source_pins, LOCAL_RADIUS, MAX_RESTARTS};
+use super::multigrid::{source_pins, LOCAL_RADIUS, MAX_PINS, MAX_RESTARTS};
 use super::{
-    checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, Active, Contraction,
+    checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, zip3, Active, Contraction,
     Dirichlet, Fork, Residual, Screen, SolveError, SolveParams, SolveStats, Solved,
 };
 use crate::domain::Label;
@@ -191,7 +191,7 @@ fn grids(fine: [usize; 3]) -> HVec<Grid, MAX_LEVELS> {
 
 /// `f32` values [`Flat::new`] needs for a fine grid of `fine`.
 pub fn flat_scratch_len(fine: &Dims) -> usize {
-    let gs = grids(axes(fine));
+    let gs = grids(fine.extent());
     level_blocks(&gs).iter().sum::<usize>() + gs.first().map_or(0, |g| KRYLOV_ARRAYS * g.len)
 }
 
@@ -284,11 +284,6 @@ struct Krylov<'s> {
     p: &'s mut [f32],
 }
 
-/// The grid's extent along x, y, z.
-fn axes(dims: &Dims) -> [usize; 3] {
-    [dims.nx(), dims.ny(), dims.nz()]
-}
-
 /// The part of the problem's grid the levels are laid out for: the box of its interior cells
 /// and their neighbours (every cell beyond it is outside the domain, which the padding of
 /// zeros stands for exactly), so a domain that fills part of the grid (early in an
@@ -310,7 +305,7 @@ impl Crop {
     fn all(dims: &Dims) -> Self {
         Self {
             lo: [0; 3],
-            n: axes(dims),
+            n: dims.extent(),
             sy: dims.nx(),
             sz: dims.nx() * dims.ny(),
         }
@@ -327,9 +322,15 @@ impl Crop {
         let lo = lo.map(|c| c & !1);
         Self {
             lo,
-            n: zip_sub(hi, lo),
+            n: zip3(hi, lo, usize::saturating_sub),
             ..Self::all(dims)
         }
+    }
+
+    /// Cell `p` of the problem's grid in the box's coordinates, if the box holds it.
+    fn local(&self, p: [usize; 3]) -> Option<[usize; 3]> {
+        let q = zip3(p, self.lo, usize::wrapping_sub);
+        q.iter().zip(&self.n).all(|(c, n)| c < n).then_some(q)
     }
 
     /// Where row `(y, z)` of the box starts in the problem's grid.
@@ -338,16 +339,6 @@ impl Crop {
         let [lx, ly, lz] = self.lo;
         lx + self.sy * (y + ly) + self.sz * (z + lz)
     }
-}
-
-/// `a − b` per axis (0 where `b` is larger).
-fn zip_sub(a: [usize; 3], b: [usize; 3]) -> [usize; 3] {
-    let ([a0, a1, a2], [b0, b1, b2]) = (a, b);
-    [
-        a0.saturating_sub(b0),
-        a1.saturating_sub(b1),
-        a2.saturating_sub(b2),
-    ]
 }
 
 /// The fast multigrid solver over borrowed storage ([`flat_scratch_len`] values).
@@ -383,7 +374,7 @@ impl<'a> Flat<'a> {
             crop: Crop::all(&fine),
             fork: None,
             zeroed: false,
-            grids: grids(axes(&fine)),
+            grids: grids(fine.extent()),
             values,
             history: HVec::new(),
         })
@@ -433,7 +424,7 @@ impl<'a> Flat<'a> {
     }
 
     /// Lays the levels out for `crop` of the problem's grid, unless they are already.
-    fn lay_out(&mut self, crop: Crop) {
+    fn crop_to(&mut self, crop: Crop) {
         if crop != self.crop {
             self.crop = crop;
             self.grids = grids(crop.n);
@@ -458,7 +449,7 @@ impl<'a> Flat<'a> {
     ) -> Result<Solved, SolveError> {
         let params = &dirichlet.params(params);
         let (labels, psi) = checked_problem(&self.fine, labels, psi, params, dirichlet)?;
-        self.lay_out(Crop::of(&self.fine, labels));
+        self.crop_to(Crop::of(&self.fine, labels));
         let crop = self.crop;
         self.history.clear();
         let fork = self.fork;
@@ -488,17 +479,10 @@ impl<'a> Flat<'a> {
             .ok_or(SolveError::ScratchTooSmall)?;
         let interior = interior_counts(&grids, levels_store);
         // The source cells in the box (one beyond it touches no interior cell).
-        let mut pins = source_pins(&self.fine, labels);
-        pins.retain_mut(|p| {
-            let inside = p
-                .iter()
-                .zip(crop.lo.iter().zip(&crop.n))
-                .all(|(c, (lo, n))| (*lo..lo + n).contains(c));
-            for (c, lo) in p.iter_mut().zip(&crop.lo) {
-                *c = c.saturating_sub(*lo);
-            }
-            inside
-        });
+        let pins: HVec<[usize; 3], MAX_PINS> = source_pins(&self.fine, labels)
+            .iter()
+            .filter_map(|p| crop.local(*p))
+            .collect();
         let cycle = if screen.shift > 0.0 { Cycle::V } else { Cycle::W };
         let b2 = sum_sq(kr.rhs);
         let params = &dirichlet.tolerance(params, b2);
@@ -2272,7 +2256,7 @@ mod timing {
                 };
             }
         }
-        let grids = grids(axes(&dims));
+        let grids = grids(dims.extent());
         let crop = Crop::all(&dims);
         let psi: std::vec::Vec<f32> = labels
             .iter()

@@ -39,8 +39,8 @@ use super::flat::Flat;
 use super::multigrid::{Method, Multigrid};
 use super::{
     cell_residual, error_estimate, error_met, for_each_row, rounding2, rounding_row, row_residual_chunks,
-    Active, ChunkSink, Contraction, Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats, Solved,
-    CHUNK,
+    zip3, Active, ChunkSink, Contraction, Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats,
+    Solved, CHUNK,
 };
 use crate::domain::Label;
 use crate::map::Dims;
@@ -62,7 +62,12 @@ pub const MAX_SHARE: f32 = 0.75;
 
 /// The box scratch [`resolve_near`] can use for a grid of `cells`: [`MAX_SHARE`] of it.
 pub fn box_scratch_len(cells: usize) -> usize {
-    cells - (cells >> 2)
+    share_of(MAX_SHARE, cells)
+}
+
+/// The cells `share` of a grid of `cells` makes (the box limit's rule).
+fn share_of(share: f32, cells: usize) -> usize {
+    (share.clamp(0.0, 1.0) * cells as f32) as usize
 }
 
 /// How far a local re-solve reaches.
@@ -161,17 +166,6 @@ struct Cells {
     hi: [usize; 3],
 }
 
-/// `[f(a₀, b₀), f(a₁, b₁), f(a₂, b₂)]`.
-fn zip3(a: [usize; 3], b: [usize; 3], f: impl Fn(usize, usize) -> usize) -> [usize; 3] {
-    let ([a0, a1, a2], [b0, b1, b2]) = (a, b);
-    [f(a0, b0), f(a1, b1), f(a2, b2)]
-}
-
-/// The grid's extent along x, y, z.
-fn axes(dims: &Dims) -> [usize; 3] {
-    [dims.nx(), dims.ny(), dims.nz()]
-}
-
 impl Cells {
     fn point(p: [usize; 3]) -> Self {
         Self {
@@ -199,7 +193,7 @@ impl Cells {
             lo: zip3(self.lo, [mx, my, mz], usize::saturating_sub),
             hi: zip3(
                 zip3(self.hi, [px, py, pz], usize::saturating_add),
-                axes(dims),
+                dims.extent(),
                 usize::min,
             ),
         }
@@ -322,7 +316,7 @@ fn scan(
     rim: bool,
 ) -> Scan {
     let mut out = Scan::default();
-    let n = axes(dims);
+    let n = dims.extent();
     let active = Active::bounded(dims, region.lo, region.hi);
     let within = rim.then_some(region);
     let mut below = 0.0f32;
@@ -576,7 +570,7 @@ impl BoxRow {
 /// Calls `f` with every x-row of `cells`, in the box's order.
 fn for_each_row_of(dims: &Dims, cells: &Cells, mut f: impl FnMut(BoxRow)) {
     let ([x0, y0, z0], [x1, y1, z1]) = (cells.lo, cells.hi);
-    let [nx, ny, nz] = axes(dims);
+    let [nx, ny, nz] = dims.extent();
     let rim = |c: usize, lo: usize, hi: usize, n: usize| on_rim(c, lo, hi, n).contains(&true);
     let ends = rim_ends(x0, x1, nx);
     let mut at = 0;
@@ -768,7 +762,7 @@ fn in_boxes(
         ..LocalStats::default()
     };
     let capacity = scratch.labels.len().min(scratch.psi.len());
-    let limit = ((local.max_share.clamp(0.0, 1.0) * n as f32) as usize).min(capacity);
+    let limit = share_of(local.max_share, n).min(capacity);
     // The box every box after the inner one holds.
     let main = large.map(|c| c.widened(local.margin, &dims).within(&domain));
     let inner = classes
@@ -963,6 +957,14 @@ mod tests {
         resolve_lending(storage, dims, labels, psi, screening, dims.len()).unwrap()
     }
 
+    /// [`resolve`], which must have solved in boxes.
+    fn in_boxes_only(storage: &mut Storage, dims: Dims, labels: &[Label], psi: &mut [f32]) -> LocalStats {
+        match resolve(storage, dims, labels, psi, SCREENING) {
+            Local::Solved(s) => s,
+            whole => panic!("a scan at the far wall is re-solved locally: {whole:?}"),
+        }
+    }
+
     /// [`resolve_near`] with a box scratch of `cells` labels and values.
     fn resolve_lending(
         storage: &mut Storage,
@@ -1023,9 +1025,7 @@ mod tests {
         let (dims, old, mut storage) = solved_before(SCREENING);
         let (_, after) = rooms(true);
         let mut local = old.clone();
-        let Local::Solved(s) = resolve(&mut storage, dims, &after, &mut local, SCREENING) else {
-            panic!("a scan at the far wall is re-solved locally");
-        };
+        let s = in_boxes_only(&mut storage, dims, &after, &mut local);
         assert!(s.boxes >= 1 && s.stats.converged, "{s:?}");
         assert!(s.box_cells < dims.len() / 2, "{s:?}");
         let checked = screened_residual(&dims, &after, &local, SCREENING);
@@ -1070,9 +1070,7 @@ mod tests {
         let (dims, old, mut storage) = solved_before(SCREENING);
         let (_, after) = rooms(true);
         let mut plain = old.clone();
-        let Local::Solved(p) = resolve(&mut storage, dims, &after, &mut plain, SCREENING) else {
-            panic!("a scan at the far wall is re-solved locally");
-        };
+        let p = in_boxes_only(&mut storage, dims, &after, &mut plain);
         let wide = Dims::new(150, 24, 16).unwrap();
         let at = |i: usize| {
             let v = dims.voxel(i);
@@ -1084,9 +1082,7 @@ mod tests {
             psi[at(i)] = *v;
         }
         let mut storage = Storage::new(&wide, true);
-        let Local::Solved(w) = resolve(&mut storage, wide, &labels, &mut psi, SCREENING) else {
-            panic!("the same scan beside unknown space is re-solved locally");
-        };
+        let w = in_boxes_only(&mut storage, wide, &labels, &mut psi);
         assert_eq!((w.boxes, w.box_cells), (p.boxes, p.box_cells), "{w:?} {p:?}");
         assert_eq!(w.stats.cell_updates, p.stats.cell_updates, "{w:?} {p:?}");
         let worst = plain

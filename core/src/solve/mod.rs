@@ -1471,6 +1471,12 @@ impl Active {
     }
 }
 
+/// `[f(a₀, b₀), f(a₁, b₁), f(a₂, b₂)]`: per-axis arithmetic on cell boxes.
+pub(crate) fn zip3(a: [usize; 3], b: [usize; 3], f: impl Fn(usize, usize) -> usize) -> [usize; 3] {
+    let ([a0, a1, a2], [b0, b1, b2]) = (a, b);
+    [f(a0, b0), f(a1, b1), f(a2, b2)]
+}
+
 /// Calls `f(stencil, row)` for every x-row of `values` (read-only).
 #[inline(always)]
 pub(crate) fn for_each_row<T: Stored>(
