@@ -167,6 +167,11 @@ fn fake_autopilot(
                 });
             }
         }
+        // What the simulator sent before it stopped may still wait in the socket (this loop
+        // reads one datagram a turn): read it, so every setpoint sent is counted.
+        while let Ok((n, _)) = socket.recv_from(&mut buf) {
+            emulator.receive(clock.elapsed().as_millis() as u64, &buf[..n]);
+        }
         (*emulator.counters(), position)
     })
 }
