@@ -528,6 +528,8 @@ pub struct Status {
     pub integration_ops: u64,
     /// Total solver cell updates ("planning ops").
     pub planning_ops: u64,
+    /// Solves of the field: every screening a plan tries, whole or in boxes.
+    pub solves: u32,
     /// Solves done in boxes around what a scan changed ([`crate::solve::local`]).
     pub local_solves: u32,
     /// Local re-solves that gave the grid back to a whole-grid solve (the change reached too
@@ -1272,6 +1274,7 @@ impl<'a> Explorer<'a> {
             ..self.config.solve
         };
         let dims = self.map.geometry().dims();
+        self.status.solves += 1;
         let same_field = self.solved_screening == Some(screening);
         self.solved_screening = None;
         // A re-solve of the same screened field may work in boxes around what changed.

@@ -12,7 +12,7 @@ use harmonic_sim::link::fault::{FaultConfig, DEFAULT_BURST_LEN};
 use harmonic_sim::link::transport::TransportSpec;
 use harmonic_sim::planners::PlannerKind;
 use harmonic_sim::run::record::{MapSettings, Recorder};
-use harmonic_sim::run::sim::{self, Report, SimConfig, StepView};
+use harmonic_sim::run::sim::{self, Report, SimConfig, StepRecord, StepView};
 use harmonic_sim::tools::batch;
 use harmonic_sim::tools::figures::{self, SliceSnapshot};
 use harmonic_sim::vehicle::autopilot::{MavlinkConfig, MavlinkSpec};
@@ -485,8 +485,26 @@ fn write_run_figures(
 }
 
 /// The end-of-run summary: one aligned line per quantity of the report.
+/// The median solve time of the plans that solved one screening, in boxes and whole: what a
+/// re-solve after a scan costs, apart from plans that tried several screenings.
+fn one_screening_solves(steps: &[StepRecord]) -> String {
+    let median = |in_boxes: u32| {
+        let mut ms: Vec<f64> = steps
+            .iter()
+            .filter(|s| s.solves == Some(1) && s.solves_in_boxes == Some(in_boxes))
+            .map(|s| s.solve_ms)
+            .collect();
+        ms.sort_by(f64::total_cmp);
+        match ms.get(ms.len() / 2) {
+            Some(m) => format!("{m:.2} ms ({} plans)", ms.len()),
+            None => "none".into(),
+        }
+    };
+    format!("median {} in boxes, {} whole", median(1), median(0))
+}
+
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 18] = [
+    let rows: [(&str, String); 19] = [
         ("scenario", r.scenario.clone()),
         ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
@@ -536,6 +554,7 @@ fn print_summary(r: &Report) {
                 r.timing.solve.mean_ms, r.timing.solve.max_ms
             ),
         ),
+        ("one-screening solves", one_screening_solves(&r.steps)),
         (
             "domain + streamline",
             format!("{:.2} ms", r.timing.domain.mean_ms + r.timing.streamline.mean_ms),

@@ -944,6 +944,8 @@ pub fn run(
             domain_ms: ms(report.domain_ticks),
             solve_ms: ms(report.solve_ticks),
             streamline_ms: ms(report.streamline_ticks),
+            solves: None,
+            solves_in_boxes: None,
             solver_iterations: if solved { report.solver_iterations } else { 0 },
             solver_residual: report.solver_residual,
             solver_updates: if solved { report.solver_updates } else { 0 },

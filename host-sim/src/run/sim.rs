@@ -369,6 +369,12 @@ pub struct StepRecord {
     pub solve_ms: f64,
     /// Streamline and goal time, ms.
     pub streamline_ms: f64,
+    /// Solves of the field this step (every screening the plan tried; 0 without a plan);
+    /// `None` in processor-in-the-loop runs, whose downlink report does not count them.
+    pub solves: Option<u32>,
+    /// Of those, the re-solves done in boxes around what the scan changed (the others are
+    /// whole-grid solves, or boxes that gave the grid back); `None` as `solves`.
+    pub solves_in_boxes: Option<u32>,
     /// Solver iterations.
     pub solver_iterations: u32,
     /// Final relative residual.
@@ -1583,6 +1589,8 @@ pub fn run_observed(
             } else {
                 0.0
             },
+            solves: Some(status.solves.saturating_sub(status_before.solves)),
+            solves_in_boxes: Some(status.local_solves.saturating_sub(status_before.local_solves)),
             solver_iterations: status.solve.iterations,
             solver_residual: status.solve.residual,
             solver_updates: status.solve.cell_updates,
