@@ -1247,6 +1247,15 @@ pub(crate) fn row_residual_chunks<S: ChunkSink>(st: &Stencil<'_, f32>, row: &[f3
     }
     let mut x = start;
     while x + CHUNK <= end {
+        // A chunk without an interior cell gives nothing (its residuals and counts are 0).
+        let none = cut
+            .l
+            .get(x..x + CHUNK)
+            .is_some_and(|l| l.iter().all(|l| *l != Label::Interior));
+        if none {
+            x += CHUNK;
+            continue;
+        }
         if let Some((r, n, c)) = chunk_residuals(&cut, row, st.screen.shift, x) {
             sink.chunk(x, x, &r, &n, &c);
         }
