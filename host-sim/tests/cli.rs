@@ -510,3 +510,73 @@ fn bench_and_replay_reject_bad_input_with_one_line_and_exit_code_2() {
         "give --noise, --depth-from stereo or --drift",
     );
 }
+
+/// `bench-solve --replay` re-solves the problems `explore --dump-problem` wrote, in order, as
+/// the explorer does: one row per solver, every re-solve counted and converged.
+#[test]
+fn bench_solve_replays_the_problems_an_exploration_dumped() {
+    let base = std::env::temp_dir().join(format!("harmonic-replay-{}", std::process::id()));
+    let dumps = base.join("dumps");
+    let out = sim()
+        .args([
+            "explore",
+            "--scenario",
+            "apartment",
+            "--max-scans",
+            "12",
+            "--quiet",
+        ])
+        .arg("--dump-problem")
+        .arg(&dumps)
+        .arg("--out")
+        .arg(base.join("run"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let dumped = std::fs::read_dir(&dumps)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .path()
+                .extension()
+                .is_some_and(|x| x == "json")
+        })
+        .count();
+    assert!(dumped >= 3, "{dumped} problems dumped");
+    let out = sim()
+        .args(["bench-solve", "--repeat", "1", "--threads", "1", "--replay"])
+        .arg(&dumps)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let rows: Vec<Vec<&str>> = stdout
+        .lines()
+        .filter(|l| l.contains("dumps ("))
+        .map(|l| l.split('|').map(str::trim).collect())
+        .collect();
+    assert_eq!(rows.len(), 2, "one row per solver: {stdout}");
+    for (row, solver) in rows.iter().zip(["flat", "mg"]) {
+        assert_eq!(row[3], solver, "{stdout}");
+        // Every problem after the first is re-solved, in boxes or whole, and converges.
+        let problems: usize = row[1]
+            .rsplit_once('(')
+            .and_then(|(_, n)| n.trim_end_matches(')').parse().ok())
+            .unwrap();
+        let (boxes, whole) = row[4].split_once(" / ").unwrap();
+        let (boxes, whole): (usize, usize) = (boxes.parse().unwrap(), whole.parse().unwrap());
+        assert_eq!(boxes + whole, problems - 1, "{stdout}");
+        assert!(boxes > 0, "no re-solve stayed in boxes: {stdout}");
+        assert_eq!(row[8], "0", "a re-solve did not converge: {stdout}");
+    }
+    // A directory without dumps is a one-line error, exit code 2.
+    let out = sim()
+        .args(["bench-solve", "--replay"])
+        .arg(base.join("run"))
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("dump-problem"));
+    let _ = std::fs::remove_dir_all(base);
+}

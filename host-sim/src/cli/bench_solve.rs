@@ -5,6 +5,7 @@ use harmonic_core::map::Dims;
 use harmonic_core::solve::multigrid::Method;
 use harmonic_sim::tools::bench::{self, BenchSolver};
 use harmonic_sim::tools::fork::{default_threads, with_fork};
+use harmonic_sim::tools::replay;
 
 use super::parse::{parse_dims, parse_positive};
 
@@ -34,10 +35,20 @@ pub struct BenchSolveArgs {
     /// on a machine with two cores or more, else 1.
     #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2))]
     threads: Option<u8>,
+    /// Instead of the made-up grids: replay the problems `explore --dump-problem DIR` wrote
+    /// (comma-separated directories), the first solved cold and each next warm from the one
+    /// before, in boxes around what changed, as the explorer re-solves the screened field
+    /// (at its full κ and tolerance; `--field` and `--tol` do not apply). Each re-solve takes
+    /// the fastest of `--repeat` runs.
+    #[arg(long, value_delimiter = ',')]
+    replay: Vec<std::path::PathBuf>,
 }
 
 /// Run `bench-solve`: measure every solver on every grid size and print the table.
 pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
+    if !args.replay.is_empty() {
+        return run_replay(args);
+    }
     let screening = if args.field == "screened" {
         let k = harmonic_core::field::ScreenedParams::default().kappa_voxel(0.1);
         k * k
@@ -123,6 +134,43 @@ pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
             pair[1].0 as f64 / pair[0].0 as f64,
             pair[1].1 / pair[0].1
         );
+    }
+    Ok(())
+}
+
+/// `bench-solve --replay`: each dumped exploration re-solved by the flat solver and by
+/// multigrid (the explorer's default, which picks MGPCG or V-cycles itself).
+fn run_replay(args: &BenchSolveArgs) -> Result<(), String> {
+    println!("| problems | grid | solver | re-solves in boxes / whole | in boxes, median / p90 ms | all, median ms | cell updates | not converged |");
+    println!("|---|---|---|---|---|---|---|---|");
+    for dir in &args.replay {
+        for (solver, name) in [
+            (BenchSolver::Flat, "flat"),
+            (BenchSolver::Multigrid(Method::Auto), "mg"),
+        ] {
+            eprintln!("replaying {} with {name} ...", dir.display());
+            let r = with_fork(args.threads.unwrap_or_else(default_threads), |fork| {
+                replay::replay(dir, solver, args.repeat, fork)
+            })??;
+            let boxes = r.in_boxes.iter().filter(|b| **b).count();
+            let ms = |q: f64, b: Option<bool>| {
+                r.quantile_ms(q, b).map_or("–".to_string(), |m| format!("{m:.2}"))
+            };
+            println!(
+                "| {} ({}) | {}x{}x{} | {name} | {boxes} / {} | {} / {} | {} | {} | {} |",
+                dir.display(),
+                r.problems,
+                r.dims.nx(),
+                r.dims.ny(),
+                r.dims.nz(),
+                r.in_boxes.len() - boxes,
+                ms(0.5, Some(true)),
+                ms(0.9, Some(true)),
+                ms(0.5, None),
+                r.cell_updates,
+                r.not_converged
+            );
+        }
     }
     Ok(())
 }

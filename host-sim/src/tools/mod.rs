@@ -11,6 +11,8 @@
 //! - [`fork`]: two threads for the solver's fine level (`bench-solve`, `solve --threads`).
 //! - [`problem`]: planning problems as `.npy` label grids, and solving one (`solve`,
 //!   `explore --dump-problem`).
+//! - [`replay`](mod@replay): an exploration's dumped problems re-solved in order, warm and in
+//!   boxes, as the explorer re-solves them (`bench-solve --replay`).
 //!
 //! In: scenarios ([`crate::world`]), run configurations and the runs themselves
 //! ([`crate::run`]), planner kinds ([`crate::planners`]), the link and autopilot settings a
@@ -25,3 +27,4 @@ pub mod faults;
 pub mod figures;
 pub mod fork;
 pub mod problem;
+pub mod replay;

@@ -8,7 +8,7 @@
 
 use std::time::Instant;
 
-use harmonic_core::domain::{self, InflationStencil, Label};
+use harmonic_core::domain::{self, DomainStats, InflationStencil, Label};
 use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
@@ -148,12 +148,18 @@ impl std::fmt::Display for ProblemError {
 
 impl std::error::Error for ProblemError {}
 
-/// Solves the problem in `grid`; returns φ (C order, like the input) and the summary.
-pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, SolveSummary), ProblemError> {
-    let t0 = Instant::now();
+/// A dumped problem's domain: the grid `grid` describes, and its labels built from `source` as
+/// the explorer builds them (the same map states, inflation by `radius`, component and
+/// frontier rules).
+pub fn domain_labels(
+    grid: &Array3<u8>,
+    source: [usize; 3],
+    radius: f32,
+    resolution: f32,
+) -> Result<(Dims, Vec<Label>, DomainStats), ProblemError> {
     let [nx, ny, nz] = grid.shape;
     let dims = Dims::new(nx, ny, nz).map_err(|e| ProblemError::BadGrid(format!("{nx}x{ny}x{nz}: {e:?}")))?;
-    let geometry = MapGeometry::new(dims, Point3::origin(), req.resolution)
+    let geometry = MapGeometry::new(dims, Point3::origin(), resolution)
         .map_err(|e| ProblemError::BadGrid(format!("{e:?}")))?;
     let n = dims.len();
     let (mut lo, mut st) = (vec![0i8; n], vec![0u32; touched_words(&dims)]);
@@ -177,16 +183,24 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
             }
         }
     }
-    let [sx, sy, sz] = req.source;
+    let [sx, sy, sz] = source;
     let source = dims
         .checked(sx as i32, sy as i32, sz as i32)
         .filter(|_| sx < nx && sy < ny && sz < nz)
-        .ok_or(ProblemError::SourceOutside(req.source))?;
-    let stencil = InflationStencil::new(req.radius, req.resolution).map_err(|_| ProblemError::BadRadius)?;
+        .ok_or(ProblemError::SourceOutside([sx, sy, sz]))?;
+    let stencil = InflationStencil::new(radius, resolution).map_err(|_| ProblemError::BadRadius)?;
     let mut domain_labels = vec![Label::Outside; n];
     let mut queue = vec![0u32; 16 * 1024];
     let stats = domain::build(&map, &stencil, source, &mut domain_labels, &mut queue)
         .map_err(|e| ProblemError::Domain(format!("{e:?} at source [{sx}, {sy}, {sz}]")))?;
+    Ok((dims, domain_labels, stats))
+}
+
+/// Solves the problem in `grid`; returns φ (C order, like the input) and the summary.
+pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, SolveSummary), ProblemError> {
+    let t0 = Instant::now();
+    let (dims, mut domain_labels, stats) = domain_labels(grid, req.source, req.radius, req.resolution)?;
+    let n = dims.len();
     let screened = req.field == FieldChoice::Screened;
     let (screening, released) = if screened {
         let k = harmonic_core::field::ScreenedParams::default().kappa_voxel(req.resolution);
