@@ -13,7 +13,8 @@
 //!    cells next to them), beyond which no cell has a residual or changes;
 //! 2. solves first a small box around the cells whose residual alone exceeds the allowed
 //!    residual (what the scan changed), [`LocalParams::inner_margin`] voxels wider: it takes
-//!    out the sharp local jump, so the big box starts from a smooth remainder;
+//!    out the sharp local jump, so the big box starts from a smooth remainder (only while it
+//!    is small beside the big box, [`LocalParams::inner_share`]);
 //! 3. cuts each box out into lent scratch, its rim (the box's outer layer, where it is not
 //!    the grid's border) made Dirichlet cells that hold the values outside, and solves it with
 //!    the caller's solver, laid out again for the box in the same storage, to what is left of
@@ -60,6 +61,12 @@ pub struct LocalScratch<'a> {
 /// no re-solve back and planned 1–9 % fewer cell updates in seven of eight runs).
 pub const MAX_SHARE: f32 = 0.75;
 
+/// [`LocalParams::inner_share`]: an inner box of a quarter of the main box's cells costs about
+/// the steps it saves the main box. On the re-solves of six explorations' dumped problems
+/// (BENCHMARKS.md, "Inner boxes"), the rule cut the cell updates by 3–7 % against solving the
+/// inner box whenever it was smaller than the main one.
+pub const INNER_SHARE: f32 = 0.25;
+
 /// The box scratch [`resolve_near`] can use for a grid of `cells`: [`MAX_SHARE`] of it.
 pub fn box_scratch_len(cells: usize) -> usize {
     share_of(MAX_SHARE, cells)
@@ -91,6 +98,12 @@ pub struct LocalParams {
     /// starts a cold solve), so the box around it starts from a smooth remainder and takes
     /// fewer steps.
     pub inner_margin: usize,
+    /// The inner box is solved first only while it holds less than this share of the main
+    /// box's cells. It takes four or five steps of its own and saves the main box one or two,
+    /// so it pays only while it is small beside it; a scan that
+    /// changed much of the domain makes an inner box almost as big as the main one, and
+    /// then the main box is solved alone.
+    pub inner_share: f32,
     /// Boxes tried before the whole grid is solved instead (the inner box not counted).
     pub max_boxes: u8,
     /// Largest box worth solving on its own, as a share of the grid's cells.
@@ -121,6 +134,7 @@ impl LocalParams {
             left_outside: 0.5,
             margin,
             inner_margin,
+            inner_share: INNER_SHARE,
             max_boxes: 3,
             max_share: MAX_SHARE,
         }
@@ -768,7 +782,9 @@ fn in_boxes(
     let inner = classes
         .hot
         .map(|c| c.widened(local.inner_margin, &dims).within(&domain));
-    let inner = inner.filter(|i| local.inner_margin > 0 && main.is_some_and(|m| i.len() < m.len()));
+    let inner = inner.filter(|i| {
+        local.inner_margin > 0 && main.is_some_and(|m| (i.len() as f32) < local.inner_share * m.len() as f32)
+    });
     let mut next = inner.or(main);
     let max_boxes = local.max_boxes.saturating_add(u8::from(inner.is_some()));
     let mut solved: Option<Cells> = None;
@@ -974,19 +990,31 @@ mod tests {
         screening: f32,
         cells: usize,
     ) -> Result<Local, SolveError> {
+        let local = LocalParams::for_screening(screening, 1e-5);
+        resolve_with(storage, dims, labels, psi, (screening, &local), cells)
+    }
+
+    /// [`resolve_lending`] with the box settings `local`.
+    fn resolve_with(
+        storage: &mut Storage,
+        dims: Dims,
+        labels: &[Label],
+        psi: &mut [f32],
+        (screening, local): (f32, &LocalParams),
+        cells: usize,
+    ) -> Result<Local, SolveError> {
         let (mut bl, mut bp) = (vec![Label::Outside; cells], vec![0.0; cells]);
         let scratch = LocalScratch {
             labels: &mut bl,
             psi: &mut bp,
         };
-        let local = LocalParams::for_screening(screening, 1e-5);
         let mut mg = storage.multigrid(dims);
         let out = resolve_near(
             &mut WithMethod(&mut mg, Method::Auto),
             labels,
             psi,
             &params(1e-5, true, screening),
-            &local,
+            local,
             scratch,
         );
         assert_eq!(
@@ -1155,6 +1183,54 @@ mod tests {
         };
         assert_eq!((s.boxes, s.stats.iterations), (0, 0));
         assert_eq!(psi, kept);
+    }
+
+    /// A scan that changed much of the room: the cells it changed lie so far apart that the
+    /// inner box around them would hold most of the main box, and solving it first would cost
+    /// its steps for the one or two it saves the main box. The main box is solved alone, for
+    /// less work, to the same tolerance.
+    #[test]
+    fn an_inner_box_as_big_as_the_main_box_is_not_solved_first() {
+        let (dims, old, mut storage) = solved_before(SCREENING);
+        // The far wall's patch resolved as in `rooms`, and a hatch in the last room's
+        // ceiling, 13 voxels from it, seen as open to unknown space.
+        let (_, mut after) = rooms(true);
+        for (i, l) in after.iter_mut().enumerate() {
+            let v = dims.voxel(i);
+            if (100..106).contains(&v.x) && (2..8).contains(&v.y) && v.z == 14 {
+                *l = Label::Frontier;
+            }
+        }
+        let mut run = |inner_share: f32| {
+            let local = LocalParams {
+                inner_share,
+                ..LocalParams::for_screening(SCREENING, 1e-5)
+            };
+            let mut psi = old.clone();
+            let out = resolve_with(
+                &mut storage,
+                dims,
+                &after,
+                &mut psi,
+                (SCREENING, &local),
+                dims.len(),
+            );
+            let Ok(Local::Solved(s)) = out else {
+                panic!("re-solved in boxes: {out:?}");
+            };
+            let checked = screened_residual(&dims, &after, &psi, SCREENING);
+            assert!(checked.relative <= 1e-5, "{inner_share}: {checked:?} {s:?}");
+            s
+        };
+        // Solved first whenever smaller (the rule before), the inner box took a box of its own.
+        let both = run(1.0);
+        assert_eq!(both.boxes, 2, "{both:?}");
+        let alone = run(INNER_SHARE);
+        assert_eq!(alone.boxes, 1, "{alone:?}");
+        assert!(
+            alone.stats.cell_updates < both.stats.cell_updates,
+            "{alone:?} {both:?}"
+        );
     }
 
     /// Laplace's field changes everywhere when anything does: it is solved over the whole
