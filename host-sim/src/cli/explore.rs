@@ -488,6 +488,9 @@ fn write_run_figures(
 /// The median solve time of the plans that solved one screening, in boxes and whole: what a
 /// re-solve after a scan costs, apart from plans that tried several screenings.
 fn one_screening_solves(steps: &[StepRecord]) -> String {
+    if steps.iter().all(|s| s.solves.is_none()) {
+        return "not counted (the firmware's downlink does not report them)".into();
+    }
     let median = |in_boxes: u32| {
         let mut ms: Vec<f64> = steps
             .iter()
