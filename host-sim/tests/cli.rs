@@ -558,18 +558,41 @@ fn bench_solve_replays_the_problems_an_exploration_dumped() {
         .collect();
     assert_eq!(rows.len(), 2, "one row per solver: {stdout}");
     for (row, solver) in rows.iter().zip(["flat", "mg"]) {
-        assert_eq!(row[3], solver, "{stdout}");
+        assert_eq!(row[4], solver, "{stdout}");
         // Every problem after the first is re-solved, in boxes or whole, and converges.
         let problems: usize = row[1]
             .rsplit_once('(')
             .and_then(|(_, n)| n.trim_end_matches(')').parse().ok())
             .unwrap();
-        let (boxes, whole) = row[4].split_once(" / ").unwrap();
+        let (boxes, whole) = row[5].split_once(" / ").unwrap();
         let (boxes, whole): (usize, usize) = (boxes.parse().unwrap(), whole.parse().unwrap());
         assert_eq!(boxes + whole, problems - 1, "{stdout}");
+        // The steps not replayed are counted: every dumped step is one or the other.
+        let skipped: usize = row[2].parse().unwrap();
+        assert_eq!(problems + skipped, dumped, "{stdout}");
         assert!(boxes > 0, "no re-solve stayed in boxes: {stdout}");
-        assert_eq!(row[8], "0", "a re-solve did not converge: {stdout}");
+        assert_eq!(row[9], "0", "a re-solve did not converge: {stdout}");
     }
+    // A damaged dump is an error naming it, not a step skipped: the last voxel of the first
+    // step's grid made an undefined label (the data follow the header, so it is the file's last
+    // byte).
+    let first = std::fs::read_dir(&dumps)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "npy"))
+        .min()
+        .unwrap();
+    let mut bytes = std::fs::read(&first).unwrap();
+    *bytes.last_mut().unwrap() = 9;
+    std::fs::write(&first, bytes).unwrap();
+    let out = sim()
+        .args(["bench-solve", "--replay"])
+        .arg(&dumps)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("label 9") && err.contains("step_"), "{err}");
     // A directory without dumps is a one-line error, exit code 2.
     let out = sim()
         .args(["bench-solve", "--replay"])

@@ -141,8 +141,8 @@ pub fn run(args: &BenchSolveArgs) -> Result<(), String> {
 /// `bench-solve --replay`: each dumped exploration re-solved by the flat solver and by
 /// multigrid (the explorer's default, which picks MGPCG or V-cycles itself).
 fn run_replay(args: &BenchSolveArgs) -> Result<(), String> {
-    println!("| problems | grid | solver | re-solves in boxes / whole | in boxes, median / p90 ms | all, median ms | cell updates | not converged |");
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("| problems | skipped | grid | solver | re-solves in boxes / whole | in boxes, median / p90 ms | all, median ms | cell updates | not converged |");
+    println!("|---|---|---|---|---|---|---|---|---|");
     for dir in &args.replay {
         for (solver, name) in [
             (BenchSolver::Flat, "flat"),
@@ -157,9 +157,10 @@ fn run_replay(args: &BenchSolveArgs) -> Result<(), String> {
                 r.quantile_ms(q, b).map_or("–".to_string(), |m| format!("{m:.2}"))
             };
             println!(
-                "| {} ({}) | {}x{}x{} | {name} | {boxes} / {} | {} / {} | {} | {} | {} |",
+                "| {} ({}) | {} | {}x{}x{} | {name} | {boxes} / {} | {} / {} | {} | {} | {} |",
                 dir.display(),
                 r.problems,
+                r.skipped,
                 r.dims.nx(),
                 r.dims.ny(),
                 r.dims.nz(),

@@ -23,7 +23,7 @@ use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{Fork, SolveParams, SolveStats};
 
 use super::bench::BenchSolver;
-use super::problem::domain_labels;
+use super::problem::{domain_labels, ProblemError};
 use crate::io::npy;
 use crate::planners::MultigridScratch;
 
@@ -79,9 +79,11 @@ fn how(local: Local) -> (SolveStats, bool) {
 pub struct Replay {
     /// The grid.
     pub dims: Dims,
-    /// Dumped steps with a frontier to solve for (the others end an exploration, or found the
-    /// vehicle outside the domain, and are skipped).
+    /// Dumped steps with a frontier to solve for.
     pub problems: usize,
+    /// Dumped steps skipped: no frontier (the end of an exploration) or no domain (the vehicle
+    /// voxel not free; the explorer held or escaped there).
+    pub skipped: usize,
     /// The fastest time of each re-solve (every problem after the first), ms.
     pub ms: Vec<f64>,
     /// Whether each re-solve stayed in boxes (false: the boxes gave the grid back).
@@ -111,7 +113,7 @@ impl Replay {
 }
 
 /// Reads the problems `explore --dump-problem` wrote into `dir`, in step order.
-fn read_steps(dir: &Path) -> Result<(Dims, Vec<Step>), String> {
+fn read_steps(dir: &Path) -> Result<(Dims, Vec<Step>, usize), String> {
     let err = |p: &Path, e: &dyn std::fmt::Display| format!("{}: {e}", p.display());
     let mut metas: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|e| err(dir, &e))?
@@ -124,6 +126,7 @@ fn read_steps(dir: &Path) -> Result<(Dims, Vec<Step>), String> {
     metas.sort();
     let mut dims = None;
     let mut steps = Vec::new();
+    let mut skipped = 0;
     for meta_path in &metas {
         let text = std::fs::read_to_string(meta_path).map_err(|e| err(meta_path, &e))?;
         let meta: serde_json::Value = serde_json::from_str(&text).map_err(|e| err(meta_path, &e))?;
@@ -146,14 +149,20 @@ fn read_steps(dir: &Path) -> Result<(Dims, Vec<Step>), String> {
                 .ok_or_else(|| err(meta_path, &"no labels"))?,
         );
         let grid = npy::read_u8_file(&labels_path).map_err(|e| err(&labels_path, &e))?;
-        let Ok((d, mut labels, stats)) = domain_labels(&grid, [sx, sy, sz], radius, resolution) else {
-            continue;
+        let (d, mut labels, stats) = match domain_labels(&grid, [sx, sy, sz], radius, resolution) {
+            Ok(built) => built,
+            Err(ProblemError::Domain(_)) => {
+                skipped += 1;
+                continue;
+            }
+            Err(e) => return Err(err(meta_path, &e)),
         };
         if dims.is_some_and(|old: Dims| old != d) {
             return Err(err(meta_path, &"a grid of another size than the steps before"));
         }
         dims = Some(d);
         if stats.frontier == 0 {
+            skipped += 1;
             continue;
         }
         release_source(&mut labels);
@@ -164,7 +173,7 @@ fn read_steps(dir: &Path) -> Result<(Dims, Vec<Step>), String> {
         });
     }
     match dims {
-        Some(d) if steps.len() >= 2 => Ok((d, steps)),
+        Some(d) if steps.len() >= 2 => Ok((d, steps, skipped)),
         _ => Err(format!(
             "{}: fewer than two problems with a frontier (write them with `explore --dump-problem`)",
             dir.display()
@@ -180,7 +189,7 @@ pub fn replay(
     repeat: usize,
     fork: Option<&dyn Fork>,
 ) -> Result<Replay, String> {
-    let (dims, steps) = read_steps(dir)?;
+    let (dims, steps, skipped) = read_steps(dir)?;
     let tolerance = ScreenedParams::default().tolerance;
     let mut scratch = MultigridScratch::new(&dims);
     let mut flat_values = match solver {
@@ -208,6 +217,7 @@ pub fn replay(
     let mut out = Replay {
         dims,
         problems: steps.len(),
+        skipped,
         ms: Vec::new(),
         in_boxes: Vec::new(),
         cell_updates: 0,
