@@ -63,8 +63,9 @@ pub const MAX_SHARE: f32 = 0.75;
 
 /// [`LocalParams::inner_share`]: an inner box of a quarter of the main box's cells costs about
 /// the steps it saves the main box. On the re-solves of six explorations' dumped problems
-/// (BENCHMARKS.md, "Inner boxes"), the rule cut the cell updates by 3–7 % against solving the
-/// inner box whenever it was smaller than the main one.
+/// (`bench-solve --replay`, BENCHMARKS.md "An exploration's re-solves, replayed"), the rule cut
+/// the cell updates by 1–7 % against solving the inner box whenever it was smaller than the
+/// main one.
 pub const INNER_SHARE: f32 = 0.25;
 
 /// The box scratch [`resolve_near`] can use for a grid of `cells`: [`MAX_SHARE`] of it.

@@ -484,7 +484,6 @@ fn write_run_figures(
     Ok(())
 }
 
-/// The end-of-run summary: one aligned line per quantity of the report.
 /// The median solve time of the plans that solved one screening, in boxes and whole: what a
 /// re-solve after a scan costs, apart from plans that tried several screenings.
 fn one_screening_solves(steps: &[StepRecord]) -> String {
@@ -506,6 +505,7 @@ fn one_screening_solves(steps: &[StepRecord]) -> String {
     format!("median {} in boxes, {} whole", median(1), median(0))
 }
 
+/// The end-of-run summary: one aligned line per quantity of the report.
 fn print_summary(r: &Report) {
     let rows: [(&str, String); 19] = [
         ("scenario", r.scenario.clone()),

@@ -233,6 +233,7 @@ impl HostStorage {
     /// local re-solves.
     pub fn new(dims: &Dims) -> Self {
         let n = dims.len();
+        let box_cells = harmonic_core::solve::local::box_scratch_len(n);
         Self {
             dims: *dims,
             solver: MultigridScratch::new(dims),
@@ -243,8 +244,8 @@ impl HostStorage {
             phi: vec![0.0; n],
             queue: vec![0; 16 * 1024],
             jacobi: Vec::new(),
-            local_labels: vec![Label::Outside; harmonic_core::solve::local::box_scratch_len(n)],
-            local_psi: vec![0.0; harmonic_core::solve::local::box_scratch_len(n)],
+            local_labels: vec![Label::Outside; box_cells],
+            local_psi: vec![0.0; box_cells],
             flat: Vec::new(),
         }
     }

@@ -16,7 +16,7 @@ use harmonic_core::map::{Dims, VoxelIndex};
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::local::{resolve_near, BoxSolver, Local, LocalParams, LocalScratch, WithMethod};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
-use harmonic_core::solve::{gauss_seidel, Fork, SolveParams, SolveStats};
+use harmonic_core::solve::{gauss_seidel, Fork, SolveError, SolveParams, SolveStats};
 use serde::Serialize;
 
 use crate::planners::MultigridScratch;
@@ -165,21 +165,33 @@ impl LocalBoxes {
 }
 
 /// `solver`'s re-solve of `labels` in boxes around the change ([`resolve_near`], warm from
-/// `psi`), and what it took.
-fn in_boxes(
+/// `psi`, the explorer's box settings), and what it took.
+pub(crate) fn in_boxes(
     solver: &mut impl BoxSolver,
     labels: &[Label],
     psi: &mut [f32],
     params: &SolveParams,
     (box_labels, box_psi): (&mut [Label], &mut [f32]),
-) -> (SolveStats, Option<LocalBoxes>) {
+) -> Result<(SolveStats, LocalBoxes), SolveError> {
     let local = LocalParams::for_screening(params.screening, params.tolerance);
     let scratch = LocalScratch {
         labels: box_labels,
         psi: box_psi,
     };
-    let how = resolve_near(solver, labels, psi, params, &local, scratch).expect("valid problem");
-    (how.stats(), Some(LocalBoxes::of(&how, solver.grid().len())))
+    let how = resolve_near(solver, labels, psi, params, &local, scratch)?;
+    Ok((how.stats(), LocalBoxes::of(&how, solver.grid().len())))
+}
+
+/// [`in_boxes`] on the bench's own problems, which are valid.
+fn bench_in_boxes(
+    solver: &mut impl BoxSolver,
+    labels: &[Label],
+    psi: &mut [f32],
+    params: &SolveParams,
+    scratch: (&mut [Label], &mut [f32]),
+) -> (SolveStats, Option<LocalBoxes>) {
+    let (stats, boxes) = in_boxes(solver, labels, psi, params, scratch).expect("valid problem");
+    (stats, Some(boxes))
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -278,7 +290,7 @@ pub fn measure(
                         None,
                     );
                 }
-                in_boxes(
+                bench_in_boxes(
                     &mut WithMethod(&mut mg, method),
                     labels,
                     psi,
@@ -292,7 +304,7 @@ pub fn measure(
                 if !boxes {
                     return (flat.solve(labels, psi, &params).expect("valid problem"), None);
                 }
-                in_boxes(flat, labels, psi, &params, (&mut box_labels, &mut box_psi))
+                bench_in_boxes(flat, labels, psi, &params, (&mut box_labels, &mut box_psi))
             }
             BenchSolver::GaussSeidel => (
                 gauss_seidel(&dims, labels, psi, &params).expect("valid problem"),

@@ -5,7 +5,7 @@
 //! dumped step's domain is built from its label grid and vehicle voxel as the explorer built it
 //! ([`super::problem::domain_labels`]), with the screened field's source released; the first is
 //! solved cold, each next one warm from the solution before it, in boxes around what changed
-//! ([`resolve_near`], the whole grid where the boxes give up), at the field's full κ and
+//! ([`resolve_near`](harmonic_core::solve::local::resolve_near), the whole grid where the boxes give up), at the field's full κ and
 //! tolerance (the explorer lowers κ when a streamline stalls; those few solves are not
 //! replayed). Each re-solve is timed `repeat` times from the same start; the fastest counts.
 
@@ -16,13 +16,11 @@ use harmonic_core::domain::Label;
 use harmonic_core::field::{release_source, ScreenedParams};
 use harmonic_core::map::Dims;
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
-use harmonic_core::solve::local::{
-    box_scratch_len, resolve_near, Local, LocalParams, LocalScratch, WithMethod,
-};
+use harmonic_core::solve::local::{box_scratch_len, WithMethod};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
 use harmonic_core::solve::{Fork, SolveParams, SolveStats};
 
-use super::bench::BenchSolver;
+use super::bench::{in_boxes, BenchSolver, LocalBoxes};
 use super::problem::{domain_labels, ProblemError};
 use crate::io::npy;
 use crate::planners::MultigridScratch;
@@ -47,30 +45,20 @@ impl Solver<'_> {
         labels: &[Label],
         psi: &mut [f32],
         params: &SolveParams,
-        boxes: Option<LocalScratch<'_>>,
+        boxes: Option<(&mut [Label], &mut [f32])>,
     ) -> Result<(SolveStats, bool), String> {
-        let local = LocalParams::for_screening(params.screening, params.tolerance);
+        let stayed = |(s, b): (SolveStats, LocalBoxes)| (s, !b.whole);
         let solved = match (self, boxes) {
             (Solver::Flat(flat), None) => flat.solve(labels, psi, params).map(|s| (s, false)),
             (Solver::Multigrid(mg, method), None) => {
                 mg.solve(labels, psi, params, *method).map(|s| (s, false))
             }
-            (Solver::Flat(flat), Some(b)) => {
-                resolve_near(&mut **flat, labels, psi, params, &local, b).map(how)
-            }
+            (Solver::Flat(flat), Some(b)) => in_boxes(&mut **flat, labels, psi, params, b).map(stayed),
             (Solver::Multigrid(mg, method), Some(b)) => {
-                resolve_near(&mut WithMethod(mg, *method), labels, psi, params, &local, b).map(how)
+                in_boxes(&mut WithMethod(mg, *method), labels, psi, params, b).map(stayed)
             }
         };
         solved.map_err(|e| format!("{e:?}"))
-    }
-}
-
-/// A re-solve's stats, and whether it stayed in boxes.
-fn how(local: Local) -> (SolveStats, bool) {
-    match local {
-        Local::Solved(s) => (s.stats, true),
-        Local::Whole(s) => (s, false),
     }
 }
 
@@ -240,10 +228,7 @@ pub fn replay(
         let mut last = None;
         for _ in 0..repeat.max(1) {
             psi.copy_from_slice(&start);
-            let boxes = LocalScratch {
-                labels: &mut box_labels,
-                psi: &mut box_psi,
-            };
+            let boxes = (box_labels.as_mut_slice(), box_psi.as_mut_slice());
             let t = Instant::now();
             let solved = solver.solve(&step.labels, &mut psi, &params(step, true), Some(boxes))?;
             best = best.min(t.elapsed().as_secs_f64() * 1e3);
