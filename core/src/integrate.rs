@@ -72,7 +72,12 @@
 //! occupied and whose mean puts the surface in it: that voxel hides the ones behind it, so a
 //! return that lands deep (its error, or a filter that mixed a nearer edge into it) does not
 //! mark a second layer behind a surface already seen, nor the free voxel on the far side of a
-//! one-voxel wall (docs/RESULTS.md, "A surface voxel hides what lies behind it"). A return on a
+//! one-voxel wall (docs/RESULTS.md, "A surface voxel hides what lies behind it"). What such
+//! returns left behind a surface before it was established goes too: after the frame, each
+//! return that reaches a surface voxel the map holds occupied with a sure estimate forgets the
+//! voxels behind it along the normal whose evidence is weak (about two hits at most) and that
+//! no free voxel touches, and seals them (unknown, no frontier, an obstacle to the planner) ([`IntegrationStats::stale_forgotten`]; docs/RESULTS.md, "Stale
+//! evidence behind a surface"). A return on a
 //! depth edge (a face neighbour far away in depth: the stereo pipeline's filter may mix the two
 //! sides into a return in mid-air) marks nothing; a return without a normal keeps the vote.
 //! Measured in docs/RESULTS.md ("A surface estimate kept across frames" and after). The
@@ -196,6 +201,9 @@ pub struct IntegrationStats {
     /// depth): counted, not integrated (a matcher's worst errors lie at the edges of what it
     /// could match).
     pub unmeasured_slant: u32,
+    /// With the surface estimate: occupied voxels behind an established surface whose weak
+    /// evidence was dropped after the frame, so they are unknown again (`forget_stale_behind`).
+    pub stale_forgotten: u32,
 }
 
 /// Why a frame was not integrated.
@@ -471,7 +479,87 @@ pub fn integrate_with_scratch(
         stats.voxel_updates += 1;
         stats.voted += 1;
     }
+
+    // Pass 4: weak evidence behind the surfaces this frame established.
+    if surface_mode {
+        forget_stale_behind(map, frame, camera_pose, params, &mut stats);
+    }
     Ok(stats)
+}
+
+/// Pass 4 of a noisy frame with the surface estimate: every return with a normal that reaches
+/// a surface voxel the map now holds occupied with a sure estimate (its mean puts the surface
+/// in it, weight above [`STALE_MAX_WEIGHT`]) drops the weak evidence of the voxels behind that
+/// voxel along the normal ([`drop_stale_evidence`]). Returns that land behind an established
+/// surface add nothing to the voxels it hides (pass 1); this removes what such returns left
+/// there before the surface was established, and what this frame's votes of returns without a
+/// normal put there.
+fn forget_stale_behind(
+    map: &mut VoxelMap<'_>,
+    frame: &DepthFrame<'_>,
+    camera_pose: &Isometry3<f32>,
+    params: &IntegrationParams,
+    stats: &mut IntegrationStats,
+) {
+    let geometry = *map.geometry();
+    let h = geometry.resolution();
+    let half = 0.5 * h;
+    let dims = geometry.dims();
+    let origin = Point3::from(camera_pose.translation.vector);
+    for_each_pixel_ray(
+        frame,
+        camera_pose,
+        params,
+        h,
+        Want::Endpoints { surface: true },
+        |ray| {
+            let PixelRay::Noisy {
+                end,
+                hit: true,
+                sigma,
+                normal: Some(n),
+                ..
+            } = ray
+            else {
+                return;
+            };
+            let to_end = end - origin;
+            let range = to_end.norm();
+            if range.is_nan() || range <= 0.0 {
+                return;
+            }
+            let dir = to_end / range;
+            // The band of pass 1, and past it far enough to reach what a surface near its end hides.
+            let cos = (-n.dot(&dir)).max(SURFACE_MIN_COS);
+            let reach = (SURFACE_BAND * half + FREE_MARGIN_SIGMAS * sigma) / cos;
+            let band_start = end - dir * reach.min(range);
+            let band_end = end + dir * (reach + STALE_DEPTH_HALF_VOXELS * half / cos);
+            // The centre of the established surface voxel the ray reached, once it has.
+            let mut surface: Option<Point3<f32>> = None;
+            traverse(&geometry, &band_start, &band_end, |voxel| {
+                let Some(s) = surface else {
+                    let i = dims.linear(voxel);
+                    let sure = map.occupancy(i) == Occupancy::Occupied
+                        && surface_estimate(map.surface(), i)
+                            .is_some_and(|(m, w)| m <= SURFACE_IN_VOXEL && w > STALE_MAX_WEIGHT);
+                    if sure {
+                        surface = Some(geometry.center(voxel));
+                    }
+                    return true;
+                };
+                // How far behind it along the normal (half voxels): not the voxels beside it that
+                // a grazing ray runs through next.
+                let depth = (s - geometry.center(voxel)).dot(&n) / half;
+                if depth > STALE_DEPTH_HALF_VOXELS {
+                    return false;
+                }
+                if depth >= 1.0 && drop_stale_evidence(map, voxel) {
+                    stats.stale_forgotten += 1;
+                }
+                true
+            });
+        },
+    );
 }
 
 /// The surface estimate's distances are in half voxels along the surface's normal, positive
@@ -493,6 +581,14 @@ const SURFACE_HIDDEN: f32 = 1.1;
 /// Samples further behind the surface than this are not taken: a one-voxel wall's far side
 /// lies at −3 from its near surface.
 const SURFACE_BEHIND: f32 = 1.5;
+/// How far behind an established surface voxel (half voxels along the normal) pass 4 looks for
+/// stale evidence ([`drop_stale_evidence`]): the next voxel and the one after it.
+const STALE_DEPTH_HALF_VOXELS: f32 = 4.0;
+/// Largest log-odds of stale evidence: about two hits.
+const STALE_MAX_LOG_ODDS: f32 = 1.5;
+/// Largest surface weight of stale evidence (one sample weighs `(h/σ)²`, at most 16), and the
+/// least a surface voxel needs before it hides the voxels behind it.
+const STALE_MAX_WEIGHT: f32 = 24.0;
 /// Smallest cosine of incidence the band along the ray is stretched for.
 const SURFACE_MIN_COS: f32 = 0.7;
 /// Largest weight of one sample, `(h/σ)²`: σ a quarter voxel.
@@ -546,6 +642,42 @@ pub fn surface_estimate_at(map: &VoxelMap<'_>, i: usize) -> Option<(f32, f32)> {
 fn surface_estimate(surface: &[[i32; 2]], i: usize) -> Option<(f32, f32)> {
     let [sum, weight] = *surface.get(i)?;
     (weight > 0).then(|| (sum as f32 / (weight as f32 * SURFACE_SCALE), weight as f32))
+}
+
+/// Forgets and seals `voxel`, hidden behind an established surface (pass 4, [`forget_stale_behind`]),
+/// if what made it occupied is weak (log-odds at most [`STALE_MAX_LOG_ODDS`], surface weight
+/// at most [`STALE_MAX_WEIGHT`]) and no free voxel touches it. Such evidence came from returns
+/// that landed deep: under the forward sensor model they are the depth error of the surface in
+/// front, and the noise-free sensor would not observe the voxel. A voxel that touches a free one
+/// is kept (the far side or the end of a thin wall, seen from there), and so is one with strong evidence
+/// (a surface seen from its own side). Returns whether it was forgotten.
+fn drop_stale_evidence(map: &mut VoxelMap<'_>, voxel: VoxelIndex) -> bool {
+    let dims = map.dims();
+    let i = dims.linear(voxel);
+    let weak = map.occupancy(i) == Occupancy::Occupied
+        && map.log_odds(i) <= STALE_MAX_LOG_ODDS
+        && surface_estimate(map.surface(), i).is_none_or(|(_, w)| w <= STALE_MAX_WEIGHT);
+    if !weak {
+        return false;
+    }
+    // No free voxel touches it, not even at an edge or a corner (the end of a thin wall).
+    let touches_free = (-1..=1).any(|dz| {
+        (-1..=1).any(|dy| {
+            (-1..=1).any(|dx| {
+                dims.offset(voxel, [dx, dy, dz])
+                    .is_some_and(|n| map.is_free(dims.linear(n)))
+            })
+        })
+    });
+    if touches_free {
+        return false;
+    }
+    if let Some(s) = map.surface_mut().get_mut(i) {
+        *s = [0, 0];
+    }
+    // Sealed: unknown, so the map no longer claims it, but no frontier (nothing can see it
+    // past the surface) and an obstacle to the planner, as it was while occupied.
+    map.forget(i) && map.seal(i)
 }
 
 /// The per-frame hit/miss vote of the voxels a noisy frame hits: an open-addressing table in
@@ -1621,6 +1753,16 @@ mod tests {
     /// the map after it.
     fn frames_of_a_wall(
         walls: impl IntoIterator<Item = f32>,
+        seed: u64,
+        each: impl FnMut(usize, IntegrationStats, &VoxelMap<'_>),
+    ) {
+        frames_of_a_wall_after(|_| {}, walls, seed, each);
+    }
+
+    /// [`frames_of_a_wall`] into a map that `prepare` has changed first.
+    fn frames_of_a_wall_after(
+        prepare: impl FnOnce(&mut VoxelMap<'_>),
+        walls: impl IntoIterator<Item = f32>,
         mut seed: u64,
         mut each: impl FnMut(usize, IntegrationStats, &VoxelMap<'_>),
     ) {
@@ -1630,6 +1772,7 @@ mod tests {
         let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st)
             .unwrap()
             .with_surface(&mut surface);
+        prepare(&mut map);
         let mut scratch = [0u32; 8192];
         let side = 30u16;
         let c = f32::from(side - 1) / 2.0;
@@ -1696,6 +1839,39 @@ mod tests {
                 assert!(surface_estimate(map.surface(), at(11)).is_none());
             }
         });
+    }
+
+    /// A voxel behind the wall of
+    /// [`the_surface_estimate_frees_the_voxel_in_front_of_a_wall_on_a_voxel_face`] that one
+    /// hit marked occupied before the wall was seen (a return that landed deep) is forgotten
+    /// once the wall's voxel is sure: unknown again, as the noise-free sensor leaves it, and
+    /// sealed. The
+    /// same voxel marked by three hits (strong evidence, as a surface seen from its own side
+    /// gives) is kept.
+    #[test]
+    fn weak_evidence_behind_an_established_surface_is_forgotten() {
+        let at = on_the_axis;
+        for (hits, forgotten) in [(1, true), (3, false)] {
+            let mut dropped = 0;
+            let prepare = |map: &mut VoxelMap<'_>| {
+                for _ in 0..hits {
+                    map.begin_frame();
+                    assert!(map.apply_hit(at(11)));
+                }
+                assert_eq!(map.occupancy(at(11)), Occupancy::Occupied);
+            };
+            frames_of_a_wall_after(prepare, core::iter::repeat_n(1.0, 20), 99, |k, s, map| {
+                dropped += s.stale_forgotten;
+                if k == 19 {
+                    assert_eq!(map.occupancy(at(10)), Occupancy::Occupied, "{hits} hits");
+                    assert_eq!(map.is_unknown(at(11)), forgotten, "{hits} hits");
+                    // Sealed: no frontier, and an obstacle to the planner as before.
+                    assert_eq!(map.is_sealed(at(11)), forgotten, "{hits} hits");
+                    assert_eq!(map.occupancy(at(9)), Occupancy::Free, "{hits} hits");
+                }
+            });
+            assert_eq!(dropped > 0, forgotten, "{hits} hits: {dropped} forgotten");
+        }
     }
 
     /// The centre pixel's `(σ, free distance)` of a 5 × 5 `depth` image (f = 50 px) looking
