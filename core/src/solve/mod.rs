@@ -174,7 +174,7 @@ impl Solved {
         r * r * self.b2
     }
 
-    /// The sum of the rows' rounding terms ([`rounding_row`]).
+    /// The sum of the rows' rounding terms (`rounding_row`).
     pub fn e2(&self) -> f64 {
         let f = f64::from(self.residual.floor);
         f * f * self.b2
