@@ -712,18 +712,7 @@ fn on_unknown_boundary(map: &VoxelMap<'_>, v: VoxelIndex, i: usize, inner: bool)
         }
         return false;
     }
-    for dz in -1..=1 {
-        for dy in -1..=1 {
-            for dx in -1..=1 {
-                if let Some(n) = dims.offset(v, [dx, dy, dz]) {
-                    if !map.is_unknown(dims.linear(n)) {
-                        return true;
-                    }
-                }
-            }
-        }
-    }
-    false
+    dims.any_in_block(v, |n| !map.is_unknown(n))
 }
 
 /// Removes candidates within the stencil of any occupied/uncertain/sealed voxel or of the grid
@@ -1487,16 +1476,7 @@ pub(crate) mod tests {
     /// both share ([`clear_grid_edges`]).
     fn inflate_reference(map: &VoxelMap<'_>, stencil: &InflationStencil, labels: &mut [Label]) {
         let dims = map.dims();
-        let observed_near = |v: VoxelIndex| {
-            (-1..=1).any(|dz| {
-                (-1..=1).any(|dy| {
-                    (-1..=1).any(|dx| {
-                        dims.offset(v, [dx, dy, dz])
-                            .is_some_and(|n| !map.is_unknown(dims.linear(n)))
-                    })
-                })
-            })
-        };
+        let observed_near = |v: VoxelIndex| dims.any_in_block(v, |n| !map.is_unknown(n));
         for i in 0..dims.len() {
             let v = dims.voxel(i);
             if map.is_unexplored(i) && observed_near(v) {

@@ -307,22 +307,15 @@ pub fn integrate_with_scratch(
                     ..
                 } = ray
                 {
-                    let to_end = end - origin;
-                    let range = to_end.norm();
-                    if range.is_nan() || range <= 0.0 {
+                    let Some(band) = SampleBand::of(&origin, &end, &n, sigma, h) else {
                         return;
-                    }
-                    let dir = to_end / range;
+                    };
                     // Distances in half voxels: a voxel's faces lie ±1 from its centre.
                     let half = 0.5 * h;
-                    let cos = (-n.dot(&dir)).max(SURFACE_MIN_COS);
-                    let reach = (SURFACE_BAND * half + FREE_MARGIN_SIGMAS * sigma) / cos;
-                    let band_start = end - dir * reach.min(range);
-                    let band_end = end + dir * reach;
                     let ratio = h / sigma.max(1e-6);
                     let w = libm::roundf(ratio * ratio).clamp(1.0, SURFACE_MAX_SAMPLE_WEIGHT) as i32;
                     let dims = geometry.dims();
-                    traverse(&geometry, &band_start, &band_end, |voxel| {
+                    traverse(&geometry, &band.start, &band.end, |voxel| {
                         let delta = (geometry.center(voxel) - end).dot(&n) / half;
                         if delta < -SURFACE_BEHIND {
                             return true;
@@ -487,6 +480,42 @@ pub fn integrate_with_scratch(
     Ok(stats)
 }
 
+/// The stretch of a noisy return's ray whose voxels its surface samples reach (pass 1), and
+/// what pass 4 extends it from.
+struct SampleBand {
+    /// Unit direction of the ray.
+    dir: Vector3<f32>,
+    /// Cosine of incidence on the surface (normal against the ray), at least
+    /// [`SURFACE_MIN_COS`]: the band along the ray is stretched by its inverse.
+    cos: f32,
+    /// Where the band starts: [`SURFACE_BAND`] half voxels plus `2σ` in front of the return,
+    /// along the normal, but not behind the camera.
+    start: Point3<f32>,
+    /// Where it ends: as far behind the return.
+    end: Point3<f32>,
+}
+
+impl SampleBand {
+    /// The band of the return at `end` seen from `origin`, surface normal `n`, range error
+    /// `sigma`, voxel size `h`; `None` for a return at the camera (or not a number).
+    fn of(origin: &Point3<f32>, end: &Point3<f32>, n: &Vector3<f32>, sigma: f32, h: f32) -> Option<Self> {
+        let to_end = end - origin;
+        let range = to_end.norm();
+        if range.is_nan() || range <= 0.0 {
+            return None;
+        }
+        let dir = to_end / range;
+        let cos = (-n.dot(&dir)).max(SURFACE_MIN_COS);
+        let reach = (SURFACE_BAND * 0.5 * h + FREE_MARGIN_SIGMAS * sigma) / cos;
+        Some(Self {
+            dir,
+            cos,
+            start: end - dir * reach.min(range),
+            end: end + dir * reach,
+        })
+    }
+}
+
 /// Pass 4 of a noisy frame with the surface estimate: every return with a normal that reaches
 /// a surface voxel the map now holds occupied with a sure estimate (its mean puts the surface
 /// in it, weight above [`STALE_MAX_WEIGHT`]) drops the weak evidence of the voxels behind that
@@ -523,20 +552,14 @@ fn forget_stale_behind(
             else {
                 return;
             };
-            let to_end = end - origin;
-            let range = to_end.norm();
-            if range.is_nan() || range <= 0.0 {
+            let Some(band) = SampleBand::of(&origin, &end, &n, sigma, h) else {
                 return;
-            }
-            let dir = to_end / range;
-            // The band of pass 1, and past it far enough to reach what a surface near its end hides.
-            let cos = (-n.dot(&dir)).max(SURFACE_MIN_COS);
-            let reach = (SURFACE_BAND * half + FREE_MARGIN_SIGMAS * sigma) / cos;
-            let band_start = end - dir * reach.min(range);
-            let band_end = end + dir * (reach + STALE_DEPTH_HALF_VOXELS * half / cos);
+            };
+            // Pass 1's band, and past it far enough to reach what a surface near its end hides.
+            let band_end = band.end + band.dir * (STALE_DEPTH_HALF_VOXELS * half / band.cos);
             // The centre of the established surface voxel the ray reached, once it has.
             let mut surface: Option<Point3<f32>> = None;
-            traverse(&geometry, &band_start, &band_end, |voxel| {
+            traverse(&geometry, &band.start, &band_end, |voxel| {
                 let Some(s) = surface else {
                     let i = dims.linear(voxel);
                     let sure = map.occupancy(i) == Occupancy::Occupied
@@ -661,15 +684,7 @@ fn drop_stale_evidence(map: &mut VoxelMap<'_>, voxel: VoxelIndex) -> bool {
         return false;
     }
     // No free voxel touches it, not even at an edge or a corner (the end of a thin wall).
-    let touches_free = (-1..=1).any(|dz| {
-        (-1..=1).any(|dy| {
-            (-1..=1).any(|dx| {
-                dims.offset(voxel, [dx, dy, dz])
-                    .is_some_and(|n| map.is_free(dims.linear(n)))
-            })
-        })
-    });
-    if touches_free {
+    if dims.any_in_block(voxel, |j| map.is_free(j)) {
         return false;
     }
     if let Some(s) = map.surface_mut().get_mut(i) {

@@ -136,6 +136,14 @@ impl Dims {
             i32::from(v.z) + d[2],
         )
     }
+    /// True if `f` holds for the linear index of any voxel of the 3 × 3 × 3 block around `v`
+    /// (`v` and its 26 neighbours) that is inside the grid.
+    pub fn any_in_block(&self, v: VoxelIndex, mut f: impl FnMut(usize) -> bool) -> bool {
+        (-1..=1).any(|dz| {
+            (-1..=1)
+                .any(|dy| (-1..=1).any(|dx| self.offset(v, [dx, dy, dz]).is_some_and(|n| f(self.linear(n)))))
+        })
+    }
     /// Calls `f` with the linear index of every face neighbour of `v` that is inside the grid.
     #[inline]
     pub fn for_each_face_neighbour(&self, v: VoxelIndex, f: impl FnMut(usize)) {
