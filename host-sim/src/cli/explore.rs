@@ -15,6 +15,7 @@ use harmonic_sim::run::record::{MapSettings, Recorder};
 use harmonic_sim::run::sim::{self, Report, SimConfig, StepRecord, StepView};
 use harmonic_sim::tools::batch;
 use harmonic_sim::tools::figures::{self, SliceSnapshot};
+use harmonic_sim::tools::quantile;
 use harmonic_sim::vehicle::autopilot::{MavlinkConfig, MavlinkSpec};
 use harmonic_sim::vehicle::flight::EmulatorTiming;
 use harmonic_sim::world::scenario::Scenario;
@@ -491,14 +492,14 @@ fn one_screening_solves(steps: &[StepRecord]) -> String {
         return "not counted (the firmware's downlink does not report them)".into();
     }
     let median = |in_boxes: u32| {
-        let mut ms: Vec<f64> = steps
+        let ms: Vec<f64> = steps
             .iter()
             .filter(|s| s.solves == Some(1) && s.solves_in_boxes == Some(in_boxes))
             .map(|s| s.solve_ms)
             .collect();
-        ms.sort_by(f64::total_cmp);
-        match ms.get(ms.len() / 2) {
-            Some(m) => format!("{m:.2} ms ({} plans)", ms.len()),
+        let plans = ms.len();
+        match quantile(ms, 0.5) {
+            Some(m) => format!("{m:.2} ms ({plans} plans)"),
             None => "none".into(),
         }
     };

@@ -28,3 +28,14 @@ pub mod figures;
 pub mod fork;
 pub mod problem;
 pub mod replay;
+
+/// The `q` quantile (0–1) of `values` by nearest rank (the median of an even count is the upper
+/// of the middle two); `None` for no values. The solver benchmarks, their replays and the
+/// explore summary report times through it.
+pub fn quantile(mut values: Vec<f64>, q: f64) -> Option<f64> {
+    values.sort_by(f64::total_cmp);
+    let last = values.len().checked_sub(1)?;
+    values
+        .get((q.clamp(0.0, 1.0) * last as f64).round() as usize)
+        .copied()
+}

@@ -86,17 +86,14 @@ impl Replay {
     /// The `q` quantile (0–1) of the re-solve times, in boxes (`Some(true)`), whole
     /// (`Some(false)`) or all (`None`); `None` without such a re-solve.
     pub fn quantile_ms(&self, q: f64, in_boxes: Option<bool>) -> Option<f64> {
-        let mut ms: Vec<f64> = self
+        let ms = self
             .ms
             .iter()
             .zip(&self.in_boxes)
             .filter(|(_, b)| in_boxes.is_none_or(|want| want == **b))
             .map(|(ms, _)| *ms)
             .collect();
-        ms.sort_by(f64::total_cmp);
-        let last = ms.len().checked_sub(1)?;
-        ms.get((q.clamp(0.0, 1.0) * last as f64).round() as usize)
-            .copied()
+        super::quantile(ms, q)
     }
 }
 
