@@ -572,7 +572,7 @@ fn print_summary(r: &Report) {
             (
                 "left unreachable",
                 format!(
-                    "{n} frontier voxels seen but out of reach (too narrow for the vehicle, behind a gap); {} unknown voxels sealed as unobservable or as far remnants{}{}{}",
+                    "{n} frontier voxels seen but out of reach (too narrow for the vehicle, behind a gap); {} unknown voxels sealed (unobservable, far remnants, or hidden behind a surface){}{}{}",
                     r.sealed_voxels,
                     match r.errors.remnants_sealed {
                         0 => String::new(),

@@ -524,7 +524,8 @@ pub struct Report {
     pub grid_origin: [f32; 3],
     /// Reachable free voxels in the ground truth.
     pub reachable_free_voxels: usize,
-    /// Unknown voxels sealed as unobservable at the end.
+    /// Unknown voxels sealed at the end: unobservable, far remnants, or (with the surface
+    /// estimate) weak evidence forgotten behind a surface.
     pub sealed_voxels: u32,
     /// At a `complete` end, the map's frontier voxels the vehicle could not reach (too narrow
     /// for its radius, behind a gap): seen, but left. `None` for other ends.
