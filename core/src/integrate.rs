@@ -76,10 +76,11 @@
 //! returns left behind a surface before it was established goes too: after the frame, each
 //! return that reaches a surface voxel the map holds occupied with a sure estimate forgets the
 //! voxels behind it along the normal whose evidence is weak (about two hits at most) and that
-//! no free voxel touches, and seals them (unknown, no frontier, an obstacle to the planner) ([`IntegrationStats::stale_forgotten`]; docs/RESULTS.md, "Stale
-//! evidence behind a surface"). A return on a
-//! depth edge (a face neighbour far away in depth: the stereo pipeline's filter may mix the two
-//! sides into a return in mid-air) marks nothing; a return without a normal keeps the vote.
+//! no free voxel touches, and seals them (unknown, no frontier, an obstacle to the planner;
+//! [`IntegrationStats::stale_forgotten`], docs/RESULTS.md, "Stale evidence behind a
+//! surface"). A return on a depth edge (a face neighbour far away in depth: the stereo
+//! pipeline's filter may mix the two sides into a return in mid-air) marks nothing; a return
+//! without a normal keeps the vote.
 //! Measured in docs/RESULTS.md ("A surface estimate kept across frames" and after). The
 //! estimate is storage the caller lends: the simulator lends it by default for noisy and
 //! matched stereo depth, the firmware has no room for it.
@@ -323,8 +324,7 @@ pub fn integrate_with_scratch(
                         let i = dims.linear(voxel);
                         // A voxel the map holds occupied whose mean puts the surface in it
                         // hides the voxels behind it from this return.
-                        let occludes = map.occupancy(i) == Occupancy::Occupied
-                            && surface_estimate(map.surface(), i).is_some_and(|(m, _)| m <= SURFACE_IN_VOXEL);
+                        let occludes = surface_voxel_weight(map, i).is_some();
                         surface_add(map.surface_mut(), i, delta.min(SURFACE_BAND), w);
                         if !votes.hit(i, map) {
                             let occ =
@@ -562,10 +562,7 @@ fn forget_stale_behind(
             traverse(&geometry, &band.start, &band_end, |voxel| {
                 let Some(s) = surface else {
                     let i = dims.linear(voxel);
-                    let sure = map.occupancy(i) == Occupancy::Occupied
-                        && surface_estimate(map.surface(), i)
-                            .is_some_and(|(m, w)| m <= SURFACE_IN_VOXEL && w > STALE_MAX_WEIGHT);
-                    if sure {
+                    if surface_voxel_weight(map, i).is_some_and(|w| w > STALE_MAX_WEIGHT) {
                         surface = Some(geometry.center(voxel));
                     }
                     return true;
@@ -667,13 +664,24 @@ fn surface_estimate(surface: &[[i32; 2]], i: usize) -> Option<(f32, f32)> {
     (weight > 0).then(|| (sum as f32 / (weight as f32 * SURFACE_SCALE), weight as f32))
 }
 
-/// Forgets and seals `voxel`, hidden behind an established surface (pass 4, [`forget_stale_behind`]),
-/// if what made it occupied is weak (log-odds at most [`STALE_MAX_LOG_ODDS`], surface weight
-/// at most [`STALE_MAX_WEIGHT`]) and no free voxel touches it. Such evidence came from returns
-/// that landed deep: under the forward sensor model they are the depth error of the surface in
-/// front, and the noise-free sensor would not observe the voxel. A voxel that touches a free one
-/// is kept (the far side or the end of a thin wall, seen from there), and so is one with strong evidence
-/// (a surface seen from its own side). Returns whether it was forgotten.
+/// The surface-estimate weight of voxel `i` if it holds a surface: the map holds it occupied
+/// and its mean puts the surface in it ([`SURFACE_IN_VOXEL`]). Such a voxel hides the voxels
+/// behind it from a return (pass 1); with a sure weight, pass 4 forgets stale evidence there.
+fn surface_voxel_weight(map: &VoxelMap<'_>, i: usize) -> Option<f32> {
+    if map.occupancy(i) != Occupancy::Occupied {
+        return None;
+    }
+    surface_estimate(map.surface(), i).and_then(|(m, w)| (m <= SURFACE_IN_VOXEL).then_some(w))
+}
+
+/// Forgets and seals `voxel`, hidden behind an established surface (pass 4,
+/// [`forget_stale_behind`]), if what made it occupied is weak (log-odds at most
+/// [`STALE_MAX_LOG_ODDS`], surface weight at most [`STALE_MAX_WEIGHT`]) and no free voxel
+/// touches it. Such evidence came from returns that landed deep: under the forward sensor
+/// model they are the depth error of the surface in front, and the noise-free sensor would not
+/// observe the voxel. A voxel that touches a free one is kept (the far side or the end of a
+/// thin wall, seen from there), and so is one with strong evidence (a surface seen from its own
+/// side). Returns whether it was forgotten.
 fn drop_stale_evidence(map: &mut VoxelMap<'_>, voxel: VoxelIndex) -> bool {
     let dims = map.dims();
     let i = dims.linear(voxel);
@@ -1860,9 +1868,8 @@ mod tests {
     /// [`the_surface_estimate_frees_the_voxel_in_front_of_a_wall_on_a_voxel_face`] that one
     /// hit marked occupied before the wall was seen (a return that landed deep) is forgotten
     /// once the wall's voxel is sure: unknown again, as the noise-free sensor leaves it, and
-    /// sealed. The
-    /// same voxel marked by three hits (strong evidence, as a surface seen from its own side
-    /// gives) is kept.
+    /// sealed. The same voxel marked by three hits (strong evidence, as a surface seen from its
+    /// own side gives) is kept.
     #[test]
     fn weak_evidence_behind_an_established_surface_is_forgotten() {
         let at = on_the_axis;
