@@ -75,6 +75,7 @@
 )]
 
 pub mod camera;
+pub mod companion;
 pub mod domain;
 pub mod downlink;
 pub mod explore;

@@ -23,7 +23,9 @@ mod image {
 
     use cortex_m_rt::entry;
     use harmonic_core::explore::Explorer;
-    use harmonic_fw::app::{build_explorer, Event, Firmware, Storage, BAUD, NX, NY, NZ, RESOLUTION};
+    use harmonic_fw::app::{
+        build_explorer, build_firmware, Event, Firmware, Storage, BAUD, NX, NY, NZ, RESOLUTION,
+    };
     use harmonic_fw::board::timer::Ticks;
     use harmonic_fw::board::uart::{Uart, UART0, UART1};
     use harmonic_fw::board::watchdog::{self, Watchdog};
@@ -62,7 +64,7 @@ mod image {
         // The firmware's own state (explorer, link decoder, bridge: about 12 KiB) is static too,
         // so the planning stack starts near the top of RAM.
         let built = build_explorer(STORAGE, EXPLORER)
-            .and_then(|(explorer, depth)| Firmware::new(explorer, depth, PCLK_HZ));
+            .and_then(|(explorer, depth)| build_firmware(explorer, depth, PCLK_HZ));
         let firmware = match built {
             Ok(f) => FIRMWARE.write(f),
             Err(e) => {

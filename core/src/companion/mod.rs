@@ -1,0 +1,570 @@
+//! The companion computer: the one object that runs the exploration loop on any board.
+//!
+//! A [`Companion`] owns everything between two byte streams and a clock:
+//!
+//! - **Depth link in.** Bytes go into a [`DepthReceiver`]; every complete depth frame with its
+//!   camera pose is integrated at once, then the [`Explorer`] plans from the vehicle pose the
+//!   MAVLink bridge holds. Lost rows are asked for again over the link's return channel
+//!   (resend requests, at most [`CompanionConfig::arq_rounds`] per image); back over the same
+//!   channel go the map (two bits per voxel, [`downlink`]) and a [`PlanReport`], the camera
+//!   side's "frame N done".
+//! - **MAVLink.** Bytes go into a [`MavlinkDecoder`] and on to the [`Bridge`]
+//!   (LOCAL_POSITION_NED + ATTITUDE, or ODOMETRY → vehicle pose; a ground station's
+//!   COMMAND_LONG → the [operator](crate::operator) state). A TIMESYNC request from the
+//!   autopilot is a *flight tick*: the companion advances its [`Follower`] along the plan's
+//!   waypoints, streams what the bridge has due (setpoint, heartbeat, STATUSTEXT, COMMAND_ACK)
+//!   and answers the TIMESYNC last, so the autopilot side knows that everything sent before
+//!   the request has been acted on. With a signing key every frame it sends is signed and only
+//!   frames the key signed are acted on ([`LinkSigning`]).
+//!
+//! The operator decides what a plan is: explore ([`Explorer::plan_timed`]), go home
+//! ([`Explorer::plan_home`], to where the first plan was made), or hold. After a complete
+//! exploration the companion flies home if [`CompanionConfig::return_home_after_complete`].
+//!
+//! The firmware (`harmonic-fw`) is a board around this object: UARTs, a timer, statics. The host
+//! simulator runs the same object in-process over pipes, or plays the world around it on QEMU.
+//!
+//! **Time.** The companion keeps time by the autopilot's clock: the `time_boot_ms` of its pose
+//! messages and the timestamp of its TIMESYNC requests. Setpoint periods and pose staleness are
+//! then measured in the flight stack's time, which under processor-in-the-loop simulation is
+//! the simulator's: however many instructions a plan takes, no simulated time passes during it
+//! (lockstep). A flight build that must stream setpoints during a long plan would run the
+//! bridge from a timer interrupt on the board clock instead.
+
+mod follower;
+mod signing;
+
+pub use follower::{travel_heading, Follower};
+pub use signing::LinkSigning;
+
+use embedded_io::{Read, ReadReady, Write};
+use nalgebra::Point3;
+
+use crate::downlink::{self, PlanReport, MAP_SLICE_VOXELS};
+use crate::explore::{Clock, ConfigError, Explorer, Fault, PlanOutcome};
+use crate::link::{
+    max_encoded_len, DepthReceiver, LinkEncoder, LinkError, LinkEvent, Message as LinkMessage, Pose,
+    ResendRequest, HEADER_LEN, MAX_RESEND_RANGES, RESEND_REQUEST_HEADER_LEN,
+};
+use crate::mavlink::common::TIMESYNC_DATA;
+use crate::mavlink::{
+    encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, AUTOPILOT_COMPONENT_ID,
+    DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
+};
+use crate::operator::OperatorState;
+use crate::signing::{SecretKey, VerifierCounters};
+
+/// Payload bytes (header and body) of the largest resend request.
+const RESEND_REQUEST_MAX_LEN: usize = HEADER_LEN + RESEND_REQUEST_HEADER_LEN + 4 * MAX_RESEND_RANGES;
+
+/// How a companion behaves.
+#[derive(Debug, Clone)]
+pub struct CompanionConfig {
+    /// The MAVLink bridge: ids, periods, pose timeout.
+    pub bridge: BridgeConfig,
+    /// Resend requests per depth image at most; then the image is taken with the rows that
+    /// came (as `harmonic-sim --link-arq-rounds` defaults to).
+    pub arq_rounds: u8,
+    /// After a complete exploration, fly home (as `harmonic-sim explore` does by default);
+    /// false holds where the exploration ended.
+    pub return_home_after_complete: bool,
+    /// Rate of the [`Clock`] passed to [`Companion::poll`], ticks per second (reported in each
+    /// [`PlanReport`]).
+    pub tick_hz: u32,
+    /// MAVLink 2 signing key shared with the autopilot: with one, every frame sent is signed
+    /// and only frames the key signed are acted on; without one, neither.
+    pub signing_key: Option<SecretKey>,
+}
+
+impl Default for CompanionConfig {
+    fn default() -> Self {
+        Self {
+            bridge: BridgeConfig::default(),
+            arq_rounds: 4,
+            return_home_after_complete: true,
+            tick_hz: 1,
+            signing_key: None,
+        }
+    }
+}
+
+/// What a pass of the loop is doing (for a watchdog's stall report).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Phase {
+    /// Waiting for bytes.
+    Idle,
+    /// Integrating a depth frame.
+    Integrate,
+    /// Planning.
+    Plan,
+    /// Sending the map and the report.
+    Report,
+}
+
+/// A stream failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum IoError {
+    /// The depth link.
+    Link,
+    /// MAVLink.
+    Mavlink,
+}
+
+/// What one pass of the loop did, for the log. (Returned and logged at once, never stored.)
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[allow(clippy::large_enum_variant)]
+pub enum Event {
+    /// A frame was integrated and planned from.
+    Planned(PlanReport),
+    /// A depth frame arrived without a camera pose and was not integrated.
+    FrameWithoutPose(u32),
+    /// A link frame or chunk was dropped.
+    LinkError(LinkError),
+    /// A flight tick was answered, at this autopilot time (ms).
+    FlightTick(u64),
+}
+
+/// The companion computer: explorer, depth-link receiver, MAVLink bridge, follower, operator
+/// and signing, and the glue between them (see the [module documentation](self)).
+/// `LINK_BYTES` is the depth-link decoder's frame buffer, `STREAMS` the signing streams
+/// (system, component, link) its verifier tells apart.
+pub struct Companion<'a, const LINK_BYTES: usize, const STREAMS: usize> {
+    explorer: &'a mut Explorer<'a>,
+    receiver: DepthReceiver<'a, LINK_BYTES>,
+    mavlink: MavlinkDecoder,
+    bridge: Bridge,
+    follower: Follower,
+    config: CompanionConfig,
+    now_ms: u64,
+    mav_sequence: u8,
+    downlink_sequence: u16,
+    /// Where a return home goes: the position of the first plan.
+    home: Option<Point3<f32>>,
+    /// MAVLink signing, with [`CompanionConfig::signing_key`].
+    signing: Option<LinkSigning<STREAMS>>,
+    /// Encodes resend requests for the depth link's return channel.
+    return_encoder: LinkEncoder,
+    /// The frame the last resend requests were for, and how many were sent.
+    arq: Option<(u32, u8)>,
+    /// Resend requests sent.
+    resend_requests: u32,
+    /// An image that arrived without its pose, waiting for it.
+    awaiting_pose: Option<u32>,
+}
+
+impl<'a, const LINK_BYTES: usize, const STREAMS: usize> Companion<'a, LINK_BYTES, STREAMS> {
+    /// A companion around `explorer`, receiving depth images of up to `depth.len()` pixels.
+    pub fn new(
+        explorer: &'a mut Explorer<'a>,
+        depth: &'a mut [u16],
+        config: CompanionConfig,
+    ) -> Result<Self, ConfigError> {
+        let mut bridge = Bridge::new(config.bridge).map_err(|_| ConfigError::StorageTooSmall)?;
+        // Sent with the first flight tick (the queue is empty: this cannot be refused).
+        let _ = bridge.exploration_started();
+        Ok(Self {
+            explorer,
+            receiver: DepthReceiver::new(depth),
+            mavlink: MavlinkDecoder::new(),
+            bridge,
+            follower: Follower::default(),
+            signing: config.signing_key.clone().map(LinkSigning::new),
+            config,
+            now_ms: 0,
+            mav_sequence: 0,
+            downlink_sequence: 0,
+            home: None,
+            return_encoder: LinkEncoder::new(),
+            arq: None,
+            resend_requests: 0,
+            awaiting_pose: None,
+        })
+    }
+
+    /// The explorer.
+    pub fn explorer(&self) -> &Explorer<'a> {
+        self.explorer
+    }
+
+    /// The MAVLink bridge.
+    pub fn bridge(&self) -> &Bridge {
+        &self.bridge
+    }
+
+    /// The autopilot time the companion has reached, ms.
+    pub fn now_ms(&self) -> u64 {
+        self.now_ms
+    }
+
+    /// What MAVLink signing accepted and refused (`None` without a key).
+    pub fn signing_counters(&self) -> Option<VerifierCounters> {
+        self.signing.as_ref().map(|s| *s.counters())
+    }
+
+    /// One pass: takes what both streams have ready and acts on it. `phase` is told what the
+    /// pass is doing (a watchdog's stall report). Returns what happened worth logging.
+    pub fn poll<L, M, C>(
+        &mut self,
+        link: &mut L,
+        mav: &mut M,
+        clock: &mut C,
+        mut phase: impl FnMut(Phase),
+    ) -> Result<Option<Event>, IoError>
+    where
+        L: Read + ReadReady + Write,
+        M: Read + ReadReady + Write,
+        C: Clock,
+    {
+        let mut buf = [0u8; 256];
+        let mut ticked = None;
+        if mav.read_ready().map_err(|_| IoError::Mavlink)? {
+            let n = mav.read(&mut buf).map_err(|_| IoError::Mavlink)?;
+            if self.on_mavlink(buf.get(..n).unwrap_or(&[]), mav)? {
+                ticked = Some(Event::FlightTick(self.now_ms));
+            }
+        }
+        if !link.read_ready().map_err(|_| IoError::Link)? {
+            return Ok(ticked);
+        }
+        let n = link.read(&mut buf).map_err(|_| IoError::Link)?;
+        let mut taken = Taken {
+            delivered: None,
+            without_pose: None,
+            pose: None,
+            heartbeat: false,
+            event: ticked,
+        };
+        let Self {
+            receiver, explorer, ..
+        } = self;
+        receiver.feed(buf.get(..n).unwrap_or(&[]), |e| {
+            taken.take(e, explorer, clock, &mut phase)
+        });
+        self.place_awaited(&mut taken, clock, &mut phase);
+        if taken.delivered.is_none() && (taken.heartbeat || taken.without_pose.is_some()) {
+            self.ask_or_give_up(&mut taken, link, clock, &mut phase)?;
+        }
+        if let Some((frame_id, _)) = taken.delivered {
+            // Acknowledged at once (an empty request), before the plan: the camera side
+            // knows the image is in and waits for the report however long the plan takes.
+            self.send_link(&LinkMessage::ResendRequest(ResendRequest::new(frame_id)), link)?;
+        }
+        let mut event = taken.event;
+        if let Some((frame_id, integrate_ticks)) = taken.delivered {
+            phase(Phase::Plan);
+            let report = self.plan(frame_id, integrate_ticks, mav, clock)?;
+            phase(Phase::Report);
+            self.send_downlink(&report, link)?;
+            event = Some(Event::Planned(report));
+        }
+        Ok(event)
+    }
+
+    /// An image that came without its pose waits for it in the receiver's buffer; once the
+    /// pose comes it is integrated.
+    fn place_awaited<C: Clock>(&mut self, taken: &mut Taken, clock: &mut C, phase: &mut impl FnMut(Phase)) {
+        if let Some(frame_id) = taken.without_pose {
+            self.awaiting_pose = Some(frame_id);
+        }
+        if let (Some(frame_id), Some(pose)) = (self.awaiting_pose, taken.pose) {
+            if pose.frame_id() == frame_id {
+                self.awaiting_pose = None;
+                if let Some(frame) = self.receiver.completed_frame() {
+                    phase(Phase::Integrate);
+                    let t0 = clock.ticks();
+                    let _ = self.explorer.integrate(&frame, &pose.isometry());
+                    taken.delivered = Some((frame_id, clock.ticks().saturating_sub(t0)));
+                }
+            }
+        }
+    }
+
+    /// The camera side has sent what it had (its Heartbeat follows each image), or an image
+    /// lacks its pose: asks for what is missing, or, once asked often enough, takes what came.
+    fn ask_or_give_up<L: Write, C: Clock>(
+        &mut self,
+        taken: &mut Taken,
+        link: &mut L,
+        clock: &mut C,
+        phase: &mut impl FnMut(Phase),
+    ) -> Result<(), IoError> {
+        let Some(frame_id) = self.receiver.frame_in_progress().or(self.awaiting_pose) else {
+            return Ok(());
+        };
+        let rounds = match self.arq {
+            Some((id, r)) if id == frame_id => r,
+            _ => 0,
+        };
+        match self.receiver.resend_request(frame_id, true) {
+            Some(request) if rounds < self.config.arq_rounds => {
+                self.arq = Some((frame_id, rounds + 1));
+                self.resend_requests = self.resend_requests.saturating_add(1);
+                self.send_link(&LinkMessage::ResendRequest(request), link)?;
+            }
+            _ if self.awaiting_pose == Some(frame_id) => {
+                // No pose came: the image cannot be placed. Planned from, not integrated, so
+                // the camera side still hears "frame N done".
+                self.awaiting_pose = None;
+                taken.event = Some(Event::FrameWithoutPose(frame_id));
+                taken.delivered = Some((frame_id, 0));
+            }
+            _ => {
+                let Self {
+                    receiver, explorer, ..
+                } = self;
+                receiver.finish_frame(|e| taken.take(e, explorer, clock, phase));
+                if let Some(frame_id) = taken.without_pose.filter(|_| taken.delivered.is_none()) {
+                    taken.event = Some(Event::FrameWithoutPose(frame_id));
+                    taken.delivered = Some((frame_id, 0));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// One link message on the return channel (resend requests).
+    fn send_link<L: Write>(&mut self, message: &LinkMessage<'_>, link: &mut L) -> Result<(), IoError> {
+        let mut out = [0u8; max_encoded_len(RESEND_REQUEST_MAX_LEN)];
+        let n = self
+            .return_encoder
+            .encode(message, &mut out)
+            .map_err(|_| IoError::Link)?;
+        link.write_all(out.get(..n).unwrap_or(&[]))
+            .map_err(|_| IoError::Link)?;
+        link.flush().map_err(|_| IoError::Link)
+    }
+
+    /// MAVLink bytes from the autopilot (and any ground station on the same wire); true if
+    /// they ended a flight tick. With signing, a frame the key did not sign is counted and
+    /// dropped before anything reads it.
+    fn on_mavlink<M: Write>(&mut self, bytes: &[u8], mav: &mut M) -> Result<bool, IoError> {
+        let Self {
+            mavlink,
+            bridge,
+            now_ms,
+            signing,
+            ..
+        } = self;
+        let mut timesync = None;
+        mavlink.push_frames(bytes, |raw, decoded| {
+            let Some((header, message)) = decoded else {
+                return;
+            };
+            if signing.as_mut().is_some_and(|s| !s.admits(raw, *now_ms)) {
+                return;
+            }
+            let autopilot = header.system_id == u32::from(DEFAULT_SYSTEM_ID)
+                && header.component_id == AUTOPILOT_COMPONENT_ID;
+            if autopilot {
+                match message {
+                    MavMessage::LOCAL_POSITION_NED(d) => *now_ms = (*now_ms).max(u64::from(d.time_boot_ms)),
+                    MavMessage::ATTITUDE(d) => *now_ms = (*now_ms).max(u64::from(d.time_boot_ms)),
+                    MavMessage::TIMESYNC(d) if d.tc1 == 0 => {
+                        *now_ms = (*now_ms)
+                            .max(u64::try_from(d.ts1.checked_div(1_000_000).unwrap_or(0)).unwrap_or(0));
+                        timesync = Some(d.ts1);
+                    }
+                    _ => {}
+                }
+            }
+            let _ = bridge.handle(*now_ms, header, message);
+        });
+        if let Some(ts1) = timesync {
+            self.flight_tick(mav)?;
+            let reply = MavMessage::TIMESYNC(TIMESYNC_DATA {
+                // tc1 = 0 would read as a request: at time 0 answer with 1 ns.
+                tc1: i64::try_from(self.now_ms.saturating_mul(1_000_000))
+                    .unwrap_or(i64::MAX)
+                    .max(1),
+                ts1,
+            });
+            self.send_mavlink(&reply, mav)?;
+        }
+        Ok(timesync.is_some())
+    }
+
+    /// Advances along the plan and streams what is due.
+    fn flight_tick<M: Write>(&mut self, mav: &mut M) -> Result<(), IoError> {
+        if let Ok(pose) = self.bridge.pose(self.now_ms) {
+            if let Some((target, yaw)) = self.follower.setpoint(&pose.position, pose.yaw) {
+                // Refused only while the pose is stale; the bridge then holds by itself.
+                let _ = self.bridge.set_target(target, yaw);
+            }
+        }
+        let Self {
+            bridge,
+            signing,
+            now_ms,
+            ..
+        } = self;
+        let mut result = Ok(());
+        bridge.poll(*now_ms, |header, message| {
+            if let Err(e) = write_frame(mav, signing.as_mut(), *now_ms, header, message) {
+                result = Err(e);
+            }
+        });
+        result
+    }
+
+    fn send_mavlink<M: Write>(&mut self, message: &MavMessage, mav: &mut M) -> Result<(), IoError> {
+        let header = MavHeader {
+            system_id: u32::from(DEFAULT_SYSTEM_ID),
+            component_id: ONBOARD_COMPUTER_COMPONENT_ID,
+            sequence: self.mav_sequence,
+        };
+        self.mav_sequence = self.mav_sequence.wrapping_add(1);
+        write_frame(mav, self.signing.as_mut(), self.now_ms, &header, message)
+    }
+
+    /// Plans from the bridge's vehicle pose and hands the plan to the bridge and the follower.
+    fn plan<M: Write, C: Clock>(
+        &mut self,
+        frame_id: u32,
+        integrate_ticks: u64,
+        mav: &mut M,
+        clock: &mut C,
+    ) -> Result<PlanReport, IoError> {
+        // Without a pose the explorer refuses the plan (BadPose) and counts it.
+        let (position, yaw) = match self.bridge.pose(self.now_ms) {
+            Ok(p) => (p.position, p.yaw),
+            Err(_) => (Point3::new(f32::NAN, f32::NAN, f32::NAN), 0.0),
+        };
+        let kept_before = self.explorer.status().plans_kept;
+        // Home is where the first plan was made from.
+        if self.home.is_none() && position.coords.iter().all(|c| c.is_finite()) {
+            self.home = Some(position);
+        }
+        // The operator decides: explore, go home, or hold (paused, aborted, waiting).
+        let state = self.bridge.operator_state();
+        let outcome = match (state, self.home) {
+            (OperatorState::Exploring, _) => self.explorer.plan_timed(&position, yaw, clock),
+            (OperatorState::ReturningHome, Some(home)) => {
+                self.explorer.plan_home(&position, yaw, &home, clock)
+            }
+            (OperatorState::ReturningHome, None) => PlanOutcome::Hold(Fault::HomeUnreachable),
+            _ => PlanOutcome::Hold(Fault::Operator),
+        };
+        let kept = self.explorer.status().plans_kept > kept_before;
+        match outcome {
+            PlanOutcome::Complete if state == OperatorState::ReturningHome => self.bridge.arrived_home(),
+            PlanOutcome::Complete if self.config.return_home_after_complete && self.home.is_some() => {
+                // Explored ("exploration complete" goes out), then home by the same way the
+                // operator's return-to-launch takes: the next frame plans it.
+                self.bridge.apply(&outcome);
+                self.bridge.return_home();
+            }
+            _ => self.bridge.apply(&outcome),
+        }
+        match &outcome {
+            PlanOutcome::Goal(goal) => self.follower.follow(self.explorer.waypoints(), goal),
+            _ => self.follower.stop(),
+        }
+        self.flight_tick(mav)?;
+        Ok(PlanReport::new(
+            frame_id,
+            &outcome,
+            kept,
+            position.coords.into(),
+            yaw,
+            self.explorer.status(),
+            integrate_ticks,
+            self.config.tick_hz,
+            self.receiver.counters(),
+        )
+        .with_resend_requests(self.resend_requests)
+        .with_operator(self.bridge.operator_state())
+        .with_signing(self.signing_counters()))
+    }
+
+    /// The map, then the report, back over the link.
+    fn send_downlink<L: Write>(&mut self, report: &PlanReport, link: &mut L) -> Result<(), IoError> {
+        let mut out = [0u8; downlink::max_frame_len(6 + (MAP_SLICE_VOXELS >> 2))];
+        let map = self.explorer.map();
+        let voxels = map.geometry().dims().len();
+        let mut first = 0;
+        while first < voxels {
+            let seq = self.downlink_sequence;
+            self.downlink_sequence = seq.wrapping_add(1);
+            match downlink::encode_map_slice(seq, map, first, MAP_SLICE_VOXELS, &mut out) {
+                Ok((n, count)) if count > 0 => {
+                    link.write_all(out.get(..n).unwrap_or(&[]))
+                        .map_err(|_| IoError::Link)?;
+                    first += count;
+                }
+                _ => break,
+            }
+        }
+        let seq = self.downlink_sequence;
+        self.downlink_sequence = seq.wrapping_add(1);
+        let n = downlink::encode_report(seq, report, &mut out).map_err(|_| IoError::Link)?;
+        link.write_all(out.get(..n).unwrap_or(&[]))
+            .map_err(|_| IoError::Link)?;
+        link.flush().map_err(|_| IoError::Link)
+    }
+}
+
+/// What one read of the depth link delivered.
+struct Taken {
+    /// The frame to plan from: its id and the ticks integrating it took (0 for a frame whose
+    /// pose never came: it is not integrated, but still planned from and reported, so the
+    /// camera side hears "frame N done").
+    delivered: Option<(u32, u64)>,
+    /// An image that came whole or finished without its pose.
+    without_pose: Option<u32>,
+    /// A Pose that came.
+    pose: Option<Pose>,
+    /// The camera side's Heartbeat came: it has sent what it had.
+    heartbeat: bool,
+    /// What to log.
+    event: Option<Event>,
+}
+
+impl Taken {
+    fn take<C: Clock>(
+        &mut self,
+        e: LinkEvent<'_>,
+        explorer: &mut Explorer<'_>,
+        clock: &mut C,
+        phase: &mut impl FnMut(Phase),
+    ) {
+        match e {
+            LinkEvent::Depth {
+                frame_id,
+                frame,
+                pose: Some(pose),
+                ..
+            } => {
+                phase(Phase::Integrate);
+                let t0 = clock.ticks();
+                // A rejected frame is counted by the explorer and reported like any other.
+                // Rows that never arrived hold NOT_RECEIVED, which integration skips.
+                let _ = explorer.integrate(&frame, &pose.isometry());
+                self.delivered = Some((frame_id, clock.ticks().saturating_sub(t0)));
+            }
+            LinkEvent::Depth { frame_id, .. } => self.without_pose = Some(frame_id),
+            LinkEvent::Pose(pose) => self.pose = Some(pose),
+            LinkEvent::Heartbeat(_) => self.heartbeat = true,
+            LinkEvent::Error(e) => self.event = Some(Event::LinkError(e)),
+            _ => {}
+        }
+    }
+}
+
+/// Writes one MAVLink 2 frame, signed if `signing` is set.
+fn write_frame<M: Write, const STREAMS: usize>(
+    mav: &mut M,
+    signing: Option<&mut LinkSigning<STREAMS>>,
+    now_ms: u64,
+    header: &MavHeader,
+    message: &MavMessage,
+) -> Result<(), IoError> {
+    let mut frame = [0u8; MAX_FRAME_LEN];
+    let mut n = encode_v2(header, message, &mut frame).map_err(|_| IoError::Mavlink)?;
+    if let Some(s) = signing {
+        n = s.sign(&mut frame, n, now_ms);
+    }
+    mav.write_all(frame.get(..n).unwrap_or(&[]))
+        .map_err(|_| IoError::Mavlink)
+}
