@@ -19,7 +19,7 @@
 //! [`Downlink::Link`], neither decoded nor counted as dropped.
 //!
 //! ```text
-//! 0x81 PlanReport, 300 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
+//! 0x81 PlanReport, 316 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
 //!   0  u32 frame_id   of the frame just planned from     0  u32 first   voxel index
 //!   4  u8  outcome    0 goal 1 kept 2 escape             4  u16 count   1 ..= MAP_SLICE_VOXELS
 //!                     3 complete 4 hold                  6  u8[]  two bits per voxel, voxel
@@ -45,6 +45,7 @@
 //! 288  u32 reopenings (ErrorCounters, added after the others)
 //! 292  u32 remnants_sealed (ErrorCounters, added after the others)
 //! 296  u32 pocket_plans (ErrorCounters, added after the others)
+//! 300  f32 x, y, z, yaw   the goal flown to (map frame); NaN without one
 //! ```
 //!
 //! Fault codes: 1 BadPose, 2 VehicleOutsideGrid, 3 VehicleNotFree, 4 Streamline (detail:
@@ -67,7 +68,7 @@ pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
 /// Body bytes of a [`PlanReport`].
-pub const PLAN_REPORT_LEN: usize = 300;
+pub const PLAN_REPORT_LEN: usize = 316;
 /// Most voxels in one map slice (1 KiB of states).
 pub const MAP_SLICE_VOXELS: usize = 4096;
 /// Header bytes of a map slice body before the states.
@@ -171,6 +172,9 @@ pub struct PlanReport {
     pub signing: VerifierCounters,
     /// Resend requests the reporter sent back over the depth link (0 if it sends none).
     pub resend_requests: u32,
+    /// The goal flown to (map-frame position and yaw) when the outcome is a goal (a new one,
+    /// a kept one or an escape); `None` otherwise.
+    pub goal: Option<([f32; 3], f32)>,
 }
 
 impl PlanReport {
@@ -189,6 +193,10 @@ impl PlanReport {
         tick_hz: u32,
         link: LinkCounters,
     ) -> Self {
+        let goal = match outcome {
+            PlanOutcome::Goal(g) => Some((g.position.coords.into(), g.yaw)),
+            _ => None,
+        };
         let outcome = match outcome {
             PlanOutcome::Goal(g) if g.escape => ReportOutcome::Escape,
             PlanOutcome::Goal(_) if kept => ReportOutcome::Kept,
@@ -224,6 +232,7 @@ impl PlanReport {
             operator: None,
             signing: VerifierCounters::default(),
             resend_requests: 0,
+            goal,
         }
     }
 
@@ -339,6 +348,11 @@ impl PlanReport {
         w.u32(self.errors.reopenings);
         w.u32(self.errors.remnants_sealed);
         w.u32(self.errors.pocket_plans);
+        let (goal, goal_yaw) = self.goal.unwrap_or(([f32::NAN; 3], f32::NAN));
+        for v in goal {
+            w.f32(v);
+        }
+        w.f32(goal_yaw);
     }
 
     fn read_body(body: &[u8]) -> Result<Self, DownlinkError> {
@@ -426,6 +440,9 @@ impl PlanReport {
             pocket_plans: r.u32(),
             ..errors
         };
+        let goal = [r.f32(), r.f32(), r.f32()];
+        let goal_yaw = r.f32();
+        let goal = (goal.iter().all(|v| v.is_finite()) && goal_yaw.is_finite()).then_some((goal, goal_yaw));
         Ok(Self {
             frame_id,
             outcome,
@@ -454,6 +471,7 @@ impl PlanReport {
             operator,
             signing,
             resend_requests,
+            goal,
         })
     }
 }
