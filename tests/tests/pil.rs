@@ -1,6 +1,7 @@
 //! Processor in the loop: the firmware (harmonic-fw), built for the Cortex-M4F and run on QEMU's
-//! mps2-an386, explores pil-small to completion with every decision its own; and the image
-//! fits the board's 1 MiB RAM budget.
+//! mps2-an386, explores pil-small to completion with every decision its own, the same decisions
+//! its companion makes when it runs in this process; and the image fits the board's 1 MiB RAM
+//! budget.
 //!
 //! QEMU (`qemu-system-arm`) must be installed: `.ci/run` installs it. Without it this test
 //! fails, loudly, rather than skip.
@@ -49,6 +50,8 @@ fn qemu() -> String {
     qemu
 }
 
+/// The firmware explores pil-small under QEMU, and the same companion in this process decides
+/// exactly as it does.
 #[test]
 fn firmware_explores_pil_small_under_qemu() {
     let qemu = qemu();
@@ -127,6 +130,34 @@ fn firmware_explores_pil_small_under_qemu() {
     assert_eq!(
         mav.operator_state,
         Some(harmonic_core::operator::OperatorState::ReturningHome)
+    );
+
+    // One loop: the same companion, with the firmware's grid, storage and configuration, built
+    // for the host and flown the same way in this process, makes the same decisions: every
+    // scan from the same pose, to the same outcome and goal.
+    let host = pil::run_in_process(&scenario, &SimConfig::default(), |_| {}).expect("in-process run");
+    let decisions = |r: &harmonic_sim::run::sim::Report| -> Vec<_> {
+        r.steps
+            .iter()
+            .map(|s| (s.step, s.position, s.outcome.clone(), s.goal))
+            .collect()
+    };
+    assert!(
+        r.steps.iter().filter(|s| s.goal.is_some()).count() > 10,
+        "the reports carry the goals"
+    );
+    assert_eq!(
+        decisions(&host),
+        decisions(&r),
+        "the goals differ between QEMU and the host"
+    );
+    assert_eq!(
+        (host.termination.as_str(), host.scans, host.path_length_m),
+        (r.termination.as_str(), r.scans, r.path_length_m)
+    );
+    assert_eq!(
+        host.planning_ops, r.planning_ops,
+        "the same solves, cell for cell"
     );
 }
 

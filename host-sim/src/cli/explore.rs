@@ -182,9 +182,11 @@ pub struct ExploreArgs {
     /// (`mavlink.operator_commands`).
     #[arg(long, requires = "mavlink", value_parser = parse::parse_operator_script)]
     operator: Option<OperatorScript>,
-    /// Where the planning runs: `host` (the core in this process) or `qemu` (the firmware,
-    /// harmonic-fw, on an emulated Cortex-M4F: processor in the loop; see `pil` in the docs).
-    #[arg(long, default_value = "host", value_parser = ["host", "qemu"])]
+    /// Where the planning runs: `host` (the core in this process), `qemu` (the firmware,
+    /// harmonic-fw, on an emulated Cortex-M4F: processor in the loop; see `pil` in the docs) or
+    /// `in-process` (the firmware's companion, with its grid, storage and configuration, built
+    /// for this machine and flown exactly as under `qemu`, without the emulator).
+    #[arg(long, default_value = "host", value_parser = ["host", "qemu", "in-process"])]
     core: String,
     /// With `--core qemu`: the firmware ELF to run (default: build it with cargo).
     #[arg(long)]
@@ -337,10 +339,11 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
         bar.set_message(line);
         bar.tick();
     };
-    if args.core == "qemu" && (args.figures || args.record.is_some()) {
+    let firmware = args.core != "host";
+    if firmware && (args.figures || args.record.is_some()) {
         return Err("--figures and --record need --core host".into());
     }
-    if args.core == "qemu" && cfg.grid_offset != [0.0; 3] {
+    if firmware && cfg.grid_offset != [0.0; 3] {
         return Err("--grid-offset needs --core host (the firmware's grid is fixed)".into());
     }
     let geometry = sim::scenario_geometry(&scenario, cfg.grid_offset).map_err(|e| e.to_string())?;
@@ -396,6 +399,8 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
             intruder: Vec::new(),
         };
         harmonic_sim::run::pil::run(&scenario, &cfg, &pil, on_step)
+    } else if args.core == "in-process" {
+        harmonic_sim::run::pil::run_in_process(&scenario, &cfg, on_step)
     } else {
         sim::run_observed(&scenario, &cfg, on_step, observe)
     }

@@ -17,6 +17,7 @@
 //! counters; `report.json`), per-step records, and the views of the planner that figures,
 //! recordings and map exports are made from.
 
+pub mod board;
 pub mod metrics;
 pub mod pil;
 pub mod record;

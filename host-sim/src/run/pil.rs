@@ -30,10 +30,10 @@
 //! host time), and `HARMONIC_QEMU_EXTRA` appends options, say
 //! `-monitor unix:/tmp/m.sock,server=on,wait=off` to read the CPU's registers while it runs.
 
-use std::io::{Read, Write};
-use std::net::{TcpListener, TcpStream};
+use std::io::Read;
+use std::mem::MaybeUninit;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
@@ -52,6 +52,7 @@ use serde::Serialize;
 
 use crate::link::depth_link::LinkReport;
 use crate::link::fault::FaultInjector;
+use crate::run::board::{machine_args, Board, InProcess, Port, Qemu};
 use crate::run::metrics::{Contact, GroundTruth};
 use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
 use crate::vehicle::autopilot::{GroundStation, MavlinkReport, OperatorEvent, TrafficReport};
@@ -258,173 +259,8 @@ pub fn run_semihosted(qemu: &str, elf: &Path, timeout: Duration) -> Result<Strin
     }
 }
 
-/// QEMU with its two sockets and the log it writes.
-struct Board {
-    child: Child,
-    link: TcpStream,
-    mav: TcpStream,
-    command: String,
-}
-
-impl Drop for Board {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn io(what: &str) -> impl Fn(std::io::Error) -> SimError + '_ {
     move |e| SimError::Config(format!("{what}: {e}"))
-}
-
-impl Board {
-    fn start(qemu: &str, elf: &Path, out: &Path) -> Result<Self, SimError> {
-        let listen = || TcpListener::bind("127.0.0.1:0").map_err(io("bind a local port"));
-        let (l0, l1) = (listen()?, listen()?);
-        let port = |l: &TcpListener| l.local_addr().map(|a| a.port()).map_err(io("local port"));
-        let (p0, p1) = (port(&l0)?, port(&l1)?);
-        let defmt = std::fs::File::create(out.join("firmware.defmt")).map_err(io("firmware.defmt"))?;
-        let qemu_log = std::fs::File::create(out.join("qemu.log")).map_err(io("qemu.log"))?;
-        let args: Vec<String> = machine_args()
-            .chain([
-                "-serial".into(),
-                format!("tcp:127.0.0.1:{p0}"),
-                "-serial".into(),
-                format!("tcp:127.0.0.1:{p1}"),
-                "-kernel".into(),
-                elf.display().to_string(),
-            ])
-            // Extra QEMU options for debugging, e.g. `-monitor unix:/tmp/m.sock,server=on,wait=off`.
-            .chain(
-                std::env::var("HARMONIC_QEMU_EXTRA")
-                    .unwrap_or_default()
-                    .split_whitespace()
-                    .map(str::to_string),
-            )
-            .collect();
-        let command = format!("{qemu} {}", args.join(" "));
-        let mut child = Command::new(qemu)
-            .args(&args)
-            .stdin(Stdio::null())
-            .stdout(defmt)
-            .stderr(qemu_log)
-            .spawn()
-            .map_err(|e| {
-                SimError::Config(format!(
-                    "cannot start {qemu}: {e} (is qemu-system-arm installed?)"
-                ))
-            })?;
-        let streams = accept(&l0, &mut child).and_then(|link| Ok((link, accept(&l1, &mut child)?)));
-        let (link, mav) = match streams {
-            Ok(s) => s,
-            Err(e) => {
-                let _ = child.kill();
-                let _ = child.wait();
-                return Err(e);
-            }
-        };
-        let board = Board {
-            child,
-            link,
-            mav,
-            command,
-        };
-        for s in [&board.link, &board.mav] {
-            s.set_nodelay(true).map_err(io("TCP_NODELAY"))?;
-            s.set_read_timeout(Some(Duration::from_millis(200)))
-                .map_err(io("read timeout"))?;
-        }
-        Ok(board)
-    }
-
-    /// Fails if QEMU has exited.
-    fn check_alive(&mut self) -> Result<(), SimError> {
-        match self.child.try_wait() {
-            Ok(Some(status)) => Err(SimError::Config(format!(
-                "the firmware stopped (QEMU exited: {status}); see its log"
-            ))),
-            _ => Ok(()),
-        }
-    }
-}
-
-fn accept(listener: &TcpListener, child: &mut Child) -> Result<TcpStream, SimError> {
-    listener.set_nonblocking(true).map_err(io("listener"))?;
-    let start = Instant::now();
-    loop {
-        match listener.accept() {
-            Ok((s, _)) => {
-                s.set_nonblocking(false).map_err(io("socket"))?;
-                return Ok(s);
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
-                if let Ok(Some(status)) = child.try_wait() {
-                    return Err(SimError::Config(format!(
-                        "QEMU exited before connecting: {status}"
-                    )));
-                }
-                if start.elapsed() > Duration::from_secs(30) {
-                    return Err(SimError::Config(
-                        "QEMU did not connect its UARTs within 30 s".into(),
-                    ));
-                }
-                std::thread::sleep(Duration::from_millis(10));
-            }
-            Err(e) => return Err(io("accept")(e)),
-        }
-    }
-}
-
-/// QEMU's board (mps2-an386, Cortex-M4, no display, monitor, network or default devices),
-/// semihosting on, and [`icount_args`]; the caller adds the serial ports and the image.
-fn machine_args() -> impl Iterator<Item = String> {
-    [
-        "-machine",
-        "mps2-an386",
-        "-cpu",
-        "cortex-m4",
-        "-display",
-        "none",
-        "-monitor",
-        "none",
-        "-nodefaults",
-        "-nic",
-        "none",
-        "-semihosting-config",
-        "enable=on,target=native",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .chain(icount_args())
-}
-
-/// `-icount shift=0`: deterministic instruction counting (1 ns of board time per instruction),
-/// unless `HARMONIC_QEMU_ICOUNT=0`.
-fn icount_args() -> Vec<String> {
-    if std::env::var("HARMONIC_QEMU_ICOUNT").is_ok_and(|v| v == "0") {
-        Vec::new()
-    } else {
-        vec!["-icount".into(), "shift=0,align=off".into()]
-    }
-}
-
-/// Reads whatever `stream` has within its read timeout; `Ok(0)` on a timeout.
-fn read_some(stream: &mut TcpStream, buf: &mut [u8]) -> Result<usize, SimError> {
-    match stream.read(buf) {
-        Ok(0) => Err(SimError::Config("the firmware closed its UART".into())),
-        Ok(n) => Ok(n),
-        Err(e)
-            if matches!(
-                e.kind(),
-                std::io::ErrorKind::WouldBlock
-                    | std::io::ErrorKind::TimedOut
-                    | std::io::ErrorKind::Interrupted
-            ) =>
-        {
-            Ok(0)
-        }
-        Err(e) => Err(io("UART read")(e)),
-    }
 }
 
 /// The autopilot's side of UART1.
@@ -448,7 +284,7 @@ struct Autopilot {
 
 impl Autopilot {
     /// One flight tick at `now_ms`: pose out, TIMESYNC out, the firmware's answer in.
-    fn tick(&mut self, board: &mut Board, now_ms: u64, vehicle: &Vehicle) -> Result<(), SimError> {
+    fn tick(&mut self, board: &mut dyn Board, now_ms: u64, vehicle: &Vehicle) -> Result<(), SimError> {
         let mut out = Vec::new();
         self.emulator
             .poll(now_ms, &vehicle.position, vehicle.yaw, &mut out);
@@ -491,12 +327,12 @@ impl Autopilot {
             None => n,
         };
         out.extend_from_slice(&frame[..n]);
-        board.mav.write_all(&out).map_err(io("UART1 write"))?;
+        board.send(Port::Mavlink, &out)?;
         self.ticks += 1;
         let start = Instant::now();
         let mut buf = [0u8; 4096];
         loop {
-            let n = read_some(&mut board.mav, &mut buf)?;
+            let n = board.receive(Port::Mavlink, &mut buf)?;
             if n == 0 {
                 board.check_alive()?;
                 if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
@@ -632,7 +468,7 @@ impl Camera {
     }
 
     /// The Heartbeats that end what was sent, then everything onto UART0.
-    fn send(&mut self, board: &mut Board, frame_id: u32, mut wire: Vec<u8>) -> Result<(), SimError> {
+    fn send(&mut self, board: &mut dyn Board, frame_id: u32, mut wire: Vec<u8>) -> Result<(), SimError> {
         for _ in 0..HEARTBEAT_COPIES {
             let heartbeat = link::Heartbeat {
                 uptime_ms: 0,
@@ -647,7 +483,7 @@ impl Camera {
             injector.flush(&mut wire);
         }
         self.arq.bytes_sent += wire.len() as u64;
-        board.link.write_all(&wire).map_err(io("UART0 write"))
+        board.send(Port::Link, &wire)
     }
 
     /// The image's pose and its depth (intrinsics, then chunks).
@@ -716,7 +552,7 @@ impl Camera {
     /// answering the firmware's resend requests.
     fn scan(
         &mut self,
-        board: &mut Board,
+        board: &mut dyn Board,
         frame_id: u32,
         frame: &DepthFrame<'_>,
         camera_pose: &nalgebra::Isometry3<f32>,
@@ -736,7 +572,7 @@ impl Camera {
         let mut heard = Instant::now();
         let mut buf = [0u8; 8192];
         loop {
-            let n = read_some(&mut board.link, &mut buf)?;
+            let n = board.receive(Port::Link, &mut buf)?;
             if n == 0 {
                 board.check_alive()?;
                 if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
@@ -811,14 +647,12 @@ pub fn run(
     scenario: &Scenario,
     cfg: &SimConfig,
     pil: &PilConfig,
-    mut progress: impl FnMut(&StepRecord),
+    progress: impl FnMut(&StepRecord),
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
-    let geometry = firmware_geometry()?;
-    check_fits(scenario, &geometry)?;
+    check_fits(scenario, &firmware_geometry()?)?;
     std::fs::create_dir_all(&pil.out).map_err(io("output directory"))?;
-    let mavlink = cfg.mavlink.as_ref();
-    let key = mavlink.and_then(|m| m.signing_key.clone());
+    let key = cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone());
     let elf = match (&pil.firmware, &key) {
         (Some(p), _) => p.clone(),
         (None, None) => build_firmware(None)?,
@@ -832,9 +666,45 @@ pub fn run(
             elf.display()
         )));
     }
-    let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
-    let mut board = Board::start(&pil.qemu, &elf, &pil.out)?;
-    let qemu_command = board.command.clone();
+    let mut board = Qemu::start(&pil.qemu, &elf, &pil.out)?;
+    let qemu = board.command().to_string();
+    let flown = fly_firmware(&mut board, scenario, cfg, &pil.intruder, progress);
+    drop(board);
+    // The log explains a failed run too.
+    decode_log(&elf, &pil.out);
+    let mut report = flown?;
+    if let Some(p) = report.pil.as_mut() {
+        p.firmware = elf.display().to_string();
+        p.qemu = qemu;
+    }
+    report.wall_time_s = wall.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// [`run`] with the firmware's companion in this process instead of on QEMU
+/// ([`InProcess`]): the same code, grid, storage and configuration, built for the host, flown
+/// the same way. The report's tick counts are host time, so it has no instruction counts
+/// (`pil` is `None`).
+pub fn run_in_process(
+    scenario: &Scenario,
+    cfg: &SimConfig,
+    progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    let wall = Instant::now();
+    check_fits(scenario, &firmware_geometry()?)?;
+    let key = cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone());
+    let mut storage = Box::new(fw::Storage::new());
+    let mut slot = Box::new(MaybeUninit::uninit());
+    let mut board = InProcess::start(&mut storage, &mut slot, key)?;
+    let mut report = fly_firmware(&mut board, scenario, cfg, &[], progress)?;
+    report.pil = None;
+    report.wall_time_s = wall.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// The depth link's camera side for the firmware's decoder: chunks of as many rows as it takes
+/// (fewer with `--link-chunk-rows`), faults on the way in if the run injects any.
+fn firmware_camera(cfg: &SimConfig) -> Result<Camera, SimError> {
     let intrinsics = cfg.camera.intrinsics;
     let rows = (1..=10u16)
         .rev()
@@ -847,7 +717,7 @@ pub fn run(
             fw::MAX_DEPTH_PIXELS
         )));
     }
-    let mut camera = Camera {
+    Ok(Camera {
         encoder: LinkEncoder::new(),
         scratch: vec![0; link::max_depth_chunk_len(intrinsics.width(), rows).max(link::max_encoded_len(64))],
         // `--link-chunk-rows` may ask for shorter chunks (a noisy line), never longer ones
@@ -859,23 +729,47 @@ pub fn run(
         arq: CameraArq::default(),
         max_rows_per_chunk: cfg.link.chunk_rows.is_none().then_some(rows),
         ber: 0.0,
-    };
+    })
+}
+
+/// The flight stack's side: the emulator (signing with the run's key, if any), the scripted
+/// ground station (`--operator`) and an unsigned `intruder` station.
+fn firmware_autopilot(cfg: &SimConfig, intruder: &[(f64, OperatorCommand)]) -> Autopilot {
+    let mavlink = cfg.mavlink.as_ref();
+    let key = mavlink.and_then(|m| m.signing_key.clone());
     let mut emulator = FlightEmulator::new();
     if let Some(k) = &key {
         emulator = emulator.with_signing(k.clone());
     }
     let script = mavlink.map(|m| m.operator_script.clone()).unwrap_or_default();
-    let mut autopilot = Autopilot {
+    Autopilot {
         emulator,
         decoder: MavlinkDecoder::new(),
         sequence: 0,
         ticks: 0,
         signing: key.clone().map(|k| LinkSigning::new(k, 1)),
         ground: (!script.is_empty()).then(|| GroundStation::new(script, key.clone())),
-        intruder: (!pil.intruder.is_empty()).then(|| GroundStation::new(pil.intruder.clone(), None)),
+        intruder: (!intruder.is_empty()).then(|| GroundStation::new(intruder.to_vec(), None)),
         operator_events: Vec::new(),
         operator_state: None,
-    };
+    }
+}
+
+/// The run around a firmware companion on `board`: camera on its depth link, emulated flight
+/// stack on its MAVLink, until it reports the end.
+fn fly_firmware(
+    board: &mut dyn Board,
+    scenario: &Scenario,
+    cfg: &SimConfig,
+    intruder: &[(f64, OperatorCommand)],
+    mut progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    let geometry = firmware_geometry()?;
+    let key = cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone());
+    let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
+    let intrinsics = cfg.camera.intrinsics;
+    let mut camera = firmware_camera(cfg)?;
+    let mut autopilot = firmware_autopilot(cfg, intruder);
     let mut map = vec![Occupancy::Unknown; geometry.dims().len()];
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
     let mut vehicle = Vehicle {
@@ -884,7 +778,7 @@ pub fn run(
     };
     let dt_ms = (f64::from(cfg.dt) * 1e3).round() as u64;
     let mut now_ms = 0u64;
-    autopilot.tick(&mut board, now_ms, &vehicle)?;
+    autopilot.tick(board, now_ms, &vehicle)?;
     let budget = if cfg.follow_full_path {
         f32::INFINITY
     } else {
@@ -909,7 +803,7 @@ pub fn run(
         cfg.camera.render(&scenario.world, &pose, &mut rng, &mut depth);
         let frame = DepthFrame::new(intrinsics, &depth)
             .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
-        let report = camera.scan(&mut board, step, &frame, &pose, &mut map)?;
+        let report = camera.scan(board, step, &frame, &pose, &mut map)?;
         let coverage = truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown));
         let ms = |ticks: u64| ticks as f64 * 1e3 / f64::from(report.tick_hz.max(1));
         let to_instr = |ticks: u64| ticks * INSTRUCTIONS_PER_TICK;
@@ -952,7 +846,7 @@ pub fn run(
             frames_integrated: 1,
             streamline_m: report.streamline_length,
             path_length_m: path,
-            goal: None,
+            goal: report.goal.map(|(p, _)| p),
             seals: report.errors.seals,
         };
         progress(&record);
@@ -983,7 +877,7 @@ pub fn run(
             ReportOutcome::Complete if operator == Some(OperatorState::ReturningHome) && cfg.return_home => {
                 consecutive_holds = 0;
                 now_ms += dt_ms;
-                autopilot.tick(&mut board, now_ms, &vehicle)?;
+                autopilot.tick(board, now_ms, &vehicle)?;
             }
             ReportOutcome::Complete => {
                 termination = "complete".into();
@@ -999,7 +893,7 @@ pub fn run(
                 consecutive_holds = 0;
                 for _ in 0..OPERATOR_HOLD_MS / dt_ms.max(1) {
                     now_ms += dt_ms;
-                    autopilot.tick(&mut board, now_ms, &vehicle)?;
+                    autopilot.tick(board, now_ms, &vehicle)?;
                 }
             }
             ReportOutcome::Hold(fault) => {
@@ -1013,12 +907,12 @@ pub fn run(
                 }
                 // The firmware holds; one tick lets its hold setpoint reach the autopilot.
                 now_ms += dt_ms;
-                autopilot.tick(&mut board, now_ms, &vehicle)?;
+                autopilot.tick(board, now_ms, &vehicle)?;
             }
             _ => {
                 consecutive_holds = 0;
                 let leg = fly(
-                    &mut board,
+                    board,
                     &mut autopilot,
                     &mut vehicle,
                     &mut now_ms,
@@ -1036,9 +930,7 @@ pub fn run(
     // One more tick collects what the firmware sent after its last plan (the hold setpoint and
     // the "exploration complete" STATUSTEXT).
     now_ms += dt_ms;
-    autopilot.tick(&mut board, now_ms, &vehicle)?;
-    drop(board);
-    decode_log(&elf, &pil.out);
+    autopilot.tick(board, now_ms, &vehicle)?;
 
     let end = last.ok_or_else(|| SimError::Config("the firmware planned nothing".into()))?;
     let return_home = return_start.as_ref().map(|r| ReturnHome {
@@ -1078,7 +970,7 @@ pub fn run(
     let receiver: LinkCounters = end.link;
     let sent = steps.len() as u32;
     let link = LinkReport {
-        transport: "qemu uart0 (tcp)".into(),
+        transport: format!("{} uart0", board.name()),
         baud: cfg.link.baud,
         depth_frames_sent: sent,
         depth_frames_integrated: end.frames,
@@ -1126,7 +1018,7 @@ pub fn run(
         planning_ops: last.planning_ops,
         local_solves: [0, 0],
         flight_time_s: now_ms as f64 * 1e-3,
-        wall_time_s: wall.elapsed().as_secs_f64(),
+        wall_time_s: 0.0,
         grid: [dims.nx(), dims.ny(), dims.nz()],
         resolution: geometry.resolution(),
         reachable_free_voxels: truth.reachable_free(),
@@ -1142,7 +1034,7 @@ pub fn run(
         stereo: None,
         trajectory: Vec::new(),
         mavlink: Some(MavlinkReport {
-            endpoint: "emulator (qemu uart1)".into(),
+            endpoint: format!("emulator ({} uart1)", board.name()),
             traffic: TrafficReport::default(),
             tlog: None,
             // The firmware keeps no pose history: its frames come stamped over the depth link.
@@ -1168,8 +1060,8 @@ pub fn run(
             status_texts: autopilot.emulator.status_texts().to_vec(),
         }),
         pil: Some(PilReport {
-            firmware: elf.display().to_string(),
-            qemu: qemu_command,
+            firmware: String::new(),
+            qemu: String::new(),
             ticks: autopilot.ticks,
             downlink_dropped: camera.decoder.dropped(),
             integrate: stat(instructions.iter().take(explored_steps).map(|p| p[0])),
@@ -1206,7 +1098,7 @@ struct PilReturnStart {
 /// firmware's setpoint facing its yaw, or [`MAX_TICKS_PER_LEG`] passed.
 /// `contact` watches the body on the way.
 fn fly(
-    board: &mut Board,
+    board: &mut dyn Board,
     autopilot: &mut Autopilot,
     vehicle: &mut Vehicle,
     now_ms: &mut u64,

@@ -385,8 +385,8 @@ pub struct StepRecord {
     pub streamline_m: f32,
     /// Path flown so far, metres.
     pub path_length_m: f64,
-    /// The goal this step flies to (a new or kept plan), map frame; `None` without a goal
-    /// (and in processor-in-the-loop runs, whose downlink report carries no goal).
+    /// The goal this step flies to (a new or kept plan, an escape), map frame; `None` without a
+    /// goal.
     pub goal: Option<[f32; 3]>,
     /// Frontier regions sealed so far (visits that kept teaching nothing; see
     /// `harmonic_core::explore::ExplorerConfig::stall_visits`).
