@@ -30,8 +30,14 @@
 //!   relative-residual stop.
 //! - [`streamline`] — steepest descent of φ from the vehicle to a frontier (trilinear
 //!   gradient, RK4, discrete fallback), with fixed-capacity waypoints.
-//! - [`explore`] — the [`Explorer`](explore::Explorer) that owns the loop and reports status,
-//!   termination and fault counters.
+//! - [`explore`] — the [`Explorer`](explore::Explorer) that owns the loop of one plan and reports
+//!   status, termination and fault counters, around a [`TargetChoice`](explore::TargetChoice):
+//!   the harmonic field's streamline ([`HarmonicField`](explore::HarmonicField)) or any other
+//!   planner's choice of target, which is all that differs between planners.
+//! - [`companion`] — the [`Companion`](companion::Companion): the one object a companion
+//!   computer runs, on the firmware and in the host simulator alike — depth-link receiver,
+//!   explorer, MAVLink bridge, setpoint follower, operator and signing between two
+//!   `embedded-io` byte streams and a clock.
 //! - [`link`] — the depth link's wire format: versioned messages (intrinsics, depth chunks,
 //!   pose, heartbeat) in COBS frames with a CRC-32, a streaming decoder that resynchronises
 //!   after damage, and the assembler that turns complete chunk sets into depth frames.
@@ -49,8 +55,8 @@
 //!   `time_boot_ms` that gives the pose of a camera frame's instant (`PoseHistory`).
 //! - [`signing`] — MAVLink 2 message signing without `std`: a [`Signer`](signing::Signer) for
 //!   outgoing frames and a [`Verifier`](signing::Verifier) that refuses unsigned, forged,
-//!   replayed and stale ones (checked against pymavlink); the host's MAVLink link uses both
-//!   with `--mavlink-key`, the firmware not yet.
+//!   replayed and stale ones (checked against pymavlink); the companion signs with a key built
+//!   into the firmware or given to the host with `--mavlink-key`.
 //!
 //! Frames: the map frame is right-handed, z up, metres; poses are `Isometry3<f32>`. The camera
 //! frame is x right, y down, z forward. Depth is `u16` millimetres, 0 = no return.

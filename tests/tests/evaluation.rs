@@ -281,11 +281,13 @@ fn stereo_model_config(seed: u64) -> SimConfig {
 /// `--noise stereo`'s default rules (the sensor model, the surface estimate and the median's
 /// window as the pipeline's footprint) keep the body off obstacles and the halls open.
 /// Apartment-thesis start 5 of closest frontier: on the surface rules without the window its
-/// map seals the 0.9 m hall (37.7 % free coverage) and the body touches a wall (0.114 m of
-/// clearance for a 0.15 m body); with the window it explores the hall and keeps 0.2 m and more
-/// (docs/RESULTS.md, "A surface voxel hides what lies behind it"). Until the occlusion rule of
-/// that section this test used kitchen start 1, whose windowless run no longer touches. If a
-/// change to the map rules stops this run failing without the window, it no longer shows the
+/// map seals the 0.9 m hall (36.5 % free coverage); with the window it explores the hall and
+/// keeps 0.2 m and more from every surface (docs/RESULTS.md, "A surface voxel hides what lies
+/// behind it"). Until closest frontier flew inside the explorer's loop (2026-12-07) the
+/// windowless run also touched a wall (0.114 m of clearance for a 0.15 m body); now it keeps
+/// 0.238 m, and none of apartment-thesis and kitchen starts 1–8 touches without the window.
+/// Until the occlusion rule of that section this test used kitchen start 1. If a change to the
+/// map rules stops this run sealing the hall without the window, it no longer shows the
 /// window's effect: pick another start from the rows.
 #[test]
 fn the_pipeline_window_keeps_noisy_runs_off_walls_and_the_hall_open() {
@@ -306,7 +308,7 @@ fn the_pipeline_window_keeps_noisy_runs_off_walls_and_the_hall_open() {
     };
     let without = run(false);
     assert!(
-        without.collisions > 0 && without.coverage_free < 0.5,
+        without.coverage_free < 0.5,
         "without the window: {} collisions, {} m, {} free coverage",
         without.collisions,
         without.min_clearance_m,

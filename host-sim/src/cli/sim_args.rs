@@ -143,8 +143,8 @@ pub struct FieldArgs {
     /// the frontier is in plain sight within this range (metres); 0 flies up to it.
     #[arg(long)]
     view_range: Option<f32>,
-    /// Look around on arrival: at each goal the core's planner turns on the spot up to this
-    /// many times, each to the heading (of eight) that sees the most unexplored space, before it
+    /// Look around on arrival: at each goal every planner turns on the spot up to this many
+    /// times, each to the heading (of eight) that sees the most unexplored space, before it
     /// plans the next goal (default 0: none). Shorter paths, much longer flights (see
     /// docs/RESULTS.md, "Looking around on arrival").
     #[arg(long)]
@@ -154,25 +154,16 @@ pub struct FieldArgs {
     /// range) instead of the thesis's (fly up to it).
     #[arg(long)]
     baseline_views: bool,
-    /// Ablation: the baseline planners look around on arrival as the core's planner does
-    /// (`--arrival-looks` turns at each goal, to the headings that see the most unexplored
-    /// space) instead of planning on at once, as the thesis's do.
-    #[arg(long)]
-    baseline_looks: bool,
     /// Remnants: while the vehicle's part of the map holds at most this much frontier (square
     /// metres' worth of frontier voxels), a target farther than `--remnant-reach` along its path
-    /// is sealed instead of flown to (default 0.5; 0 turns it off, flying to every crumb).
+    /// is sealed instead of flown to, whatever the planner (default 0.5; 0 turns it off, flying
+    /// to every crumb, as the thesis's planners did).
     #[arg(long, value_parser = parse_non_negative)]
     remnant_area: Option<f32>,
     /// Remnants: how far along its path (metres) a remnant target may be and still be flown to
     /// (default 3).
     #[arg(long, value_parser = parse_positive)]
     remnant_reach: Option<f32>,
-    /// Ablation: closest, random frontier and the information-gain planners seal far remnants
-    /// as the core's planner does (`--remnant-area`, `--remnant-reach`) instead of flying to
-    /// every last frontier, as the thesis's do.
-    #[arg(long)]
-    baseline_remnants: bool,
     /// Ablation: the core flies its streamline's own curve instead of pulling it taut through
     /// the safe space (same goal, same frontier).
     #[arg(long)]
@@ -196,8 +187,6 @@ impl FieldArgs {
             cfg.explorer.arrival_looks = n;
         }
         cfg.baseline_views = self.baseline_views;
-        cfg.baseline_looks = self.baseline_looks;
-        cfg.baseline_remnants = self.baseline_remnants;
         if let Some(a) = self.remnant_area {
             cfg.explorer.remnant_frontier_m2 = a;
         }

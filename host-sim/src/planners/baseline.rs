@@ -1,28 +1,21 @@
 //! The seed thesis's baselines (Shade 2011, §6.5): frontier and information-gain planners that
 //! choose a target, then fly an A* path to it.
 //!
-//! Each owns a [`VoxelMap`] and integrates frames with the core's
-//! [`integrate_with_scratch`](harmonic_core::integrate::integrate_with_scratch), exactly as the harmonic explorer does,
-//! and plans over the labels of [`harmonic_core::domain::build`] — the same inflated safe space
-//! and the same frontier voxels (free voxels next to unexplored space, eroded by the vehicle
-//! radius) the harmonic planner uses as sinks. Exploration is complete when that space has no
-//! frontier left. The rest of the loop mirrors [`Explorer`](harmonic_core::explore::Explorer)
-//! so that only the choice of target differs:
-//!
-//! - the vehicle's own body is free space (marked at every plan);
-//! - a committed goal is kept while its target is still open and its path still safe;
-//! - a goal from which the camera cannot resolve its target (the vehicle stands at the last goal
-//!   and learned nothing, or targets the same frontier again) is a fruitless visit; after
-//!   [`ExplorerConfig::stall_visits`] of them the unexplored voxels behind the target are
-//!   sealed (thesis §6.6.2), as the core does;
-//! - a vehicle left in inflated space by a new observation escapes to the nearest safe voxel.
-//!
-//! Targets:
+//! Each is a [`TargetChoice`] inside the core's [`Explorer`](harmonic_core::explore::Explorer),
+//! so every planner integrates with the same integrator into the same map, plans over the same
+//! inflated safe space and the same frontier voxels (free voxels next to unexplored space,
+//! eroded by the vehicle radius) the harmonic planner uses as sinks, and shares the explorer's
+//! loop: the vehicle's body marked free, completion when no reachable frontier is left (after
+//! clearing, reopening doubtful doorways and leaving pockets), escape from inflated space, a
+//! committed goal kept while its target is open and its path safe, the look-around on arrival,
+//! far remnants and fruitless targets sealed (thesis §6.6.2), frame checks, the way home. Only
+//! the choice of target, the way to it and where on it to look from differ:
 //!
 //! - **closest frontier** (Yamauchi 1997): Dijkstra from the vehicle; the first frontier voxel
 //!   settled has the shortest path of all. The goal is the last point of the path from which
 //!   the camera, turned to the unknown behind the frontier, sees it beyond the minimum range and
-//!   inside the vertical field of view (the rule the core uses on its streamline).
+//!   inside the vertical field of view (the thesis's rule; [`Baseline::with_core_views`] takes
+//!   the core's view rule first).
 //! - **random frontier**: a frontier voxel drawn uniformly, A* to it, goal as above.
 //! - **information gain** (Thrun's binary gain): candidate poses are drawn from the safe space,
 //!   as many as 5 % of the free voxels; a candidate's gain is the number of frontier voxels of
@@ -34,23 +27,21 @@
 //!   g·exp(−λL), L its shortest-path length in metres, λ = 0.2.
 //!
 //! If no candidate sees any frontier voxel, the gain planners fall back to the closest frontier.
+//! The way to a target is the A* voxel path with line-of-sight shortcuts ([`smooth`]); the way
+//! home is A* too.
 
-use harmonic_core::camera::{DepthFrame, Intrinsics};
-use harmonic_core::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening};
-use harmonic_core::explore::Clock;
-use harmonic_core::explore::{
-    check_frame_timing, is_far_remnant, ArrivalLooks, ConfigError, ExplorerConfig, ExplorerStorage, Fault,
-    FrameTiming, Goal, PlanOutcome, Status, PLAN_PASSES,
-};
-use harmonic_core::integrate::{self, traverse};
-use harmonic_core::map::{MapGeometry, VoxelIndex, VoxelMap};
-use harmonic_core::streamline::{StreamlineEnd, StreamlineError};
-use nalgebra::{Isometry3, Point3, Vector3};
+use harmonic_core::domain::Label;
+use harmonic_core::explore::target::{Context, TargetChoice, Watch, WATCH_CAPACITY};
+use harmonic_core::explore::{Chosen, Clock, Fault, Goal, PlanOutcome};
+use harmonic_core::integrate::traverse;
+use harmonic_core::map::{VoxelIndex, VoxelMap};
+use harmonic_core::streamline::{StreamlineEnd, StreamlineError, Waypoints};
+use nalgebra::{Point3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+use super::kind::PlannerKind;
 use super::search::{smooth, Search};
-use super::{HostClock, Planner, PlannerKind};
 
 /// Information-gain settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -83,7 +74,7 @@ struct Target {
     look: Look,
     /// Voxels whose being open keeps the goal (a frontier voxel, or the frontier voxels a
     /// candidate pose sees), and around which a fruitless target is sealed.
-    watch: Vec<VoxelIndex>,
+    watch: Watch,
     /// The frontier the goal is for (fruitless-revisit test, goal report).
     frontier: VoxelIndex,
 }
@@ -96,126 +87,46 @@ enum Look {
     Yaw(f32),
 }
 
-#[derive(Debug, Clone)]
-struct Commitment {
-    goal: Goal,
-    watch: Vec<VoxelIndex>,
-}
-
-/// A baseline planner (see the [module documentation](self)).
-pub struct Baseline<'a> {
+/// A baseline planner's target choice (see the [module documentation](self)).
+pub struct Baseline {
     kind: PlannerKind,
-    config: ExplorerConfig,
     gain: GainParams,
-    map: VoxelMap<'a>,
-    inflation: Inflation,
-    labels: &'a mut [Label],
-    queue: &'a mut [u32],
     search: Search,
     rng: ChaCha8Rng,
-    waypoints: Vec<Point3<f32>>,
-    intrinsics: Option<Intrinsics>,
-    commitment: Option<Commitment>,
-    fruitless_visits: u8,
-    unexplored_at_last_plan: Option<u32>,
-    /// Frontier goals follow the core's view rule (see [`Baseline::with_core_views`]).
+    /// Frontier goals follow the core's view rule first (see [`Baseline::with_core_views`]).
     core_views: bool,
-    /// The core's look-around on arrival (see [`Baseline::with_arrival_looks`]), if on.
-    looks: Option<ArrivalLooks>,
-    /// Far remnants are sealed as the core's planner seals them (see
-    /// [`Baseline::with_remnants`]).
-    remnants: bool,
-    /// The last goal looked at its frontier from afar.
-    goal_from_afar: bool,
-    /// The next frontier goal takes the near point (a look from afar taught nothing).
-    go_near: bool,
-    /// The doubtful voxels forgotten so far ([`ExplorerConfig::doubtful_log_odds`]).
-    reopening: Reopening,
-    status: Status,
+    /// How the last target chosen is looked at, until its goal is chosen.
+    look: Look,
 }
 
-impl<'a> Baseline<'a> {
+impl Baseline {
+    /// A baseline of `kind` (not a harmonic kind) for a grid of `dims`. `seed` drives its
+    /// random choices.
+    pub fn new(kind: PlannerKind, dims: harmonic_core::map::Dims, seed: u64) -> Self {
+        Self {
+            kind,
+            gain: GainParams::default(),
+            search: Search::new(dims),
+            // Decorrelated from the sensor-noise stream drawn from the same seed.
+            rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ba5e_1100_0001),
+            core_views: false,
+            look: Look::Yaw(0.0),
+        }
+    }
+
     /// Lets frontier targets (closest and random frontier) choose their goal by the core's view
     /// rule instead of the thesis's: the first point of the path from which the frontier voxel
-    /// is in plain sight within [`ExplorerConfig::view_range_m`] (near again after a look that
-    /// taught nothing). An ablation: it asks whether the harmonic planner's gain over closest
-    /// frontier comes from its field or from this rule.
+    /// is in plain sight within [`ExplorerConfig::view_range_m`](harmonic_core::explore::ExplorerConfig::view_range_m)
+    /// (near again after a look that taught nothing). An ablation: it asks whether the harmonic
+    /// planner's gain over closest frontier comes from its field or from this rule.
     pub fn with_core_views(mut self) -> Self {
         self.core_views = true;
         self
     }
 
-    /// Lets the baseline look around on arrival as the core's planner does
-    /// ([`ArrivalLooks`], up to [`ExplorerConfig::arrival_looks`] turns at each goal, to the
-    /// headings that see the most unexplored space). An ablation: it asks how much of the
-    /// harmonic planner's gain over the thesis's baselines the look-around gives by itself.
-    pub fn with_arrival_looks(mut self) -> Self {
-        self.looks = Some(ArrivalLooks::default());
-        self
-    }
-
-    /// Lets the baseline seal far remnants as the core's planner does
-    /// ([`ExplorerConfig::remnant_frontier_m2`]: with little frontier left, a target farther than
-    /// [`ExplorerConfig::remnant_reach_m`] along its path is sealed instead of flown to). An
-    /// ablation: it asks how much of the harmonic planner's gain is this rule rather than its
-    /// field.
-    pub fn with_remnants(mut self) -> Self {
-        self.remnants = true;
-        self
-    }
-
-    /// A baseline of `kind` (not a harmonic kind) over `geometry`, in `storage` (only the map
-    /// buffers, labels and queue are used). `seed` drives its random choices.
-    pub fn new(
-        kind: PlannerKind,
-        geometry: MapGeometry,
-        config: ExplorerConfig,
-        storage: ExplorerStorage<'a>,
-        seed: u64,
-    ) -> Result<Self, ConfigError> {
-        let n = geometry.dims().len();
-        let ExplorerStorage {
-            log_odds,
-            touched,
-            labels,
-            queue,
-            surface,
-            ..
-        } = storage;
-        if labels.len() < n || queue.is_empty() {
-            return Err(ConfigError::StorageTooSmall);
-        }
-        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
-            .map_err(ConfigError::Map)?
-            .with_surface(surface);
-        let inflation = Inflation::new(config.vehicle_radius, config.narrow_radius, geometry.resolution())
-            .map_err(ConfigError::Domain)?;
-        let labels = &mut labels[..n];
-        labels.fill(Label::Outside);
-        Ok(Self {
-            kind,
-            config,
-            gain: GainParams::default(),
-            map,
-            inflation,
-            labels,
-            queue,
-            search: Search::new(geometry.dims()),
-            // Decorrelated from the sensor-noise stream drawn from the same seed.
-            rng: ChaCha8Rng::seed_from_u64(seed ^ 0x5eed_ba5e_1100_0001),
-            waypoints: Vec::new(),
-            intrinsics: None,
-            commitment: None,
-            fruitless_visits: 0,
-            unexplored_at_last_plan: None,
-            core_views: false,
-            looks: None,
-            remnants: false,
-            goal_from_afar: false,
-            go_near: false,
-            reopening: Reopening::default(),
-            status: Status::default(),
-        })
+    /// The planner this is.
+    pub fn kind(&self) -> PlannerKind {
+        self.kind
     }
 
     /// Information-gain settings in use.
@@ -223,337 +134,43 @@ impl<'a> Baseline<'a> {
         &self.gain
     }
 
-    fn plan_inner(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
-        if !(position.coords.iter().all(|c| c.is_finite()) && yaw.is_finite()) {
-            self.status.errors.bad_pose += 1;
-            return PlanOutcome::Hold(Fault::BadPose);
-        }
-        let geometry = *self.map.geometry();
-        let Some(vehicle) = geometry.voxel_at(position) else {
-            self.status.errors.vehicle_outside_grid += 1;
-            return PlanOutcome::Hold(Fault::VehicleOutsideGrid);
-        };
-        // As the explorer does: the planning radius first, the narrower one out of a pocket.
-        let was_narrow = self.inflation.widen();
-        domain::mark_body(&mut self.map, self.inflation.stencil(), position);
-        let counts = self.map.counts();
-        let unexplored = counts.unknown - counts.sealed;
-        let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
-        let last_from_afar = std::mem::take(&mut self.goal_from_afar);
-        self.unexplored_at_last_plan = Some(unexplored);
-        let vehicle_i = geometry.dims().linear(vehicle);
-
-        for pass in 0..PLAN_PASSES {
-            let t0 = clock.ticks();
-            let built = self.build_domain(vehicle);
-            let t1 = clock.ticks();
-            self.status.phase_ticks.domain += t1.saturating_sub(t0);
-            let stats = match built {
-                Ok(s) => s,
-                Err(DomainError::VehicleInInflatedSpace) if was_narrow && self.inflation.narrow() => {
-                    self.status.errors.pocket_plans += 1;
-                    continue;
-                }
-                Err(DomainError::VehicleInInflatedSpace) => return self.escape(vehicle, yaw),
-                Err(_) => {
-                    self.status.errors.vehicle_not_free += 1;
-                    return PlanOutcome::Hold(Fault::VehicleNotFree);
-                }
-            };
-            self.status.domain = stats;
-            if stats.frontier == 0 {
-                // As the explorer does: a vehicle walled in by unknown voxels around its body
-                // is not done.
-                if domain::clear_if_walled_in(&mut self.map, &stats, position, self.config.vehicle_radius) {
-                    self.status.errors.clearances += 1;
-                    continue;
-                }
-                // As the explorer does: a frontier cut off by doubtful voxels alone is looked
-                // at again first.
-                let below = Reopening::threshold(self.config.doubtful_log_odds);
-                if below > 0 && !self.reopening.is_full() {
-                    if self.reopen_doubtful(vehicle, vehicle_i, below, false)
-                        || self.reopen_doubtful(vehicle, vehicle_i, below, true)
-                    {
-                        self.status.errors.reopenings += 1;
-                        continue;
-                    }
-                    // The doubting builds overwrote the labels: end on the ordinary domain.
-                    let _ = self.build_domain(vehicle);
-                }
-                let t0 = clock.ticks();
-                let pocket = domain::narrow_in_pocket(
-                    &self.map,
-                    &mut self.inflation,
-                    vehicle,
-                    &stats,
-                    self.labels,
-                    self.queue,
-                );
-                self.status.phase_ticks.domain += clock.ticks().saturating_sub(t0);
-                if pocket {
-                    self.status.errors.pocket_plans += 1;
-                    continue;
-                }
-                self.status.streamline = None;
-                return PlanOutcome::Complete;
-            }
-            let expansions0 = self.search.expansions;
-            let mut steps = 0u64;
-            let target = match self.kind {
-                PlannerKind::RandomFrontier => self.random_frontier(vehicle_i),
-                PlannerKind::InfoGain => self.information_gain(vehicle_i, counts.free, false, &mut steps),
-                PlannerKind::WeightedInfoGain => {
-                    self.information_gain(vehicle_i, counts.free, true, &mut steps)
-                }
-                _ => self.closest_frontier(vehicle_i),
-            };
-            let t2 = clock.ticks();
-            self.status.phase_ticks.solve += t2.saturating_sub(t1);
-            let Some(target) = target else {
-                self.status.planning_ops += self.search.expansions - expansions0 + steps;
-                self.status.errors.streamline_failures += 1;
-                return PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled));
-            };
-            let path = self.search.path(target.voxel);
-            self.waypoints = smooth(&geometry, self.labels, position, &path, &mut steps);
-            self.status.planning_ops += self.search.expansions - expansions0 + steps;
-            let length = polyline_length(&self.waypoints);
-            if self.remnants
-                && pass + 1 < PLAN_PASSES
-                && is_far_remnant(&self.config, &geometry, &stats, length)
-            {
-                self.seal_target(&target.watch);
-                self.status.errors.remnants_sealed += 1;
-                self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
-                continue;
-            }
-            let revisit = self.is_fruitless_revisit(target.frontier, position, learned_nothing);
-            let retry_near = self.core_views && revisit && last_from_afar;
-            self.go_near = self.core_views && revisit && (last_from_afar || self.go_near);
-            let goal = self.choose_goal(&target, yaw);
-            self.status.streamline = Some(StreamlineEnd {
-                frontier: target.frontier,
-                end: goal.position,
-                direction: Vector3::new(goal.yaw.cos(), goal.yaw.sin(), 0.0),
-                length,
-                steps: path.len() as u32,
-                fallback_steps: 0,
-            });
-            self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t2);
-            if retry_near {
-                // A look from afar that taught nothing: go near before calling it fruitless.
-            } else if revisit {
-                self.fruitless_visits = self.fruitless_visits.saturating_add(1);
-                if self.fruitless_visits >= self.config.stall_visits {
-                    self.fruitless_visits = 0;
-                    self.seal_target(&target.watch);
-                    self.status.errors.seals += 1;
-                    continue;
-                }
-            } else {
-                self.fruitless_visits = 0;
-            }
-            self.commitment = Some(Commitment {
-                goal,
-                watch: target.watch,
-            });
-            return PlanOutcome::Goal(goal);
-        }
-        self.status.errors.streamline_failures += 1;
-        PlanOutcome::Hold(Fault::Streamline(StreamlineError::Stalled))
-    }
-
-    /// Seals the unknown voxels behind each frontier voxel a target watches.
-    fn seal_target(&mut self, watch: &[VoxelIndex]) {
-        for w in watch {
-            domain::seal_around(
-                &mut self.map,
-                *w,
-                domain::frontier_reach(self.inflation.stencil()),
-            );
-        }
-    }
-
-    /// The explorer's rule for doorways closed by noise ([`Reopening`]), with this planner's
-    /// path: the shortest way to the nearest frontier through the domain that takes doubtful
-    /// voxels for free space, and the doubtful voxels forgotten around its first unsafe voxel.
-    /// True if any were. `below` is the stored threshold ([`Reopening::threshold`]).
-    fn reopen_doubtful(&mut self, vehicle: VoxelIndex, vehicle_i: usize, below: i8, lenient: bool) -> bool {
-        let doubt = self.reopening.doubt(below);
-        let doubt = if lenient { doubt.lenient() } else { doubt };
-        let stencil = self.inflation.stencil();
-        let built = domain::build_doubting(&self.map, stencil, vehicle, self.labels, self.queue, &doubt);
-        if !built.is_ok_and(|s| s.frontier > 0) {
-            return false;
-        }
-        let labels = &*self.labels;
-        let Some(f) = self
-            .search
-            .nearest(labels, vehicle_i, |i| labels[i] == Label::Frontier)
-        else {
-            return false;
-        };
-        let (geometry, dims) = (*self.map.geometry(), self.map.dims());
-        let path = self
-            .search
-            .path(f)
-            .into_iter()
-            .map(|i| geometry.center(dims.voxel(i)));
-        let gate = domain::first_unsafe_along(
-            &self.map,
-            self.inflation.stencil(),
-            &geometry.center(vehicle),
-            path,
-        );
-        gate.is_some_and(|g| {
-            self.reopening
-                .forget_around(&mut self.map, self.inflation.stencil(), g, below)
-                > 0
-        })
-    }
-
-    /// A* through the safe space to `home`, smoothed as the exploring paths are.
-    fn plan_home_inner(
-        &mut self,
-        position: &Point3<f32>,
-        yaw: f32,
-        home: &Point3<f32>,
-        clock: &mut HostClock,
-    ) -> PlanOutcome {
-        let geometry = *self.map.geometry();
-        let located =
-            harmonic_core::explore::locate_home(&geometry, position, yaw, home, &mut self.status.errors);
-        let (vehicle, home_voxel) = match located {
-            Ok(Some(voxels)) => voxels,
-            Ok(None) => return PlanOutcome::Complete,
-            Err(fault) => return PlanOutcome::Hold(fault),
-        };
-        // As the explorer does: the narrower radius out of a pocket, or into one to reach home.
-        let was_narrow = self.inflation.widen();
-        domain::mark_body(&mut self.map, self.inflation.stencil(), position);
-        let dims = geometry.dims();
-        let (from, to) = (dims.linear(vehicle), dims.linear(home_voxel));
-        let t0 = clock.ticks();
-        let (built, narrowed) = domain::build_towards(
-            &self.map,
-            &mut self.inflation,
-            vehicle,
-            to,
-            was_narrow,
-            self.labels,
-            self.queue,
-        );
-        let t1 = clock.ticks();
-        self.status.phase_ticks.domain += t1.saturating_sub(t0);
-        self.status.errors.pocket_plans += u32::from(narrowed);
-        match built {
-            Ok(stats) => self.status.domain = stats,
-            Err(DomainError::VehicleInInflatedSpace) => return self.escape(vehicle, yaw),
-            Err(_) => {
-                self.status.errors.vehicle_not_free += 1;
-                return PlanOutcome::Hold(Fault::VehicleNotFree);
-            }
-        }
-        if !self.labels.get(to).is_some_and(|l| l.in_domain()) {
-            return PlanOutcome::Hold(Fault::HomeUnreachable);
-        }
-        let expansions0 = self.search.expansions;
-        let found = self.search.astar(self.labels, from, to);
-        let mut steps = 0u64;
-        if found.is_some() {
-            let path = self.search.path(to);
-            self.waypoints = smooth(&geometry, self.labels, position, &path, &mut steps);
-        }
-        self.status.planning_ops += self.search.expansions - expansions0 + steps;
-        self.status.phase_ticks.solve += clock.ticks().saturating_sub(t1);
-        if found.is_none() {
-            return PlanOutcome::Hold(Fault::HomeUnreachable);
-        }
-        if self.waypoints.last().is_none_or(|w| (w - home).norm() > 1e-3) {
-            self.waypoints.push(*home);
-        }
-        PlanOutcome::Goal(Goal {
-            position: *home,
-            yaw,
-            frontier: home_voxel,
-            escape: false,
-        })
-    }
-
     /// Dijkstra to the first frontier voxel settled.
-    fn closest_frontier(&mut self, vehicle_i: usize) -> Option<Target> {
-        let labels = &*self.labels;
+    fn closest_frontier(&mut self, cx: &Context<'_, '_>, vehicle_i: usize) -> Option<Target> {
+        let labels = &*cx.labels;
         let f = self
             .search
             .nearest(labels, vehicle_i, |i| labels[i] == Label::Frontier)?;
-        Some(self.frontier_target(f))
+        Some(frontier_target(cx, f))
     }
 
     /// A* to a frontier voxel drawn uniformly at random.
-    fn random_frontier(&mut self, vehicle_i: usize) -> Option<Target> {
-        let frontier: Vec<usize> = (0..self.labels.len())
-            .filter(|&i| self.labels[i] == Label::Frontier)
+    fn random_frontier(&mut self, cx: &Context<'_, '_>, vehicle_i: usize) -> Option<Target> {
+        let frontier: Vec<usize> = (0..cx.labels.len())
+            .filter(|&i| cx.labels[i] == Label::Frontier)
             .collect();
         if frontier.is_empty() {
             return None;
         }
         let f = frontier[self.rng.random_range(0..frontier.len())];
-        self.search.astar(self.labels, vehicle_i, f)?;
-        Some(self.frontier_target(f))
-    }
-
-    fn frontier_target(&self, f: usize) -> Target {
-        let dims = self.map.dims();
-        let fv = dims.voxel(f);
-        Target {
-            voxel: f,
-            look: Look::At(self.unknown_behind(fv)),
-            watch: vec![fv],
-            frontier: fv,
-        }
-    }
-
-    /// The centroid of the unexplored voxels that make `f` a frontier (what the camera should
-    /// look at); the frontier's centre if there are none.
-    fn unknown_behind(&self, f: VoxelIndex) -> Point3<f32> {
-        let dims = self.map.dims();
-        let g = self.map.geometry();
-        let reach = domain::frontier_reach(self.inflation.stencil());
-        let (mut sum, mut n) = (Vector3::zeros(), 0u32);
-        for dz in -reach..=reach {
-            for dy in -reach..=reach {
-                for dx in -reach..=reach {
-                    if let Some(v) = dims.offset(f, [dx, dy, dz]) {
-                        if self.map.is_unexplored(dims.linear(v)) {
-                            sum += g.center(v).coords;
-                            n += 1;
-                        }
-                    }
-                }
-            }
-        }
-        if n == 0 {
-            g.center(f)
-        } else {
-            Point3::from(sum / n as f32)
-        }
+        self.search.astar(cx.labels, vehicle_i, f)?;
+        Some(frontier_target(cx, f))
     }
 
     /// Candidate poses from the safe space, scored by the frontier voxels they see.
     fn information_gain(
         &mut self,
+        cx: &Context<'_, '_>,
         vehicle_i: usize,
         free: u32,
         weighted: bool,
         steps: &mut u64,
     ) -> Option<Target> {
-        self.search.flood(self.labels, vehicle_i);
-        let dims = self.map.dims();
-        let geometry = *self.map.geometry();
+        self.search.flood(cx.labels, vehicle_i);
+        let dims = cx.map.dims();
+        let geometry = *cx.map.geometry();
         let res = geometry.resolution();
-        let domain: Vec<usize> = (0..self.labels.len())
-            .filter(|&i| self.labels[i].in_domain())
+        let domain: Vec<usize> = (0..cx.labels.len())
+            .filter(|&i| cx.labels[i].in_domain())
             .collect();
         let wanted =
             ((free as f32 * self.gain.candidate_fraction).ceil() as usize).clamp(1, domain.len().max(1));
@@ -569,10 +186,10 @@ impl<'a> Baseline<'a> {
         *steps += dims.len() as u64; // the frontier scan below
         let frontier: Vec<VoxelIndex> = (0..dims.len())
             .map(|i| dims.voxel(i))
-            .filter(|&v| self.map.is_frontier(v))
+            .filter(|&v| cx.map.is_frontier(v))
             .collect();
         if frontier.is_empty() {
-            return self.closest_frontier(vehicle_i);
+            return self.closest_frontier(cx, vehicle_i);
         }
         let sample: Vec<VoxelIndex> = if frontier.len() > self.gain.frontier_samples {
             rand::seq::index::sample(&mut self.rng, frontier.len(), self.gain.frontier_samples)
@@ -583,7 +200,7 @@ impl<'a> Baseline<'a> {
             frontier.clone()
         };
         let scale = frontier.len() as f32 / sample.len() as f32;
-        let view = self.view();
+        let view = view_of(cx);
         let mut scored: Vec<(f32, usize)> = candidates
             .iter()
             .filter_map(|&c| self.search.distance(c).map(|l| (l * res, c)))
@@ -601,7 +218,7 @@ impl<'a> Baseline<'a> {
                     break;
                 }
             }
-            let seen = visible_frontier(&self.map, &geometry.center(dims.voxel(c)), &sample, &view, steps);
+            let seen = visible_frontier(cx.map, &geometry.center(dims.voxel(c)), &sample, &view, steps);
             if seen.count == 0 {
                 continue;
             }
@@ -620,7 +237,7 @@ impl<'a> Baseline<'a> {
             }
         }
         let Some((_, _, c, seen)) = best else {
-            return self.closest_frontier(vehicle_i);
+            return self.closest_frontier(cx, vehicle_i);
         };
         // The path search above was a full flood: `path(c)` reads it.
         let cv = dims.voxel(c);
@@ -635,8 +252,7 @@ impl<'a> Baseline<'a> {
             })
             .copied()
             .unwrap_or(cv);
-        let mut watch = seen.voxels;
-        watch.truncate(16);
+        let watch = seen.voxels.iter().copied().take(WATCH_CAPACITY).collect();
         Some(Target {
             voxel: c,
             look: Look::Yaw(seen.yaw),
@@ -645,320 +261,334 @@ impl<'a> Baseline<'a> {
         })
     }
 
-    fn view(&self) -> View {
-        let (h, v) = self
-            .intrinsics
-            .map(|i| i.half_fov())
-            .unwrap_or((37.5f32.to_radians(), 37.5f32.to_radians()));
-        View {
-            half_h: h * self.config.view_margin,
-            tan_half_v: (v * self.config.view_margin).tan(),
-            min_range: self.config.integration.min_range + self.map.geometry().resolution(),
-            max_range: self.config.integration.max_range,
+    /// The thesis's rule for a frontier target: the last point of the way, walking back from
+    /// its end in half-voxel steps, from which the camera sees `p` (the unknown behind the
+    /// frontier) beyond the minimum range and inside the vertical field of view; with
+    /// [`Baseline::with_core_views`] first the core's rule ([`first_in_sight`]) unless `near`.
+    /// Trims the way to end at the goal; the goal position, the point to face, and whether it
+    /// looks from afar.
+    fn frontier_goal(
+        &self,
+        cx: &Context<'_, '_>,
+        frontier: VoxelIndex,
+        p: Point3<f32>,
+        way: &mut Waypoints,
+        near: bool,
+    ) -> (Point3<f32>, Point3<f32>, bool) {
+        let end = way.last().copied().unwrap_or_else(Point3::origin);
+        let view = view_of(cx);
+        let sees = |q: &Point3<f32>| {
+            let d = p - q;
+            let horizontal = (d.x * d.x + d.y * d.y).sqrt();
+            d.norm() >= view.min_range && d.z.abs() <= horizontal * view.tan_half_v
+        };
+        let step = 0.5 * cx.map.geometry().resolution();
+        let mut chosen = None;
+        if self.core_views && !near {
+            chosen = first_in_sight(cx, way, frontier, step);
+        }
+        let from_afar = chosen.is_some();
+        // Walk back from the end of the polyline in half-voxel steps.
+        'walk: for k in (1..way.len()).rev() {
+            if chosen.is_some() {
+                break;
+            }
+            let (a, b) = (way[k - 1], way[k]);
+            let len = (b - a).norm();
+            let n = (len / step).ceil().max(1.0) as usize;
+            for s in (0..=n).rev() {
+                let q = a + (b - a) * (s as f32 / n as f32);
+                if sees(&q) {
+                    chosen = Some((k, q));
+                    break 'walk;
+                }
+            }
+        }
+        match chosen {
+            Some((k, q)) => {
+                way.truncate(k);
+                let _ = way.push(q);
+                (q, p, from_afar)
+            }
+            None => (end, p, from_afar),
+        }
+    }
+}
+
+impl TargetChoice for Baseline {
+    fn choose(
+        &mut self,
+        cx: Context<'_, '_>,
+        position: &Point3<f32>,
+        _yaw: f32,
+        way: &mut Waypoints,
+        clock: &mut impl Clock,
+    ) -> Chosen {
+        let t1 = clock.ticks();
+        let geometry = *cx.map.geometry();
+        let vehicle_i = geometry.dims().linear(cx.vehicle);
+        let expansions0 = self.search.expansions;
+        let mut steps = 0u64;
+        let free = cx.map.counts().free;
+        let target = match self.kind {
+            PlannerKind::RandomFrontier => self.random_frontier(&cx, vehicle_i),
+            PlannerKind::InfoGain => self.information_gain(&cx, vehicle_i, free, false, &mut steps),
+            PlannerKind::WeightedInfoGain => self.information_gain(&cx, vehicle_i, free, true, &mut steps),
+            _ => self.closest_frontier(&cx, vehicle_i),
+        };
+        let status = &mut *cx.status;
+        status.phase_ticks.solve += clock.ticks().saturating_sub(t1);
+        let Some(target) = target else {
+            status.planning_ops += self.search.expansions - expansions0 + steps;
+            status.errors.streamline_failures += 1;
+            return Chosen::Hold(Fault::Streamline(StreamlineError::Stalled));
+        };
+        let path = self.search.path(target.voxel);
+        let smoothed = smooth(&geometry, cx.labels, position, &path, &mut steps);
+        status.planning_ops += self.search.expansions - expansions0 + steps;
+        if !densify(&smoothed, geometry.resolution(), way) {
+            status.errors.streamline_failures += 1;
+            return Chosen::Hold(Fault::Streamline(StreamlineError::StorageTooSmall));
+        }
+        self.look = target.look;
+        let last = smoothed.last().copied().unwrap_or(*position);
+        let before = smoothed.iter().rev().nth(1).copied().unwrap_or(*position);
+        let end = StreamlineEnd {
+            frontier: target.frontier,
+            end: last,
+            direction: (last - before).try_normalize(1e-6).unwrap_or(Vector3::x()),
+            length: polyline_length(&smoothed),
+            steps: path.len() as u32,
+            fallback_steps: 0,
+        };
+        Chosen::Way {
+            end,
+            watch: target.watch,
         }
     }
 
-    /// The goal for a target: for a frontier, the last point of the path from which the camera
-    /// sees the unknown behind it (the core's rule on its streamline); for a candidate pose, the
-    /// pose. Trims the waypoints to end at the goal.
-    fn choose_goal(&mut self, target: &Target, yaw: f32) -> Goal {
-        let end = self.waypoints.last().copied().unwrap_or_else(Point3::origin);
-        match target.look {
-            Look::Yaw(y) => Goal {
-                position: end,
-                yaw: y,
-                frontier: target.frontier,
-                escape: false,
-            },
+    fn goal(
+        &mut self,
+        cx: Context<'_, '_>,
+        end: &StreamlineEnd,
+        way: &mut Waypoints,
+        yaw: f32,
+        near: bool,
+    ) -> (Goal, bool) {
+        let (position, yaw, from_afar) = match self.look {
+            Look::Yaw(y) => (way.last().copied().unwrap_or(end.end), y, false),
             Look::At(p) => {
-                let view = self.view();
-                let sees = |q: &Point3<f32>| {
-                    let d = p - q;
-                    let horizontal = (d.x * d.x + d.y * d.y).sqrt();
-                    d.norm() >= view.min_range && d.z.abs() <= horizontal * view.tan_half_v
-                };
-                let step = 0.5 * self.map.geometry().resolution();
-                let mut chosen = None;
-                if self.core_views && !self.go_near {
-                    chosen = self.first_in_sight(target.frontier, step);
-                }
-                self.goal_from_afar = chosen.is_some();
-                // Walk back from the end of the polyline in half-voxel steps.
-                'walk: for k in (1..self.waypoints.len()).rev() {
-                    if chosen.is_some() {
-                        break;
-                    }
-                    let (a, b) = (self.waypoints[k - 1], self.waypoints[k]);
-                    let len = (b - a).norm();
-                    let n = (len / step).ceil().max(1.0) as usize;
-                    for s in (0..=n).rev() {
-                        let q = a + (b - a) * (s as f32 / n as f32);
-                        if sees(&q) {
-                            chosen = Some((k, q));
-                            break 'walk;
-                        }
-                    }
-                }
-                let (position, look) = match chosen {
-                    Some((k, q)) => {
-                        self.waypoints.truncate(k);
-                        self.waypoints.push(q);
-                        (q, p - q)
-                    }
-                    None => (end, p - end),
-                };
+                let (position, p, from_afar) = self.frontier_goal(&cx, end.frontier, p, way, near);
+                let look = p - position;
                 let yaw = if look.x.abs() + look.y.abs() > 1e-3 * look.norm().max(1e-6) {
                     look.y.atan2(look.x)
                 } else {
                     yaw
                 };
-                Goal {
-                    position,
-                    yaw,
-                    frontier: target.frontier,
-                    escape: false,
-                }
+                (position, yaw, from_afar)
             }
-        }
-    }
-
-    /// The core's view rule on the path: the first point, walking from the vehicle in steps of
-    /// `step` metres, from which `frontier` lies within the view range, inside the vertical
-    /// field of view, in plain sight through free voxels. `(segment end index, point)`.
-    fn first_in_sight(&self, frontier: VoxelIndex, step: f32) -> Option<(usize, Point3<f32>)> {
-        let view = self.view();
-        let g = *self.map.geometry();
-        let f = g.center(frontier);
-        let in_sight = |q: &Point3<f32>| {
-            let d = f - q;
-            let horizontal = (d.x * d.x + d.y * d.y).sqrt();
-            if d.norm() > self.config.view_range_m || d.z.abs() > horizontal * view.tan_half_v {
-                return false;
-            }
-            let mut clear = true;
-            traverse(&g, q, &f, |v| {
-                clear &= self.map.is_free(g.dims().linear(v));
-                clear
-            });
-            clear
         };
-        for k in 1..self.waypoints.len() {
-            let (a, b) = (self.waypoints[k - 1], self.waypoints[k]);
-            let n = ((b - a).norm() / step).ceil().max(1.0) as usize;
-            for s in 0..=n {
-                let q = a + (b - a) * (s as f32 / n as f32);
-                if in_sight(&q) {
-                    return Some((k, q));
-                }
-            }
-        }
-        None
+        let goal = Goal {
+            position,
+            yaw,
+            frontier: end.frontier,
+            escape: false,
+        };
+        (goal, from_afar)
     }
 
-    /// The vehicle stands at its last goal and targets (about) the same `frontier` again, or its
-    /// last visit taught nothing.
-    fn is_fruitless_revisit(
-        &self,
-        frontier: VoxelIndex,
+    /// The shortest way to the nearest frontier, with line-of-sight shortcuts.
+    fn way_to_frontier(
+        &mut self,
+        cx: Context<'_, '_>,
         position: &Point3<f32>,
-        learned_nothing: bool,
+        way: &mut Waypoints,
+        _clock: &mut impl Clock,
     ) -> bool {
-        let res = self.map.geometry().resolution();
-        self.commitment.as_ref().is_some_and(|c| {
-            !c.goal.escape
-                && (c.goal.position - position).norm() <= 1.5 * res
-                && (learned_nothing || c.goal.frontier.distance_sq(&frontier) <= 2)
-        })
-    }
-
-    /// The committed goal still stands: a watched voxel is still open, the vehicle is on the
-    /// path short of the goal, and the rest of the path is safe. Trims the waypoints.
-    fn keep_goal(&mut self, position: &Point3<f32>) -> bool {
-        let Some(c) = self.commitment.as_ref() else {
+        let geometry = *cx.map.geometry();
+        let labels = &*cx.labels;
+        let Some(f) = self
+            .search
+            .nearest(labels, geometry.dims().linear(cx.vehicle), |i| {
+                labels[i] == Label::Frontier
+            })
+        else {
             return false;
         };
-        if c.goal.escape {
-            return false;
-        }
-        let geometry = *self.map.geometry();
-        let res = geometry.resolution();
-        let reach = domain::frontier_reach(self.inflation.stencil());
-        let open = c
-            .watch
-            .iter()
-            .any(|w| domain::any_near(&self.map, *w, reach, |i| self.map.is_unexplored(i)));
-        if !open || (c.goal.position - position).norm() <= 1.5 * res {
-            return false;
-        }
-        // Nearest point of the remaining polyline.
-        let mut best: Option<(usize, f32)> = None;
-        for k in 1..self.waypoints.len() {
-            let (a, b) = (self.waypoints[k - 1], self.waypoints[k]);
-            let ab = b - a;
-            let t = if ab.norm_squared() > 0.0 {
-                ((position - a).dot(&ab) / ab.norm_squared()).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let d = (a + ab * t - position).norm();
-            if best.is_none_or(|(_, bd)| d < bd) {
-                best = Some((k, d));
-            }
-        }
-        let Some((k, d)) = best else { return false };
-        if d > 2.0 * res {
-            return false;
-        }
-        let rest_of_path = self.waypoints[k..].iter().copied();
-        if domain::first_unsafe_along(&self.map, self.inflation.stencil(), position, rest_of_path).is_some() {
-            return false;
-        }
-        let rest: Vec<Point3<f32>> = std::iter::once(*position)
-            .chain(self.waypoints[k..].iter().copied())
-            .collect();
-        self.waypoints = rest;
-        true
+        let mut steps = 0;
+        let path = smooth(&geometry, labels, position, &self.search.path(f), &mut steps);
+        cx.status.planning_ops += steps;
+        fill(way, &path)
     }
 
-    /// The vehicle's domain at the radius in use, built into the labels.
-    fn build_domain(&mut self, vehicle: VoxelIndex) -> Result<DomainStats, DomainError> {
-        let stencil = self.inflation.stencil();
-        domain::build(&self.map, stencil, vehicle, self.labels, self.queue)
-    }
-
-    fn escape(&mut self, vehicle: VoxelIndex, yaw: f32) -> PlanOutcome {
-        self.status.errors.escapes += 1;
-        let stencil = self.inflation.stencil();
-        let target = domain::escape_target(&self.map, stencil, vehicle, self.labels, self.queue, 4096);
-        self.labels.fill(Label::Outside);
-        match target {
-            Some(v) => {
-                let p = self.map.geometry().center(v);
-                self.waypoints = vec![p];
-                let goal = Goal {
-                    position: p,
-                    yaw,
-                    frontier: v,
-                    escape: true,
-                };
-                self.commitment = Some(Commitment {
-                    goal,
-                    watch: Vec::new(),
-                });
-                PlanOutcome::Goal(goal)
-            }
-            None => {
-                self.status.errors.vehicle_not_free += 1;
-                PlanOutcome::Hold(Fault::VehicleNotFree)
-            }
-        }
-    }
-}
-
-impl Planner for Baseline<'_> {
-    fn kind(&self) -> PlannerKind {
-        self.kind
-    }
-
-    fn integrate(
+    /// A* through the safe space to `home`, smoothed as the exploring paths are.
+    fn way_home(
         &mut self,
-        frame: &DepthFrame<'_>,
-        camera_pose: &Isometry3<f32>,
-        timing: Option<&FrameTiming>,
-    ) -> Result<(), Fault> {
-        if let Some(timing) = timing {
-            check_frame_timing(&self.config, timing, &mut self.status.errors).map_err(Fault::Integrate)?;
-        }
-        match integrate::integrate_with_scratch(
-            &mut self.map,
-            frame,
-            camera_pose,
-            &self.config.integration,
-            self.queue,
-        ) {
-            Ok(stats) => {
-                self.intrinsics = Some(*frame.intrinsics());
-                self.status.frames += 1;
-                self.status.integration = stats;
-                self.status.integration_ops += u64::from(stats.voxel_updates);
-                Ok(())
-            }
-            Err(e) => {
-                self.status.errors.frames_rejected += 1;
-                Err(Fault::Integrate(e))
-            }
-        }
-    }
-
-    fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
-        self.status.plans += 1;
-        self.status.phase_ticks = Default::default();
-        if self.config.commit_to_goal {
-            let t0 = clock.ticks();
-            let kept = self.keep_goal(position);
-            self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
-            if kept {
-                self.status.plans_kept += 1;
-                if let Some(c) = &self.commitment {
-                    return PlanOutcome::Goal(c.goal);
-                }
-            }
-        }
-        if let Some(looks) = self.looks.as_mut() {
-            let t0 = clock.ticks();
-            let arrived = self.commitment.as_ref().map(|c| c.goal);
-            let turn = looks.next(
-                &self.map,
-                &self.config,
-                self.intrinsics.as_ref(),
-                arrived,
-                position,
-                yaw,
-            );
-            self.status.phase_ticks.streamline += clock.ticks().saturating_sub(t0);
-            if let Some(turn) = turn {
-                self.waypoints = vec![*position];
-                self.status.arrival_looks += 1;
-                return PlanOutcome::Goal(turn);
-            }
-        }
-        self.waypoints.clear();
-        let outcome = self.plan_inner(position, yaw, clock);
-        self.status.record_plan(&outcome, &self.map);
-        if let PlanOutcome::Hold(_) = outcome {
-            self.commitment = None;
-        }
-        outcome
-    }
-
-    fn plan_home(
-        &mut self,
+        cx: Context<'_, '_>,
         position: &Point3<f32>,
         yaw: f32,
         home: &Point3<f32>,
-        clock: &mut HostClock,
+        home_voxel: VoxelIndex,
+        way: &mut Waypoints,
+        clock: &mut impl Clock,
     ) -> PlanOutcome {
-        self.status.plans += 1;
-        self.status.phase_ticks = Default::default();
-        self.commitment = None;
-        self.waypoints.clear();
-        let outcome = self.plan_home_inner(position, yaw, home, clock);
-        self.status.record_plan(&outcome, &self.map);
-        outcome
+        let t1 = clock.ticks();
+        let geometry = *cx.map.geometry();
+        let dims = geometry.dims();
+        let (from, to) = (dims.linear(cx.vehicle), dims.linear(home_voxel));
+        let expansions0 = self.search.expansions;
+        let found = self.search.astar(cx.labels, from, to);
+        let mut steps = 0u64;
+        let mut filled = true;
+        if found.is_some() {
+            let path = self.search.path(to);
+            filled = fill(way, &smooth(&geometry, cx.labels, position, &path, &mut steps));
+        }
+        cx.status.planning_ops += self.search.expansions - expansions0 + steps;
+        cx.status.phase_ticks.solve += clock.ticks().saturating_sub(t1);
+        if found.is_none() {
+            return PlanOutcome::Hold(Fault::HomeUnreachable);
+        }
+        if !filled {
+            cx.status.errors.streamline_failures += 1;
+            return PlanOutcome::Hold(Fault::Streamline(StreamlineError::StorageTooSmall));
+        }
+        if way.last().is_none_or(|w| (w - home).norm() > 1e-3) && way.push(*home).is_err() {
+            cx.status.errors.streamline_failures += 1;
+            return PlanOutcome::Hold(Fault::Streamline(StreamlineError::StorageTooSmall));
+        }
+        PlanOutcome::Goal(Goal {
+            position: *home,
+            yaw,
+            frontier: home_voxel,
+            escape: false,
+        })
     }
+}
 
-    fn waypoints(&self) -> &[Point3<f32>] {
-        &self.waypoints
+/// `way` holds `points` as a way as dense as a streamline is: every corner of the polyline kept,
+/// and points between them at most a voxel (`resolution`) apart, or farther where the way is
+/// too long for the waypoints' capacity. The explorer tracks a vehicle along a committed way by
+/// its nearest waypoint, as along a streamline; on a sparse polyline it would lose it between
+/// corners and drop the goal. False (and `way` cut short) if the corners alone do not fit.
+fn densify(points: &[Point3<f32>], resolution: f32, way: &mut Waypoints) -> bool {
+    way.clear();
+    let capacity = way.capacity();
+    if points.len() > capacity {
+        return false;
     }
-    fn map(&self) -> &VoxelMap<'_> {
-        &self.map
+    let Some(&first) = points.first() else {
+        return true;
+    };
+    let room = (capacity - points.len()).max(1);
+    let spacing = resolution.max(polyline_length(points) / room as f32);
+    let _ = way.push(first);
+    for w in points.windows(2) {
+        let n = ((w[1] - w[0]).norm() / spacing).ceil().max(1.0) as usize;
+        for k in 1..=n {
+            if way.push(w[0] + (w[1] - w[0]) * (k as f32 / n as f32)).is_err() {
+                return false;
+            }
+        }
     }
-    fn status(&self) -> &Status {
-        &self.status
+    true
+}
+
+/// `way` holds `points`; false (and `way` cut short) if they do not fit.
+fn fill(way: &mut Waypoints, points: &[Point3<f32>]) -> bool {
+    way.clear();
+    points.iter().all(|p| way.push(*p).is_ok())
+}
+
+/// A frontier voxel `f` as a target: looked at where the unknown behind it is.
+fn frontier_target(cx: &Context<'_, '_>, f: usize) -> Target {
+    let fv = cx.map.dims().voxel(f);
+    let mut watch = Watch::new();
+    let _ = watch.push(fv);
+    Target {
+        voxel: f,
+        look: Look::At(unknown_behind(cx, fv)),
+        watch,
+        frontier: fv,
     }
-    fn labels(&self) -> &[Label] {
-        self.labels
+}
+
+/// The centroid of the unexplored voxels that make `f` a frontier (what the camera should look
+/// at); the frontier's centre if there are none.
+fn unknown_behind(cx: &Context<'_, '_>, f: VoxelIndex) -> Point3<f32> {
+    let dims = cx.map.dims();
+    let g = cx.map.geometry();
+    let reach = harmonic_core::domain::frontier_reach(cx.stencil);
+    let (mut sum, mut n) = (Vector3::zeros(), 0u32);
+    for dz in -reach..=reach {
+        for dy in -reach..=reach {
+            for dx in -reach..=reach {
+                if let Some(v) = dims.offset(f, [dx, dy, dz]) {
+                    if cx.map.is_unexplored(dims.linear(v)) {
+                        sum += g.center(v).coords;
+                        n += 1;
+                    }
+                }
+            }
+        }
     }
+    if n == 0 {
+        g.center(f)
+    } else {
+        Point3::from(sum / n as f32)
+    }
+}
+
+/// The camera's view for the explorer's configuration and the last frame's intrinsics.
+fn view_of(cx: &Context<'_, '_>) -> View {
+    let (h, v) = cx
+        .intrinsics
+        .map(|i| i.half_fov())
+        .unwrap_or((37.5f32.to_radians(), 37.5f32.to_radians()));
+    View {
+        half_h: h * cx.config.view_margin,
+        tan_half_v: (v * cx.config.view_margin).tan(),
+        min_range: cx.config.integration.min_range + cx.map.geometry().resolution(),
+        max_range: cx.config.integration.max_range,
+    }
+}
+
+/// The core's view rule on a sparse way: the first point, walking from the vehicle in steps of
+/// `step` metres, from which `frontier` lies within the view range, inside the vertical field
+/// of view, in plain sight through free voxels. `(segment end index, point)`.
+fn first_in_sight(
+    cx: &Context<'_, '_>,
+    way: &Waypoints,
+    frontier: VoxelIndex,
+    step: f32,
+) -> Option<(usize, Point3<f32>)> {
+    let view = view_of(cx);
+    let g = *cx.map.geometry();
+    let f = g.center(frontier);
+    let in_sight = |q: &Point3<f32>| {
+        let d = f - q;
+        let horizontal = (d.x * d.x + d.y * d.y).sqrt();
+        if d.norm() > cx.config.view_range_m || d.z.abs() > horizontal * view.tan_half_v {
+            return false;
+        }
+        let mut clear = true;
+        traverse(&g, q, &f, |v| {
+            clear &= cx.map.is_free(g.dims().linear(v));
+            clear
+        });
+        clear
+    };
+    for k in 1..way.len() {
+        let (a, b) = (way[k - 1], way[k]);
+        let n = ((b - a).norm() / step).ceil().max(1.0) as usize;
+        for s in 0..=n {
+            let q = a + (b - a) * (s as f32 / n as f32);
+            if in_sight(&q) {
+                return Some((k, q));
+            }
+        }
+    }
+    None
 }
 
 fn polyline_length(points: &[Point3<f32>]) -> f32 {
@@ -1063,7 +693,9 @@ fn visible_frontier(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use harmonic_core::map::{Dims, LogOddsParams};
+    use crate::planners::storage::HostClock;
+    use harmonic_core::explore::{Explorer, ExplorerConfig, Status};
+    use harmonic_core::map::{Dims, LogOddsParams, MapGeometry};
 
     #[test]
     fn visibility_picks_the_yaw_that_sees_most_and_walls_block() {
@@ -1107,39 +739,69 @@ mod tests {
         assert_eq!(seen.count, 1, "{seen:?}");
     }
 
+    #[test]
+    fn a_way_is_made_as_dense_as_a_streamline_keeping_its_corners() {
+        let corners = [
+            Point3::new(0.0, 0.0, 1.0),
+            Point3::new(2.0, 0.0, 1.0),
+            Point3::new(2.0, 1.5, 1.0),
+        ];
+        let mut way = Waypoints::new();
+        assert!(densify(&corners, 0.1, &mut way));
+        assert_eq!(way.len(), 1 + 20 + 15);
+        for c in corners {
+            assert!(way.iter().any(|w| (w - c).norm() < 1e-6), "corner {c} kept");
+        }
+        assert!(way.windows(2).all(|w| (w[1] - w[0]).norm() <= 0.1 + 1e-5));
+        assert!((polyline_length(&way) - 3.5).abs() < 1e-4, "the same way");
+        // A way longer than the capacity holds at a voxel's spacing gets wider spacing, and
+        // still every corner.
+        let long = [
+            corners[0],
+            Point3::new(30.0, 0.0, 1.0),
+            Point3::new(30.0, 20.0, 1.0),
+        ];
+        assert!(densify(&long, 0.1, &mut way));
+        assert!(way.len() <= way.capacity());
+        assert!(way.iter().any(|w| (w - long[1]).norm() < 1e-6));
+        assert_eq!(way.last(), Some(&long[2]));
+    }
+
     /// Closest frontier from one end of a 6 × 1 × 1 m hall seen free but for a pocket of
-    /// 2 × 2 × 2 unknown voxels at voxel x = `pocket_x`, with the remnant ablation on or off.
+    /// 2 × 2 × 2 unknown voxels at voxel x = `pocket_x`, with the explorer's rule for far
+    /// remnants on or off.
     fn closest_frontier_to_a_pocket(pocket_x: u16, remnants: bool) -> (PlanOutcome, Status) {
         let dims = Dims::new(60, 10, 10).unwrap();
         let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
-        let mut storage = crate::planners::HostStorage::new(&dims);
-        let config = ExplorerConfig {
+        let mut storage = crate::planners::storage::HostStorage::new(&dims);
+        let mut config = ExplorerConfig {
             vehicle_radius: 0.05,
             ..Default::default()
         };
-        let mut planner = Baseline::new(PlannerKind::ClosestFrontier, g, config, storage.lend(), 1).unwrap();
-        if remnants {
-            planner = planner.with_remnants();
+        if !remnants {
+            config.remnant_frontier_m2 = 0.0;
         }
+        let targets = Baseline::new(PlannerKind::ClosestFrontier, dims, 1);
+        let mut planner = Explorer::with_targets(g, config, storage.lend(), targets).unwrap();
         for i in 0..dims.len() {
             let v = dims.voxel(i);
             let in_pocket =
                 (pocket_x..pocket_x + 2).contains(&v.x) && (4..6).contains(&v.y) && (4..6).contains(&v.z);
             if !in_pocket {
-                planner.map.apply_miss(i);
+                planner.map_mut().apply_miss(i);
             }
         }
-        let outcome = planner.plan(&Point3::new(0.25, 0.5, 0.5), 0.0, &mut HostClock::new());
-        (outcome, planner.status)
+        let outcome = planner.plan_timed(&Point3::new(0.25, 0.5, 0.5), 0.0, &mut HostClock::new());
+        (outcome, *planner.status())
     }
 
     #[test]
-    fn with_the_remnant_ablation_a_far_remnant_is_sealed_not_flown_to() {
+    fn closest_frontier_seals_a_far_remnant_as_the_harmonic_planner_does() {
         // The thesis's closest frontier flies to the last crumb however far it is.
         let (outcome, status) = closest_frontier_to_a_pocket(50, false);
         assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
         assert_eq!(status.errors.remnants_sealed, 0);
-        // With the core's rule it seals it, as the core's planner does, and is done.
+        // Inside the explorer's loop it seals it, as the harmonic planner does, and is done.
         let (outcome, status) = closest_frontier_to_a_pocket(50, true);
         assert_eq!(outcome, PlanOutcome::Complete, "{status:?}");
         assert_eq!(status.errors.remnants_sealed, 1);
@@ -1204,27 +866,27 @@ mod tests {
             let dims = Dims::new(10, 10, 4).unwrap();
             let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
             let n = dims.len();
-            let mut storage = crate::planners::HostStorage::new(&dims);
+            let mut storage = crate::planners::storage::HostStorage::new(&dims);
             let config = ExplorerConfig { vehicle_radius: 0.0, ..Default::default() };
-            let mut planner =
-                Baseline::new(PlannerKind::ClosestFrontier, g, config, storage.lend(), 1).unwrap();
+            let targets = Baseline::new(PlannerKind::ClosestFrontier, dims, 1);
+            let mut planner = Explorer::with_targets(g, config, storage.lend(), targets).unwrap();
             // 0..=5 free, 6..=7 occupied, 8..=9 unknown.
             for (i, &c) in cells.iter().enumerate() {
                 match c {
-                    0..=5 => planner.map.apply_miss(i),
-                    6..=7 => planner.map.apply_hit(i),
+                    0..=5 => planner.map_mut().apply_miss(i),
+                    6..=7 => planner.map_mut().apply_hit(i),
                     _ => false,
                 };
             }
             let vehicle = VoxelIndex::new(vx, vy, 1);
             let vi = dims.linear(vehicle);
             for _ in 0..3 {
-                planner.map.begin_frame();
-                planner.map.apply_miss(vi);
+                planner.map_mut().begin_frame();
+                planner.map_mut().apply_miss(vi);
             }
             let position = g.center(vehicle);
-            let outcome = planner.plan(&position, 0.0, &mut HostClock::new());
-            let labels = planner.labels.to_vec();
+            let outcome = planner.plan_timed(&position, 0.0, &mut HostClock::new());
+            let labels = planner.labels().to_vec();
             let frontiers: Vec<usize> = (0..n).filter(|&i| labels[i] == Label::Frontier).collect();
             match outcome {
                 PlanOutcome::Goal(goal) => {

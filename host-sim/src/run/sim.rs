@@ -66,7 +66,7 @@ use serde::Serialize;
 
 use crate::link::depth_link::{DepthLink, LinkConfig, LinkReport};
 use crate::planners::baseline::Baseline;
-use crate::planners::{HarmonicPlanner, HostClock, HostStorage, Planner, PlannerKind};
+use crate::planners::{CorePlanner, HarmonicPlanner, HostClock, HostStorage, Planner, PlannerKind};
 use crate::run::metrics::{Contact, Coverage, GroundTruth};
 use crate::sensors::camera::{DepthCamera, StereoNoise};
 use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
@@ -96,12 +96,6 @@ pub struct SimConfig {
     /// Closest and random frontier choose their goal by the core's view rule (an ablation; see
     /// [`Baseline::with_core_views`]).
     pub baseline_views: bool,
-    /// Closest, random frontier and the information-gain planners look around on arrival as
-    /// the core's planner does (an ablation; see [`Baseline::with_arrival_looks`]).
-    pub baseline_looks: bool,
-    /// The baselines seal far remnants as the core's planner does (an ablation; see
-    /// [`Baseline::with_remnants`]).
-    pub baseline_remnants: bool,
     /// Every planner's map keeps a surface estimate across frames for noisy depth (the host
     /// lends the storage, two words per voxel; see [`harmonic_core::integrate`]). Only the
     /// core's stereo sensor model uses it.
@@ -200,7 +194,7 @@ pub const STEREO_MODEL_VEHICLE_RADIUS_M: f32 = 0.25;
 /// ([`ExplorerConfig::narrow_radius`]). Noisy depth (`sigma_px` > 0) turns the sealing of far
 /// remnants off ([`ExplorerConfig::remnant_frontier_m2`] = 0). A later `--remnant-area` turns it
 /// back on only without the sensor model: with it the core keeps the rule off itself
-/// ([`harmonic_core::explore::is_far_remnant`]).
+/// ([`ExplorerConfig::remnant_frontier_m2`]).
 pub fn integrate_noisy_depth(
     cfg: &mut SimConfig,
     sigma_px: f32,
@@ -297,8 +291,6 @@ impl Default for SimConfig {
         Self {
             planner: PlannerKind::Harmonic,
             baseline_views: false,
-            baseline_looks: false,
-            baseline_remnants: false,
             surface_estimate: false,
             explorer: ExplorerConfig::default(),
             camera: DepthCamera::default_thesis(),
@@ -1234,18 +1226,13 @@ fn make_planner<'s>(
             ))
         }
         kind => {
-            let mut baseline =
-                Baseline::new(kind, geometry, cfg.explorer, storage.lend(), cfg.seed).map_err(config_err)?;
+            let mut targets = Baseline::new(kind, geometry.dims(), cfg.seed);
             if cfg.baseline_views {
-                baseline = baseline.with_core_views();
+                targets = targets.with_core_views();
             }
-            if cfg.baseline_looks {
-                baseline = baseline.with_arrival_looks();
-            }
-            if cfg.baseline_remnants {
-                baseline = baseline.with_remnants();
-            }
-            Box::new(baseline)
+            let explorer = Explorer::with_targets(geometry, cfg.explorer, storage.lend(), targets)
+                .map_err(config_err)?;
+            Box::new(CorePlanner::baseline(explorer))
         }
     })
 }

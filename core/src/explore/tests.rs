@@ -8,10 +8,14 @@ use std::vec::Vec;
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
+use super::looks::{octant, octant_yaw};
+use super::target::heading;
 use super::*;
 use crate::camera::{DepthFrame, Intrinsics};
+use crate::field::PlanningField;
 use crate::map::{Dims, MapGeometry};
 use crate::solve::multigrid;
+use crate::solve::SolveError;
 
 struct Buffers {
     log_odds: Vec<i8>,
@@ -985,6 +989,14 @@ fn storage_bytes_count_every_buffer() {
     assert_eq!(storage.bytes(), want);
 }
 
+impl Explorer<'_> {
+    /// Solves the planning field over the domain built last.
+    fn solve_field(&mut self, vehicle: VoxelIndex) -> Result<crate::solve::SolveStats, SolveError> {
+        let (targets, mut cx, _) = self.parts(vehicle);
+        targets.solve_field(&mut cx)
+    }
+}
+
 /// A re-solve after a scan, with a box lent, works in a box around the scan and leaves the
 /// field a whole-grid re-solve leaves, for less work; without the box it sweeps the grid.
 #[test]
@@ -1015,7 +1027,7 @@ fn a_re_solve_after_a_scan_works_in_a_box_around_it() {
             (e.status.local_solves, e.status.local_given_up),
             (u32::from(local), 0)
         );
-        fields.push((e.phi.to_vec(), s.cell_updates));
+        fields.push((e.psi().to_vec(), s.cell_updates));
     }
     let [(whole, whole_work), (boxed, boxed_work)] = [fields[0].clone(), fields[1].clone()];
     let worst = whole
@@ -1066,7 +1078,7 @@ fn the_flat_solver_solves_the_field_multigrid_does() {
         e.build_domain(vehicle).unwrap();
         let s = e.solve_field(vehicle).unwrap();
         assert!(first.converged && s.converged, "{solver:?}: {first:?} {s:?}");
-        fields.push(e.phi.to_vec());
+        fields.push(e.psi().to_vec());
     }
     let worst = fields[0]
         .iter()
