@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
-"""Import cycles between the modules of host-sim (standard library only).
+"""Import cycles between the modules of a crate: host-sim, core or firmware (standard library only).
 
     python3 scripts/module_cycles.py [--src host-sim/src] [--no-tests] [--level leaf|top|both] [--edges]
+    python3 scripts/module_cycles.py --all     # core, firmware and host-sim, each in turn
 
 Builds the module tree of the library (from lib.rs) and of the binary (from main.rs) by
 following their `mod name;` declarations, then reads every file's paths into the crate:
 `use` trees and inline paths starting with `crate::`, `super::`, `self::`, a file-backed
-child module (`cli::...` in main.rs) and, in the binary, `harmonic_sim::`. Comments (doc
+child module (`cli::...` in main.rs) and, in the binary, the library's name (`harmonic_sim::`,
+read from the crate's Cargo.toml). Comments (doc
 links included) and string literals are ignored. A path counts as a dependency on the deepest
 file-backed module it names (`crate::run::sim::Report` -> `run::sim`); inline modules such as
 `mod tests` belong to their file.
@@ -214,6 +216,9 @@ def module_at(f, pos):
     return segs, test
 
 
+LIB_NAME = "harmonic_sim"
+
+
 def resolve(f, pos, segs, roots):
     """The file-backed module a path written at `pos` in `f` names, or None (external)."""
     here, _ = module_at(f, pos)
@@ -221,7 +226,7 @@ def resolve(f, pos, segs, roots):
     first = segs[0]
     if first == "crate":
         absolute, rest = [], segs[1:]
-    elif first == "harmonic_sim" and f.crate == "bin":
+    elif first == LIB_NAME and f.crate == "bin":
         crate, absolute, rest = "lib", [], segs[1:]
     elif first in ("self", "super"):
         absolute, rest = list(here), list(segs)
@@ -325,15 +330,21 @@ def report(title, nodes, evidence):
     return 1
 
 
-def main():
-    here = os.path.dirname(os.path.abspath(__file__))
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--src", default=os.path.join(here, "..", "host-sim", "src"))
-    ap.add_argument("--no-tests", action="store_true", help="ignore #[cfg(test)] code")
-    ap.add_argument("--level", choices=["leaf", "top", "both"], default="both")
-    ap.add_argument("--edges", action="store_true", help="also print every edge of the graphs")
-    args = ap.parse_args()
-    src = os.path.normpath(args.src)
+def crate_name(src):
+    """The library's name as paths in the binary spell it, from the crate's Cargo.toml."""
+    manifest = os.path.join(os.path.dirname(src), "Cargo.toml")
+    try:
+        text = open(manifest, encoding="utf-8").read()
+    except OSError:
+        return LIB_NAME
+    m = re.search(r'^name\s*=\s*"([^"]+)"', text, re.M)
+    return m.group(1).replace("-", "_") if m else LIB_NAME
+
+
+def check(src, args):
+    global LIB_NAME
+    src = os.path.normpath(src)
+    LIB_NAME = crate_name(src)
     rel = os.path.dirname(os.path.dirname(src)) or "."
 
     files, roots = [], {}
@@ -377,6 +388,25 @@ def main():
         status |= report("leaf modules (files)", {f.leaf for f in files}, leaf)
     if args.level in ("top", "both"):
         status |= report("top-level modules", {f.top for f in files}, top)
+    return status
+
+
+def main():
+    here = os.path.dirname(os.path.abspath(__file__))
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--src", default=os.path.join(here, "..", "host-sim", "src"))
+    ap.add_argument("--all", action="store_true", help="check core, firmware and host-sim")
+    ap.add_argument("--no-tests", action="store_true", help="ignore #[cfg(test)] code")
+    ap.add_argument("--level", choices=["leaf", "top", "both"], default="both")
+    ap.add_argument("--edges", action="store_true", help="also print every edge of the graphs")
+    args = ap.parse_args()
+    crates = ["core", "firmware", "host-sim"] if args.all else [None]
+    status = 0
+    for crate in crates:
+        src = os.path.join(here, "..", crate, "src") if crate else args.src
+        if crate:
+            print(f"{crate}:")
+        status |= check(src, args)
     if status == 0:
         print("no cycles")
     return status

@@ -51,7 +51,6 @@ use ::mavlink::dialects::common::{
 use ::mavlink::{MAVLinkMessageRaw, MAVLinkV2MessageRaw};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
 
-use crate::explore::{Fault, Goal, PlanOutcome};
 use crate::operator::{CommandResult, Operator, OperatorCommand, OperatorState};
 
 pub use ::mavlink::dialects::common::{self, MavComponent, MavMessage, MavSeverity, PositionTargetTypemask};
@@ -314,7 +313,7 @@ pub enum InputError {
     PoseJump,
 }
 
-/// Why [`Bridge::set_goal`] or [`Bridge::set_target`] kept the current setpoint. Counted in
+/// Why [`Bridge::set_target`] kept the current setpoint. Counted in
 /// [`BridgeCounters::goals_refused`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -417,6 +416,13 @@ fn bump(counter: &mut u32) {
 // ---------------------------------------------------------------------------------------------
 // STATUSTEXT text
 
+/// The 32-bit FNV-1a digest of `bytes`.
+fn fnv1a(bytes: &[u8]) -> u32 {
+    bytes
+        .iter()
+        .fold(0x811c_9dc5, |h, &b| (h ^ u32::from(b)).wrapping_mul(0x0100_0193))
+}
+
 /// A STATUSTEXT text field: at most [`STATUSTEXT_LEN`] bytes of UTF-8, cut at a character
 /// boundary, NUL-padded. Formatting into it never fails; what does not fit is dropped.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -515,7 +521,7 @@ struct NedAttitude {
 /// bytes of state; time is whatever monotonic millisecond clock the caller passes in.
 ///
 /// ```text
-/// set_goal / set_target / hold / apply(PlanOutcome) / status_text ─┐
+/// set_target / hold / hold_because / complete / status_text ─────────┐
 ///                                                                   ├─► poll(now) ─► HEARTBEAT,
 /// handle(now, header, msg) ◄── LOCAL_POSITION_NED, ATTITUDE, ODOMETRY│    SET_POSITION_TARGET_LOCAL_NED,
 ///           │                                                       │    STATUSTEXT
@@ -536,7 +542,9 @@ pub struct Bridge {
     last_target_sequence: Option<u8>,
     pose_fault: bool,
     complete_reported: bool,
-    last_fault: Option<Fault>,
+    /// A digest of the reason of the last hold announced ([`Bridge::hold_because`]): 4 bytes
+    /// where the text would take 51 in the firmware's RAM.
+    last_hold: Option<u32>,
     /// The last pose rejection announced by STATUSTEXT, and when.
     last_rejection: Option<(InputError, u64)>,
     operator: Operator,
@@ -581,7 +589,7 @@ impl Bridge {
             last_target_sequence: None,
             pose_fault: false,
             complete_reported: false,
-            last_fault: None,
+            last_hold: None,
             last_rejection: None,
             operator: Operator::new(config.wait_for_start),
             acks: heapless::Deque::new(),
@@ -611,11 +619,6 @@ impl Bridge {
         self.pose_fault
     }
 
-    /// Streams `goal` from now on.
-    pub fn set_goal(&mut self, goal: &Goal) -> Result<(), GoalError> {
-        self.set_target(goal.position, goal.yaw)
-    }
-
     /// Streams a setpoint at `position` with `yaw` (map frame) from now on. Refused, keeping
     /// the current setpoint, if either is not finite or while the pose is stale.
     pub fn set_target(&mut self, position: Point3<f32>, yaw: f32) -> Result<(), GoalError> {
@@ -631,7 +634,7 @@ impl Bridge {
             return Err(error);
         }
         self.complete_reported = false;
-        self.last_fault = None;
+        self.last_hold = None;
         self.change_setpoint(Setpoint {
             position,
             yaw: wrap_angle(yaw),
@@ -659,42 +662,32 @@ impl Bridge {
         }
     }
 
-    /// Acts on a plan: a goal is streamed; completion holds and announces itself once
-    /// (NOTICE); a fault holds and is announced when it differs from the previous one
-    /// (WARNING), so a planner that fails every cycle does not flood the link.
-    pub fn apply(&mut self, outcome: &PlanOutcome) {
-        match outcome {
-            PlanOutcome::Goal(goal) => {
-                if self.set_goal(goal).is_err() {
-                    self.hold();
-                }
-            }
-            PlanOutcome::Complete => {
-                self.hold();
-                let _ = self.operator.complete();
-                if !self.complete_reported {
-                    self.complete_reported = true;
-                    let _ = self.status_text(MavSeverity::MAV_SEVERITY_NOTICE, "exploration complete");
-                }
-            }
-            // The operator's hold was announced when the operator asked for it.
-            PlanOutcome::Hold(Fault::Operator) => self.hold(),
-            PlanOutcome::Hold(fault) => {
-                self.hold();
-                if self.last_fault != Some(*fault) {
-                    self.last_fault = Some(*fault);
-                    let mut text = StatusText::new();
-                    let _ = write!(text, "hold: {fault:?}");
-                    let _ = self.queue_text(MavSeverity::MAV_SEVERITY_WARNING, text);
-                }
-            }
+    /// The exploration is complete: holds, tells the operator state, and announces it once
+    /// (NOTICE) until the next target.
+    pub fn complete(&mut self) {
+        self.hold();
+        let _ = self.operator.complete();
+        if !self.complete_reported {
+            self.complete_reported = true;
+            let _ = self.status_text(MavSeverity::MAV_SEVERITY_NOTICE, "exploration complete");
+        }
+    }
+
+    /// Holds for `reason`, announced (WARNING) when it differs from the last hold's, so a
+    /// planner that fails every cycle does not flood the link.
+    pub fn hold_because(&mut self, reason: StatusText) {
+        self.hold();
+        let digest = fnv1a(reason.as_str().as_bytes());
+        if self.last_hold != Some(digest) {
+            self.last_hold = Some(digest);
+            let _ = self.queue_text(MavSeverity::MAV_SEVERITY_WARNING, reason);
         }
     }
 
     /// Announces the start of exploration (INFO).
     pub fn exploration_started(&mut self) -> Result<(), QueueFull> {
         self.complete_reported = false;
-        self.last_fault = None;
+        self.last_hold = None;
         self.status_text(MavSeverity::MAV_SEVERITY_INFO, "exploration started")
     }
 
@@ -1738,7 +1731,6 @@ mod tests {
     extern crate std;
 
     use super::*;
-    use crate::map::VoxelIndex;
     use nalgebra::Vector3;
     use std::vec::Vec;
 
@@ -1774,13 +1766,12 @@ mod tests {
         }
     }
 
-    fn goal(x: f32, y: f32, z: f32, yaw: f32) -> Goal {
-        Goal {
-            position: Point3::new(x, y, z),
-            yaw,
-            frontier: VoxelIndex { x: 0, y: 0, z: 0 },
-            escape: false,
-        }
+    fn goal(x: f32, y: f32, z: f32, yaw: f32) -> (Point3<f32>, f32) {
+        (Point3::new(x, y, z), yaw)
+    }
+
+    fn target(bridge: &mut Bridge, (position, yaw): (Point3<f32>, f32)) -> Result<(), GoalError> {
+        bridge.set_target(position, yaw)
     }
 
     fn autopilot(sequence: u8) -> MavHeader {
@@ -2267,7 +2258,7 @@ mod tests {
         );
         // Completion is a state too, reported like the others.
         let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
-        bridge.apply(&PlanOutcome::Complete);
+        bridge.complete();
         assert_eq!(bridge.operator_state(), OperatorState::Complete);
     }
 
@@ -2279,7 +2270,7 @@ mod tests {
             ..BridgeConfig::default()
         };
         let mut bridge = Bridge::new(config).unwrap();
-        bridge.set_goal(&goal(1.0, 2.0, 3.0, 0.0)).unwrap();
+        target(&mut bridge, goal(1.0, 2.0, 3.0, 0.0)).unwrap();
         let mut sent = Sent::default();
         poll_into(&mut bridge, 1234, &mut sent);
         let (_, sp) = &sent.setpoints[0];
@@ -2330,7 +2321,7 @@ mod tests {
             }
             if new_goals && now % 1000 < 10 {
                 let k = (now / 1000) as f32;
-                let _ = bridge.set_goal(&goal(k, 0.5 * k, 1.0, 0.1 * k));
+                let _ = target(&mut bridge, goal(k, 0.5 * k, 1.0, 0.1 * k));
             }
             poll_into(&mut bridge, now, &mut sent);
             now += step(i);
@@ -2428,23 +2419,23 @@ mod tests {
     }
 
     #[test]
-    fn plan_outcomes_announce_start_completion_and_faults_once() {
+    fn start_completion_and_hold_reasons_are_announced_once() {
         let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
         let mut seq = 0;
         feed_pose(&mut bridge, 0, &mut seq, [2.0, 1.0, -3.0], 0.0);
         bridge.exploration_started().unwrap();
-        bridge.apply(&PlanOutcome::Goal(goal(4.0, 4.0, 1.0, 0.0)));
+        target(&mut bridge, goal(4.0, 4.0, 1.0, 0.0)).unwrap();
         assert_eq!(bridge.setpoint().unwrap().kind, SetpointKind::Goal);
         for _ in 0..3 {
-            bridge.apply(&PlanOutcome::Hold(Fault::VehicleOutsideGrid));
+            bridge.hold_because(StatusText::from_str_truncated("hold: VehicleOutsideGrid"));
         }
-        bridge.apply(&PlanOutcome::Hold(Fault::BadPose));
+        bridge.hold_because(StatusText::from_str_truncated("hold: BadPose"));
         let setpoint = bridge.setpoint().unwrap();
         assert_eq!(setpoint.kind, SetpointKind::Hold);
         // Holds where the vehicle is: NED (2, 1, −3) → map (1, 2, 3).
         assert_eq!(setpoint.position, Point3::new(1.0, 2.0, 3.0));
-        bridge.apply(&PlanOutcome::Complete);
-        bridge.apply(&PlanOutcome::Complete);
+        bridge.complete();
+        bridge.complete();
         let mut sent = Sent::default();
         poll_into(&mut bridge, 0, &mut sent);
         let texts: Vec<_> = sent.texts.iter().map(|(s, t)| (*s, t.as_str())).collect();
@@ -2458,7 +2449,7 @@ mod tests {
             ]
         );
         assert_eq!(
-            bridge.set_goal(&goal(f32::NAN, 0.0, 0.0, 0.0)),
+            target(&mut bridge, goal(f32::NAN, 0.0, 0.0, 0.0)),
             Err(GoalError::NotFinite)
         );
         assert_eq!(bridge.counters().goals_refused, 1);
@@ -2519,7 +2510,7 @@ mod tests {
         assert_eq!(bridge.pose(0), Err(PoseFault::NoPose));
         let mut seq = 0;
         feed_pose(&mut bridge, 0, &mut seq, [2.0, 1.0, -3.0], PI / 2.0);
-        bridge.set_goal(&goal(10.0, 10.0, 2.0, 0.0)).unwrap();
+        target(&mut bridge, goal(10.0, 10.0, 2.0, 0.0)).unwrap();
         poll_into(&mut bridge, 0, &mut sent);
         assert!(bridge.pose(500).is_ok(), "500 ms old is still fresh");
         assert_eq!(bridge.pose(501), Err(PoseFault::Stale { age_ms: 501 }));
@@ -2541,7 +2532,7 @@ mod tests {
             .iter()
             .any(|(s, t)| *s == MavSeverity::MAV_SEVERITY_WARNING && t == "pose stale: holding"));
         assert_eq!(
-            bridge.set_goal(&goal(0.0, 0.0, 1.0, 0.0)),
+            target(&mut bridge, goal(0.0, 0.0, 1.0, 0.0)),
             Err(GoalError::PoseFault)
         );
         let mut hb = Vec::new();
@@ -2555,7 +2546,7 @@ mod tests {
         assert_eq!(bridge.pose(3010).unwrap().position, Point3::new(0.0, 0.0, 1.0));
         poll_into(&mut bridge, 3010, &mut sent);
         assert!(!bridge.pose_fault());
-        assert!(bridge.set_goal(&goal(0.0, 0.0, 1.0, 0.0)).is_ok());
+        assert!(target(&mut bridge, goal(0.0, 0.0, 1.0, 0.0)).is_ok());
         assert_eq!(bridge.counters().stale_events, 1);
     }
 
@@ -2603,7 +2594,7 @@ mod tests {
 
     fn sample_messages() -> Vec<MavMessage> {
         let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
-        bridge.set_goal(&goal(1.0, 2.0, 3.0, 0.5)).unwrap();
+        target(&mut bridge, goal(1.0, 2.0, 3.0, 0.5)).unwrap();
         bridge
             .status_text(MavSeverity::MAV_SEVERITY_NOTICE, "exploration complete")
             .unwrap();
@@ -2692,7 +2683,7 @@ mod tests {
     #[test]
     fn poll_write_and_read_from() {
         let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
-        bridge.set_goal(&goal(1.0, 2.0, 3.0, 0.0)).unwrap();
+        target(&mut bridge, goal(1.0, 2.0, 3.0, 0.0)).unwrap();
         let mut out = [0u8; 512];
         let mut writer: &mut [u8] = &mut out;
         let n = bridge.poll_write(0, &mut writer).unwrap();

@@ -135,7 +135,7 @@ pub fn run(data: &[u8]) {
                         escape: false,
                     }),
                 };
-                bridge.apply(&outcome);
+                harmonic_core::companion::steer(&mut bridge, &outcome);
                 None
             }
             12 => {

@@ -37,6 +37,8 @@ mod signing;
 pub use follower::{travel_heading, Follower};
 pub use signing::LinkSigning;
 
+use core::fmt::Write as _;
+
 use embedded_io::{Read, ReadReady, Write};
 use nalgebra::Point3;
 
@@ -48,8 +50,8 @@ use crate::link::{
 };
 use crate::mavlink::common::TIMESYNC_DATA;
 use crate::mavlink::{
-    encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, AUTOPILOT_COMPONENT_ID,
-    DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
+    encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, StatusText,
+    AUTOPILOT_COMPONENT_ID, DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
 };
 use crate::operator::OperatorState;
 use crate::signing::{SecretKey, VerifierCounters};
@@ -452,10 +454,10 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize> Companion<'a, LINK_BYTES
             PlanOutcome::Complete if self.config.return_home_after_complete && self.home.is_some() => {
                 // Explored ("exploration complete" goes out), then home by the same way the
                 // operator's return-to-launch takes: the next frame plans it.
-                self.bridge.apply(&outcome);
+                steer(&mut self.bridge, &outcome);
                 self.bridge.return_home();
             }
-            _ => self.bridge.apply(&outcome),
+            _ => steer(&mut self.bridge, &outcome),
         }
         match &outcome {
             PlanOutcome::Goal(goal) => self.follower.follow(self.explorer.waypoints(), goal),
@@ -552,6 +554,27 @@ impl Taken {
     }
 }
 
+/// Acts on a plan through the MAVLink bridge: a goal is streamed (a goal the bridge refuses,
+/// not finite or on a stale pose, holds); completion holds and announces itself once (NOTICE);
+/// a fault holds and is announced when it differs from the previous one (WARNING); the
+/// operator's hold was announced when the operator asked for it.
+pub fn steer(bridge: &mut Bridge, outcome: &PlanOutcome) {
+    match outcome {
+        PlanOutcome::Goal(goal) => {
+            if bridge.set_target(goal.position, goal.yaw).is_err() {
+                bridge.hold();
+            }
+        }
+        PlanOutcome::Complete => bridge.complete(),
+        PlanOutcome::Hold(Fault::Operator) => bridge.hold(),
+        PlanOutcome::Hold(fault) => {
+            let mut text = StatusText::new();
+            let _ = write!(text, "hold: {fault:?}");
+            bridge.hold_because(text);
+        }
+    }
+}
+
 /// Writes one MAVLink 2 frame, signed if `signing` is set.
 fn write_frame<M: Write, const STREAMS: usize>(
     mav: &mut M,
@@ -567,4 +590,70 @@ fn write_frame<M: Write, const STREAMS: usize>(
     }
     mav.write_all(frame.get(..n).unwrap_or(&[]))
         .map_err(|_| IoError::Mavlink)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::explore::Goal;
+    use crate::map::VoxelIndex;
+    use crate::mavlink::common::{MavSeverity, LOCAL_POSITION_NED_DATA};
+    use crate::mavlink::SetpointKind;
+
+    #[test]
+    fn plans_steer_the_bridge_and_faults_are_announced_once() {
+        let mut bridge = Bridge::new(BridgeConfig::default()).unwrap();
+        let header = MavHeader {
+            system_id: 1,
+            component_id: 1,
+            sequence: 0,
+        };
+        let position = MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+            x: 2.0,
+            y: 1.0,
+            z: -3.0,
+            ..LOCAL_POSITION_NED_DATA::DEFAULT
+        });
+        let attitude = MavMessage::ATTITUDE(crate::mavlink::common::ATTITUDE_DATA::DEFAULT);
+        bridge.handle(0, &header, &position).unwrap();
+        bridge.handle(0, &header, &attitude).unwrap();
+        let goal = Goal {
+            position: Point3::new(4.0, 4.0, 1.0),
+            yaw: 0.0,
+            frontier: VoxelIndex::new(0, 0, 0),
+            escape: false,
+        };
+        steer(&mut bridge, &PlanOutcome::Goal(goal));
+        assert_eq!(bridge.setpoint().unwrap().kind, SetpointKind::Goal);
+        for _ in 0..3 {
+            steer(&mut bridge, &PlanOutcome::Hold(Fault::VehicleOutsideGrid));
+        }
+        steer(&mut bridge, &PlanOutcome::Hold(Fault::BadPose));
+        steer(&mut bridge, &PlanOutcome::Hold(Fault::Operator));
+        let setpoint = bridge.setpoint().unwrap();
+        assert_eq!(setpoint.kind, SetpointKind::Hold);
+        // Holds where the vehicle is: NED (2, 1, −3) → map (1, 2, 3).
+        assert_eq!(setpoint.position, Point3::new(1.0, 2.0, 3.0));
+        steer(&mut bridge, &PlanOutcome::Complete);
+        steer(&mut bridge, &PlanOutcome::Complete);
+        let mut texts: heapless::Vec<(MavSeverity, StatusText), 8> = heapless::Vec::new();
+        bridge.poll(0, |_, m| {
+            if let MavMessage::STATUSTEXT(d) = m {
+                let text = core::str::from_utf8(d.text.as_ref())
+                    .unwrap()
+                    .trim_end_matches('\0');
+                let _ = texts.push((d.severity, StatusText::from_str_truncated(text)));
+            }
+        });
+        let texts: heapless::Vec<(MavSeverity, &str), 8> =
+            texts.iter().map(|(s, t)| (*s, t.as_str())).collect();
+        assert_eq!(
+            texts.as_slice(),
+            [
+                (MavSeverity::MAV_SEVERITY_WARNING, "hold: VehicleOutsideGrid"),
+                (MavSeverity::MAV_SEVERITY_WARNING, "hold: BadPose"),
+                (MavSeverity::MAV_SEVERITY_NOTICE, "exploration complete"),
+            ]
+        );
+    }
 }

@@ -10,8 +10,6 @@ use crate::solve::SolveParams;
 use crate::streamline::StreamlineParams;
 
 use super::status::ErrorCounters;
-#[allow(unused_imports)] // doc links
-use super::{Explorer, Reopening};
 
 /// Which Laplace solver plans with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -79,7 +77,7 @@ pub struct ExplorerConfig {
     /// the paths of the thesis's worlds by 15–23 % and multiply the flight time by 2.3–2.6;
     /// closest frontier given the same turns gains as much.
     pub arrival_looks: u8,
-    /// Doorways must not close under noise ([`Reopening`]): occupied voxels with a log-odds
+    /// Doorways must not close under noise ([`Reopening`](crate::domain::Reopening)): occupied voxels with a log-odds
     /// below this (log-odds units) are doubtful. Before the exploration ends for want of a
     /// reachable frontier, a frontier cut off by doubtful voxels alone is reopened: the doubtful
     /// voxels where the way to it leaves the safe space are forgotten, so the planner looks at
@@ -103,14 +101,14 @@ pub struct ExplorerConfig {
     /// estimator relocalised), the new place is taken. Not finite or ≤ 0: no check.
     pub max_frame_jump_m: f32,
     /// A frame taken while the vehicle yawed faster than this (rad/s, either way) is refused by
-    /// [`Explorer::integrate_timed`] ([`IntegrateError::TurningTooFast`], counted in
+    /// [`Explorer::integrate_timed`](super::Explorer::integrate_timed) ([`IntegrateError::TurningTooFast`], counted in
     /// [`ErrorCounters::turning_frames`]): between two pose samples a turning camera's heading
     /// is only as good as the interpolation, and a degree of heading error moves a wall 9 cm at
     /// 5 m. Default 30°/s (0.52 rad/s): a look-around or goal turn runs at 90°/s, so frames are
     /// taken once it has finished. Not finite or ≤ 0: no check.
     pub max_frame_yaw_rate: f32,
     /// A frame whose newest pose sample is older than the frame by more than this (ms) is
-    /// refused by [`Explorer::integrate_timed`] ([`IntegrateError::StalePose`], counted in
+    /// refused by [`Explorer::integrate_timed`](super::Explorer::integrate_timed) ([`IntegrateError::StalePose`], counted in
     /// [`ErrorCounters::stale_pose_frames`]): its pose would be a guess. Default 150 ms: three
     /// periods of a 20 Hz pose stream, or one of a 10 Hz stream plus 50 ms of latency. 0: no
     /// check.
@@ -118,17 +116,17 @@ pub struct ExplorerConfig {
     /// Remnants: while the vehicle's component holds at most this much frontier (square metres'
     /// worth of frontier voxels: their count × the voxel size²), and the map no more safe free
     /// space outside that component than as many voxels, a target whose streamline is longer
-    /// than [`ExplorerConfig::remnant_reach_m`] is sealed instead of flown to
+    /// than [`ExplorerConfig::remnant_reach_m`](super::ExplorerConfig::remnant_reach_m) is sealed instead of flown to
     /// (never with noisy depth). Default 0.5 m² (50 voxels of 0.1 m): over 30 starts on each thesis
     /// world and on worlds the tuning never saw it shortens the mean path by 3–16 % and lowers
     /// free coverage by at most 0.04 points (docs/RESULTS.md, "Now: far remnants sealed"). 0: off.
     pub remnant_frontier_m2: f32,
     /// Remnants: how far along its streamline (metres) a remnant target may be and still be
-    /// flown to (see [`ExplorerConfig::remnant_frontier_m2`]). Default 3 m.
+    /// flown to (see [`ExplorerConfig::remnant_frontier_m2`](super::ExplorerConfig::remnant_frontier_m2)). Default 3 m.
     pub remnant_reach_m: f32,
 }
 
-/// How a frame's camera pose relates in time to the frame, for [`Explorer::integrate_timed`].
+/// How a frame's camera pose relates in time to the frame, for [`Explorer::integrate_timed`](super::Explorer::integrate_timed).
 /// The caller measures it from the pose stream (see
 /// [`PoseHistory`](crate::mavlink::PoseHistory)).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -147,8 +145,8 @@ pub struct FrameTiming {
 pub const PLAN_PASSES: usize = 8;
 
 /// True if a target `length` metres along its streamline is a far remnant
-/// ([`ExplorerConfig::remnant_frontier_m2`]): the domain described by `stats` holds no more
-/// frontier than the remnant area, the target lies beyond [`ExplorerConfig::remnant_reach_m`],
+/// ([`ExplorerConfig::remnant_frontier_m2`](super::ExplorerConfig::remnant_frontier_m2)): the domain described by `stats` holds no more
+/// frontier than the remnant area, the target lies beyond [`ExplorerConfig::remnant_reach_m`](super::ExplorerConfig::remnant_reach_m),
 /// and the map holds no more safe free space outside the vehicle's component
 /// ([`DomainStats::excluded`]) than that many voxels. Safe space the vehicle cannot reach means
 /// a passage it has seen through is closed, by noise (docs/RESULTS.md: the thesis apartment's
@@ -157,7 +155,7 @@ pub const PLAN_PASSES: usize = 8;
 /// false when the rule is off (area ≤ 0 or not finite), and with noisy depth
 /// ([`IntegrationParams::depth_noise_per_m`] > 0, the stereo sensor model): there a crumb may be
 /// a passage the noise narrowed without any safe space beyond it seen yet, and once sealed the
-/// end's [`Reopening`] cannot open it (measured: the thesis apartment's hall under σ = 1 px,
+/// end's [`Reopening`](crate::domain::Reopening) cannot open it (measured: the thesis apartment's hall under σ = 1 px,
 /// `tests/tests/evaluation.rs`, `a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end`).
 pub(crate) fn is_far_remnant(
     config: &ExplorerConfig,
@@ -178,10 +176,10 @@ pub(crate) fn is_far_remnant(
     stats.frontier as f32 <= voxels && stats.excluded as f32 <= voxels && length > config.remnant_reach_m
 }
 
-/// [`Explorer::plan_home`] reports the vehicle home within this distance of it, metres.
+/// [`Explorer::plan_home`](super::Explorer::plan_home) reports the vehicle home within this distance of it, metres.
 pub const HOME_REACHED_M: f32 = 0.15;
 
-/// Refused frames in a row, each within [`ExplorerConfig::max_frame_jump_m`] of the one before,
+/// Refused frames in a row, each within [`ExplorerConfig::max_frame_jump_m`](super::ExplorerConfig::max_frame_jump_m) of the one before,
 /// after which a jumped camera pose is accepted as the new reference.
 pub const FRAMES_TO_ACCEPT_JUMP: u8 = 3;
 
@@ -289,7 +287,7 @@ impl ExplorerStorage<'_> {
 }
 
 /// Checks a frame's [`FrameTiming`] against `config`'s limits
-/// ([`ExplorerConfig::max_frame_yaw_rate`], [`ExplorerConfig::max_frame_pose_lag_ms`]); a
+/// ([`ExplorerConfig::max_frame_yaw_rate`](super::ExplorerConfig::max_frame_yaw_rate), [`ExplorerConfig::max_frame_pose_lag_ms`](super::ExplorerConfig::max_frame_pose_lag_ms)); a
 /// refusal is counted in `errors` (and in [`ErrorCounters::frames_rejected`]).
 pub(crate) fn check_frame_timing(
     config: &ExplorerConfig,

@@ -21,9 +21,10 @@ use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage}
 use crate::solve::{self, SolveError, SolveParams, SolveStats};
 use crate::streamline::{self, Field, StreamlineError, Waypoints};
 
+use super::config::{ExplorerConfig, SolverKind};
+use super::status::{Clock, ConfigError, Fault, Goal, PlanOutcome, Status};
 use super::target::heading;
 use super::target::{Chosen, Context, TargetChoice};
-use super::{Clock, ConfigError, ExplorerConfig, Fault, Goal, PlanOutcome, SolverKind, Status};
 use crate::map::{MapGeometry, VoxelIndex};
 
 /// The buffers the field is solved in (see [`ExplorerStorage`](super::ExplorerStorage), whose

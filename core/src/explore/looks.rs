@@ -7,7 +7,8 @@ use crate::camera::Intrinsics;
 use crate::integrate;
 use crate::map::{Occupancy, VoxelMap};
 
-use super::{ExplorerConfig, Goal};
+use super::config::ExplorerConfig;
+use super::status::Goal;
 
 /// The look-around on arrival ([`ExplorerConfig::arrival_looks`]), which the explorer runs for
 /// every planner. It remembers, for the goal last arrived at, the headings already looked along

@@ -9,9 +9,6 @@ use crate::map::{MapCounts, MapError, VoxelIndex, VoxelMap};
 use crate::solve::{SolveError, SolveStats};
 use crate::streamline::{StreamlineEnd, StreamlineError};
 
-#[allow(unused_imports)] // doc links
-use super::{Explorer, ExplorerConfig, Reopening};
-
 /// Why an explorer could not be built.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -45,7 +42,7 @@ pub enum Fault {
     /// Not planning on the operator's word: paused, aborted or waiting for start
     /// ([`crate::operator`]). The caller, not the explorer, decides this hold.
     Operator,
-    /// Returning home ([`Explorer::plan_home`]): home is not in the vehicle's safe space
+    /// Returning home ([`Explorer::plan_home`](super::Explorer::plan_home)): home is not in the vehicle's safe space
     /// (outside the grid, unknown, or cut off by what the map holds now).
     HomeUnreachable,
 }
@@ -80,24 +77,24 @@ pub struct ErrorCounters {
     /// after leaving the vehicle's voxel: the vehicle flew the traced part instead of holding.
     pub plateaus: u32,
     /// Frames refused because the vehicle turned faster than
-    /// [`ExplorerConfig::max_frame_yaw_rate`] when they were taken (also in `frames_rejected`).
+    /// [`ExplorerConfig::max_frame_yaw_rate`](super::ExplorerConfig::max_frame_yaw_rate) when they were taken (also in `frames_rejected`).
     pub turning_frames: u32,
     /// Frames refused because the pose stream was older than the frame by more than
-    /// [`ExplorerConfig::max_frame_pose_lag_ms`] (also in `frames_rejected`).
+    /// [`ExplorerConfig::max_frame_pose_lag_ms`](super::ExplorerConfig::max_frame_pose_lag_ms) (also in `frames_rejected`).
     pub stale_pose_frames: u32,
     /// Screened-field streamlines that stalled (u unresolved far from every frontier) and
     /// were traced again on a field with half the κ.
     pub screening_retries: u32,
     /// Times the exploration would have ended while a frontier was cut off by doubtful
     /// occupied voxels alone, and the doubtful voxels in the way were forgotten to be looked
-    /// at again instead ([`Reopening`]).
+    /// at again instead ([`Reopening`](crate::domain::Reopening)).
     pub reopenings: u32,
-    /// Plans made at [`ExplorerConfig::narrow_radius`]: the vehicle stood in a pocket
+    /// Plans made at [`ExplorerConfig::narrow_radius`](super::ExplorerConfig::narrow_radius): the vehicle stood in a pocket
     /// ([`domain::is_pocket`](crate::domain::is_pocket)) or, after such a plan, inside the planning radius's inflated
     /// space.
     pub pocket_plans: u32,
     /// Targets sealed instead of flown to because they were far remnants
-    /// ([`ExplorerConfig::remnant_frontier_m2`]); not counted in `seals`.
+    /// ([`ExplorerConfig::remnant_frontier_m2`](super::ExplorerConfig::remnant_frontier_m2)); not counted in `seals`.
     pub remnants_sealed: u32,
 }
 
@@ -127,11 +124,11 @@ pub struct Goal {
     pub escape: bool,
 }
 
-/// Result of [`Explorer::plan`].
+/// Result of [`Explorer::plan`](super::Explorer::plan).
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum PlanOutcome {
-    /// Fly to the goal through [`Explorer::waypoints`].
+    /// Fly to the goal through [`Explorer::waypoints`](super::Explorer::waypoints).
     Goal(Goal),
     /// Nothing reachable is left to explore.
     Complete,
@@ -189,7 +186,7 @@ pub struct Status {
     /// Plans that kept the committed goal instead of re-solving.
     pub plans_kept: u32,
     /// Plans that turned the vehicle on the spot to look around on arrival
-    /// ([`ExplorerConfig::arrival_looks`]) instead of re-solving.
+    /// ([`ExplorerConfig::arrival_looks`](super::ExplorerConfig::arrival_looks)) instead of re-solving.
     pub arrival_looks: u32,
     /// Total voxel updates by integration ("integration ops").
     pub integration_ops: u64,

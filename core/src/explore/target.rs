@@ -28,7 +28,8 @@ use crate::integrate;
 use crate::map::{VoxelIndex, VoxelMap};
 use crate::streamline::{self, StreamlineEnd, Waypoints};
 
-use super::{Clock, ExplorerConfig, Fault, Goal, PlanOutcome, Status};
+use super::config::ExplorerConfig;
+use super::status::{Clock, Fault, Goal, PlanOutcome, Status};
 
 /// Most voxels a target is watched by ([`Chosen::Way`]).
 pub const WATCH_CAPACITY: usize = 16;

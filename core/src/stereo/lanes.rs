@@ -156,8 +156,8 @@ pub(crate) fn combine(parts: [&[u32]; 5], costs: &mut [u32], groups: usize, wind
     let (lo, hi) = (|v: u32| v & 0xffff, |v: u32| v >> 16);
     combine_with(parts, costs, groups, |a, b, e, f| {
         (
-            super::best_two(lo(a), lo(b), lo(e), lo(f)),
-            super::best_two(hi(a), hi(b), hi(e), hi(f)),
+            best_two(lo(a), lo(b), lo(e), lo(f)),
+            best_two(hi(a), hi(b), hi(e), hi(f)),
         )
     });
 }
@@ -319,4 +319,11 @@ pub fn dsp_agrees() -> bool {
     combine(parts, &mut quick, CW >> 1, 11, true);
     combine(parts, &mut careful, CW >> 1, 11, false);
     fast == plain && quick == careful
+}
+
+/// Sum of the two smallest of four: the cheapest pair is `a, b`, `c, d`, or the smaller of
+/// each.
+#[inline(always)]
+pub(super) fn best_two(a: u32, b: u32, c: u32, d: u32) -> u32 {
+    (a + b).min(c + d).min(a.min(b) + c.min(d))
 }

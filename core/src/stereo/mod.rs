@@ -72,47 +72,15 @@
 //! and twice the work: the ring trades 74 KiB for half the instructions.)
 
 mod lanes;
+mod limits;
 pub mod prefilter;
 pub mod speckle;
 
 pub use lanes::dsp_agrees;
+pub use limits::{StereoError, DISPARITY_SCALE, INVALID_DISPARITY, MAX_DISPARITIES, MAX_WINDOW};
 pub use speckle::{filter_speckles, speckle_scratch_words};
 
 use prefilter::Kernel;
-
-/// Disparities are stored in units of 1/`DISPARITY_SCALE` pixel.
-pub const DISPARITY_SCALE: i16 = 16;
-/// The disparity of a pixel without a valid match.
-pub const INVALID_DISPARITY: i16 = -DISPARITY_SCALE;
-/// Largest window side, pixels: window sums of 8-bit differences stay within `u16`.
-pub const MAX_WINDOW: u8 = 15;
-/// Largest disparity range.
-pub const MAX_DISPARITIES: u16 = 1024;
-
-/// Why the matcher refused its parameters or its input.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum StereoError {
-    /// Width or height is zero.
-    EmptyImage,
-    /// The disparity range is zero, larger than the width or larger than [`MAX_DISPARITIES`].
-    BadDisparityRange,
-    /// The window is even, smaller than 3 or larger than [`MAX_WINDOW`].
-    BadWindow,
-    /// The match footprint (`2·window − 1` pixels) does not fit in the image.
-    ImageTooSmall,
-    /// The prefilter's sigmas are not finite, not positive, not increasing, or need a kernel
-    /// radius above [`prefilter::MAX_RADIUS`].
-    BadPrefilter,
-    /// The scratch lent is smaller than [`scratch_size`] asks for.
-    ScratchTooSmall,
-    /// An image, row or output buffer has the wrong length.
-    SizeMismatch,
-    /// More rows were pushed than the image has, or `finish` came before the last row.
-    RowCount,
-    /// Baseline or focal length is zero, negative or not finite.
-    BadGeometry,
-}
 
 /// Optional prefilter applied to both images before matching.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -788,13 +756,6 @@ fn gradient(row: &[u8], x: usize) -> u32 {
         (Some(&a), Some(&b)) => u32::from(a.abs_diff(b)),
         _ => 0,
     }
-}
-
-/// Sum of the two smallest of four: the cheapest pair is `a, b`, `c, d`, or the smaller of
-/// each.
-#[inline(always)]
-fn best_two(a: u32, b: u32, c: u32, d: u32) -> u32 {
-    (a + b).min(c + d).min(a.min(b) + c.min(d))
 }
 
 /// Matches a whole image pair (`width × height` each, row-major) into `disparity` through

@@ -10,7 +10,7 @@
 //! queue never holds more than `max_size + 1` entries. Two bits per pixel record "seen" and
 //! "large".
 
-use super::{StereoError, INVALID_DISPARITY};
+use super::limits::{StereoError, INVALID_DISPARITY};
 
 /// `u32` words [`filter_speckles`] needs as scratch for a `width × height` image and components
 /// of up to `max_size` pixels: two bitmaps of one bit per pixel and the search queue.

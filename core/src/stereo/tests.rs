@@ -652,7 +652,11 @@ fn best_two_is_the_sum_of_the_two_smallest() {
                 for &d in &values {
                     let mut sorted = [a, b, c, d];
                     sorted.sort_unstable();
-                    assert_eq!(best_two(a, b, c, d), sorted[0] + sorted[1], "{a} {b} {c} {d}");
+                    assert_eq!(
+                        lanes::best_two(a, b, c, d),
+                        sorted[0] + sorted[1],
+                        "{a} {b} {c} {d}"
+                    );
                 }
             }
         }

@@ -5,29 +5,17 @@
 //! exploration loop in [`crate::app`] sees only `embedded-io` streams and a
 //! [`Clock`](harmonic_core::explore::Clock).
 
+pub mod nvic;
 pub mod stack;
 pub mod timer;
 pub mod uart;
 pub mod watchdog;
 
+pub use nvic::{Irq, PCLK_HZ};
+
 use cortex_m_rt::{exception, ExceptionFrame};
 // The global defmt logger: frames go out through semihosting (QEMU's stdout).
 use defmt_semihosting as _;
-
-/// Peripheral clock of the MPS2 FPGA images: 25 MHz.
-pub const PCLK_HZ: u32 = 25_000_000;
-
-/// An external interrupt line of the board's NVIC.
-#[derive(Debug, Clone, Copy)]
-pub struct Irq(pub u16);
-
-// SAFETY: the numbers are lines of mps2-an386's NVIC (32 external interrupts), as the trait
-// requires.
-unsafe impl cortex_m::interrupt::InterruptNumber for Irq {
-    fn number(self) -> u16 {
-        self.0
-    }
-}
 
 /// Sleeps until an interrupt unless one of `inputs` already has a byte. Interrupts are off
 /// between the check and `wfi`, so a byte arriving in between still wakes it.

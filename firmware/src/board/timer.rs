@@ -38,7 +38,7 @@ impl Ticks {
             write_volatile(reg(RELOAD), u32::MAX);
             write_volatile(reg(VALUE), u32::MAX);
             write_volatile(reg(CTRL), CTRL_ENABLE | CTRL_IRQ_ENABLE);
-            cortex_m::peripheral::NVIC::unmask(super::Irq(TIMER0_IRQ));
+            cortex_m::peripheral::NVIC::unmask(super::nvic::Irq(TIMER0_IRQ));
         }
         Self(())
     }

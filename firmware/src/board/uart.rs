@@ -36,7 +36,7 @@ impl Uart {
     pub unsafe fn new(base: usize, baud: u32) -> Self {
         let uart = Self { base };
         // The divider must be at least 16 or the UART does not run.
-        let div = (super::PCLK_HZ / baud.max(1)).max(16);
+        let div = (super::nvic::PCLK_HZ / baud.max(1)).max(16);
         uart.write_reg(BAUDDIV, div);
         uart.write_reg(CTRL, CTRL_TX_EN | CTRL_RX_EN | CTRL_RX_INT_EN);
         uart

@@ -39,7 +39,7 @@ impl Watchdog {
     /// # Safety
     /// Call once; nothing else may use the watchdog.
     pub unsafe fn start(seconds: u32) -> Self {
-        let load = seconds.saturating_mul(super::PCLK_HZ);
+        let load = seconds.saturating_mul(super::nvic::PCLK_HZ);
         write(LOCK, UNLOCK_KEY);
         write(LOAD, load);
         write(CTRL, CTRL_INTEN | CTRL_RESEN);
@@ -57,7 +57,7 @@ impl Watchdog {
 
     /// Seconds per period.
     pub fn period_s(&self) -> u32 {
-        self.load / super::PCLK_HZ
+        self.load / super::nvic::PCLK_HZ
     }
 }
 

@@ -1460,7 +1460,7 @@ pub fn run_observed(
                     // fault goes out as a STATUSTEXT.
                     Err(fault) => {
                         if let Some(m) = rig.mav.as_mut() {
-                            m.bridge.apply(&PlanOutcome::Hold(fault));
+                            harmonic_core::companion::steer(&mut m.bridge, &PlanOutcome::Hold(fault));
                         }
                     }
                 }
@@ -1628,7 +1628,7 @@ pub fn run_observed(
             match outcome {
                 // Home again: a hold, announced as such (not as a complete exploration).
                 PlanOutcome::Complete if going_home => m.bridge.arrived_home(),
-                _ => m.bridge.apply(&outcome),
+                _ => harmonic_core::companion::steer(&mut m.bridge, &outcome),
             }
             if !matches!(outcome, PlanOutcome::Goal(_)) {
                 // The hold setpoint and any STATUSTEXT go out now.
