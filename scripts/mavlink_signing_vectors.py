@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Signed MAVLink 2 frames from pymavlink, for core/src/signing.rs's tests.
+"""Signed MAVLink 2 frames from pymavlink, for core/src/links/signing.rs's tests.
 
 Needs `pip install pymavlink` (2.4.50 wrote the frames in the tests); no network. Key 00 01 ... 1f,
 link 3, first timestamp 0x123456789A (pymavlink adds one per signed frame), system 1,

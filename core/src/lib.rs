@@ -80,18 +80,13 @@
     )
 )]
 
-pub mod camera;
+pub mod clock;
 pub mod companion;
-pub mod domain;
-pub mod downlink;
-pub mod explore;
-pub mod field;
-pub mod integrate;
-pub mod link;
-pub mod map;
-pub mod mavlink;
-pub mod operator;
-pub mod signing;
-pub mod solve;
-pub mod stereo;
-pub mod streamline;
+pub mod links;
+pub mod mapping;
+pub mod planning;
+
+// The layers' modules under their own names, as the rest of the workspace knows them.
+pub use links::{downlink, link, mavlink, operator, signing};
+pub use mapping::{camera, integrate, map, stereo};
+pub use planning::{domain, explore, field, solve, streamline};

@@ -3,7 +3,7 @@
 
 Written on pymavlink from the MAVLink specification alone: it shares no code and no
 conventions with the project's flight-stack emulator (host-sim/src/vehicle/flight.rs) or bridge
-(core/src/mavlink.rs).
+(core/src/links/mavlink.rs).
 
 What it does, like a PX4 multirotor already armed in offboard mode:
 

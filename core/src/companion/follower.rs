@@ -3,8 +3,8 @@
 
 use nalgebra::{Point3, Vector3};
 
-use crate::explore::Goal;
-use crate::streamline::{advance_radius, Waypoints};
+use crate::planning::explore::Goal;
+use crate::planning::streamline::{advance_radius, Waypoints};
 
 /// Follows a plan's waypoints one setpoint at a time: the first waypoint the vehicle is not yet
 /// within [`advance_radius`] of (less where the path turns, so corners are not cut), with the
@@ -100,7 +100,7 @@ mod tests {
         let goal = Goal {
             position: Point3::new(2.0, 1.0, 1.0),
             yaw: 1.0,
-            frontier: crate::map::VoxelIndex::new(0, 0, 0),
+            frontier: crate::mapping::map::VoxelIndex::new(0, 0, 0),
             escape: false,
         };
         let wps = [

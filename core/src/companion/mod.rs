@@ -10,7 +10,7 @@
 //!   side's "frame N done".
 //! - **MAVLink.** Bytes go into a [`MavlinkDecoder`] and on to the [`Bridge`]
 //!   (LOCAL_POSITION_NED + ATTITUDE, or ODOMETRY → vehicle pose; a ground station's
-//!   COMMAND_LONG → the [operator](crate::operator) state). A TIMESYNC request from the
+//!   COMMAND_LONG → the [operator](crate::links::operator) state). A TIMESYNC request from the
 //!   autopilot is a *flight tick*: the companion advances its [`Follower`] along the plan's
 //!   waypoints, streams what the bridge has due (setpoint, heartbeat, STATUSTEXT, COMMAND_ACK)
 //!   and answers the TIMESYNC last, so the autopilot side knows that everything sent before
@@ -42,19 +42,20 @@ use core::fmt::Write as _;
 use embedded_io::{Read, ReadReady, Write};
 use nalgebra::Point3;
 
-use crate::downlink::{self, PlanReport, MAP_SLICE_VOXELS};
-use crate::explore::{Clock, ConfigError, Explorer, Fault, PlanOutcome};
-use crate::link::{
+use crate::clock::Clock;
+use crate::links::downlink::{self, PlanReport, MAP_SLICE_VOXELS};
+use crate::links::link::{
     max_encoded_len, DepthReceiver, LinkEncoder, LinkError, LinkEvent, Message as LinkMessage, Pose,
     ResendRequest, HEADER_LEN, MAX_RESEND_RANGES, RESEND_REQUEST_HEADER_LEN,
 };
-use crate::mavlink::common::TIMESYNC_DATA;
-use crate::mavlink::{
+use crate::links::mavlink::common::TIMESYNC_DATA;
+use crate::links::mavlink::{
     encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, StatusText,
     AUTOPILOT_COMPONENT_ID, DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
 };
-use crate::operator::OperatorState;
-use crate::signing::{SecretKey, VerifierCounters};
+use crate::links::operator::OperatorState;
+use crate::links::signing::{SecretKey, VerifierCounters};
+use crate::planning::explore::{ConfigError, Explorer, Fault, PlanOutcome};
 
 /// Payload bytes (header and body) of the largest resend request.
 const RESEND_REQUEST_MAX_LEN: usize = HEADER_LEN + RESEND_REQUEST_HEADER_LEN + 4 * MAX_RESEND_RANGES;
@@ -595,10 +596,10 @@ fn write_frame<M: Write, const STREAMS: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::explore::Goal;
-    use crate::map::VoxelIndex;
-    use crate::mavlink::common::{MavSeverity, LOCAL_POSITION_NED_DATA};
-    use crate::mavlink::SetpointKind;
+    use crate::links::mavlink::common::{MavSeverity, LOCAL_POSITION_NED_DATA};
+    use crate::links::mavlink::SetpointKind;
+    use crate::mapping::map::VoxelIndex;
+    use crate::planning::explore::Goal;
 
     #[test]
     fn plans_steer_the_bridge_and_faults_are_announced_once() {
@@ -614,7 +615,7 @@ mod tests {
             z: -3.0,
             ..LOCAL_POSITION_NED_DATA::DEFAULT
         });
-        let attitude = MavMessage::ATTITUDE(crate::mavlink::common::ATTITUDE_DATA::DEFAULT);
+        let attitude = MavMessage::ATTITUDE(crate::links::mavlink::common::ATTITUDE_DATA::DEFAULT);
         bridge.handle(0, &header, &position).unwrap();
         bridge.handle(0, &header, &attitude).unwrap();
         let goal = Goal {

@@ -1,7 +1,7 @@
 //! MAVLink 2 signing on the companion's side of the autopilot link, for a board without a
 //! calendar clock.
 
-use crate::signing::{SecretKey, Signer, Verifier, VerifierCounters};
+use crate::links::signing::{SecretKey, Signer, Verifier, VerifierCounters};
 
 /// Signs what the companion sends and checks what it receives. The board has no calendar
 /// clock, so, as the signing spec recommends for such systems, it signs with time taken from
@@ -61,7 +61,7 @@ impl<const STREAMS: usize> LinkSigning<STREAMS> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mavlink::{encode_v2, MavHeader, MavMessage, MAX_FRAME_LEN};
+    use crate::links::mavlink::{encode_v2, MavHeader, MavMessage, MAX_FRAME_LEN};
 
     #[test]
     fn signing_time_follows_the_autopilot_and_unsigned_frames_do_not_move_it() {
@@ -82,7 +82,7 @@ mod tests {
         };
         let n = encode_v2(
             &header,
-            &MavMessage::HEARTBEAT(crate::mavlink::common::HEARTBEAT_DATA::DEFAULT),
+            &MavMessage::HEARTBEAT(crate::links::mavlink::common::HEARTBEAT_DATA::DEFAULT),
             &mut frame,
         )
         .unwrap();

@@ -3,7 +3,7 @@
 //! (semihosting), the exception handlers and the panic handler. Retargeting to another part
 //! (say an STM32H7) means a new `memory.x`, a new `uart.rs` and new addresses here; the
 //! exploration loop in [`crate::app`] sees only `embedded-io` streams and a
-//! [`Clock`](harmonic_core::explore::Clock).
+//! [`Clock`](harmonic_core::clock::Clock).
 
 pub mod nvic;
 pub mod stack;

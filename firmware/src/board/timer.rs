@@ -5,7 +5,7 @@
 use core::ptr::{read_volatile, write_volatile};
 use core::sync::atomic::{AtomicU32, Ordering};
 
-use harmonic_core::explore::Clock;
+use harmonic_core::clock::Clock;
 
 const TIMER0: usize = 0x4000_0000;
 const CTRL: usize = 0x00;

@@ -30,9 +30,10 @@
 //! The way to a target is the A* voxel path with line-of-sight shortcuts ([`smooth`]); the way
 //! home is A* too.
 
+use harmonic_core::clock::Clock;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::target::{Context, TargetChoice, Watch, WATCH_CAPACITY};
-use harmonic_core::explore::{Chosen, Clock, Fault, Goal, PlanOutcome};
+use harmonic_core::explore::{Chosen, Fault, Goal, PlanOutcome};
 use harmonic_core::integrate::traverse;
 use harmonic_core::map::{VoxelIndex, VoxelMap};
 use harmonic_core::streamline::{StreamlineEnd, StreamlineError, Waypoints};

@@ -2,8 +2,9 @@
 
 use std::time::Instant;
 
+use harmonic_core::clock::Clock;
 use harmonic_core::domain::Label;
-use harmonic_core::explore::{Clock, ExplorerStorage};
+use harmonic_core::explore::ExplorerStorage;
 use harmonic_core::map::{self, Dims};
 use harmonic_core::solve::multigrid;
 

@@ -56,8 +56,8 @@ use super::{
     checked_problem, clamp_to_bounds, error_estimate, error_met, rounding_row, zip3, Active, Contraction,
     Dirichlet, Fork, Residual, Screen, SolveError, SolveParams, SolveStats, Solved,
 };
-use crate::domain::Label;
-use crate::map::Dims;
+use crate::mapping::map::Dims;
+use crate::planning::domain::Label;
 
 /// Cells of zero padding on every side of every level.
 pub const PAD: usize = 2;
@@ -1981,10 +1981,10 @@ fn sum_sq(a: &[f32]) -> f64 {
 mod tests {
     extern crate std;
     use super::*;
-    use crate::map::VoxelIndex;
-    use crate::solve::multigrid::tests::Scratch;
-    use crate::solve::multigrid::Method;
-    use crate::solve::Sequential;
+    use crate::mapping::map::VoxelIndex;
+    use crate::planning::solve::multigrid::tests::Scratch;
+    use crate::planning::solve::multigrid::Method;
+    use crate::planning::solve::Sequential;
     use std::vec;
     use std::vec::Vec;
 
@@ -2054,7 +2054,7 @@ mod tests {
         for (nx, ny, nz) in [(32, 24, 16), (27, 19, 13), (9, 7, 5)] {
             let (dims, labels) = rooms(nx, ny, nz);
             let mut released = labels.clone();
-            crate::field::release_source(&mut released);
+            crate::planning::field::release_source(&mut released);
             for (labels, screening) in [(&labels, 0.0), (&released, 0.09)] {
                 let (flat, s) = solve_flat(dims, labels, &params(1e-7, screening), None);
                 assert!(s.converged, "{nx}x{ny}x{nz}, s = {screening}: {s:?}");
@@ -2076,7 +2076,7 @@ mod tests {
         }
     }
 
-    const PSI_FRONTIER_TEST: f32 = crate::solve::PSI_FRONTIER;
+    const PSI_FRONTIER_TEST: f32 = crate::planning::solve::PSI_FRONTIER;
 
     /// A domain that fills part of the grid costs its own box: the rooms placed at two odd
     /// offsets in a grid six times their size, solved one after the other by one solver (its

@@ -8,7 +8,7 @@
 //! needs `std` (a mutex, a hash map, the system clock), so this module signs and checks raw
 //! frames itself, with `sha2`, and keeps the replay state in fixed capacity:
 //!
-//! - [`Signer`] turns a frame [`crate::mavlink::encode_v2`] wrote into a signed one, with
+//! - [`Signer`] turns a frame [`crate::links::mavlink::encode_v2`] wrote into a signed one, with
 //!   timestamps that never repeat on its link.
 //! - [`Verifier`] accepts a frame only if it is signed with the shared key, its timestamp is
 //!   newer than the last one accepted on its stream (system, component, link) and no more than
@@ -18,12 +18,12 @@
 //! Checked byte for byte against pymavlink's signing (`scripts/mavlink_signing_vectors.py`
 //! writes the frames the tests compare with). The host simulator's MAVLink link and its flight
 //! emulator sign and verify with them (`harmonic-sim explore --mavlink … --mavlink-key FILE`);
-//! a receiver drops a refused frame before the [`Bridge`](crate::mavlink::Bridge) sees it.
+//! a receiver drops a refused frame before the [`Bridge`](crate::links::mavlink::Bridge) sees it.
 
 use ::mavlink::{calculate_crc, Message as _};
 use sha2::{Digest, Sha256};
 
-use crate::mavlink::MavMessage;
+use crate::links::mavlink::MavMessage;
 
 /// Bytes a signature adds to a frame: link id, timestamp, signature.
 pub const SIGNATURE_LEN: usize = 13;
@@ -334,7 +334,7 @@ impl<const N: usize> Verifier<N> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mavlink::{common, encode_v2, MavHeader, MAX_FRAME_LEN};
+    use crate::links::mavlink::{common, encode_v2, MavHeader, MAX_FRAME_LEN};
 
     /// pymavlink 2.4.50, key 00 01 … 1f, link 3, timestamps 0x12_3456_789A and one more
     /// (`scripts/mavlink_signing_vectors.py`): a HEARTBEAT (onboard controller, no autopilot,
@@ -384,7 +384,7 @@ mod tests {
             target_system: 1,
             target_component: 1,
             coordinate_frame: common::MavFrame::MAV_FRAME_LOCAL_NED,
-            type_mask: crate::mavlink::POSITION_YAW_TYPEMASK,
+            type_mask: crate::links::mavlink::POSITION_YAW_TYPEMASK,
             x: 1.5,
             y: -2.25,
             z: -1.0,

@@ -1,6 +1,6 @@
 //! Re-solves confined to a box around what changed.
 //!
-//! The screened field ([`crate::field`]) does not depend on where the vehicle is, and its
+//! The screened field ([`crate::planning::field`]) does not depend on where the vehicle is, and its
 //! Green's function falls as `e^{−κr}`: a scan that resolves part of a frontier changes `u`
 //! only near it (BENCHMARKS.md, "How far a scan reaches"). A whole-grid warm start still pays
 //! for every cell, every cycle. [`resolve_near`] instead
@@ -43,8 +43,8 @@ use super::{
     zip3, Active, ChunkSink, Contraction, Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats,
     Solved, CHUNK,
 };
-use crate::domain::Label;
-use crate::map::Dims;
+use crate::mapping::map::Dims;
+use crate::planning::domain::Label;
 
 /// Storage for the box: a label and a value per cell of the largest box to solve (the grid's
 /// size fits any).
@@ -914,8 +914,8 @@ fn in_boxes(
 mod tests {
     extern crate std;
     use super::*;
-    use crate::solve::multigrid::tests::Scratch as Storage;
-    use crate::solve::screened_residual;
+    use crate::planning::solve::multigrid::tests::Scratch as Storage;
+    use crate::planning::solve::screened_residual;
     use std::vec;
     use std::vec::Vec;
 
@@ -1272,7 +1272,7 @@ mod tests {
     #[cfg(feature = "flat")]
     #[test]
     fn the_flat_solver_re_solves_a_scan_in_boxes() {
-        use crate::solve::flat::{flat_scratch_len, Flat};
+        use crate::planning::solve::flat::{flat_scratch_len, Flat};
         let (dims, old, mut storage) = solved_before(SCREENING);
         let (_, after) = rooms(true);
         let mut values = vec![0.0f32; flat_scratch_len(&dims)];

@@ -11,12 +11,12 @@
 //! Planning steps, each reported in [`Status`]:
 //!
 //! 1. mark the voxels the vehicle's own body fills as free (it is there, so they are);
-//! 2. build the domain around the vehicle ([`crate::domain`]); no frontier in the vehicle's
+//! 2. build the domain around the vehicle ([`crate::planning::domain`]); no frontier in the vehicle's
 //!    component means exploration is **complete**;
-//! 3. solve the planning field ([`crate::field`]: by default the frontier-sourced screened
+//! 3. solve the planning field ([`crate::planning::field`]: by default the frontier-sourced screened
 //!    field, u = 1 on frontiers, ∇²u = κ²u elsewhere; or the seed's Laplace field with the
-//!    vehicle as source), warm-started from the previous solution ([`crate::solve`]);
-//! 4. trace the streamline from the vehicle to a frontier ([`crate::streamline`]);
+//!    vehicle as source), warm-started from the previous solution ([`crate::planning::solve`]);
+//! 4. trace the streamline from the vehicle to a frontier ([`crate::planning::streamline`]);
 //! 5. choose the goal (the view): the *first* point of the streamline from which the frontier
 //!    is in plain sight (free voxels all the way) within [`ExplorerConfig::view_range_m`] and
 //!    inside the vertical field of view — often the vehicle's own position, which then only
@@ -24,7 +24,7 @@
 //!    beyond the minimum range; if no point of the streamline sees it (a frontier inside the
 //!    minimum range, or straight above or below), a point backed off from it, level with it,
 //!    that does. The goal yaw faces the frontier. The way to the goal is the streamline up to
-//!    it pulled taut through the safe space ([`streamline::pull_taut`](crate::streamline::pull_taut),
+//!    it pulled taut through the safe space ([`streamline::pull_taut`](crate::planning::streamline::pull_taut),
 //!    [`ExplorerConfig::taut_path`]): straight wherever the inflated free space allows.
 //!
 //! **Looking around on arrival** (opt-in, [`ExplorerConfig::arrival_looks`]): once the vehicle
@@ -70,18 +70,18 @@ pub use config::{
 pub use harmonic::{FieldStorage, HarmonicField};
 pub use looks::unexplored_in_view;
 use looks::ArrivalLooks;
-pub use status::{
-    Clock, ConfigError, ErrorCounters, Fault, Goal, NoClock, PhaseTicks, PlanOutcome, Status, Termination,
-};
+pub use status::{ConfigError, ErrorCounters, Fault, Goal, PhaseTicks, PlanOutcome, Status, Termination};
+
+use crate::clock::{Clock, NoClock};
 pub use target::{Chosen, Context, TargetChoice, Watch};
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use crate::camera::{DepthFrame, Intrinsics};
-use crate::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening};
-use crate::integrate::{self, IntegrateError, IntegrationStats};
-use crate::map::{MapGeometry, VoxelIndex, VoxelMap};
-use crate::streamline::{StreamlineError, Waypoints};
+use crate::mapping::camera::{DepthFrame, Intrinsics};
+use crate::mapping::integrate::{self, IntegrateError, IntegrationStats};
+use crate::mapping::map::{MapGeometry, VoxelIndex, VoxelMap};
+use crate::planning::domain::{self, DomainError, DomainStats, Inflation, Label, Reopening};
+use crate::planning::streamline::{StreamlineError, Waypoints};
 
 /// A watch of one voxel.
 fn watch_of(v: VoxelIndex) -> Watch {
@@ -176,7 +176,7 @@ impl<'a> Explorer<'a> {
         Self::build(geometry, config, map, targets)
     }
 
-    /// The stored potential ψ = 1 − φ of the last plan (see [`crate::solve`]).
+    /// The stored potential ψ = 1 − φ of the last plan (see [`crate::planning::solve`]).
     pub fn psi(&self) -> &[f32] {
         self.targets.psi()
     }
@@ -831,7 +831,7 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
 /// pose is [`Fault::BadPose`], a vehicle outside the grid [`Fault::VehicleOutsideGrid`]
 /// (both counted in `errors`), a home outside it [`Fault::HomeUnreachable`].
 pub fn locate_home(
-    geometry: &crate::map::MapGeometry,
+    geometry: &crate::mapping::map::MapGeometry,
     position: &Point3<f32>,
     yaw: f32,
     home: &Point3<f32>,

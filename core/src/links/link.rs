@@ -79,7 +79,7 @@
 //! Intrinsics must be finite with positive focal lengths and the principal point inside the
 //! image (−0.5 ≤ cx ≤ width − 0.5, likewise cy), as [`Intrinsics::new`] checks. A pose is the
 //! camera → map transform of the depth frame with the same id (the `camera_pose` of
-//! [`integrate`](crate::integrate::integrate)): all seven numbers finite and
+//! [`integrate`](crate::mapping::integrate::integrate)): all seven numbers finite and
 //! `|q|` within [`UNIT_QUATERNION_TOLERANCE`] of 1. A body whose length differs from the table
 //! is malformed; so is a chunk with zero width, height or rows, or rows past the height.
 //!
@@ -128,7 +128,7 @@ use core::num::NonZeroUsize;
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
-use crate::camera::{DepthFrame, Intrinsics, IntrinsicsError};
+use crate::mapping::camera::{DepthFrame, Intrinsics, IntrinsicsError};
 
 /// Protocol version this module speaks (header byte 0).
 pub const PROTOCOL_VERSION: u8 = 1;
@@ -154,8 +154,8 @@ pub const RESEND_REQUEST_HEADER_LEN: usize = 6;
 /// Rows an image may have at most: the assembler keeps a bitmap of the rows that arrived.
 pub const MAX_IMAGE_ROWS: u16 = 2048;
 /// Depth value of a pixel whose row never arrived, in a partially delivered frame (see
-/// [`crate::camera::NOT_RECEIVED`]).
-pub use crate::camera::NOT_RECEIVED;
+/// [`crate::mapping::camera::NOT_RECEIVED`]).
+pub use crate::mapping::camera::NOT_RECEIVED;
 /// How far the norm of a pose quaternion may be from 1.
 pub const UNIT_QUATERNION_TOLERANCE: f32 = 1e-3;
 /// A chunk whose frame id is at most this far behind the newest frame seen is a late or
@@ -2027,7 +2027,7 @@ mod tests {
             Err(PoseError::NotUnitQuaternion)
         );
         assert!(Pose::new(0, [0.0; 3], [0.0, 0.0, 0.0, 1.0009]).is_ok());
-        let iso = crate::explore::forward_camera_pose(&nalgebra::Point3::new(1.0, 2.0, 0.5), 0.7);
+        let iso = crate::planning::explore::forward_camera_pose(&nalgebra::Point3::new(1.0, 2.0, 0.5), 0.7);
         let pose = Pose::from_isometry(5, &iso).unwrap();
         let back = pose.isometry();
         assert!((back.translation.vector - iso.translation.vector).norm() < 1e-6);

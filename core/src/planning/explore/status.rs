@@ -3,11 +3,11 @@
 
 use nalgebra::Point3;
 
-use crate::domain::{DomainError, DomainStats};
-use crate::integrate::{IntegrateError, IntegrationStats};
-use crate::map::{MapCounts, MapError, VoxelIndex, VoxelMap};
-use crate::solve::{SolveError, SolveStats};
-use crate::streamline::{StreamlineEnd, StreamlineError};
+use crate::mapping::integrate::{IntegrateError, IntegrationStats};
+use crate::mapping::map::{MapCounts, MapError, VoxelIndex, VoxelMap};
+use crate::planning::domain::{DomainError, DomainStats};
+use crate::planning::solve::{SolveError, SolveStats};
+use crate::planning::streamline::{StreamlineEnd, StreamlineError};
 
 /// Why an explorer could not be built.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -40,7 +40,7 @@ pub enum Fault {
     /// A frame could not be integrated.
     Integrate(IntegrateError),
     /// Not planning on the operator's word: paused, aborted or waiting for start
-    /// ([`crate::operator`]). The caller, not the explorer, decides this hold.
+    /// ([`crate::links::operator`]). The caller, not the explorer, decides this hold.
     Operator,
     /// Returning home ([`Explorer::plan_home`](super::Explorer::plan_home)): home is not in the vehicle's safe space
     /// (outside the grid, unknown, or cut off by what the map holds now).
@@ -87,10 +87,10 @@ pub struct ErrorCounters {
     pub screening_retries: u32,
     /// Times the exploration would have ended while a frontier was cut off by doubtful
     /// occupied voxels alone, and the doubtful voxels in the way were forgotten to be looked
-    /// at again instead ([`Reopening`](crate::domain::Reopening)).
+    /// at again instead ([`Reopening`](crate::planning::domain::Reopening)).
     pub reopenings: u32,
     /// Plans made at [`ExplorerConfig::narrow_radius`](super::ExplorerConfig::narrow_radius): the vehicle stood in a pocket
-    /// ([`domain::is_pocket`](crate::domain::is_pocket)) or, after such a plan, inside the planning radius's inflated
+    /// ([`domain::is_pocket`](crate::planning::domain::is_pocket)) or, after such a plan, inside the planning radius's inflated
     /// space.
     pub pocket_plans: u32,
     /// Targets sealed instead of flown to because they were far remnants
@@ -136,23 +136,6 @@ pub enum PlanOutcome {
     Hold(Fault),
 }
 
-/// A monotonic tick source for per-phase timing (a board timer, a cycle counter, or the host
-/// clock). Ticks are opaque units; the caller knows their rate.
-pub trait Clock {
-    /// Current tick count.
-    fn ticks(&mut self) -> u64;
-}
-
-/// A clock that always reads 0, for callers that do not time phases.
-#[derive(Debug, Clone, Copy, Default)]
-pub struct NoClock;
-
-impl Clock for NoClock {
-    fn ticks(&mut self) -> u64 {
-        0
-    }
-}
-
 /// Ticks spent in each planning phase of the last plan.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -194,7 +177,7 @@ pub struct Status {
     pub planning_ops: u64,
     /// Solves of the field: every screening a plan tries, whole or in boxes.
     pub solves: u32,
-    /// Solves done in boxes around what a scan changed ([`crate::solve::local`]).
+    /// Solves done in boxes around what a scan changed ([`crate::planning::solve::local`]).
     pub local_solves: u32,
     /// Local re-solves that gave the grid back to a whole-grid solve (the change reached too
     /// far).

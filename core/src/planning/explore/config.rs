@@ -1,13 +1,13 @@
 //! How an explorer is configured, what it works in, and the checks every frame and target
 //! passes whatever the planner.
 
-use crate::domain::{DomainStats, Label};
-use crate::field::PlanningField;
-use crate::integrate::{IntegrateError, IntegrationParams};
-use crate::map::{LogOddsParams, MapGeometry};
-use crate::solve::multigrid::CoarseValues;
-use crate::solve::SolveParams;
-use crate::streamline::StreamlineParams;
+use crate::mapping::integrate::{IntegrateError, IntegrationParams};
+use crate::mapping::map::{LogOddsParams, MapGeometry};
+use crate::planning::domain::{DomainStats, Label};
+use crate::planning::field::PlanningField;
+use crate::planning::solve::multigrid::CoarseValues;
+use crate::planning::solve::SolveParams;
+use crate::planning::streamline::StreamlineParams;
 
 use super::status::ErrorCounters;
 
@@ -17,8 +17,8 @@ pub enum SolverKind {
     /// Geometric multigrid: MGPCG when Krylov storage is lent, V-cycles otherwise.
     #[default]
     Multigrid,
-    /// The host's flat multigrid ([`crate::solve::flat`]): MGPCG, warm from the last field, in
-    /// [`ExplorerStorage::flat`] (at least [`crate::solve::flat::flat_scratch_len`] values;
+    /// The host's flat multigrid ([`crate::planning::solve::flat`]): MGPCG, warm from the last field, in
+    /// [`ExplorerStorage::flat`] (at least [`crate::planning::solve::flat::flat_scratch_len`] values;
     /// refused at construction without them); re-solves go to boxes around what changed as the
     /// multigrid's do, where the box scratch is lent. Only with the `flat` feature (on by
     /// default; the firmware leaves it off, which keeps the solver out of its flash).
@@ -26,7 +26,7 @@ pub enum SolverKind {
     Flat,
     /// Lexicographic Gauss-Seidel, the seed paper's solver (reference and baseline).
     GaussSeidel,
-    /// The seed thesis's own solve ([`crate::solve::thesis`]): Jacobi sweeps from φ = 0 at every
+    /// The seed thesis's own solve ([`crate::planning::solve::thesis`]): Jacobi sweeps from φ = 0 at every
     /// plan, stopped when the largest per-voxel relative change falls below 1e-4 (or after
     /// 20 000 sweeps, counted as not converged). An ablation of the thesis's truncated field.
     /// Needs [`ExplorerStorage::jacobi`] (one entry per voxel) and the seed's field
@@ -43,7 +43,7 @@ pub struct ExplorerConfig {
     pub integration: IntegrationParams,
     /// Vehicle radius (planning clearance) in metres; obstacles are inflated by it.
     pub vehicle_radius: f32,
-    /// A narrower clearance (metres) for leaving a pocket ([`domain::is_pocket`](crate::domain::is_pocket)): when the
+    /// A narrower clearance (metres) for leaving a pocket ([`domain::is_pocket`](crate::planning::domain::is_pocket)): when the
     /// vehicle's component at `vehicle_radius` holds no frontier but at this radius holds one and
     /// is at least twice as large, the plan is made at this radius instead of calling the
     /// exploration complete, and so is every plan after it that finds the vehicle inside the
@@ -77,7 +77,7 @@ pub struct ExplorerConfig {
     /// the paths of the thesis's worlds by 15–23 % and multiply the flight time by 2.3–2.6;
     /// closest frontier given the same turns gains as much.
     pub arrival_looks: u8,
-    /// Doorways must not close under noise ([`Reopening`](crate::domain::Reopening)): occupied voxels with a log-odds
+    /// Doorways must not close under noise ([`Reopening`](crate::planning::domain::Reopening)): occupied voxels with a log-odds
     /// below this (log-odds units) are doubtful. Before the exploration ends for want of a
     /// reachable frontier, a frontier cut off by doubtful voxels alone is reopened: the doubtful
     /// voxels where the way to it leaves the safe space are forgotten, so the planner looks at
@@ -89,7 +89,7 @@ pub struct ExplorerConfig {
     /// receding-horizon caller can oscillate between two frontiers whose pull swaps as the
     /// source moves.
     pub commit_to_goal: bool,
-    /// Fly to the goal along the streamline pulled taut ([`streamline::pull_taut`](crate::streamline::pull_taut)): the goal
+    /// Fly to the goal along the streamline pulled taut ([`streamline::pull_taut`](crate::planning::streamline::pull_taut)): the goal
     /// is still chosen on the streamline itself (which arrives along the frontier's normal, so
     /// the look is head-on), but the way there is straight wherever the inflated safe space
     /// allows. False flies the streamline's own curve (an ablation).
@@ -128,7 +128,7 @@ pub struct ExplorerConfig {
 
 /// How a frame's camera pose relates in time to the frame, for [`Explorer::integrate_timed`](super::Explorer::integrate_timed).
 /// The caller measures it from the pose stream (see
-/// [`PoseHistory`](crate::mavlink::PoseHistory)).
+/// [`PoseHistory`](crate::links::mavlink::PoseHistory)).
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct FrameTiming {
@@ -155,7 +155,7 @@ pub const PLAN_PASSES: usize = 8;
 /// false when the rule is off (area ≤ 0 or not finite), and with noisy depth
 /// ([`IntegrationParams::depth_noise_per_m`] > 0, the stereo sensor model): there a crumb may be
 /// a passage the noise narrowed without any safe space beyond it seen yet, and once sealed the
-/// end's [`Reopening`](crate::domain::Reopening) cannot open it (measured: the thesis apartment's hall under σ = 1 px,
+/// end's [`Reopening`](crate::planning::domain::Reopening) cannot open it (measured: the thesis apartment's hall under σ = 1 px,
 /// `tests/tests/evaluation.rs`, `a_hall_closed_by_doubtful_voxels_is_reopened_before_the_end`).
 pub(crate) fn is_far_remnant(
     config: &ExplorerConfig,
@@ -211,9 +211,9 @@ impl Default for ExplorerConfig {
 }
 
 /// Buffers an explorer works in, each with at least one entry per voxel except `touched`
-/// ([`map::touched_words`](crate::map::touched_words): one bit per voxel) and `queue` (any
+/// ([`map::touched_words`](crate::mapping::map::touched_words): one bit per voxel) and `queue` (any
 /// length ≥ 1; a few thousand entries keep the flood fill to one pass). The multigrid buffers
-/// are sized by [`crate::solve::multigrid::scratch_size`]; they may be empty when the solver is
+/// are sized by [`crate::planning::solve::multigrid::scratch_size`]; they may be empty when the solver is
 /// Gauss-Seidel or the thesis's Jacobi, and `krylov` may be empty to run plain V-cycles in less
 /// memory. `jacobi` may be empty unless the solver is [`SolverKind::ThesisJacobi`].
 ///
@@ -243,16 +243,16 @@ pub struct ExplorerStorage<'a> {
     /// MGPCG vectors (optional).
     pub krylov: &'a mut [f32],
     /// The fine cells' neighbour masks (optional, one byte per voxel; see
-    /// [`MultigridStorage::masks`](crate::solve::multigrid::MultigridStorage::masks)): faster sweeps for 1 byte per voxel.
+    /// [`MultigridStorage::masks`](crate::planning::solve::multigrid::MultigridStorage::masks)): faster sweeps for 1 byte per voxel.
     pub masks: &'a mut [u8],
     /// The map's per-voxel surface estimate for noisy depth (optional, two words per voxel; see
-    /// [`crate::integrate`]); empty, noisy frames are decided by the per-frame vote alone.
+    /// [`crate::mapping::integrate`]); empty, noisy frames are decided by the per-frame vote alone.
     pub surface: &'a mut [[i32; 2]],
     /// The other sweep of the thesis's Jacobi solve ([`SolverKind::ThesisJacobi`] only: one
     /// entry per voxel then; otherwise it may be empty).
     pub jacobi: &'a mut [f32],
-    /// Labels of the box a local re-solve cuts out ([`crate::solve::local`]; optional, like
-    /// `krylov`): with this and `local_psi` lent ([`crate::solve::local::box_scratch_len`] of
+    /// Labels of the box a local re-solve cuts out ([`crate::planning::solve::local`]; optional, like
+    /// `krylov`): with this and `local_psi` lent ([`crate::planning::solve::local::box_scratch_len`] of
     /// the grid each, or less: a box never exceeds what is lent), a re-solve of
     /// the screened field after a scan works in boxes around what changed. Empty: every solve
     /// sweeps the whole grid.

@@ -4,7 +4,7 @@
 //!
 //! - **Field and convention.** The thesis's φ: vehicle φ = +1, frontiers φ = −1, zero flux at
 //!   walls. It is the core's field in another scale: the stored ψ = 1 − φ_core (source 0,
-//!   frontiers 1, see [`crate::solve`]) is `ψ = (1 − φ) / 2`. The sweeps run on the thesis's φ
+//!   frontiers 1, see [`crate::planning::solve`]) is `ψ = (1 − φ) / 2`. The sweeps run on the thesis's φ
 //!   itself, in the buffers, so that the stopping rule sees the values (and the f32 rounding)
 //!   the thesis's code would; the result is converted to ψ at the end.
 //! - **Discretisation.** Each interior voxel becomes the mean of its in-domain face neighbours,
@@ -53,8 +53,8 @@ use super::{
     clamp_to_bounds, dirichlet_norm2, for_each_row, residual_with, row_residuals, Active, Screen, SolveError,
     SolveStats, PSI_FRONTIER, PSI_SOURCE,
 };
-use crate::domain::Label;
-use crate::map::Dims;
+use crate::mapping::map::Dims;
+use crate::planning::domain::Label;
 
 /// The thesis's stopping threshold on the largest per-voxel relative change (Eq 6.29).
 pub const RELATIVE_CHANGE: f32 = 1e-4;
@@ -243,7 +243,7 @@ pub fn solve(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::solve::{gauss_seidel, SolveParams};
+    use crate::planning::solve::{gauss_seidel, SolveParams};
 
     extern crate std;
     use std::vec;

@@ -1,8 +1,8 @@
 //! Streamlines: steepest descent of φ from the vehicle to a frontier.
 //!
-//! The field holds ψ = 1 − φ (see [`crate::solve`]), so descending φ is ascending ψ; all
+//! The field holds ψ = 1 − φ (see [`crate::planning::solve`]), so descending φ is ascending ψ; all
 //! differences are taken in ψ, where the vehicle's surroundings have full f32 precision. The
-//! default planning field ([`crate::field`]) stores its u (1 on frontiers, smaller elsewhere)
+//! default planning field ([`crate::planning::field`]) stores its u (1 on frontiers, smaller elsewhere)
 //! in the same buffer, and the same ascent follows it to a frontier.
 //!
 //! The gradient is taken by central differences at voxel centres (a neighbour outside the domain
@@ -26,8 +26,8 @@
 use heapless::Vec as HVec;
 use nalgebra::{Point3, Vector3};
 
-use crate::domain::Label;
-use crate::map::{MapGeometry, VoxelIndex};
+use crate::mapping::map::{MapGeometry, VoxelIndex};
+use crate::planning::domain::Label;
 
 /// Waypoint buffer capacity.
 pub const WAYPOINT_CAPACITY: usize = 128;
@@ -177,7 +177,7 @@ impl Field<'_> {
         let dims = self.geometry.dims();
         let toward = self.descent(p).unwrap_or_else(Vector3::zeros);
         let mut best: Option<(f32, VoxelIndex)> = None;
-        for d in crate::map::FACE_OFFSETS {
+        for d in crate::mapping::map::FACE_OFFSETS {
             let Some(n) = dims.offset(v, d) else { continue };
             if self.label(n) != Label::Frontier {
                 continue;
@@ -332,7 +332,7 @@ pub fn line_of_sight(
 ) -> bool {
     let dims = geometry.dims();
     let mut clear = true;
-    let n = crate::integrate::traverse(geometry, a, b, |v| {
+    let n = crate::mapping::integrate::traverse(geometry, a, b, |v| {
         clear &= labels.get(dims.linear(v)).is_some_and(|l| l.in_domain());
         clear
     });
@@ -475,8 +475,8 @@ impl Recorder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::Dims;
-    use crate::solve::{gauss_seidel, SolveParams};
+    use crate::mapping::map::Dims;
+    use crate::planning::solve::{gauss_seidel, SolveParams};
 
     #[test]
     fn l_shaped_corridor_streamline_turns_the_corner_and_ends_on_the_frontier() {
@@ -542,7 +542,7 @@ mod tests {
 
     fn assert_segments_in_domain(g: &MapGeometry, labels: &[Label], w: &[Point3<f32>]) {
         for p in w.windows(2) {
-            crate::integrate::traverse(g, &p[0], &p[1], |v| {
+            crate::mapping::integrate::traverse(g, &p[0], &p[1], |v| {
                 assert!(
                     labels[g.dims().linear(v)].in_domain(),
                     "segment {:?} → {:?} crosses {v:?}",

@@ -1,7 +1,7 @@
 //! Operator commands: what a ground station may ask of the explorer, and the state that leaves
 //! it in.
 //!
-//! The commands arrive as MAVLink COMMAND_LONG (decoded by [`crate::mavlink::Bridge`], which
+//! The commands arrive as MAVLink COMMAND_LONG (decoded by [`crate::links::mavlink::Bridge`], which
 //! answers each with a COMMAND_ACK and reports the state in its HEARTBEAT's `custom_mode`):
 //!
 //! | command | MAVLink (`MAV_CMD_…`) | from | to |
@@ -18,7 +18,7 @@
 //! other command is answered as unsupported.
 //!
 //! [`OperatorState::Exploring`] plans the exploration and [`OperatorState::ReturningHome`] the
-//! way home ([`crate::explore::Explorer::plan_home`]), which ends in [`OperatorState::Home`]
+//! way home ([`crate::planning::explore::Explorer::plan_home`]), which ends in [`OperatorState::Home`]
 //! (a hold, ready to land); in every other state the caller holds the vehicle where it is (and
 //! keeps integrating depth, so the map stays current).
 

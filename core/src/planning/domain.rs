@@ -16,7 +16,7 @@
 //!    reached — other components — are excluded, never solved.
 //!
 //! Every face between a domain voxel and a non-domain voxel is a wall with zero flux: the
-//! cell-centred finite-volume Laplacian simply omits it (see [`crate::solve`]).
+//! cell-centred finite-volume Laplacian simply omits it (see [`crate::planning::solve`]).
 //!
 //! Before a planner ends an exploration it may build the domain once more with weakly seen
 //! occupied voxels taken for free space ([`build_doubting`]): if that reaches a frontier, noise
@@ -29,9 +29,9 @@
 use heapless::Vec as HVec;
 use nalgebra::Point3;
 
-use crate::integrate::traverse;
+use crate::mapping::integrate::traverse;
 
-use crate::map::{
+use crate::mapping::map::{
     stored_blocks, stored_free, stored_observed, Dims, VoxelIndex, VoxelMap, LOG_ODDS_SCALE, SEALED, UNKNOWN,
 };
 
@@ -1087,7 +1087,7 @@ pub fn escape_target(
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::map::{Dims, LogOddsParams, MapGeometry};
+    use crate::mapping::map::{Dims, LogOddsParams, MapGeometry};
     use nalgebra::Point3;
 
     /// Builds a 1 m-resolution map from ASCII pictures, one string slice per z-layer:
@@ -1492,7 +1492,7 @@ pub(crate) mod tests {
         for i in 0..dims.len() {
             if matches!(
                 map.occupancy(i),
-                crate::map::Occupancy::Occupied | crate::map::Occupancy::Uncertain
+                crate::mapping::map::Occupancy::Occupied | crate::mapping::map::Occupancy::Uncertain
             ) || map.is_sealed(i)
             {
                 let v = dims.voxel(i);
@@ -1550,7 +1550,10 @@ pub(crate) mod tests {
             let dims = Dims::new(nx, ny, nz).unwrap();
             let g = MapGeometry::new(dims, Point3::origin(), 1.0).unwrap();
             let n = dims.len();
-            let (mut lo, mut st) = (vec![0i8; n], vec![0u32; crate::map::touched_words(&dims)]);
+            let (mut lo, mut st) = (
+                vec![0i8; n],
+                vec![0u32; crate::mapping::map::touched_words(&dims)],
+            );
             let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo, &mut st).unwrap();
             // Observed boxes of free space with occupied shells, some sealed pockets; the
             // rest unknown.
@@ -1613,7 +1616,7 @@ pub(crate) mod tests {
             let n = dims.len();
             // At most 14 × 12 × 10 voxels.
             let (mut lo, mut st) = ([0i8; 1680], [0u32; 64]);
-            let words = crate::map::touched_words(&dims);
+            let words = crate::mapping::map::touched_words(&dims);
             let mut map = VoxelMap::new(g, LogOddsParams::default(), &mut lo[..n], &mut st[..words]).unwrap();
             let (p_unknown, p_occupied) = (next() % 60, next() % 30);
             for i in 0..n {

@@ -1,31 +1,32 @@
 //! The harmonic planner's target choice: solve the planning field over the domain and follow
 //! its streamline from the vehicle to a frontier.
 //!
-//! The field is [`ExplorerConfig::field`] ([`crate::field`]: by default the frontier-sourced
+//! The field is [`ExplorerConfig::field`] ([`crate::planning::field`]: by default the frontier-sourced
 //! screened field, u = 1 on frontiers, ∇²u = κ²u elsewhere; or the seed's Laplace field with
 //! the vehicle as source), solved by [`ExplorerConfig::solver`] warm-started from the previous
-//! solution ([`crate::solve`]; a re-solve of the screened field works in boxes around what the
-//! scans changed where box scratch is lent, [`crate::solve::local`]). Its streamline
-//! ([`crate::streamline`]) ends on a frontier. Far from every frontier the screened field can
+//! solution ([`crate::planning::solve`]; a re-solve of the screened field works in boxes around what the
+//! scans changed where box scratch is lent, [`crate::planning::solve::local`]). Its streamline
+//! ([`crate::planning::streamline`]) ends on a frontier. Far from every frontier the screened field can
 //! fall below what f32 resolves: a streamline that stalls there is traced again on a field
 //! with half the κ; once κ is as low as it goes, the vehicle flies the part it traced.
 
 use nalgebra::Point3;
 
-use crate::domain::Label;
-use crate::field::{self, PlanningField};
+use crate::planning::domain::Label;
+use crate::planning::field::{self, PlanningField};
 #[cfg(feature = "flat")]
-use crate::solve::flat::Flat;
-use crate::solve::local::{resolve_near, BoxSolver, Local, LocalParams, LocalScratch, WithMethod};
-use crate::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
-use crate::solve::{self, SolveError, SolveParams, SolveStats};
-use crate::streamline::{self, Field, StreamlineError, Waypoints};
+use crate::planning::solve::flat::Flat;
+use crate::planning::solve::local::{resolve_near, BoxSolver, Local, LocalParams, LocalScratch, WithMethod};
+use crate::planning::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
+use crate::planning::solve::{self, SolveError, SolveParams, SolveStats};
+use crate::planning::streamline::{self, Field, StreamlineError, Waypoints};
 
 use super::config::{ExplorerConfig, SolverKind};
-use super::status::{Clock, ConfigError, Fault, Goal, PlanOutcome, Status};
+use super::status::{ConfigError, Fault, Goal, PlanOutcome, Status};
 use super::target::heading;
 use super::target::{Chosen, Context, TargetChoice};
-use crate::map::{MapGeometry, VoxelIndex};
+use crate::clock::Clock;
+use crate::mapping::map::{MapGeometry, VoxelIndex};
 
 /// The buffers the field is solved in (see [`ExplorerStorage`](super::ExplorerStorage), whose
 /// solver buffers these are).
@@ -75,7 +76,7 @@ pub struct HarmonicField<'a> {
 
 impl<'a> HarmonicField<'a> {
     /// The field of `config` over `geometry`, solved in `storage`: φ at least one entry per
-    /// voxel; the multigrid buffers sized by [`crate::solve::multigrid::scratch_size`] unless the
+    /// voxel; the multigrid buffers sized by [`crate::planning::solve::multigrid::scratch_size`] unless the
     /// solver is Gauss-Seidel or the thesis's Jacobi; `jacobi` one entry per voxel for the
     /// thesis's solve, which needs the seed's field.
     pub fn new(
@@ -156,12 +157,12 @@ impl<'a> HarmonicField<'a> {
         })
     }
 
-    /// The stored potential ψ = 1 − φ of the last solve (see [`crate::solve`]).
+    /// The stored potential ψ = 1 − φ of the last solve (see [`crate::planning::solve`]).
     pub fn psi(&self) -> &[f32] {
         self.phi
     }
 
-    /// Solves the planning field over the domain `cx` lends (see [`crate::field`]). For the
+    /// Solves the planning field over the domain `cx` lends (see [`crate::planning::field`]). For the
     /// screened field the vehicle's voxel joins the interior, and while `u` at the vehicle falls
     /// below [`ScreenedParams::min_vehicle_value`](field::ScreenedParams::min_vehicle_value)
     /// (the nearest frontier is far) κ is lowered and the field solved again; once `u` there is

@@ -1,4 +1,4 @@
-//! Laplace solvers over the domain built by [`crate::domain`].
+//! Laplace solvers over the domain built by [`crate::planning::domain`].
 //!
 //! Discretisation: cell-centred finite volumes on the voxel grid. For an interior voxel `i`,
 //! `Σ_{j ∈ N(i)} (φ_j − φ_i) = 0`, where `N(i)` are its face neighbours that are in the domain
@@ -27,8 +27,8 @@
 
 use core::cell::Cell;
 
-use crate::domain::Label;
-use crate::map::Dims;
+use crate::mapping::map::Dims;
+use crate::planning::domain::Label;
 
 #[cfg(feature = "flat")]
 pub mod flat;
@@ -89,7 +89,7 @@ pub struct SolveParams {
     pub warm_start: bool,
     /// Screening `κ²h²` (κ in 1/m, h the voxel size): each interior row gains `−κ²h²·ψᵢ`,
     /// which turns Laplace's equation into the screened one `∇²u = κ²u`. 0 (the default) is
-    /// the seed's Laplace problem; see [`crate::field`] for the frontier-sourced field that
+    /// the seed's Laplace problem; see [`crate::planning::field`] for the frontier-sourced field that
     /// uses it. Negative or non-finite values are refused ([`SolveError::BadScreening`]).
     pub screening: f32,
     /// Also stop only once [`SolveStats::error_estimate`] is at or below this (the largest
@@ -1725,7 +1725,7 @@ pub fn gauss_seidel(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::domain::tests::xorshift;
+    use crate::planning::domain::tests::xorshift;
 
     /// A one-voxel corridor of `N` voxels: source at x = 0, frontier at x = N − 1.
     fn corridor<const N: usize>() -> (Dims, [Label; N]) {
@@ -1740,10 +1740,10 @@ mod tests {
         let dims = Dims::new(10, 4, 3).unwrap();
         let mut labels = [Label::Outside; 120];
         for (x, y, z) in [(6, 1, 1), (3, 2, 1), (7, 2, 2)] {
-            labels[dims.linear(crate::map::VoxelIndex::new(x, y, z))] = Label::Interior;
+            labels[dims.linear(crate::mapping::map::VoxelIndex::new(x, y, z))] = Label::Interior;
         }
         // Dirichlet cells outside the box are read as neighbours but never updated.
-        labels[dims.linear(crate::map::VoxelIndex::new(9, 2, 2))] = Label::Frontier;
+        labels[dims.linear(crate::mapping::map::VoxelIndex::new(9, 2, 2))] = Label::Frontier;
         let a = Active::of(&dims, &labels);
         assert_eq!((a.xs(), a.ys(), a.zs()), (3..8, 1..3, 1..3));
         assert_eq!(Active::of(&dims, &[Label::Outside; 120]), Active::default());

@@ -64,8 +64,8 @@ use super::{
     split_plane, Active, Bf16, Contraction, Dirichlet, Fork, Residual, RowValues, Screen, SolveError,
     SolveParams, SolveStats, Solved, Stencil, Stored, MASK_INTERIOR, MASK_OPEN, OPEN_RUN,
 };
-use crate::domain::Label;
-use crate::map::Dims;
+use crate::mapping::map::Dims;
+use crate::planning::domain::Label;
 
 /// Most levels in a hierarchy (fine included).
 pub const MAX_LEVELS: usize = 12;
@@ -1968,8 +1968,8 @@ fn vcycle<T: Stored, U: Stored>(
 pub(crate) mod tests {
     extern crate std;
     use super::*;
-    use crate::map::VoxelIndex;
-    use crate::solve::gauss_seidel;
+    use crate::mapping::map::VoxelIndex;
+    use crate::planning::solve::gauss_seidel;
     use std::vec;
     use std::vec::Vec;
 
@@ -2081,7 +2081,7 @@ pub(crate) mod tests {
     fn a_fork_splits_every_pass_without_changing_a_bit() {
         let (dims, laplace) = rooms(64, 48, 24);
         let mut screened = laplace.clone();
-        crate::field::release_source(&mut screened);
+        crate::planning::field::release_source(&mut screened);
         for (labels, screening) in [(&laplace, 0.0), (&screened, 0.09)] {
             for method in [Method::Pcg, Method::VCycle] {
                 let solve = |fork: Option<&dyn Fork>| {

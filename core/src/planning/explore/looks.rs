@@ -3,9 +3,9 @@
 
 use nalgebra::{Point3, Vector3};
 
-use crate::camera::Intrinsics;
-use crate::integrate;
-use crate::map::{Occupancy, VoxelMap};
+use crate::mapping::camera::Intrinsics;
+use crate::mapping::integrate;
+use crate::mapping::map::{Occupancy, VoxelMap};
 
 use super::config::ExplorerConfig;
 use super::status::Goal;

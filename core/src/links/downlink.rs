@@ -1,6 +1,6 @@
 //! The downlink: what the core reports back over the depth link's return channel.
 //!
-//! The depth link ([`crate::link`]) carries frames from the camera side to the core. On a UART
+//! The depth link ([`crate::links::link`]) carries frames from the camera side to the core. On a UART
 //! the other direction is free, and the core uses it to tell the camera side (and whoever
 //! listens there: a ground station, the processor-in-the-loop simulator) what it did with each
 //! frame:
@@ -53,15 +53,15 @@
 //! 0 StorageTooSmall, 1 BadTolerance, 2 ScratchTooSmall, 3 Diverged, 4 BadScreening),
 //! 6 Integrate (detail: 0 BadPose, 1 BadRange, 2 PoseJump, 3 TurningTooFast, 4 StalePose).
 
-use crate::explore::{ErrorCounters, Fault, PlanOutcome, Status};
-use crate::integrate::IntegrateError;
-use crate::link::{cobs_decode_in_place, crc32, write_frame, LinkCounters, LinkError, Malformed};
-use crate::link::{CRC_LEN, DELIMITER, HEADER_LEN, PROTOCOL_VERSION};
-use crate::map::{Occupancy, VoxelMap};
-use crate::operator::OperatorState;
-use crate::signing::VerifierCounters;
-use crate::solve::SolveError;
-use crate::streamline::StreamlineError;
+use crate::links::link::{cobs_decode_in_place, crc32, write_frame, LinkCounters, LinkError, Malformed};
+use crate::links::link::{CRC_LEN, DELIMITER, HEADER_LEN, PROTOCOL_VERSION};
+use crate::links::operator::OperatorState;
+use crate::links::signing::VerifierCounters;
+use crate::mapping::integrate::IntegrateError;
+use crate::mapping::map::{Occupancy, VoxelMap};
+use crate::planning::explore::{ErrorCounters, Fault, PlanOutcome, Status};
+use crate::planning::solve::SolveError;
+use crate::planning::streamline::StreamlineError;
 
 /// Message type of a [`PlanReport`].
 pub const PLAN_REPORT: u8 = 0x81;
@@ -77,7 +77,7 @@ const MAP_SLICE_HEADER: usize = 6;
 /// Encoded bytes of a downlink frame with a body of `body_len` bytes, at most (both
 /// delimiters included).
 pub const fn max_frame_len(body_len: usize) -> usize {
-    crate::link::max_encoded_len(HEADER_LEN + body_len)
+    crate::links::link::max_encoded_len(HEADER_LEN + body_len)
 }
 
 /// Why a downlink frame was dropped.
@@ -178,7 +178,7 @@ pub struct PlanReport {
 }
 
 impl PlanReport {
-    /// The report of a plan: `outcome` as [`crate::explore::Explorer::plan`] returned it,
+    /// The report of a plan: `outcome` as [`crate::planning::explore::Explorer::plan`] returned it,
     /// `kept` if the explorer kept its committed goal (its `plans_kept` went up), `status`
     /// after the plan.
     #[allow(clippy::too_many_arguments)]
@@ -695,9 +695,9 @@ pub enum Downlink<'a> {
     },
     /// An intact frame of one of the depth link's own message types (high bit clear): the
     /// core's resend requests and acknowledgements travel the same return channel. Not damage;
-    /// a [`crate::link::FrameDecoder`] fed the same bytes reads it.
+    /// a [`crate::links::link::FrameDecoder`] fed the same bytes reads it.
     Link {
-        /// Its message type ([`crate::link::MessageType`]'s code).
+        /// Its message type ([`crate::links::link::MessageType`]'s code).
         kind: u8,
     },
 }
@@ -811,7 +811,7 @@ fn parse(frame: &mut [u8]) -> Result<Downlink<'_>, DownlinkError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::map::{Dims, LogOddsParams, MapGeometry};
+    use crate::mapping::map::{Dims, LogOddsParams, MapGeometry};
     use nalgebra::Point3;
 
     fn decode_all<const N: usize>(
@@ -867,7 +867,7 @@ mod tests {
             report.errors.pocket_plans = 13 + k as u32;
             report.unreachable_frontier = 241 + k as u32;
             // Every operator state travels, and "not reported" too.
-            report.operator = crate::operator::OperatorState::from_custom_mode(k as u32);
+            report.operator = crate::links::operator::OperatorState::from_custom_mode(k as u32);
             report.signing.accepted = 1000 + k as u32;
             report.signing.too_many_streams = k as u32;
             report.resend_requests = 40 + k as u32;
@@ -937,9 +937,9 @@ mod tests {
         let mut damaged = out;
         damaged[40] ^= 0x10;
         let mut heartbeat = [0u8; 64];
-        let hb = crate::link::encode_frame(
+        let hb = crate::links::link::encode_frame(
             0,
-            &crate::link::Message::Heartbeat(crate::link::Heartbeat::default()),
+            &crate::links::link::Message::Heartbeat(crate::links::link::Heartbeat::default()),
             &mut heartbeat,
         )
         .unwrap();

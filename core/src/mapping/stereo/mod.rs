@@ -47,7 +47,7 @@
 //! invalid pixels hold [`INVALID_DISPARITY`] (−16, OpenCV's `(minDisparity − 1)·16`). Pixels
 //! whose match footprint leaves the image — `2·r` = `window − 1` rows and columns on every
 //! side — are invalid. Depth (`z = f·b/d`) is `u16` millimetres with 0 = no depth, as in
-//! [`crate::camera`].
+//! [`crate::mapping::camera`].
 //!
 //! ## Streaming and memory
 //!

@@ -46,7 +46,7 @@
 //! below what the solve resolves. The explorer then lowers κ (see [`ScreenedParams`]) and solves
 //! again, and raises it back once frontiers are near.
 
-use crate::domain::Label;
+use crate::planning::domain::Label;
 
 /// The planning potential.
 #[derive(Debug, Clone, Copy, PartialEq)]

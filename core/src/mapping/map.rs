@@ -13,7 +13,7 @@
 //!   [`VoxelMap::begin_frame`], which makes "each voxel at most once per frame" an O(1) check.
 //!
 //! An unknown voxel may be *sealed* (value [`SEALED`], −127): the planner has decided it cannot
-//! be observed from any reachable pose (see [`crate::explore`]), so it no longer makes its free
+//! be observed from any reachable pose (see [`crate::planning::explore`]), so it no longer makes its free
 //! neighbours frontiers. Sealing is forgotten as soon as the voxel is observed.
 //!
 //! Voxels are indexed `x + nx·(y + ny·z)`. The map frame is right-handed, z up, metres.
@@ -425,7 +425,7 @@ impl<'a> VoxelMap<'a> {
     }
 
     /// Adds the per-voxel surface estimate noisy depth is integrated with (two words per voxel;
-    /// see [`crate::integrate`]). Shorter storage leaves the map without it: noisy frames are
+    /// see [`crate::mapping::integrate`]). Shorter storage leaves the map without it: noisy frames are
     /// then decided by the per-frame vote alone.
     pub fn with_surface(mut self, surface: &'a mut [[i32; 2]]) -> Self {
         let n = self.geometry.dims.len();
@@ -527,7 +527,7 @@ impl<'a> VoxelMap<'a> {
 
     /// Forgets an occupied or uncertain voxel: it becomes unknown, as if never observed, so the
     /// planner treats it as unexplored space and looks at it again (see
-    /// [`Reopening`](crate::domain::Reopening)). Free, unknown and sealed voxels are left
+    /// [`Reopening`](crate::planning::domain::Reopening)). Free, unknown and sealed voxels are left
     /// alone. Returns whether it changed.
     pub fn forget(&mut self, i: usize) -> bool {
         match self.log_odds.get_mut(i) {

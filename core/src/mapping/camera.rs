@@ -9,7 +9,7 @@
 use nalgebra::Vector3;
 
 /// Depth value of a pixel that was never received — a row of a depth frame lost on the link
-/// ([`crate::link::DepthReceiver`] delivers such frames partially). Integration skips these
+/// ([`crate::links::link::DepthReceiver`] delivers such frames partially). Integration skips these
 /// pixels: they are neither a return nor a "no return". No sensor reading is encoded as it
 /// (the largest depth is `u16::MAX − 1` mm, 65.5 m).
 pub const NOT_RECEIVED: u16 = u16::MAX;

@@ -27,7 +27,7 @@
 //! counter-clockwise from +x (East) about +z (Up); NED yaw is clockwise from North about +Down,
 //! so `yaw_ned = π/2 − yaw_map`, wrapped to (−π, π]. The vehicle body frame of
 //! [`VehiclePose::attitude`] is x forward, y left, z up (as in
-//! [`forward_camera_pose`](crate::explore::forward_camera_pose)); MAVLink's body frame is
+//! [`forward_camera_pose`](crate::planning::explore::forward_camera_pose)); MAVLink's body frame is
 //! FRD (x forward, y right, z down).
 //!
 //! # Faults
@@ -51,7 +51,7 @@ use ::mavlink::dialects::common::{
 use ::mavlink::{MAVLinkMessageRaw, MAVLinkV2MessageRaw};
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion};
 
-use crate::operator::{CommandResult, Operator, OperatorCommand, OperatorState};
+use crate::links::operator::{CommandResult, Operator, OperatorCommand, OperatorState};
 
 pub use ::mavlink::dialects::common::{self, MavComponent, MavMessage, MavSeverity, PositionTargetTypemask};
 /// The `mavlink` crate's message trait (`message_name`, `message_id`, `parse`), for hosts that
@@ -179,7 +179,7 @@ pub struct BridgeConfig {
     /// position has gone stale; the bridge holds meanwhile.
     pub max_pose_jump_m: f32,
     /// Wait for the operator's start command (COMMAND_LONG `MAV_CMD_MISSION_START`) before
-    /// exploring (see [`crate::operator`]). Default false: explore at once.
+    /// exploring (see [`crate::links::operator`]). Default false: explore at once.
     pub wait_for_start: bool,
 }
 
@@ -819,7 +819,7 @@ impl Bridge {
         result
     }
 
-    /// What the operator has the explorer doing ([`crate::operator`]): plan only while it is
+    /// What the operator has the explorer doing ([`crate::links::operator`]): plan only while it is
     /// [`OperatorState::Exploring`]; hold otherwise.
     pub fn operator_state(&self) -> OperatorState {
         self.operator.state()
@@ -972,7 +972,7 @@ impl Bridge {
             MavState::MAV_STATE_STANDBY
         };
         HEARTBEAT_DATA {
-            // The operator state (crate::operator): exploring, paused, ...
+            // The operator state (crate::links::operator): exploring, paused, ...
             custom_mode: self.operator.state().custom_mode(),
             mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
             autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,

@@ -87,8 +87,8 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use crate::camera::{DepthFrame, NOT_RECEIVED};
-use crate::map::{Dims, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
+use crate::mapping::camera::{DepthFrame, NOT_RECEIVED};
+use crate::mapping::map::{Dims, MapGeometry, Occupancy, VoxelIndex, VoxelMap};
 
 /// What a depth-0 pixel means.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -217,18 +217,18 @@ pub enum IntegrateError {
     /// footprint is negative or not finite.
     BadRange,
     /// The camera pose is farther from the previous frame's than
-    /// [`ExplorerConfig::max_frame_jump_m`](crate::explore::ExplorerConfig::max_frame_jump_m)
+    /// [`ExplorerConfig::max_frame_jump_m`](crate::planning::explore::ExplorerConfig::max_frame_jump_m)
     /// (refused by the explorer; [`integrate`] itself has no memory of earlier frames).
     PoseJump,
     /// The vehicle was turning faster than
-    /// [`ExplorerConfig::max_frame_yaw_rate`](crate::explore::ExplorerConfig::max_frame_yaw_rate)
+    /// [`ExplorerConfig::max_frame_yaw_rate`](crate::planning::explore::ExplorerConfig::max_frame_yaw_rate)
     /// when the frame was taken (refused by the explorer, given the frame's
-    /// [`FrameTiming`](crate::explore::FrameTiming)).
+    /// [`FrameTiming`](crate::planning::explore::FrameTiming)).
     TurningTooFast,
     /// The pose stream was older than the frame by more than
-    /// [`ExplorerConfig::max_frame_pose_lag_ms`](crate::explore::ExplorerConfig::max_frame_pose_lag_ms)
+    /// [`ExplorerConfig::max_frame_pose_lag_ms`](crate::planning::explore::ExplorerConfig::max_frame_pose_lag_ms)
     /// (refused by the explorer, given the frame's
-    /// [`FrameTiming`](crate::explore::FrameTiming)).
+    /// [`FrameTiming`](crate::planning::explore::FrameTiming)).
     StalePose,
 }
 
@@ -1165,8 +1165,8 @@ fn clip_to_grid(dims: &Dims, g: &Vector3<f32>, d: &Vector3<f32>) -> Option<(f32,
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::Intrinsics;
-    use crate::map::{LogOddsParams, Occupancy};
+    use crate::mapping::camera::Intrinsics;
+    use crate::mapping::map::{LogOddsParams, Occupancy};
     use nalgebra::{Translation3, UnitQuaternion};
 
     fn geometry(nx: usize, ny: usize, nz: usize) -> MapGeometry {

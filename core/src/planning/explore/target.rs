@@ -22,14 +22,15 @@
 
 use nalgebra::{Point3, Vector3};
 
-use crate::camera::Intrinsics;
-use crate::domain::{InflationStencil, Label};
-use crate::integrate;
-use crate::map::{VoxelIndex, VoxelMap};
-use crate::streamline::{self, StreamlineEnd, Waypoints};
+use crate::mapping::camera::Intrinsics;
+use crate::mapping::integrate;
+use crate::mapping::map::{VoxelIndex, VoxelMap};
+use crate::planning::domain::{InflationStencil, Label};
+use crate::planning::streamline::{self, StreamlineEnd, Waypoints};
 
 use super::config::ExplorerConfig;
-use super::status::{Clock, Fault, Goal, PlanOutcome, Status};
+use super::status::{Fault, Goal, PlanOutcome, Status};
+use crate::clock::Clock;
 
 /// Most voxels a target is watched by ([`Chosen::Way`]).
 pub const WATCH_CAPACITY: usize = 16;

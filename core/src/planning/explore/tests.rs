@@ -11,11 +11,11 @@ use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use super::looks::{octant, octant_yaw};
 use super::target::heading;
 use super::*;
-use crate::camera::{DepthFrame, Intrinsics};
-use crate::field::PlanningField;
-use crate::map::{Dims, MapGeometry};
-use crate::solve::multigrid;
-use crate::solve::SolveError;
+use crate::mapping::camera::{DepthFrame, Intrinsics};
+use crate::mapping::map::{Dims, MapGeometry};
+use crate::planning::field::PlanningField;
+use crate::planning::solve::multigrid;
+use crate::planning::solve::SolveError;
 
 struct Buffers {
     log_odds: Vec<i8>,
@@ -40,7 +40,7 @@ impl Buffers {
         let s = multigrid::scratch_size(dims);
         Self {
             log_odds: vec![0; n],
-            touched: vec![0; crate::map::touched_words(dims)],
+            touched: vec![0; crate::mapping::map::touched_words(dims)],
             labels: vec![Label::Outside; n],
             phi: vec![0.0; n],
             queue: vec![0; 4096],
@@ -311,7 +311,7 @@ fn vehicle_in_an_occupied_voxel_escapes_to_free_space() {
     let g = *e.map().geometry();
     assert_eq!(
         e.map().occupancy(g.dims().linear(g.voxel_at(&inside).unwrap())),
-        crate::map::Occupancy::Occupied
+        crate::mapping::map::Occupancy::Occupied
     );
     match e.plan(&inside, 0.0) {
         PlanOutcome::Goal(goal) => {
@@ -961,7 +961,7 @@ fn a_far_remnant_is_flown_to_while_safe_space_is_out_of_reach() {
 
 #[test]
 fn storage_bytes_count_every_buffer() {
-    use crate::solve::Bf16;
+    use crate::planning::solve::Bf16;
     let label = core::mem::size_of::<Label>();
     let (mut lo, mut touched, mut labels, mut phi) = ([0i8; 10], [0u32; 1], [Label::default(); 3], [0f32; 2]);
     let (mut queue, mut values, mut coarse_labels) =
@@ -991,7 +991,7 @@ fn storage_bytes_count_every_buffer() {
 
 impl Explorer<'_> {
     /// Solves the planning field over the domain built last.
-    fn solve_field(&mut self, vehicle: VoxelIndex) -> Result<crate::solve::SolveStats, SolveError> {
+    fn solve_field(&mut self, vehicle: VoxelIndex) -> Result<crate::planning::solve::SolveStats, SolveError> {
         let (targets, mut cx, _) = self.parts(vehicle);
         targets.solve_field(&mut cx)
     }
@@ -1058,9 +1058,11 @@ fn the_flat_solver_solves_the_field_multigrid_does() {
                         ..ExplorerConfig::default()
                     }
                 ),
-                Err(ConfigError::Solver(crate::solve::SolveError::ScratchTooSmall))
+                Err(ConfigError::Solver(
+                    crate::planning::solve::SolveError::ScratchTooSmall
+                ))
             ));
-            b.flat = vec![0.0; crate::solve::flat::flat_scratch_len(&dims)];
+            b.flat = vec![0.0; crate::planning::solve::flat::flat_scratch_len(&dims)];
         }
         let config = ExplorerConfig {
             solver,
