@@ -128,7 +128,7 @@ pub fn explorer_config() -> ExplorerConfig {
 }
 
 /// The companion configuration: the bridge's defaults, [`ARQ_ROUNDS`],
-/// [`RETURN_HOME_AFTER_COMPLETE`], [`MAVLINK_KEY`], and a clock of `tick_hz`.
+/// [`RETURN_HOME_AFTER_COMPLETE`], [`MAVLINK_KEY`], no look-around, and a clock of `tick_hz`.
 pub fn companion_config(tick_hz: u32) -> CompanionConfig {
     CompanionConfig {
         bridge: BridgeConfig::default(),
@@ -136,6 +136,8 @@ pub fn companion_config(tick_hz: u32) -> CompanionConfig {
         return_home_after_complete: RETURN_HOME_AFTER_COMPLETE,
         tick_hz,
         signing_key: MAVLINK_KEY,
+        // The processor-in-the-loop runs plan from the first scan (pil-small's recorded run).
+        look_around: 0,
     }
 }
 

@@ -37,25 +37,29 @@ mod signing;
 pub use follower::{travel_heading, Follower};
 pub use signing::LinkSigning;
 
+use core::f32::consts::TAU;
 use core::fmt::Write as _;
 
 use embedded_io::{Read, ReadReady, Write};
 use nalgebra::Point3;
 
 use crate::clock::Clock;
-use crate::links::downlink::{self, PlanReport, MAP_SLICE_VOXELS};
+use crate::links::downlink::{self, PlanReport, ReportOutcome, MAP_SLICE_VOXELS};
 use crate::links::link::{
     max_encoded_len, DepthReceiver, LinkEncoder, LinkError, LinkEvent, Message as LinkMessage, Pose,
     ResendRequest, HEADER_LEN, MAX_RESEND_RANGES, RESEND_REQUEST_HEADER_LEN,
 };
 use crate::links::mavlink::common::TIMESYNC_DATA;
 use crate::links::mavlink::{
-    encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, StatusText,
+    encode_v2, wrap_angle, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, StatusText,
     AUTOPILOT_COMPONENT_ID, DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
 };
 use crate::links::operator::OperatorState;
 use crate::links::signing::{SecretKey, VerifierCounters};
-use crate::planning::explore::{ConfigError, Explorer, Fault, PlanOutcome};
+use crate::mapping::map::VoxelIndex;
+use crate::planning::explore::{
+    ConfigError, Explorer, Fault, Goal, HarmonicField, PlanOutcome, TargetChoice,
+};
 
 /// Payload bytes (header and body) of the largest resend request.
 const RESEND_REQUEST_MAX_LEN: usize = HEADER_LEN + RESEND_REQUEST_HEADER_LEN + 4 * MAX_RESEND_RANGES;
@@ -77,6 +81,11 @@ pub struct CompanionConfig {
     /// MAVLink 2 signing key shared with the autopilot: with one, every frame sent is signed
     /// and only frames the key signed are acted on; without one, neither.
     pub signing_key: Option<SecretKey>,
+    /// Scans at evenly spaced headings, turning on the spot, before the first plan (0 or 1:
+    /// plan after the first scan). Without it a start whose first view leaves the vehicle's
+    /// surroundings unobserved can end the exploration at once, the vehicle's voxel being the
+    /// whole safe space. Default 0; the simulator's runs use 4.
+    pub look_around: u32,
 }
 
 impl Default for CompanionConfig {
@@ -87,6 +96,7 @@ impl Default for CompanionConfig {
             return_home_after_complete: true,
             tick_hz: 1,
             signing_key: None,
+            look_around: 0,
         }
     }
 }
@@ -132,9 +142,10 @@ pub enum Event {
 /// The companion computer: explorer, depth-link receiver, MAVLink bridge, follower, operator
 /// and signing, and the glue between them (see the [module documentation](self)).
 /// `LINK_BYTES` is the depth-link decoder's frame buffer, `STREAMS` the signing streams
-/// (system, component, link) its verifier tells apart.
-pub struct Companion<'a, const LINK_BYTES: usize, const STREAMS: usize> {
-    explorer: &'a mut Explorer<'a>,
+/// (system, component, link) its verifier tells apart, `T` the explorer's target choice (the
+/// harmonic field unless a board flies another planner).
+pub struct Companion<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice = HarmonicField<'a>> {
+    explorer: &'a mut Explorer<'a, T>,
     receiver: DepthReceiver<'a, LINK_BYTES>,
     mavlink: MavlinkDecoder,
     bridge: Bridge,
@@ -155,12 +166,20 @@ pub struct Companion<'a, const LINK_BYTES: usize, const STREAMS: usize> {
     resend_requests: u32,
     /// An image that arrived without its pose, waiting for it.
     awaiting_pose: Option<u32>,
+    /// The vehicle pose a board handed over directly ([`Companion::hand_pose`]), if any.
+    handed_pose: Option<(Point3<f32>, f32)>,
+    /// Turns of the look-around made so far.
+    looked: u32,
+    /// What the last plan (or look-around turn) decided.
+    last_plan: Option<PlanOutcome>,
 }
 
-impl<'a, const LINK_BYTES: usize, const STREAMS: usize> Companion<'a, LINK_BYTES, STREAMS> {
+impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
+    Companion<'a, LINK_BYTES, STREAMS, T>
+{
     /// A companion around `explorer`, receiving depth images of up to `depth.len()` pixels.
     pub fn new(
-        explorer: &'a mut Explorer<'a>,
+        explorer: &'a mut Explorer<'a, T>,
         depth: &'a mut [u16],
         config: CompanionConfig,
     ) -> Result<Self, ConfigError> {
@@ -183,11 +202,33 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize> Companion<'a, LINK_BYTES
             arq: None,
             resend_requests: 0,
             awaiting_pose: None,
+            handed_pose: None,
+            looked: 0,
+            last_plan: None,
         })
     }
 
+    /// Hands the companion the vehicle's pose (map frame position and yaw) directly, for a
+    /// board whose flight stack is in the same process and needs no MAVLink for it (the
+    /// simulator's ideal autopilot). From now on plans are made from the pose handed over last,
+    /// not from the bridge's.
+    pub fn hand_pose(&mut self, position: Point3<f32>, yaw: f32) {
+        self.handed_pose = Some((position, yaw));
+    }
+
+    /// What the last plan decided (a look-around turn is a goal that keeps the position), if
+    /// one was made; its way is [`Companion::follower`]'s.
+    pub fn last_plan(&self) -> Option<&PlanOutcome> {
+        self.last_plan.as_ref()
+    }
+
+    /// The follower, which holds the way of the last goal.
+    pub fn follower(&self) -> &Follower {
+        &self.follower
+    }
+
     /// The explorer.
-    pub fn explorer(&self) -> &Explorer<'a> {
+    pub fn explorer(&self) -> &Explorer<'a, T> {
         self.explorer
     }
 
@@ -430,17 +471,22 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize> Companion<'a, LINK_BYTES
         clock: &mut C,
     ) -> Result<PlanReport, IoError> {
         // Without a pose the explorer refuses the plan (BadPose) and counts it.
-        let (position, yaw) = match self.bridge.pose(self.now_ms) {
-            Ok(p) => (p.position, p.yaw),
-            Err(_) => (Point3::new(f32::NAN, f32::NAN, f32::NAN), 0.0),
+        let (position, yaw) = match (self.handed_pose, self.bridge.pose(self.now_ms)) {
+            (Some(pose), _) => pose,
+            (None, Ok(p)) => (p.position, p.yaw),
+            (None, Err(_)) => (Point3::new(f32::NAN, f32::NAN, f32::NAN), 0.0),
         };
+        let finite = position.coords.iter().all(|c| c.is_finite()) && yaw.is_finite();
         let kept_before = self.explorer.status().plans_kept;
         // Home is where the first plan was made from.
-        if self.home.is_none() && position.coords.iter().all(|c| c.is_finite()) {
+        if self.home.is_none() && finite {
             self.home = Some(position);
         }
         // The operator decides: explore, go home, or hold (paused, aborted, waiting).
         let state = self.bridge.operator_state();
+        if state == OperatorState::Exploring && finite && self.looked + 1 < self.config.look_around {
+            return self.look_around(frame_id, integrate_ticks, position, yaw, mav);
+        }
         let outcome = match (state, self.home) {
             (OperatorState::Exploring, _) => self.explorer.plan_timed(&position, yaw, clock),
             (OperatorState::ReturningHome, Some(home)) => {
@@ -464,10 +510,50 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize> Companion<'a, LINK_BYTES
             PlanOutcome::Goal(goal) => self.follower.follow(self.explorer.waypoints(), goal),
             _ => self.follower.stop(),
         }
+        self.last_plan = Some(outcome);
         self.flight_tick(mav)?;
-        Ok(PlanReport::new(
+        Ok(self.report(frame_id, &outcome, kept, integrate_ticks, (position, yaw)))
+    }
+
+    /// One turn of the look-around before the first plan ([`CompanionConfig::look_around`]):
+    /// the vehicle stays where it is and turns by a full turn over the number of headings.
+    fn look_around<M: Write>(
+        &mut self,
+        frame_id: u32,
+        integrate_ticks: u64,
+        position: Point3<f32>,
+        yaw: f32,
+        mav: &mut M,
+    ) -> Result<PlanReport, IoError> {
+        self.looked += 1;
+        let turn = Goal {
+            position,
+            yaw: wrap_angle(yaw + TAU / self.config.look_around as f32),
+            frontier: VoxelIndex::new(0, 0, 0),
+            escape: false,
+        };
+        let outcome = PlanOutcome::Goal(turn);
+        steer(&mut self.bridge, &outcome);
+        self.follower.follow(&[position], &turn);
+        self.last_plan = Some(outcome);
+        self.flight_tick(mav)?;
+        let mut report = self.report(frame_id, &outcome, false, integrate_ticks, (position, yaw));
+        report.outcome = ReportOutcome::Look;
+        Ok(report)
+    }
+
+    /// The report of a plan (or turn) made from `pose` after integrating for `integrate_ticks`.
+    fn report(
+        &self,
+        frame_id: u32,
+        outcome: &PlanOutcome,
+        kept: bool,
+        integrate_ticks: u64,
+        (position, yaw): (Point3<f32>, f32),
+    ) -> PlanReport {
+        PlanReport::new(
             frame_id,
-            &outcome,
+            outcome,
             kept,
             position.coords.into(),
             yaw,
@@ -478,7 +564,7 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize> Companion<'a, LINK_BYTES
         )
         .with_resend_requests(self.resend_requests)
         .with_operator(self.bridge.operator_state())
-        .with_signing(self.signing_counters()))
+        .with_signing(self.signing_counters())
     }
 
     /// The map, then the report, back over the link.
@@ -525,10 +611,10 @@ struct Taken {
 }
 
 impl Taken {
-    fn take<C: Clock>(
+    fn take<C: Clock, T: TargetChoice>(
         &mut self,
         e: LinkEvent<'_>,
-        explorer: &mut Explorer<'_>,
+        explorer: &mut Explorer<'_, T>,
         clock: &mut C,
         phase: &mut impl FnMut(Phase),
     ) {
@@ -655,6 +741,149 @@ mod tests {
                 (MavSeverity::MAV_SEVERITY_WARNING, "hold: BadPose"),
                 (MavSeverity::MAV_SEVERITY_NOTICE, "exploration complete"),
             ]
+        );
+    }
+
+    extern crate std;
+
+    use std::collections::VecDeque;
+    use std::vec;
+    use std::vec::Vec;
+
+    use crate::links::link::{LinkEncoder, Message, Pose};
+    use crate::mapping::camera::{DepthFrame, Intrinsics};
+    use crate::mapping::map::{Dims, MapGeometry};
+    use crate::planning::domain::Label;
+    use crate::planning::explore::{forward_camera_pose, ExplorerConfig, ExplorerStorage};
+    use crate::planning::solve::multigrid;
+
+    /// One side of an in-memory UART.
+    #[derive(Default)]
+    struct Wire {
+        to_companion: VecDeque<u8>,
+        from_companion: Vec<u8>,
+    }
+
+    impl embedded_io::ErrorType for Wire {
+        type Error = core::convert::Infallible;
+    }
+
+    impl embedded_io::Read for Wire {
+        fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+            let n = buf.len().min(self.to_companion.len());
+            for (slot, b) in buf.iter_mut().zip(self.to_companion.drain(..n)) {
+                *slot = b;
+            }
+            Ok(n)
+        }
+    }
+
+    impl embedded_io::ReadReady for Wire {
+        fn read_ready(&mut self) -> Result<bool, Self::Error> {
+            Ok(!self.to_companion.is_empty())
+        }
+    }
+
+    impl embedded_io::Write for Wire {
+        fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+            self.from_companion.extend_from_slice(buf);
+            Ok(buf.len())
+        }
+        fn flush(&mut self) -> Result<(), Self::Error> {
+            Ok(())
+        }
+    }
+
+    /// A companion whose pose is handed over (no MAVLink) turns on the spot between its first
+    /// scans, as many times as the look-around asks less one, then plans; the turns plan
+    /// nothing and keep the vehicle where it is.
+    #[test]
+    fn the_look_around_turns_between_the_first_scans_then_plans() {
+        let dims = Dims::new(40, 40, 20).unwrap();
+        let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let n = dims.len();
+        let need = multigrid::scratch_size(&dims);
+        let (mut log_odds, mut touched) = (
+            vec![0i8; n],
+            vec![0u32; crate::mapping::map::touched_words(&dims)],
+        );
+        let (mut labels, mut phi, mut queue) = (vec![Label::Outside; n], vec![0.0f32; n], vec![0u32; 4096]);
+        let mut values = vec![0.0f32; need.values];
+        let mut coarse_labels = vec![Label::Outside; need.labels];
+        let storage = ExplorerStorage {
+            log_odds: &mut log_odds,
+            touched: &mut touched,
+            labels: &mut labels,
+            phi: &mut phi,
+            queue: &mut queue,
+            coarse_values: values.as_mut_slice().into(),
+            coarse_labels: &mut coarse_labels,
+            coarse_faces: &mut [],
+            krylov: &mut [],
+            masks: &mut [],
+            surface: &mut [],
+            jacobi: &mut [],
+            local_labels: &mut [],
+            local_psi: &mut [],
+            flat: &mut [],
+        };
+        let mut explorer = Explorer::new(geometry, ExplorerConfig::default(), storage).unwrap();
+        let mut depth_buffer = vec![0u16; 40 * 30];
+        let config = CompanionConfig {
+            look_around: 4,
+            ..CompanionConfig::default()
+        };
+        let mut companion: Companion<'_, 2048, 4> =
+            Companion::new(&mut explorer, &mut depth_buffer, config).unwrap();
+        let (position, yaw) = (Point3::new(2.0, 2.0, 1.0), 0.3);
+        companion.hand_pose(position, yaw);
+
+        let intrinsics = Intrinsics::new(30.0, 30.0, 20.0, 15.0, 40, 30).unwrap();
+        let depth = vec![1500u16; 40 * 30];
+        let frame = DepthFrame::new(intrinsics, &depth).unwrap();
+        let (mut link, mut mav) = (Wire::default(), Wire::default());
+        let mut encoder = LinkEncoder::new();
+        let mut scratch = vec![0u8; 4096];
+        let mut outcomes = Vec::new();
+        for frame_id in 1..=4u32 {
+            let pose = Pose::from_isometry(frame_id, &forward_camera_pose(&position, yaw)).unwrap();
+            let k = encoder.encode(&Message::Pose(pose), &mut scratch).unwrap();
+            link.to_companion.extend(&scratch[..k]);
+            encoder
+                .encode_depth_frame(frame_id, &frame, 10, &mut scratch, |bytes| {
+                    link.to_companion.extend(bytes)
+                })
+                .unwrap();
+            let mut planned = None;
+            while !link.to_companion.is_empty() {
+                if let Some(Event::Planned(r)) = companion
+                    .poll(&mut link, &mut mav, &mut crate::clock::NoClock, |_| {})
+                    .unwrap()
+                {
+                    planned = Some(r);
+                }
+            }
+            let report = planned.expect("every frame is planned from (or turned on)");
+            outcomes.push((report.outcome, *companion.last_plan().unwrap()));
+        }
+        for (k, (outcome, plan)) in outcomes.iter().take(3).enumerate() {
+            assert_eq!(*outcome, ReportOutcome::Look, "scan {}", k + 1);
+            let PlanOutcome::Goal(turn) = plan else {
+                panic!("{plan:?}")
+            };
+            assert_eq!(turn.position, position, "a turn keeps the vehicle where it is");
+            assert!((turn.yaw - (yaw + core::f32::consts::FRAC_PI_2)).abs() < 1e-6);
+        }
+        assert_ne!(outcomes[3].0, ReportOutcome::Look, "the fourth scan plans");
+        assert_eq!(
+            companion.explorer().status().plans,
+            1,
+            "the turns planned nothing"
+        );
+        assert_eq!(
+            companion.explorer().status().frames,
+            4,
+            "every scan was integrated"
         );
     }
 }

@@ -22,7 +22,7 @@
 //! 0x81 PlanReport, 316 bytes (all little-endian)      0x82 MapSlice, 6 + ⌈count / 4⌉ bytes
 //!   0  u32 frame_id   of the frame just planned from     0  u32 first   voxel index
 //!   4  u8  outcome    0 goal 1 kept 2 escape             4  u16 count   1 ..= MAP_SLICE_VOXELS
-//!                     3 complete 4 hold                  6  u8[]  two bits per voxel, voxel
+//!                     3 complete 4 hold 5 look           6  u8[]  two bits per voxel, voxel
 //!   5  u8  fault      0 none, else Fault (below)              first + k in bits 2(k % 4) of
 //!   6  u8  detail     the fault's inner error                 byte k / 4: 0 unknown 1 free
 //!   7  u8  operator   0 not reported, else 1 + the            2 occupied 3 uncertain
@@ -110,6 +110,8 @@ pub enum ReportOutcome {
     Complete,
     /// No plan: holding.
     Hold(Fault),
+    /// A turn on the spot before the first plan (the companion's look-around): no plan.
+    Look,
 }
 
 /// The core's report after planning from one depth frame. See the [module table](self).
@@ -482,6 +484,7 @@ fn outcome_code(o: &ReportOutcome) -> (u8, u8, u8) {
         ReportOutcome::Kept => (1, 0, 0),
         ReportOutcome::Escape => (2, 0, 0),
         ReportOutcome::Complete => (3, 0, 0),
+        ReportOutcome::Look => (5, 0, 0),
         ReportOutcome::Hold(f) => {
             let (fault, detail) = match f {
                 Fault::BadPose => (1, 0),
@@ -530,6 +533,7 @@ fn outcome_from_code(outcome: u8, fault: u8, detail: u8) -> Option<ReportOutcome
         1 => ReportOutcome::Kept,
         2 => ReportOutcome::Escape,
         3 => ReportOutcome::Complete,
+        5 => ReportOutcome::Look,
         4 => ReportOutcome::Hold(match (fault, detail) {
             (1, 0) => Fault::BadPose,
             (2, 0) => Fault::VehicleOutsideGrid,
@@ -841,6 +845,7 @@ mod tests {
             ReportOutcome::Kept,
             ReportOutcome::Escape,
             ReportOutcome::Complete,
+            ReportOutcome::Look,
             ReportOutcome::Hold(Fault::Streamline(StreamlineError::TooLong)),
             ReportOutcome::Hold(Fault::Solver(SolveError::BadTolerance)),
             ReportOutcome::Hold(Fault::Integrate(IntegrateError::BadRange)),

@@ -820,6 +820,7 @@ fn fly_firmware(
             ReportOutcome::Escape => "escape".to_string(),
             ReportOutcome::Complete => "complete".to_string(),
             ReportOutcome::Hold(f) => format!("hold:{f:?}"),
+            ReportOutcome::Look => "look_around".to_string(),
         };
         // The planning budget is the exploration's (the way home plans with the same field).
         if matches!(report.outcome, ReportOutcome::Goal) && return_start.is_none() {
