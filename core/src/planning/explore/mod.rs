@@ -133,46 +133,11 @@ impl<'a> Explorer<'a> {
         storage: ExplorerStorage<'a>,
     ) -> Result<Self, ConfigError> {
         let n = geometry.dims().len();
-        let ExplorerStorage {
-            log_odds,
-            touched,
-            labels,
-            phi,
-            queue,
-            coarse_values,
-            coarse_labels,
-            coarse_faces,
-            krylov,
-            masks,
-            surface,
-            jacobi,
-            local_labels,
-            local_psi,
-            flat,
-        } = storage;
-        if labels.len() < n || phi.len() < n || queue.is_empty() {
+        if storage.labels.len() < n || storage.phi.len() < n || storage.queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
         }
-        let field = FieldStorage {
-            phi,
-            coarse_values,
-            coarse_labels,
-            coarse_faces,
-            krylov,
-            masks,
-            jacobi,
-            local_labels,
-            local_psi,
-            flat,
-        };
+        let (map, field) = split(storage);
         let targets = HarmonicField::new(&geometry, &config, field)?;
-        let map = MapStorage {
-            log_odds,
-            touched,
-            labels,
-            queue,
-            surface,
-        };
         Self::build(geometry, config, map, targets)
     }
 
@@ -191,6 +156,47 @@ struct MapStorage<'a> {
     surface: &'a mut [[i32; 2]],
 }
 
+/// `storage` as the map's buffers and the harmonic field's.
+fn split(storage: ExplorerStorage<'_>) -> (MapStorage<'_>, FieldStorage<'_>) {
+    let ExplorerStorage {
+        log_odds,
+        touched,
+        labels,
+        phi,
+        queue,
+        coarse_values,
+        coarse_labels,
+        coarse_faces,
+        krylov,
+        masks,
+        surface,
+        jacobi,
+        local_labels,
+        local_psi,
+        flat,
+    } = storage;
+    let map = MapStorage {
+        log_odds,
+        touched,
+        labels,
+        queue,
+        surface,
+    };
+    let field = FieldStorage {
+        phi,
+        coarse_values,
+        coarse_labels,
+        coarse_faces,
+        krylov,
+        masks,
+        jacobi,
+        local_labels,
+        local_psi,
+        flat,
+    };
+    (map, field)
+}
+
 impl<'a, T: TargetChoice> Explorer<'a, T> {
     /// Builds an explorer whose targets `targets` chooses, over `geometry`, in `storage`'s map,
     /// label and queue buffers (and its surface estimate, if lent; the solver buffers are not
@@ -201,22 +207,7 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
         storage: ExplorerStorage<'a>,
         targets: T,
     ) -> Result<Self, ConfigError> {
-        let ExplorerStorage {
-            log_odds,
-            touched,
-            labels,
-            queue,
-            surface,
-            ..
-        } = storage;
-        let map = MapStorage {
-            log_odds,
-            touched,
-            labels,
-            queue,
-            surface,
-        };
-        Self::build(geometry, config, map, targets)
+        Self::build(geometry, config, split(storage).0, targets)
     }
 
     fn build(
