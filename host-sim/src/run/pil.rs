@@ -38,7 +38,7 @@ use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::downlink::{Downlink, DownlinkDecoder, PlanReport, ReportOutcome};
-use harmonic_core::explore::{forward_camera_pose, ErrorCounters, Fault};
+use harmonic_core::explore::{forward_camera_pose, Fault};
 use harmonic_core::link::{self, FrameDecoder, LinkCounters, LinkEncoder};
 use harmonic_core::map::{Dims, MapGeometry, Occupancy};
 use harmonic_core::mavlink::common::MavResult;
@@ -53,7 +53,7 @@ use serde::Serialize;
 use crate::link::depth_link::LinkReport;
 use crate::link::fault::FaultInjector;
 use crate::run::board::{machine_args, Board, InProcess, Port, Qemu};
-use crate::run::metrics::{Contact, GroundTruth};
+use crate::run::metrics::{Contact, Coverage, GroundTruth};
 use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
 use crate::vehicle::autopilot::{GroundStation, MavlinkReport, OperatorEvent, TrafficReport};
 use crate::vehicle::flight::{FlightEmulator, LinkSigning};
@@ -764,47 +764,125 @@ fn fly_firmware(
     intruder: &[(f64, OperatorCommand)],
     mut progress: impl FnMut(&StepRecord),
 ) -> Result<Report, SimError> {
-    let geometry = firmware_geometry()?;
-    let key = cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone());
-    let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
-    let intrinsics = cfg.camera.intrinsics;
-    let mut camera = firmware_camera(cfg)?;
-    let mut autopilot = firmware_autopilot(cfg, intruder);
-    let mut map = vec![Occupancy::Unknown; geometry.dims().len()];
-    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-    let mut vehicle = Vehicle {
-        position: scenario.start_position,
-        yaw: scenario.start_yaw,
-    };
-    let dt_ms = (f64::from(cfg.dt) * 1e3).round() as u64;
-    let mut now_ms = 0u64;
-    autopilot.tick(board, now_ms, &vehicle)?;
-    let budget = if cfg.follow_full_path {
-        f32::INFINITY
-    } else {
-        cfg.replan_distance
-    };
-    let mut depth = Vec::new();
-    let mut path = 0.0f64;
-    let mut contact = Contact::start(&scenario.world, &vehicle.position, cfg.body_radius);
-    let mut steps = Vec::new();
-    let mut instructions = Vec::new();
-    let mut plan_cycles = Vec::new();
-    let mut last: Option<PlanReport> = None;
-    let mut consecutive_holds = 0;
-    let mut termination = String::from("scan_limit");
-    // Where the way home began (after a complete exploration, or on the operator's word): the
-    // exploration's numbers are the ones up to there.
-    let mut return_start: Option<PilReturnStart> = None;
-    let mut return_end: Option<String> = None;
-
+    let mut run = FirmwareRun::start(board, scenario, cfg, intruder)?;
     for step in 1..=cfg.max_scans {
-        let pose = forward_camera_pose(&vehicle.position, vehicle.yaw);
-        cfg.camera.render(&scenario.world, &pose, &mut rng, &mut depth);
-        let frame = DepthFrame::new(intrinsics, &depth)
+        let (report, coverage) = run.scan(step)?;
+        if let Some(record) = run.steps.last() {
+            progress(record);
+        }
+        if !run.react(report, coverage)? {
+            break;
+        }
+        if step == cfg.max_scans && run.return_start.is_some() {
+            run.return_end = Some("scan_limit".into());
+        }
+    }
+    // One more tick collects what the firmware sent after its last plan (the hold setpoint and
+    // the "exploration complete" STATUSTEXT).
+    run.tick()?;
+    run.report()
+}
+
+/// A run around a firmware companion on a board: the camera on its depth link, the emulated
+/// flight stack on its MAVLink, the vehicle, and the bookkeeping of the steps.
+struct FirmwareRun<'a> {
+    board: &'a mut dyn Board,
+    scenario: &'a Scenario,
+    cfg: &'a SimConfig,
+    geometry: MapGeometry,
+    truth: GroundTruth,
+    camera: Camera,
+    autopilot: Autopilot,
+    /// The map as the downlink tells it.
+    map: Vec<Occupancy>,
+    rng: ChaCha8Rng,
+    depth: Vec<u16>,
+    vehicle: Vehicle,
+    dt_ms: u64,
+    now_ms: u64,
+    budget: f32,
+    path: f64,
+    contact: Contact<'a>,
+    steps: Vec<StepRecord>,
+    /// Per scan: instructions of integrate, domain, solve, streamline.
+    instructions: Vec<[u64; 4]>,
+    /// Instructions of each full planning cycle of the exploration.
+    plan_cycles: Vec<u64>,
+    last: Option<PlanReport>,
+    consecutive_holds: u32,
+    termination: String,
+    /// Where the way home began (after a complete exploration, or on the operator's word):
+    /// the exploration's numbers are the ones up to there.
+    return_start: Option<PilReturnStart>,
+    return_end: Option<String>,
+}
+
+impl<'a> FirmwareRun<'a> {
+    fn start(
+        board: &'a mut dyn Board,
+        scenario: &'a Scenario,
+        cfg: &'a SimConfig,
+        intruder: &[(f64, OperatorCommand)],
+    ) -> Result<Self, SimError> {
+        let geometry = firmware_geometry()?;
+        let vehicle = Vehicle {
+            position: scenario.start_position,
+            yaw: scenario.start_yaw,
+        };
+        let mut run = Self {
+            board,
+            scenario,
+            cfg,
+            geometry,
+            truth: GroundTruth::new(&scenario.world, &geometry, &scenario.start_position),
+            camera: firmware_camera(cfg)?,
+            autopilot: firmware_autopilot(cfg, intruder),
+            map: vec![Occupancy::Unknown; geometry.dims().len()],
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            depth: Vec::new(),
+            contact: Contact::start(&scenario.world, &vehicle.position, cfg.body_radius),
+            vehicle,
+            dt_ms: (f64::from(cfg.dt) * 1e3).round() as u64,
+            now_ms: 0,
+            budget: if cfg.follow_full_path {
+                f32::INFINITY
+            } else {
+                cfg.replan_distance
+            },
+            path: 0.0,
+            steps: Vec::new(),
+            instructions: Vec::new(),
+            plan_cycles: Vec::new(),
+            last: None,
+            consecutive_holds: 0,
+            termination: String::from("scan_limit"),
+            return_start: None,
+            return_end: None,
+        };
+        run.autopilot.tick(run.board, run.now_ms, &run.vehicle)?;
+        Ok(run)
+    }
+
+    /// One flight tick of simulated time.
+    fn tick(&mut self) -> Result<(), SimError> {
+        self.now_ms += self.dt_ms;
+        self.autopilot.tick(self.board, self.now_ms, &self.vehicle)
+    }
+
+    /// Renders a scan at the vehicle's pose, sends it, and records the firmware's report of it;
+    /// the report and the coverage of the downlinked map.
+    fn scan(&mut self, step: u32) -> Result<(PlanReport, Coverage), SimError> {
+        let pose = forward_camera_pose(&self.vehicle.position, self.vehicle.yaw);
+        self.cfg
+            .camera
+            .render(&self.scenario.world, &pose, &mut self.rng, &mut self.depth);
+        let frame = DepthFrame::new(self.cfg.camera.intrinsics, &self.depth)
             .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
-        let report = camera.scan(board, step, &frame, &pose, &mut map)?;
-        let coverage = truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown));
+        let report = self.camera.scan(self.board, step, &frame, &pose, &mut self.map)?;
+        let map = &self.map;
+        let coverage = self
+            .truth
+            .coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown));
         let ms = |ticks: u64| ticks as f64 * 1e3 / f64::from(report.tick_hz.max(1));
         let to_instr = |ticks: u64| ticks * INSTRUCTIONS_PER_TICK;
         let phases = [
@@ -813,7 +891,7 @@ fn fly_firmware(
             to_instr(report.solve_ticks),
             to_instr(report.streamline_ticks),
         ];
-        instructions.push(phases);
+        self.instructions.push(phases);
         let label = match report.outcome {
             ReportOutcome::Goal => "goal".to_string(),
             ReportOutcome::Kept => "kept".to_string(),
@@ -823,11 +901,11 @@ fn fly_firmware(
             ReportOutcome::Look => "look_around".to_string(),
         };
         // The planning budget is the exploration's (the way home plans with the same field).
-        if matches!(report.outcome, ReportOutcome::Goal) && return_start.is_none() {
-            plan_cycles.push(phases[1] + phases[2] + phases[3]);
+        if matches!(report.outcome, ReportOutcome::Goal) && self.return_start.is_none() {
+            self.plan_cycles.push(phases[1] + phases[2] + phases[3]);
         }
         let solved = !matches!(report.outcome, ReportOutcome::Kept);
-        let record = StepRecord {
+        self.steps.push(StepRecord {
             step,
             position: report.position,
             yaw: report.yaw,
@@ -846,196 +924,234 @@ fn fly_firmware(
             solver_updates: if solved { report.solver_updates } else { 0 },
             frames_integrated: 1,
             streamline_m: report.streamline_length,
-            path_length_m: path,
+            path_length_m: self.path,
             goal: report.goal.map(|(p, _)| p),
             seals: report.errors.seals,
-        };
-        progress(&record);
-        steps.push(record);
+        });
+        Ok((report, coverage))
+    }
+
+    /// Acts on a report: flies its goal, lets time pass while the operator holds, counts
+    /// holds, notes the way home. False once the run is over.
+    fn react(&mut self, report: PlanReport, coverage: Coverage) -> Result<bool, SimError> {
         let outcome = report.outcome;
         let operator = report.operator;
         let homeward = matches!(operator, Some(OperatorState::ReturningHome | OperatorState::Home));
-        let ends_here = outcome == ReportOutcome::Complete && !cfg.return_home;
-        if homeward && return_start.is_none() && !ends_here {
-            return_start = Some(PilReturnStart {
-                path,
+        let ends_here = outcome == ReportOutcome::Complete && !self.cfg.return_home;
+        if homeward && self.return_start.is_none() && !ends_here {
+            self.return_start = Some(PilReturnStart {
+                path: self.path,
                 frames: report.frames,
-                steps: steps.len(),
-                now_ms,
+                steps: self.steps.len(),
+                now_ms: self.now_ms,
                 coverage,
                 report,
                 after_complete: outcome == ReportOutcome::Complete,
             });
         }
-        last = Some(report);
+        self.last = Some(report);
         match outcome {
             ReportOutcome::Complete if operator == Some(OperatorState::Home) => {
-                return_end = Some("home".into());
-                break;
+                self.return_end = Some("home".into());
+                return Ok(false);
             }
             // Explored; the next frame plans the way home (unless the run ends here,
             // `SimConfig::return_home` false).
-            ReportOutcome::Complete if operator == Some(OperatorState::ReturningHome) && cfg.return_home => {
-                consecutive_holds = 0;
-                now_ms += dt_ms;
-                autopilot.tick(board, now_ms, &vehicle)?;
+            ReportOutcome::Complete
+                if operator == Some(OperatorState::ReturningHome) && self.cfg.return_home =>
+            {
+                self.consecutive_holds = 0;
+                self.tick()?;
             }
             ReportOutcome::Complete => {
-                termination = "complete".into();
-                break;
+                self.termination = "complete".into();
+                return Ok(false);
             }
             ReportOutcome::Hold(Fault::Operator) if operator == Some(OperatorState::Aborted) => {
-                termination = "aborted".into();
-                break;
+                self.termination = "aborted".into();
+                return Ok(false);
             }
             ReportOutcome::Hold(Fault::Operator) => {
                 // Paused or waiting for start: not stuck. Time passes, holding, so the ground
                 // station's next command comes due.
-                consecutive_holds = 0;
-                for _ in 0..OPERATOR_HOLD_MS / dt_ms.max(1) {
-                    now_ms += dt_ms;
-                    autopilot.tick(board, now_ms, &vehicle)?;
+                self.consecutive_holds = 0;
+                for _ in 0..OPERATOR_HOLD_MS / self.dt_ms.max(1) {
+                    self.tick()?;
                 }
             }
             ReportOutcome::Hold(fault) => {
-                consecutive_holds += 1;
-                if consecutive_holds >= 3 {
-                    termination = format!("stuck:{fault:?}");
-                    if return_start.is_some() {
-                        return_end = Some(termination.clone());
+                self.consecutive_holds += 1;
+                if self.consecutive_holds >= 3 {
+                    self.termination = format!("stuck:{fault:?}");
+                    if self.return_start.is_some() {
+                        self.return_end = Some(self.termination.clone());
                     }
-                    break;
+                    return Ok(false);
                 }
                 // The firmware holds; one tick lets its hold setpoint reach the autopilot.
-                now_ms += dt_ms;
-                autopilot.tick(board, now_ms, &vehicle)?;
+                self.tick()?;
             }
             _ => {
-                consecutive_holds = 0;
+                self.consecutive_holds = 0;
                 let leg = fly(
-                    board,
-                    &mut autopilot,
-                    &mut vehicle,
-                    &mut now_ms,
-                    budget,
-                    cfg,
-                    &mut contact,
+                    self.board,
+                    &mut self.autopilot,
+                    &mut self.vehicle,
+                    &mut self.now_ms,
+                    self.budget,
+                    self.cfg,
+                    &mut self.contact,
                 )?;
-                path += leg.distance;
+                self.path += leg.distance;
             }
         }
-        if step == cfg.max_scans && return_start.is_some() {
-            return_end = Some("scan_limit".into());
-        }
+        Ok(true)
     }
-    // One more tick collects what the firmware sent after its last plan (the hold setpoint and
-    // the "exploration complete" STATUSTEXT).
-    now_ms += dt_ms;
-    autopilot.tick(board, now_ms, &vehicle)?;
 
-    let end = last.ok_or_else(|| SimError::Config("the firmware planned nothing".into()))?;
-    let return_home = return_start.as_ref().map(|r| ReturnHome {
-        termination: return_end.clone().unwrap_or_else(|| termination.clone()),
-        path_length_m: path - r.path,
-        scans: end.frames.saturating_sub(r.frames),
-        distance_to_home_m: f64::from((vehicle.position - scenario.start_position).norm()),
-        time_s: now_ms.saturating_sub(r.now_ms) as f64 * 1e-3,
-    });
-    // With a way home flown, the run's numbers are the exploration's, up to where it began.
-    let (last, coverage, explored_path, explored_steps) = match &return_start {
-        Some(r) => {
-            termination = if r.after_complete {
-                "complete".into()
-            } else {
-                return_end.clone().unwrap_or(termination)
-            };
-            (r.report, r.coverage, r.path, r.steps)
-        }
-        None => (
-            end,
-            truth.coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown)),
-            path,
-            steps.len(),
-        ),
-    };
-    let unreachable_frontier_voxels = (termination == "complete").then_some(last.unreachable_frontier);
-    let timing = Timing {
-        integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
-        domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
-        solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
-        streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
-    };
-    let dims = geometry.dims();
-    let errors: ErrorCounters = last.errors;
-    // The link's numbers are the whole run's, the way home included.
-    let receiver: LinkCounters = end.link;
-    let sent = steps.len() as u32;
-    let link = LinkReport {
-        transport: format!("{} uart0", board.name()),
-        baud: cfg.link.baud,
-        depth_frames_sent: sent,
-        depth_frames_integrated: end.frames,
-        depth_frames_lost: sent.saturating_sub(end.frames),
-        receiver,
-        link_frames_sent: camera.arq.link_frames_sent,
-        bytes_sent: camera.arq.bytes_sent,
-        bytes_received: receiver.bytes,
-        heartbeats_sent: camera.arq.heartbeats_sent,
-        injected: camera.injector.as_ref().map(|i| *i.counters()),
-        partial_frames_integrated: receiver.depth_frames_partial,
-        arq_rounds: fw::ARQ_ROUNDS,
-        resend_requests_sent: end.resend_requests,
-        resend_requests_received: camera.arq.requests_received,
-        chunks_resent: camera.arq.chunks_resent,
-        bytes_resent: camera.arq.bytes_resent,
-        rows_per_chunk_mean: camera.arq.rows_per_chunk_sum as f64 / f64::from(camera.arq.images.max(1)),
-        rows_per_chunk_last: camera.rows_per_chunk,
-        ber_estimate: f64::from(camera.ber),
-        ..LinkReport::default()
-    };
-    if camera.arq.images_repeated > 0 {
-        eprintln!(
-            "pil: {} images sent again whole (the firmware acknowledged none of them)",
-            camera.arq.images_repeated
-        );
+    /// The report: with a way home flown, the run's numbers are the exploration's, up to where
+    /// it began.
+    fn report(self) -> Result<Report, SimError> {
+        let end = self
+            .last
+            .ok_or_else(|| SimError::Config("the firmware planned nothing".into()))?;
+        let return_home = self.return_start.as_ref().map(|r| ReturnHome {
+            termination: self
+                .return_end
+                .clone()
+                .unwrap_or_else(|| self.termination.clone()),
+            path_length_m: self.path - r.path,
+            scans: end.frames.saturating_sub(r.frames),
+            distance_to_home_m: f64::from((self.vehicle.position - self.scenario.start_position).norm()),
+            time_s: self.now_ms.saturating_sub(r.now_ms) as f64 * 1e-3,
+        });
+        let map = &self.map;
+        let (last, coverage, explored_path, explored_steps, termination) = match &self.return_start {
+            Some(r) => {
+                let termination = if r.after_complete {
+                    "complete".into()
+                } else {
+                    self.return_end.clone().unwrap_or(self.termination.clone())
+                };
+                (r.report, r.coverage, r.path, r.steps, termination)
+            }
+            None => (
+                end,
+                self.truth
+                    .coverage_of(|i| map.get(i).copied().unwrap_or(Occupancy::Unknown)),
+                self.path,
+                self.steps.len(),
+                self.termination.clone(),
+            ),
+        };
+        let unreachable_frontier_voxels = (termination == "complete").then_some(last.unreachable_frontier);
+        let steps = &self.steps;
+        let timing = Timing {
+            integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
+            domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
+            solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
+            streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
+        };
+        let dims = self.geometry.dims();
+        let link = self.link_report(&end);
+        let mavlink = self.mavlink_report(&end);
+        let instructions = &self.instructions;
+        let pil = PilReport {
+            firmware: String::new(),
+            qemu: String::new(),
+            ticks: self.autopilot.ticks,
+            downlink_dropped: self.camera.decoder.dropped(),
+            integrate: stat(instructions.iter().take(explored_steps).map(|p| p[0])),
+            domain: stat(instructions.iter().take(explored_steps).map(|p| p[1])),
+            solve: stat(instructions.iter().take(explored_steps).map(|p| p[2])),
+            streamline: stat(instructions.iter().take(explored_steps).map(|p| p[3])),
+            plan_cycle: stat(self.plan_cycles.iter().copied()),
+            steps: self.instructions.clone(),
+        };
+        Ok(Report {
+            return_home,
+            scenario: self.scenario.world.name.clone(),
+            planner: "harmonic".into(),
+            solver: "mg".into(),
+            termination,
+            coverage_free: coverage.free,
+            coverage_surface: coverage.surface,
+            coverage_observed: coverage.observed,
+            free_marked_occupied: coverage.free_marked_occupied,
+            path_length_m: explored_path,
+            scans: last.frames,
+            collisions: self.contact.collisions.len() as u32,
+            collision_points: self.contact.collisions.clone(),
+            min_clearance_m: self.contact.closest.0,
+            min_clearance_at: self.contact.closest.1,
+            integration_ops: last.integration_ops,
+            planning_ops: last.planning_ops,
+            local_solves: [0, 0],
+            flight_time_s: self.now_ms as f64 * 1e-3,
+            wall_time_s: 0.0,
+            grid: [dims.nx(), dims.ny(), dims.nz()],
+            resolution: self.geometry.resolution(),
+            reachable_free_voxels: self.truth.reachable_free(),
+            sealed_voxels: last.sealed,
+            unreachable_frontier_voxels,
+            timing,
+            errors: last.errors,
+            link,
+            steps_taken: explored_steps as u32,
+            grid_origin: self.geometry.origin().coords.into(),
+            map_accuracy: None,
+            final_drift: None,
+            stereo: None,
+            trajectory: Vec::new(),
+            mavlink: Some(mavlink),
+            pil: Some(pil),
+            steps: self.steps,
+        })
     }
-    Ok(Report {
-        return_home,
-        scenario: scenario.world.name.clone(),
-        planner: "harmonic".into(),
-        solver: "mg".into(),
-        termination,
-        coverage_free: coverage.free,
-        coverage_surface: coverage.surface,
-        coverage_observed: coverage.observed,
-        free_marked_occupied: coverage.free_marked_occupied,
-        path_length_m: explored_path,
-        scans: last.frames,
-        collisions: contact.collisions.len() as u32,
-        collision_points: contact.collisions,
-        min_clearance_m: contact.closest.0,
-        min_clearance_at: contact.closest.1,
-        integration_ops: last.integration_ops,
-        planning_ops: last.planning_ops,
-        local_solves: [0, 0],
-        flight_time_s: now_ms as f64 * 1e-3,
-        wall_time_s: 0.0,
-        grid: [dims.nx(), dims.ny(), dims.nz()],
-        resolution: geometry.resolution(),
-        reachable_free_voxels: truth.reachable_free(),
-        sealed_voxels: last.sealed,
-        unreachable_frontier_voxels,
-        timing,
-        errors,
-        link,
-        steps_taken: explored_steps as u32,
-        grid_origin: geometry.origin().coords.into(),
-        map_accuracy: None,
-        final_drift: None,
-        stereo: None,
-        trajectory: Vec::new(),
-        mavlink: Some(MavlinkReport {
-            endpoint: format!("emulator ({} uart1)", board.name()),
+
+    /// The depth link's numbers, the whole run's (the way home included), from the camera side
+    /// and the firmware's last report `end`.
+    fn link_report(&self, end: &PlanReport) -> LinkReport {
+        let camera = &self.camera;
+        let receiver: LinkCounters = end.link;
+        let sent = self.steps.len() as u32;
+        if camera.arq.images_repeated > 0 {
+            eprintln!(
+                "pil: {} images sent again whole (the firmware acknowledged none of them)",
+                camera.arq.images_repeated
+            );
+        }
+        LinkReport {
+            transport: format!("{} uart0", self.board.name()),
+            baud: self.cfg.link.baud,
+            depth_frames_sent: sent,
+            depth_frames_integrated: end.frames,
+            depth_frames_lost: sent.saturating_sub(end.frames),
+            receiver,
+            link_frames_sent: camera.arq.link_frames_sent,
+            bytes_sent: camera.arq.bytes_sent,
+            bytes_received: receiver.bytes,
+            heartbeats_sent: camera.arq.heartbeats_sent,
+            injected: camera.injector.as_ref().map(|i| *i.counters()),
+            partial_frames_integrated: receiver.depth_frames_partial,
+            arq_rounds: fw::ARQ_ROUNDS,
+            resend_requests_sent: end.resend_requests,
+            resend_requests_received: camera.arq.requests_received,
+            chunks_resent: camera.arq.chunks_resent,
+            bytes_resent: camera.arq.bytes_resent,
+            rows_per_chunk_mean: camera.arq.rows_per_chunk_sum as f64 / f64::from(camera.arq.images.max(1)),
+            rows_per_chunk_last: camera.rows_per_chunk,
+            ber_estimate: f64::from(camera.ber),
+            ..LinkReport::default()
+        }
+    }
+
+    /// MAVLink as the flight stack saw it, and the firmware's verifier as its last report `end`
+    /// told it.
+    fn mavlink_report(&self, end: &PlanReport) -> MavlinkReport {
+        let autopilot = &self.autopilot;
+        let key = self.cfg.mavlink.as_ref().and_then(|m| m.signing_key.as_ref());
+        MavlinkReport {
+            endpoint: format!("emulator ({} uart1)", self.board.name()),
             traffic: TrafficReport::default(),
             tlog: None,
             // The firmware keeps no pose history: its frames come stamped over the depth link.
@@ -1053,27 +1169,13 @@ fn fly_firmware(
             bridge_decoder: *autopilot.decoder.counters(),
             operator_commands: autopilot.operator_events.clone(),
             operator_state: autopilot.operator_state,
-            // The firmware's verifier, as its last report told it.
-            bridge_signing: key.as_ref().map(|_| end.signing),
+            bridge_signing: key.map(|_| end.signing),
             emulator_signing: autopilot.emulator.signing_counters(),
             emulator: Some(*autopilot.emulator.counters()),
             emulator_decoder: Some(*autopilot.emulator.decoder_counters()),
             status_texts: autopilot.emulator.status_texts().to_vec(),
-        }),
-        pil: Some(PilReport {
-            firmware: String::new(),
-            qemu: String::new(),
-            ticks: autopilot.ticks,
-            downlink_dropped: camera.decoder.dropped(),
-            integrate: stat(instructions.iter().take(explored_steps).map(|p| p[0])),
-            domain: stat(instructions.iter().take(explored_steps).map(|p| p[1])),
-            solve: stat(instructions.iter().take(explored_steps).map(|p| p[2])),
-            streamline: stat(instructions.iter().take(explored_steps).map(|p| p[3])),
-            plan_cycle: stat(plan_cycles.iter().copied()),
-            steps: instructions,
-        }),
-        steps,
-    })
+        }
+    }
 }
 
 /// Where a PIL run's way home began.

@@ -57,7 +57,7 @@ use harmonic_core::camera::DepthFrame;
 use harmonic_core::explore::{
     forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, FrameTiming, Goal, PlanOutcome, SolverKind,
 };
-use harmonic_core::map::{self, Dims, MapGeometry};
+use harmonic_core::map::{self, Dims, MapGeometry, VoxelMap};
 use harmonic_core::operator::OperatorState;
 use nalgebra::Point3;
 use rand::SeedableRng;
@@ -1257,293 +1257,518 @@ pub fn run_observed(
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
     let geometry = scenario_geometry(scenario, cfg.grid_offset)?;
-    let truth = GroundTruth::new(&scenario.world, &geometry, &scenario.start_position);
     let mut storage = HostStorage::new(&geometry.dims());
     let mut planner = make_planner(cfg, geometry, &mut storage)?;
     if cfg.drift.is_some() && cfg.mavlink.is_some() {
         return Err(SimError::Config("drift is simulated without MAVLink only".into()));
     }
-    let mut drift = cfg.drift.map(|d| Drift::new(d, cfg.seed));
-    // The noise-free map of the same run, for the accuracy of maps made with imperfect sensing.
-    let mut stereo = match cfg.depth_source {
-        DepthSource::Camera => None,
-        DepthSource::Stereo(rig) => {
-            Some(StereoDepth::new(rig, &cfg.camera.intrinsics).map_err(SimError::Config)?)
-        }
-    };
-    let measure_accuracy = !cfg.camera.is_exact() || drift.is_some() || stereo.is_some();
-    // Opened before the flight, so a path that cannot be written fails at once.
-    let mut map_errors = match &cfg.map_errors {
-        Some(_) if !measure_accuracy => {
-            return Err(SimError::MapErrors(
-                "it compares the map with the noise-free map of the same run, which only a run with \
-                 imperfect sensing keeps: give --noise, --depth-from stereo or --drift"
-                    .into(),
-            ))
-        }
-        Some(path) => {
-            let err = |e| map_errors_io(path, e);
-            if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-                std::fs::create_dir_all(dir).map_err(err)?;
-            }
-            Some((
-                path,
-                std::io::BufWriter::new(std::fs::File::create(path).map_err(err)?),
-            ))
-        }
-        None => None,
-    };
-    let reference_len = if measure_accuracy {
-        geometry.dims().len()
-    } else {
-        1
-    };
-    let (mut ref_log_odds, mut ref_stamps) = (
-        vec![0i8; reference_len],
-        vec![0u32; map::touched_words(&geometry.dims()).max(1)],
-    );
-    let exact_camera = DepthCamera {
-        noise: None,
-        outliers: 0.0,
-        textureless: false,
-        ..cfg.camera
-    };
-    let reference_integration = harmonic_core::integrate::IntegrationParams {
-        max_range: cfg.camera.max_range,
-        depth_noise_per_m: 0.0,
-        ..cfg.explorer.integration
-    };
-    let stencil =
-        harmonic_core::domain::InflationStencil::new(cfg.explorer.vehicle_radius, geometry.resolution())
-            .map_err(|e| SimError::Config(format!("{e:?}")))?;
-    let mut reference = if measure_accuracy {
-        Some(
-            harmonic_core::map::VoxelMap::new(
-                geometry,
-                cfg.explorer.log_odds,
-                &mut ref_log_odds,
-                &mut ref_stamps,
-            )
-            .map_err(|e| SimError::Config(format!("{e:?}")))?,
-        )
-    } else {
-        None
-    };
-    let mut exact_depth = Vec::new();
-    let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-    let mut vehicle = Vehicle {
-        position: scenario.start_position,
-        yaw: scenario.start_yaw,
-    };
-    let world = &scenario.world;
-    let mut depth = Vec::new();
+    let sensing = Sensing::new(cfg)?;
+    let measure_accuracy = !cfg.camera.is_exact() || sensing.drift.is_some() || sensing.stereo.is_some();
+    let mut reference_buffers = ReferenceBuffers::new(&geometry, measure_accuracy);
+    let reference = Reference::new(cfg, &geometry, &mut reference_buffers, measure_accuracy)?;
     let mut link_buffer = vec![0u16; cfg.camera.intrinsics.pixel_count()];
     let link = DepthLink::open(&cfg.link, &cfg.camera.intrinsics, &mut link_buffer, cfg.seed)
         .map_err(SimError::Link)?;
-    let mav = cfg
-        .mavlink
-        .as_ref()
-        .map(MavlinkLink::open)
-        .transpose()
-        .map_err(SimError::Mavlink)?;
-    let remote = mav.as_ref().is_some_and(MavlinkLink::is_remote);
-    let mut rig = Rig {
-        link,
-        mav,
-        t_s: 0.0,
-        dt: f64::from(cfg.dt),
-        wall: remote.then(Instant::now),
-        faults: cfg.faults,
-        truth: std::collections::VecDeque::new(),
-    };
-    let mut sensor_rng = ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x5e45_0f17);
-    let mut clock = HostClock::new();
-    let mut steps = Vec::new();
-    let mut track = Track::start(world, &vehicle.position, cfg.body_radius);
-    let mut consecutive_holds = 0u32;
-    let mut steps_without_frame = 0u32;
-    let mut termination = String::from("scan_limit");
-    let budget = if cfg.follow_full_path {
-        f32::INFINITY
-    } else {
-        cfg.replan_distance
-    };
-
-    rig.link.tick(0.0).map_err(SimError::Link)?;
-    if let Some(m) = rig.mav.as_mut() {
-        let _ = m.bridge.exploration_started();
-    }
-    rig.exchange(&mut vehicle, 0.0, 0.0)?;
-    if remote {
-        // The vehicle starts wherever the autopilot says.
-        let (position, yaw) = rig.believed_pose(&mut vehicle, &mut track)?;
-        vehicle.position = position;
-        vehicle.yaw = yaw;
-        track = Track::start(world, &vehicle.position, cfg.body_radius);
-    }
-    // Where a return home goes: the start, in the frame the core plans in.
-    let home = vehicle.position;
-    let mut returning = false;
-    let mut return_start: Option<ReturnStart> = None;
-    let mut return_end: Option<String> = None;
-
-    let mut taken = 0u32;
-    let mut looked = 0u32;
-    // Each frame's timing, by frame id (= step), until it arrives.
-    let mut timings: std::collections::BTreeMap<u32, FrameTiming> = std::collections::BTreeMap::new();
+    let mut run = Run::start(scenario, cfg, planner.as_mut(), link, sensing, reference)?;
     for step in 1..=cfg.max_scans {
+        if !run.step(step, &mut progress, &mut observe)? {
+            break;
+        }
+    }
+    run.finish(wall, &mut observe)
+}
+
+/// Where the depth frames come from, and what happens to them on the way: the camera or the
+/// stereo pair and their noise, the sensor faults, the believed pose's drift.
+struct Sensing {
+    stereo: Option<StereoDepth>,
+    drift: Option<Drift>,
+    /// The camera's noise (and the noise-free reference's renders).
+    rng: ChaCha8Rng,
+    /// Sensor dropouts and outliers.
+    sensor_rng: ChaCha8Rng,
+    depth: Vec<u16>,
+}
+
+impl Sensing {
+    fn new(cfg: &SimConfig) -> Result<Self, SimError> {
+        let stereo = match cfg.depth_source {
+            DepthSource::Camera => None,
+            DepthSource::Stereo(rig) => {
+                Some(StereoDepth::new(rig, &cfg.camera.intrinsics).map_err(SimError::Config)?)
+            }
+        };
+        Ok(Self {
+            stereo,
+            drift: cfg.drift.map(|d| Drift::new(d, cfg.seed)),
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            sensor_rng: ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x5e45_0f17),
+            depth: Vec::new(),
+        })
+    }
+
+    /// The depth image the sensor gives at the camera's true pose, with its faults.
+    fn render(
+        &mut self,
+        cfg: &SimConfig,
+        world: &World,
+        true_pose: &nalgebra::Isometry3<f32>,
+    ) -> Result<(), SimError> {
+        match self.stereo.as_mut() {
+            Some(stereo) => {
+                stereo
+                    .render_depth(world, true_pose, &mut self.rng, &mut self.depth)
+                    .map_err(SimError::Config)?;
+            }
+            None => cfg
+                .camera
+                .render(world, true_pose, &mut self.rng, &mut self.depth),
+        }
+        inject_sensor_faults(&cfg.faults, &cfg.camera, &mut self.sensor_rng, &mut self.depth);
+        Ok(())
+    }
+}
+
+/// The buffers of the noise-free reference map (one voxel's worth when the run keeps none).
+struct ReferenceBuffers {
+    log_odds: Vec<i8>,
+    stamps: Vec<u32>,
+}
+
+impl ReferenceBuffers {
+    fn new(geometry: &MapGeometry, kept: bool) -> Self {
+        let dims = geometry.dims();
+        Self {
+            log_odds: vec![0i8; if kept { dims.len() } else { 1 }],
+            stamps: vec![0u32; map::touched_words(&dims).max(1)],
+        }
+    }
+}
+
+/// The noise-free map of the same run, for the accuracy of maps made with imperfect sensing,
+/// and where its differences go (`--map-errors`).
+struct Reference<'b> {
+    map: Option<VoxelMap<'b>>,
+    camera: DepthCamera,
+    integration: harmonic_core::integrate::IntegrationParams,
+    stencil: harmonic_core::domain::InflationStencil,
+    depth: Vec<u16>,
+    errors: Option<(std::path::PathBuf, std::io::BufWriter<std::fs::File>)>,
+}
+
+impl<'b> Reference<'b> {
+    fn new(
+        cfg: &SimConfig,
+        geometry: &MapGeometry,
+        buffers: &'b mut ReferenceBuffers,
+        kept: bool,
+    ) -> Result<Self, SimError> {
+        // Opened before the flight, so a path that cannot be written fails at once.
+        let errors = match &cfg.map_errors {
+            Some(_) if !kept => {
+                return Err(SimError::MapErrors(
+                    "it compares the map with the noise-free map of the same run, which only a run \
+                     with imperfect sensing keeps: give --noise, --depth-from stereo or --drift"
+                        .into(),
+                ))
+            }
+            Some(path) => {
+                let err = |e| map_errors_io(path, e);
+                if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+                    std::fs::create_dir_all(dir).map_err(err)?;
+                }
+                let file = std::fs::File::create(path).map_err(err)?;
+                Some((path.clone(), std::io::BufWriter::new(file)))
+            }
+            None => None,
+        };
+        let config_err = |e| SimError::Config(format!("{e:?}"));
+        let stencil =
+            harmonic_core::domain::InflationStencil::new(cfg.explorer.vehicle_radius, geometry.resolution())
+                .map_err(config_err)?;
+        let map = if kept {
+            let map = VoxelMap::new(
+                *geometry,
+                cfg.explorer.log_odds,
+                &mut buffers.log_odds,
+                &mut buffers.stamps,
+            )
+            .map_err(|e| SimError::Config(format!("{e:?}")))?;
+            Some(map)
+        } else {
+            None
+        };
+        Ok(Self {
+            map,
+            camera: DepthCamera {
+                noise: None,
+                outliers: 0.0,
+                textureless: false,
+                ..cfg.camera
+            },
+            integration: harmonic_core::integrate::IntegrationParams {
+                max_range: cfg.camera.max_range,
+                depth_noise_per_m: 0.0,
+                ..cfg.explorer.integration
+            },
+            stencil,
+            depth: Vec::new(),
+            errors,
+        })
+    }
+
+    /// Integrates the same view, noise-free, at the true pose.
+    fn integrate(&mut self, world: &World, true_pose: &nalgebra::Isometry3<f32>, rng: &mut ChaCha8Rng) {
+        let Some(map) = self.map.as_mut() else {
+            return;
+        };
+        self.camera.render(world, true_pose, rng, &mut self.depth);
+        if let Ok(frame) = DepthFrame::new(self.camera.intrinsics, &self.depth) {
+            let _ = harmonic_core::integrate::integrate(map, &frame, true_pose, &self.integration);
+        }
+    }
+
+    /// Marks the vehicle's body free, as the planner does at a plan.
+    fn mark_body(&mut self, position: &Point3<f32>) {
+        if let Some(map) = self.map.as_mut() {
+            harmonic_core::domain::mark_body(map, &self.stencil, position);
+        }
+    }
+
+    /// Writes where `planned` differs from the reference, if asked to.
+    fn write_errors(&mut self, planned: &VoxelMap<'_>) -> Result<(), SimError> {
+        let (Some((path, out)), Some(map)) = (self.errors.as_mut(), self.map.as_ref()) else {
+            return Ok(());
+        };
+        use std::io::Write;
+        crate::sensors::sensing::write_map_errors(planned, map, out)
+            .and_then(|_| out.flush())
+            .map_err(|e| map_errors_io(path, e))
+    }
+}
+
+/// What one step decided before it flies: the plan (or none), from which pose, and why.
+struct Decision {
+    outcome: Option<PlanOutcome>,
+    position: Point3<f32>,
+    yaw: f32,
+    /// A look-around turn instead of a plan.
+    looking: bool,
+    /// The operator holds (paused, waiting for start).
+    held: Option<OperatorState>,
+    /// The plan is the way home.
+    going_home: bool,
+    /// The status before the plan.
+    before: harmonic_core::explore::Status,
+}
+
+/// One exploration in flight: the world, the planner, the links and the vehicle, and the
+/// step's bookkeeping. [`Run::step`] is one capture, plan and flight.
+struct Run<'a> {
+    scenario: &'a Scenario,
+    cfg: &'a SimConfig,
+    planner: &'a mut (dyn Planner + 'a),
+    truth: GroundTruth,
+    rig: Rig<'a>,
+    vehicle: Vehicle,
+    track: Track<'a>,
+    sensing: Sensing,
+    reference: Reference<'a>,
+    clock: HostClock,
+    /// Where a return home goes: the start, in the frame the core plans in.
+    home: Point3<f32>,
+    /// Distance flown before the next scan: the receding horizon, or the whole path.
+    budget: f32,
+    steps: Vec<StepRecord>,
+    consecutive_holds: u32,
+    steps_without_frame: u32,
+    termination: String,
+    taken: u32,
+    looked: u32,
+    returning: bool,
+    return_start: Option<ReturnStart>,
+    return_end: Option<String>,
+    /// Each frame's timing, by frame id (= step), until it arrives.
+    timings: std::collections::BTreeMap<u32, FrameTiming>,
+}
+
+impl<'a> Run<'a> {
+    /// Opens the MAVLink link, puts the vehicle at the start (or where a remote autopilot says
+    /// it is) and announces the start.
+    fn start(
+        scenario: &'a Scenario,
+        cfg: &'a SimConfig,
+        planner: &'a mut (dyn Planner + 'a),
+        link: DepthLink<'a>,
+        sensing: Sensing,
+        reference: Reference<'a>,
+    ) -> Result<Self, SimError> {
+        let geometry = *planner.map().geometry();
+        let world = &scenario.world;
+        let mav = cfg
+            .mavlink
+            .as_ref()
+            .map(MavlinkLink::open)
+            .transpose()
+            .map_err(SimError::Mavlink)?;
+        let remote = mav.as_ref().is_some_and(MavlinkLink::is_remote);
+        let mut rig = Rig {
+            link,
+            mav,
+            t_s: 0.0,
+            dt: f64::from(cfg.dt),
+            wall: remote.then(Instant::now),
+            faults: cfg.faults,
+            truth: std::collections::VecDeque::new(),
+        };
+        let mut vehicle = Vehicle {
+            position: scenario.start_position,
+            yaw: scenario.start_yaw,
+        };
+        let mut track = Track::start(world, &vehicle.position, cfg.body_radius);
+        rig.link.tick(0.0).map_err(SimError::Link)?;
+        if let Some(m) = rig.mav.as_mut() {
+            let _ = m.bridge.exploration_started();
+        }
+        rig.exchange(&mut vehicle, 0.0, 0.0)?;
+        if remote {
+            // The vehicle starts wherever the autopilot says.
+            let (position, yaw) = rig.believed_pose(&mut vehicle, &mut track)?;
+            vehicle.position = position;
+            vehicle.yaw = yaw;
+            track = Track::start(world, &vehicle.position, cfg.body_radius);
+        }
+        Ok(Self {
+            scenario,
+            cfg,
+            truth: GroundTruth::new(world, &geometry, &scenario.start_position),
+            planner,
+            rig,
+            home: vehicle.position,
+            vehicle,
+            track,
+            sensing,
+            reference,
+            clock: HostClock::new(),
+            budget: if cfg.follow_full_path {
+                f32::INFINITY
+            } else {
+                cfg.replan_distance
+            },
+            steps: Vec::new(),
+            consecutive_holds: 0,
+            steps_without_frame: 0,
+            termination: String::from("scan_limit"),
+            taken: 0,
+            looked: 0,
+            returning: false,
+            return_start: None,
+            return_end: None,
+            timings: std::collections::BTreeMap::new(),
+        })
+    }
+
+    /// One step: capture a frame and send it over the depth link, integrate what arrived,
+    /// plan, record, fly. False once the run is over.
+    fn step(
+        &mut self,
+        step: u32,
+        progress: &mut impl FnMut(&StepRecord),
+        observe: &mut impl FnMut(&StepView<'_>),
+    ) -> Result<bool, SimError> {
         // An operator's abort ends the run where the vehicle holds.
-        if rig
+        if self
+            .rig
             .mav
             .as_ref()
             .is_some_and(|m| m.bridge.operator_state() == OperatorState::Aborted)
         {
-            termination = "aborted".into();
-            break;
+            self.termination = "aborted".into();
+            return Ok(false);
         }
-        if step == cfg.max_scans && return_start.is_some() {
-            return_end = Some("scan_limit".into());
+        if step == self.cfg.max_scans && self.return_start.is_some() {
+            self.return_end = Some("scan_limit".into());
         }
-        taken = step;
+        self.taken = step;
+        let true_pose = self.send_frame(step)?;
+        let t0 = Instant::now();
+        let frames = self.integrate_arrived(&true_pose)?;
+        let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let integrated = frames.len() as u32;
+        let decision = self.decide(step, integrated)?;
+        let record = self.record(step, &decision, integrated, integrate_ms)?;
+        progress(&record);
+        observe(&StepView {
+            step,
+            vehicle: (self.vehicle.position, self.vehicle.yaw),
+            planner: &*self.planner,
+            record: Some(&record),
+            frames: &frames,
+            planned_at: decision.outcome.is_some().then_some(decision.position),
+            finished: false,
+        });
+        self.steps.push(record);
+        self.act(step, decision)
+    }
+
+    /// Captures the frame's poses, renders it and sends it over the depth link, the vehicle
+    /// hovering (or following the autopilot) while it is on the wire, then asks for what is
+    /// missing while rounds are left. The camera's true pose.
+    fn send_frame(&mut self, step: u32) -> Result<nalgebra::Isometry3<f32>, SimError> {
         // The camera sees the world from where the vehicle truly is at the frame's instant; the
         // frame is stamped with the pose the core believes for that instant.
-        let capture = rig.capture(&mut vehicle, cfg, &mut track)?;
-        let (position, yaw) = match &drift {
+        let capture = self.rig.capture(&mut self.vehicle, self.cfg, &mut self.track)?;
+        let (position, yaw) = match &self.sensing.drift {
             Some(d) => d.believed(&capture.believed.0, capture.believed.1),
             None => capture.believed,
         };
         let true_pose = forward_camera_pose(&capture.truth.0, capture.truth.1);
         if let Some(timing) = capture.timing {
-            timings.insert(step, timing);
+            self.timings.insert(step, timing);
         }
-        match stereo.as_mut() {
-            Some(stereo) => {
-                stereo
-                    .render_depth(world, &true_pose, &mut rng, &mut depth)
-                    .map_err(SimError::Config)?;
-            }
-            None => cfg.camera.render(world, &true_pose, &mut rng, &mut depth),
-        }
-        inject_sensor_faults(&cfg.faults, &cfg.camera, &mut sensor_rng, &mut depth);
-        let frame = DepthFrame::new(cfg.camera.intrinsics, &depth)
+        self.sensing.render(self.cfg, &self.scenario.world, &true_pose)?;
+        let frame = DepthFrame::new(self.cfg.camera.intrinsics, &self.sensing.depth)
             .map_err(|e| SimError::Config(format!("camera frame: {e:?}")))?;
-        rig.link
+        self.rig
+            .link
             .send_image(step, &frame, &forward_camera_pose(&position, yaw))
             .map_err(SimError::Link)?;
-        rig.wait_for_link(&mut vehicle, cfg, &mut track)?;
+        self.rig
+            .wait_for_link(&mut self.vehicle, self.cfg, &mut self.track)?;
         // Selective retransmission: ask for what is missing while rounds are left, then take
         // the image with the rows that came.
-        while rig.link.request_missing(step).map_err(SimError::Link)? {
-            rig.wait_for_link(&mut vehicle, cfg, &mut track)?;
+        while self.rig.link.request_missing(step).map_err(SimError::Link)? {
+            self.rig
+                .wait_for_link(&mut self.vehicle, self.cfg, &mut self.track)?;
         }
-        rig.link.finish_frame();
+        self.rig.link.finish_frame();
+        Ok(true_pose)
+    }
 
-        // Core side: integrate whatever arrived, whole or with rows missing.
-        let t0 = Instant::now();
-        let mut integrated = 0u32;
+    /// Core side: integrates whatever arrived, whole or with rows missing; the frames
+    /// integrated. The noise-free reference integrates the same view.
+    fn integrate_arrived(
+        &mut self,
+        true_pose: &nalgebra::Isometry3<f32>,
+    ) -> Result<Vec<IntegratedFrame>, SimError> {
         let mut frames = Vec::new();
-        for arrived in rig.link.take_arrived() {
-            if let Some(frame) = arrived.frame() {
-                let timing = timings.remove(&arrived.frame_id);
-                match planner.integrate(&frame, &arrived.camera_pose, timing.as_ref()) {
-                    Ok(()) => {
-                        integrated += 1;
-                        rig.link.note_integrated(&arrived);
-                        frames.push(IntegratedFrame {
-                            depth_mm: frame.depth_mm().to_vec(),
-                            intrinsics: *frame.intrinsics(),
-                            camera_pose: arrived.camera_pose,
-                            true_pose,
-                            time_s: rig.t_s,
-                        });
-                    }
-                    // Refused and counted by the core; over MAVLink the vehicle holds and the
-                    // fault goes out as a STATUSTEXT.
-                    Err(fault) => {
-                        if let Some(m) = rig.mav.as_mut() {
-                            harmonic_core::companion::steer(&mut m.bridge, &PlanOutcome::Hold(fault));
-                        }
+        for arrived in self.rig.link.take_arrived() {
+            let Some(frame) = arrived.frame() else {
+                continue;
+            };
+            let timing = self.timings.remove(&arrived.frame_id);
+            match self
+                .planner
+                .integrate(&frame, &arrived.camera_pose, timing.as_ref())
+            {
+                Ok(()) => {
+                    self.rig.link.note_integrated(&arrived);
+                    frames.push(IntegratedFrame {
+                        depth_mm: frame.depth_mm().to_vec(),
+                        intrinsics: *frame.intrinsics(),
+                        camera_pose: arrived.camera_pose,
+                        true_pose: *true_pose,
+                        time_s: self.rig.t_s,
+                    });
+                }
+                // Refused and counted by the core; over MAVLink the vehicle holds and the fault
+                // goes out as a STATUSTEXT.
+                Err(fault) => {
+                    if let Some(m) = self.rig.mav.as_mut() {
+                        harmonic_core::companion::steer(&mut m.bridge, &PlanOutcome::Hold(fault));
                     }
                 }
             }
         }
-        let integrate_ms = t0.elapsed().as_secs_f64() * 1e3;
-        if integrated > 0 {
-            if let Some(reference) = reference.as_mut() {
-                // The same view, noise-free, at the true pose.
-                exact_camera.render(world, &true_pose, &mut rng, &mut exact_depth);
-                if let Ok(frame) = DepthFrame::new(exact_camera.intrinsics, &exact_depth) {
-                    let _ = harmonic_core::integrate::integrate(
-                        reference,
-                        &frame,
-                        &true_pose,
-                        &reference_integration,
-                    );
-                }
-            }
+        if !frames.is_empty() {
+            self.reference
+                .integrate(&self.scenario.world, true_pose, &mut self.sensing.rng);
         }
+        Ok(frames)
+    }
 
-        // Plan from where the vehicle is now (it may have drifted while the frame was sent).
-        let (position, yaw) = rig.believed_pose(&mut vehicle, &mut track)?;
-        let (position, yaw) = match &drift {
+    /// Plans from where the vehicle is now (it may have drifted while the frame was sent) —
+    /// or turns to look around, or holds on the operator's word, or has nothing new to plan
+    /// from.
+    fn decide(&mut self, step: u32, integrated: u32) -> Result<Decision, SimError> {
+        let (position, yaw) = self.rig.believed_pose(&mut self.vehicle, &mut self.track)?;
+        let (position, yaw) = match &self.sensing.drift {
             Some(d) => d.believed(&position, yaw),
             None => (position, yaw),
         };
         if integrated > 0 {
-            if let Some(d) = drift.as_mut() {
+            if let Some(d) = self.sensing.drift.as_mut() {
                 d.keyframe(&position);
             }
         }
-        let status_before = *planner.status();
+        let before = *self.planner.status();
         // Paused or waiting for start: hold (the bridge already does), integrate, plan nothing.
-        let operator = rig.mav.as_ref().map(|m| m.bridge.operator_state());
+        let operator = self.rig.mav.as_ref().map(|m| m.bridge.operator_state());
         let held = operator.filter(|s| !s.plans());
         // The way home: after a complete exploration (`return_home`), or on the operator's word.
-        let going_home = returning || operator == Some(OperatorState::ReturningHome);
-        if going_home && return_start.is_none() {
-            return_start = Some(ReturnStart {
-                distance: track.distance,
-                frames: status_before.frames,
+        let going_home = self.returning || operator == Some(OperatorState::ReturningHome);
+        if going_home && self.return_start.is_none() {
+            self.return_start = Some(ReturnStart {
+                distance: self.track.distance,
+                frames: before.frames,
                 taken: step - 1,
-                t_s: rig.t_s,
-                status: status_before,
-                coverage: truth.coverage(planner.map()),
+                t_s: self.rig.t_s,
+                status: before,
+                coverage: self.truth.coverage(self.planner.map()),
                 after_complete: false,
             });
         }
         // Look around first: turn on the spot between the first scans, planning nothing.
-        let looking = integrated > 0 && held.is_none() && !going_home && looked + 1 < cfg.look_around;
+        let looking =
+            integrated > 0 && held.is_none() && !going_home && self.looked + 1 < self.cfg.look_around;
         let outcome = if looking {
-            looked += 1;
-            steps_without_frame = 0;
+            self.looked += 1;
+            self.steps_without_frame = 0;
             None
         } else if integrated > 0 && held.is_some() {
-            steps_without_frame = 0;
+            self.steps_without_frame = 0;
             None
         } else if integrated > 0 {
-            steps_without_frame = 0;
-            if let Some(reference) = reference.as_mut() {
-                harmonic_core::domain::mark_body(reference, &stencil, &vehicle.position);
-            }
+            self.steps_without_frame = 0;
+            self.reference.mark_body(&self.vehicle.position);
             Some(if going_home {
-                planner.plan_home(&position, yaw, &home, &mut clock)
+                self.planner
+                    .plan_home(&position, yaw, &self.home, &mut self.clock)
             } else {
-                planner.plan(&position, yaw, &mut clock)
+                self.planner.plan(&position, yaw, &mut self.clock)
             })
         } else {
-            steps_without_frame += 1;
+            self.steps_without_frame += 1;
             None
         };
-        let status = *planner.status();
-        let kept = status.plans_kept > status_before.plans_kept;
-        let turned = status.arrival_looks > status_before.arrival_looks;
-        if let (Some(dir), Some(_), false) = (&cfg.dump_problem, &outcome, kept || turned) {
-            dump_problem(dir, step, planner.as_ref(), &position, cfg)?;
+        Ok(Decision {
+            outcome,
+            position,
+            yaw,
+            looking,
+            held,
+            going_home,
+            before,
+        })
+    }
+
+    /// The step's record (and, with `--dump-problem`, its problem written out).
+    fn record(
+        &mut self,
+        step: u32,
+        d: &Decision,
+        integrated: u32,
+        integrate_ms: f64,
+    ) -> Result<StepRecord, SimError> {
+        let status = *self.planner.status();
+        let kept = status.plans_kept > d.before.plans_kept;
+        let turned = status.arrival_looks > d.before.arrival_looks;
+        if let (Some(dir), Some(_), false) = (&self.cfg.dump_problem, &d.outcome, kept || turned) {
+            dump_problem(dir, step, &*self.planner, &d.position, self.cfg)?;
         }
-        let coverage = truth.coverage(planner.map());
-        let label = match outcome {
-            None if looking => "look_around".to_string(),
-            None if integrated > 0 => format!("operator:{}", held.map_or("", |s| s.name())),
+        let label = match d.outcome {
+            None if d.looking => "look_around".to_string(),
+            None if integrated > 0 => format!("operator:{}", d.held.map_or("", |s| s.name())),
             None => "no_frame".to_string(),
             Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
             Some(PlanOutcome::Goal(_)) if kept => "kept".to_string(),
@@ -1552,83 +1777,61 @@ pub fn run_observed(
             Some(PlanOutcome::Complete) => "complete".to_string(),
             Some(PlanOutcome::Hold(f)) => format!("hold:{f:?}"),
         };
-        let planned = outcome.is_some();
-        let record = StepRecord {
+        let planned = d.outcome.is_some();
+        let phase_ms = |ticks: u64| if planned { ms(ticks) } else { 0.0 };
+        Ok(StepRecord {
             step,
-            position: position.coords.into(),
-            yaw,
+            position: d.position.coords.into(),
+            yaw: d.yaw,
             outcome: label,
             frames_integrated: integrated,
             frontier: status.domain.frontier,
             unknowns: status.domain.interior,
-            coverage_free: coverage.free,
+            coverage_free: self.truth.coverage(self.planner.map()).free,
             integrate_ms,
-            domain_ms: if planned {
-                ms(status.phase_ticks.domain)
-            } else {
-                0.0
-            },
-            solve_ms: if planned {
-                ms(status.phase_ticks.solve)
-            } else {
-                0.0
-            },
-            streamline_ms: if planned {
-                ms(status.phase_ticks.streamline)
-            } else {
-                0.0
-            },
-            solves: Some(status.solves.saturating_sub(status_before.solves)),
-            solves_in_boxes: Some(status.local_solves.saturating_sub(status_before.local_solves)),
+            domain_ms: phase_ms(status.phase_ticks.domain),
+            solve_ms: phase_ms(status.phase_ticks.solve),
+            streamline_ms: phase_ms(status.phase_ticks.streamline),
+            solves: Some(status.solves.saturating_sub(d.before.solves)),
+            solves_in_boxes: Some(status.local_solves.saturating_sub(d.before.local_solves)),
             solver_iterations: status.solve.iterations,
             solver_residual: status.solve.residual,
             solver_updates: status.solve.cell_updates,
             streamline_m: status.streamline.map(|s| s.length).unwrap_or(0.0),
-            path_length_m: track.distance,
-            goal: match outcome {
+            path_length_m: self.track.distance,
+            goal: match d.outcome {
                 Some(PlanOutcome::Goal(g)) => Some(g.position.coords.into()),
                 _ => None,
             },
             seals: status.errors.seals,
-        };
-        progress(&record);
-        observe(&StepView {
-            step,
-            vehicle: (vehicle.position, vehicle.yaw),
-            planner: planner.as_ref(),
-            record: Some(&record),
-            frames: &frames,
-            planned_at: planned.then_some(position),
-            finished: false,
-        });
-        steps.push(record);
+        })
+    }
 
-        let Some(outcome) = outcome else {
-            if looking {
+    /// Acts on the decision: a look-around turn, a goal flown, completion (and the way home),
+    /// a hold counted. False once the run is over.
+    fn act(&mut self, step: u32, d: Decision) -> Result<bool, SimError> {
+        let Some(outcome) = d.outcome else {
+            if d.looking {
                 let turn = Goal {
-                    position,
-                    yaw: wrap_angle(yaw + std::f32::consts::TAU / cfg.look_around as f32),
+                    position: d.position,
+                    yaw: wrap_angle(d.yaw + std::f32::consts::TAU / self.cfg.look_around as f32),
                     frontier: harmonic_core::map::VoxelIndex::new(0, 0, 0),
                     escape: false,
                 };
-                if rig.mav.is_some() {
-                    rig.fly_mavlink(&mut vehicle, &[position], &turn, budget, cfg, &mut track)?;
-                } else {
-                    rig.fly_direct(&mut vehicle, &[], &turn, budget, cfg, &mut track)?;
-                }
-                continue;
+                self.fly(&[d.position], &turn)?;
+                return Ok(true);
             }
-            if steps_without_frame >= LINK_DEAD_STEPS {
-                termination = "stuck:link".into();
-                break;
+            if self.steps_without_frame >= LINK_DEAD_STEPS {
+                self.termination = "stuck:link".into();
+                return Ok(false);
             }
-            continue;
+            return Ok(true);
         };
-        let now = rig.now_ms();
-        if let Some(m) = rig.mav.as_mut() {
+        let now = self.rig.now_ms();
+        if let Some(m) = self.rig.mav.as_mut() {
             match outcome {
                 // Home again: a hold, announced as such (not as a complete exploration).
-                PlanOutcome::Complete if going_home => m.bridge.arrived_home(),
+                PlanOutcome::Complete if d.going_home => m.bridge.arrived_home(),
                 _ => harmonic_core::companion::steer(&mut m.bridge, &outcome),
             }
             if !matches!(outcome, PlanOutcome::Goal(_)) {
@@ -1637,170 +1840,195 @@ pub fn run_observed(
             }
         }
         match outcome {
-            PlanOutcome::Complete if going_home => {
-                return_end = Some("home".into());
-                break;
+            PlanOutcome::Complete if d.going_home => {
+                self.return_end = Some("home".into());
+                Ok(false)
             }
-            PlanOutcome::Complete if cfg.return_home => {
+            PlanOutcome::Complete if self.cfg.return_home => {
                 // Explored: the numbers so far are the exploration's; now fly home.
-                return_start = Some(ReturnStart {
-                    distance: track.distance,
+                let status = *self.planner.status();
+                self.return_start = Some(ReturnStart {
+                    distance: self.track.distance,
                     frames: status.frames,
                     taken: step,
-                    t_s: rig.t_s,
+                    t_s: self.rig.t_s,
                     status,
-                    coverage,
+                    coverage: self.truth.coverage(self.planner.map()),
                     after_complete: true,
                 });
-                returning = true;
-                if let Some(m) = rig.mav.as_mut() {
+                self.returning = true;
+                if let Some(m) = self.rig.mav.as_mut() {
                     m.bridge.return_home();
                     m.push(now).map_err(SimError::Mavlink)?;
                 }
+                Ok(true)
             }
             PlanOutcome::Complete => {
-                termination = "complete".into();
-                break;
+                self.termination = "complete".into();
+                Ok(false)
             }
             PlanOutcome::Hold(fault) => {
-                consecutive_holds += 1;
-                if consecutive_holds >= 3 {
-                    termination = format!("stuck:{fault:?}");
-                    if going_home {
-                        return_end = Some(termination.clone());
-                    }
-                    break;
+                self.consecutive_holds += 1;
+                if self.consecutive_holds < 3 {
+                    return Ok(true);
                 }
+                self.termination = format!("stuck:{fault:?}");
+                if d.going_home {
+                    self.return_end = Some(self.termination.clone());
+                }
+                Ok(false)
             }
             PlanOutcome::Goal(goal) => {
-                consecutive_holds = 0;
-                let mut waypoints: Vec<Point3<f32>> = planner.waypoints().to_vec();
-                let mut goal = goal;
-                if let Some(d) = &drift {
-                    // The vehicle flies the plan in its believed frame: in the true world it
-                    // moves by the believed displacement.
-                    for w in waypoints.iter_mut() {
-                        *w = d.to_true(w);
-                    }
-                    goal.position = d.to_true(&goal.position);
-                    goal.yaw = d.to_true_yaw(goal.yaw);
-                }
-                if rig.mav.is_some() {
-                    rig.fly_mavlink(&mut vehicle, &waypoints, &goal, budget, cfg, &mut track)?;
-                } else {
-                    rig.fly_direct(&mut vehicle, &waypoints, &goal, budget, cfg, &mut track)?;
-                }
+                self.consecutive_holds = 0;
+                let waypoints = self.planner.waypoints().to_vec();
+                self.fly(&waypoints, &goal)?;
+                Ok(true)
             }
         }
     }
-    // What is still travelling through an outside wire arrives before the counts are taken.
-    rig.link.settle().map_err(SimError::Link)?;
-    let now = rig.now_ms();
-    if let Some(m) = rig.mav.as_mut() {
-        // Let the last setpoint and STATUSTEXT out, and close the log.
-        m.push(now).map_err(SimError::Mavlink)?;
-        m.finish().map_err(SimError::Mavlink)?;
+
+    /// Flies `waypoints` to `goal` for at most the budget: over MAVLink, or directly. With
+    /// drift the vehicle flies the plan in its believed frame: in the true world it moves by the
+    /// believed displacement.
+    fn fly(&mut self, waypoints: &[Point3<f32>], goal: &Goal) -> Result<(), SimError> {
+        let mut waypoints = waypoints.to_vec();
+        let mut goal = *goal;
+        if let Some(d) = &self.sensing.drift {
+            for w in waypoints.iter_mut() {
+                *w = d.to_true(w);
+            }
+            goal.position = d.to_true(&goal.position);
+            goal.yaw = d.to_true_yaw(goal.yaw);
+        }
+        let (vehicle, track) = (&mut self.vehicle, &mut self.track);
+        if self.rig.mav.is_some() {
+            self.rig
+                .fly_mavlink(vehicle, &waypoints, &goal, self.budget, self.cfg, track)
+        } else {
+            self.rig
+                .fly_direct(vehicle, &waypoints, &goal, self.budget, self.cfg, track)
+        }
     }
 
-    observe(&StepView {
-        step: 0,
-        vehicle: (vehicle.position, vehicle.yaw),
-        planner: planner.as_ref(),
-        record: None,
-        frames: &[],
-        planned_at: None,
-        finished: true,
-    });
-    // With a way home flown, the run's numbers are the exploration's, up to where it began.
-    let (status, coverage, explored_path, explored_steps) = match &return_start {
-        Some(r) => (r.status, r.coverage, r.distance, r.taken),
-        None => (
-            *planner.status(),
-            truth.coverage(planner.map()),
-            track.distance,
-            taken,
-        ),
-    };
-    let return_home = return_start.as_ref().map(|r| ReturnHome {
-        termination: return_end.clone().unwrap_or_else(|| termination.clone()),
-        path_length_m: track.distance - r.distance,
-        scans: planner.status().frames.saturating_sub(r.frames),
-        distance_to_home_m: f64::from((vehicle.position - home).norm()),
-        time_s: rig.t_s - r.t_s,
-    });
-    if let (Some(r), Some(back)) = (&return_start, &return_home) {
-        termination = if r.after_complete {
-            "complete".into()
-        } else {
-            back.termination.clone()
+    /// The end: what is still on the wire arrives, the MAVLink log closes, `observe` sees the
+    /// final map, and the report adds it all up.
+    fn finish(mut self, wall: Instant, observe: &mut impl FnMut(&StepView<'_>)) -> Result<Report, SimError> {
+        // What is still travelling through an outside wire arrives before the counts are taken.
+        self.rig.link.settle().map_err(SimError::Link)?;
+        let now = self.rig.now_ms();
+        if let Some(m) = self.rig.mav.as_mut() {
+            // Let the last setpoint and STATUSTEXT out, and close the log.
+            m.push(now).map_err(SimError::Mavlink)?;
+            m.finish().map_err(SimError::Mavlink)?;
+        }
+        observe(&StepView {
+            step: 0,
+            vehicle: (self.vehicle.position, self.vehicle.yaw),
+            planner: &*self.planner,
+            record: None,
+            frames: &[],
+            planned_at: None,
+            finished: true,
+        });
+        self.reference.write_errors(self.planner.map())?;
+        Ok(self.report(wall))
+    }
+
+    /// The report: with a way home flown, the run's numbers are the exploration's, up to where
+    /// the way home began.
+    fn report(self, wall: Instant) -> Report {
+        let planner = &*self.planner;
+        let (status, coverage, explored_path, explored_steps) = match &self.return_start {
+            Some(r) => (r.status, r.coverage, r.distance, r.taken),
+            None => (
+                *planner.status(),
+                self.truth.coverage(planner.map()),
+                self.track.distance,
+                self.taken,
+            ),
         };
+        let return_home = self.return_start.as_ref().map(|r| ReturnHome {
+            termination: self
+                .return_end
+                .clone()
+                .unwrap_or_else(|| self.termination.clone()),
+            path_length_m: self.track.distance - r.distance,
+            scans: planner.status().frames.saturating_sub(r.frames),
+            distance_to_home_m: f64::from((self.vehicle.position - self.home).norm()),
+            time_s: self.rig.t_s - r.t_s,
+        });
+        let termination = match (&self.return_start, &return_home) {
+            (Some(r), _) if r.after_complete => "complete".into(),
+            (Some(_), Some(back)) => back.termination.clone(),
+            _ => self.termination.clone(),
+        };
+        let steps = &self.steps;
+        let timing = Timing {
+            integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
+            domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
+            solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
+            streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
+        };
+        let geometry = *planner.map().geometry();
+        let dims = geometry.dims();
+        Report {
+            scenario: self.scenario.world.name.clone(),
+            planner: planner.kind().name().into(),
+            solver: solver_name(planner.kind(), self.cfg.explorer.solver).into(),
+            termination,
+            coverage_free: coverage.free,
+            coverage_surface: coverage.surface,
+            free_marked_occupied: coverage.free_marked_occupied,
+            coverage_observed: coverage.observed,
+            path_length_m: explored_path,
+            scans: status.frames,
+            steps_taken: explored_steps,
+            return_home,
+            collisions: self.track.contact.collisions.len() as u32,
+            min_clearance_m: self.track.contact.closest.0,
+            min_clearance_at: self.track.contact.closest.1,
+            collision_points: self.track.contact.collisions,
+            integration_ops: status.integration_ops,
+            planning_ops: status.planning_ops,
+            local_solves: [status.local_solves, status.local_given_up],
+            flight_time_s: self.rig.t_s,
+            wall_time_s: wall.elapsed().as_secs_f64(),
+            grid: [dims.nx(), dims.ny(), dims.nz()],
+            resolution: geometry.resolution(),
+            grid_origin: geometry.origin().coords.into(),
+            reachable_free_voxels: self.truth.reachable_free(),
+            sealed_voxels: status.map.sealed,
+            unreachable_frontier_voxels: (status.termination
+                == harmonic_core::explore::Termination::Complete)
+                .then_some(status.unreachable_frontier),
+            timing,
+            errors: status.errors,
+            link: self.rig.link.report(),
+            mavlink: self.rig.mav.as_ref().map(MavlinkLink::report),
+            pil: None,
+            map_accuracy: self
+                .reference
+                .map
+                .as_ref()
+                .map(|r| crate::sensors::sensing::accuracy(planner.map(), r)),
+            final_drift: self.sensing.drift.as_ref().map(|d| {
+                let (e, y) = d.error_at(&self.vehicle.position);
+                [e, y]
+            }),
+            stereo: self.sensing.stereo.as_ref().map(StereoDepth::report),
+            trajectory: self.track.path,
+            steps: self.steps,
+        }
     }
-    let timing = Timing {
-        integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
-        domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
-        solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
-        streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
-    };
-    if let (Some((path, out)), Some(r)) = (map_errors.as_mut(), reference.as_ref()) {
-        use std::io::Write;
-        crate::sensors::sensing::write_map_errors(planner.map(), r, out)
-            .and_then(|_| out.flush())
-            .map_err(|e| map_errors_io(path, e))?;
+}
+
+/// The solver a report names for a planner.
+fn solver_name(kind: PlannerKind, solver: SolverKind) -> &'static str {
+    match (kind, solver) {
+        (k, _) if !k.is_harmonic() => "none",
+        (PlannerKind::HarmonicGs, _) | (_, SolverKind::GaussSeidel) => "gs",
+        (PlannerKind::HarmonicThesis, _) | (_, SolverKind::ThesisJacobi) => "thesis-jacobi",
+        (_, SolverKind::Multigrid) => "mg",
+        (_, SolverKind::Flat) => "flat",
     }
-    let dims = geometry.dims();
-    Ok(Report {
-        scenario: scenario.world.name.clone(),
-        planner: planner.kind().name().into(),
-        solver: match planner.kind() {
-            k if !k.is_harmonic() => "none".into(),
-            PlannerKind::HarmonicGs => "gs".into(),
-            PlannerKind::HarmonicThesis => "thesis-jacobi".into(),
-            _ => match cfg.explorer.solver {
-                SolverKind::Multigrid => "mg".into(),
-                SolverKind::Flat => "flat".into(),
-                SolverKind::GaussSeidel => "gs".into(),
-                SolverKind::ThesisJacobi => "thesis-jacobi".into(),
-            },
-        },
-        termination,
-        coverage_free: coverage.free,
-        coverage_surface: coverage.surface,
-        free_marked_occupied: coverage.free_marked_occupied,
-        coverage_observed: coverage.observed,
-        path_length_m: explored_path,
-        scans: status.frames,
-        steps_taken: explored_steps,
-        return_home,
-        collisions: track.contact.collisions.len() as u32,
-        min_clearance_m: track.contact.closest.0,
-        min_clearance_at: track.contact.closest.1,
-        collision_points: track.contact.collisions,
-        integration_ops: status.integration_ops,
-        planning_ops: status.planning_ops,
-        local_solves: [status.local_solves, status.local_given_up],
-        flight_time_s: rig.t_s,
-        wall_time_s: wall.elapsed().as_secs_f64(),
-        grid: [dims.nx(), dims.ny(), dims.nz()],
-        resolution: geometry.resolution(),
-        grid_origin: geometry.origin().coords.into(),
-        reachable_free_voxels: truth.reachable_free(),
-        sealed_voxels: status.map.sealed,
-        unreachable_frontier_voxels: (status.termination == harmonic_core::explore::Termination::Complete)
-            .then_some(status.unreachable_frontier),
-        timing,
-        errors: status.errors,
-        link: rig.link.report(),
-        mavlink: rig.mav.as_ref().map(MavlinkLink::report),
-        pil: None,
-        map_accuracy: reference
-            .as_ref()
-            .map(|r| crate::sensors::sensing::accuracy(planner.map(), r)),
-        final_drift: drift.as_ref().map(|d| {
-            let (e, y) = d.error_at(&vehicle.position);
-            [e, y]
-        }),
-        stereo: stereo.as_ref().map(StereoDepth::report),
-        trajectory: track.path,
-        steps,
-    })
 }
