@@ -314,7 +314,7 @@ struct SentImage {
 
 /// The return channel (core side → camera side) and the camera side's retransmission state.
 struct ReturnChannel {
-    injector: Option<FaultInjector>,
+    injector: FaultInjector,
     queue: VecDeque<u8>,
     credit: f64,
     decoder: FrameDecoder<RETURN_DECODER_BYTES>,
@@ -348,7 +348,7 @@ pub struct DepthLink<'b> {
     arq_rounds: u8,
     last_sent: Option<SentImage>,
     back: ReturnChannel,
-    injector: Option<FaultInjector>,
+    injector: FaultInjector,
     staged: Vec<u8>,
     next_heartbeat_s: f64,
     heartbeats_sent: u32,
@@ -398,7 +398,6 @@ impl<'b> DepthLink<'b> {
                 ));
             }
         }
-        let faulty = !config.faults.is_clean();
         Ok(Self {
             label: config.transport.to_string(),
             baud: config.baud,
@@ -411,7 +410,7 @@ impl<'b> DepthLink<'b> {
             arq_rounds: config.arq_rounds,
             last_sent: None,
             back: ReturnChannel {
-                injector: faulty.then(|| FaultInjector::new(config.faults, seed ^ RETURN_SEED)),
+                injector: FaultInjector::new(config.faults, seed ^ RETURN_SEED),
                 queue: VecDeque::new(),
                 credit: 0.0,
                 decoder: FrameDecoder::new(),
@@ -426,7 +425,7 @@ impl<'b> DepthLink<'b> {
                 bytes_sent: 0,
                 ber: 0.0,
             },
-            injector: faulty.then(|| FaultInjector::new(config.faults, seed)),
+            injector: FaultInjector::new(config.faults, seed),
             staged: Vec::new(),
             next_heartbeat_s: 0.0,
             heartbeats_sent: 0,
@@ -457,18 +456,13 @@ impl<'b> DepthLink<'b> {
     fn stage(&mut self, n: usize) {
         let frame = self.scratch.get(..n).unwrap_or(&[]);
         self.link_frames_sent += 1;
-        match self.injector.as_mut() {
-            Some(injector) => injector.send(frame, &mut self.staged),
-            None => self.staged.extend_from_slice(frame),
-        }
+        self.injector.send(frame, &mut self.staged);
     }
 
     /// Camera side: the staged bytes join the wire's queue; returns when their last byte
     /// will have left, in simulated seconds.
     fn enqueue_staged(&mut self) -> f64 {
-        if let Some(injector) = self.injector.as_mut() {
-            injector.flush(&mut self.staged);
-        }
+        self.injector.flush(&mut self.staged);
         let n = self.staged.len();
         let duration = n as f64 / self.bytes_per_s();
         self.busy_until_s = self.busy_until_s.max(self.now_s) + duration;
@@ -526,10 +520,7 @@ impl<'b> DepthLink<'b> {
     fn stage_all(&mut self, frames: &[Vec<u8>]) {
         for f in frames {
             self.link_frames_sent += 1;
-            match self.injector.as_mut() {
-                Some(injector) => injector.send(f, &mut self.staged),
-                None => self.staged.extend_from_slice(f),
-            }
+            self.injector.send(f, &mut self.staged);
         }
     }
 
@@ -563,13 +554,10 @@ impl<'b> DepthLink<'b> {
             .encode(&Message::ResendRequest(request), &mut frame)
             .map_err(|e| format!("depth link return channel: {e:?}"))?;
         let mut staged = Vec::new();
-        match self.back.injector.as_mut() {
-            Some(injector) => {
-                injector.send(frame.get(..n).unwrap_or(&[]), &mut staged);
-                injector.flush(&mut staged);
-            }
-            None => staged.extend_from_slice(frame.get(..n).unwrap_or(&[])),
-        }
+        self.back
+            .injector
+            .send(frame.get(..n).unwrap_or(&[]), &mut staged);
+        self.back.injector.flush(&mut staged);
         self.back.bytes_sent += staged.len() as u64;
         self.back.queue.extend(staged);
         Ok(!request.is_empty())
@@ -758,7 +746,7 @@ impl<'b> DepthLink<'b> {
             transfer: MsStat::of(&self.transfer_ms),
             wire_busy_s: self.busy_s,
             receiver: self.receiver.counters(),
-            injected: self.injector.as_ref().map(|i| *i.counters()),
+            injected: self.injector.injected(),
             partial_frames_integrated: self.partial_frames_integrated,
             arq_rounds: self.arq_rounds,
             resend_requests_sent: self.back.requests_sent,
@@ -767,12 +755,7 @@ impl<'b> DepthLink<'b> {
             chunks_resent: self.back.chunks_resent,
             bytes_resent: self.back.bytes_resent,
             return_bytes_sent: self.back.bytes_sent,
-            return_injected: self
-                .back
-                .injector
-                .as_ref()
-                .filter(|_| self.back.bytes_sent > 0)
-                .map(|i| *i.counters()),
+            return_injected: self.back.injector.injected().filter(|_| self.back.bytes_sent > 0),
             rows_per_chunk_mean: if self.depth_frames_sent == 0 {
                 0.0
             } else {

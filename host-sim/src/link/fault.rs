@@ -199,6 +199,12 @@ impl FaultInjector {
         &self.counters
     }
 
+    /// What was injected so far, if this injector injects anything at all (`None` for a clean
+    /// configuration, which passes every frame through as it is: reports leave it out).
+    pub fn injected(&self) -> Option<FaultCounters> {
+        (!self.config.is_clean()).then_some(self.counters)
+    }
+
     /// Takes one link frame from the encoder and appends what goes on the wire to `wire`.
     pub fn send(&mut self, frame: &[u8], wire: &mut Vec<u8>) {
         self.counters.frames_in += 1;

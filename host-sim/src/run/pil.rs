@@ -413,7 +413,7 @@ struct Camera {
     requests: Box<FrameDecoder<256>>,
     /// Faults on the camera → firmware direction (`SimConfig::link.faults`); the return
     /// direction (map, reports, resend requests) stays clean.
-    injector: Option<FaultInjector>,
+    injector: FaultInjector,
     /// What the camera side did about losses.
     arq: CameraArq,
     /// Most rows per chunk (the firmware decoder's capacity); `None` in
@@ -461,10 +461,7 @@ impl Camera {
 
     fn put_frame(&mut self, frame: &[u8], wire: &mut Vec<u8>) {
         self.arq.link_frames_sent += 1;
-        match self.injector.as_mut() {
-            Some(injector) => injector.send(frame, wire),
-            None => wire.extend_from_slice(frame),
-        }
+        self.injector.send(frame, wire);
     }
 
     /// The Heartbeats that end what was sent, then everything onto UART0.
@@ -479,9 +476,7 @@ impl Camera {
             self.put(&link::Message::Heartbeat(heartbeat), &mut wire)?;
             self.arq.heartbeats_sent += 1;
         }
-        if let Some(injector) = self.injector.as_mut() {
-            injector.flush(&mut wire);
-        }
+        self.injector.flush(&mut wire);
         self.arq.bytes_sent += wire.len() as u64;
         board.send(Port::Link, &wire)
     }
@@ -578,7 +573,8 @@ impl Camera {
                 if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
                     return Err(SimError::Config(format!("no report for frame {frame_id}")));
                 }
-                if self.injector.is_some() && !acknowledged && heard.elapsed() > REPEAT_IMAGE_AFTER {
+                if self.injector.injected().is_some() && !acknowledged && heard.elapsed() > REPEAT_IMAGE_AFTER
+                {
                     heard = Instant::now();
                     self.arq.images_repeated += 1;
                     let wire = self.image(frame_id, frame, &pose)?;
@@ -725,7 +721,7 @@ fn firmware_camera(cfg: &SimConfig) -> Result<Camera, SimError> {
         rows_per_chunk: cfg.link.chunk_rows.map_or(rows, |r| r.clamp(1, rows)),
         decoder: Box::default(),
         requests: Box::new(FrameDecoder::new()),
-        injector: (!cfg.link.faults.is_clean()).then(|| FaultInjector::new(cfg.link.faults, cfg.seed)),
+        injector: FaultInjector::new(cfg.link.faults, cfg.seed),
         arq: CameraArq::default(),
         max_rows_per_chunk: cfg.link.chunk_rows.is_none().then_some(rows),
         ber: 0.0,
@@ -1131,7 +1127,7 @@ impl<'a> FirmwareRun<'a> {
             bytes_sent: camera.arq.bytes_sent,
             bytes_received: receiver.bytes,
             heartbeats_sent: camera.arq.heartbeats_sent,
-            injected: camera.injector.as_ref().map(|i| *i.counters()),
+            injected: camera.injector.injected(),
             partial_frames_integrated: receiver.depth_frames_partial,
             arq_rounds: fw::ARQ_ROUNDS,
             resend_requests_sent: end.resend_requests,
