@@ -4,7 +4,7 @@
 use harmonic_core::map::Dims;
 use harmonic_sim::link::fault::DEFAULT_BURST_LEN;
 use harmonic_sim::sensors::camera::StereoNoise;
-use harmonic_sim::sensors::sensing::DriftConfig;
+use harmonic_sim::sensors::faults::DriftConfig;
 
 /// `--prefilter`: `none`, `dog` (the default Difference of Gaussians) or `dog:SIGMA_SMALL:SIGMA_LARGE`.
 pub fn parse_prefilter(s: &str) -> Result<harmonic_core::stereo::Prefilter, String> {

@@ -4,7 +4,7 @@
 use harmonic_core::field::PlanningField;
 use harmonic_sim::run::sim::{self, SimConfig};
 use harmonic_sim::sensors::camera::StereoNoise;
-use harmonic_sim::sensors::sensing::DriftConfig;
+use harmonic_sim::sensors::faults::DriftConfig;
 
 use super::parse::{
     parse_drift, parse_grid_offset, parse_noise, parse_non_negative, parse_positive, parse_probability,

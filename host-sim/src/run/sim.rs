@@ -69,7 +69,9 @@ use crate::planners::baseline::Baseline;
 use crate::planners::{CorePlanner, HarmonicPlanner, HostClock, HostStorage, Planner, PlannerKind};
 use crate::run::metrics::{Contact, Coverage, GroundTruth};
 use crate::sensors::camera::{DepthCamera, StereoNoise};
-use crate::sensors::sensing::{Drift, DriftConfig, MapAccuracy};
+pub use crate::sensors::faults::SimFaults;
+use crate::sensors::faults::{Drift, DriftConfig};
+use crate::sensors::sensing::MapAccuracy;
 use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
 use crate::vehicle::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::world::scenario::Scenario;
@@ -270,21 +272,6 @@ pub fn use_stereo_depth(cfg: &mut SimConfig, rig: StereoRig, trusted_range: Opti
         trusted_range,
         sensor_model,
     );
-}
-
-/// Faults the simulator injects besides the depth link's: what `harmonic-sim faults` varies.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
-pub struct SimFaults {
-    /// Probability that a depth pixel reads 0 (no return) although it saw something.
-    pub sensor_dropout: f64,
-    /// Probability that a depth pixel reads a uniformly random depth in the camera's range.
-    pub sensor_outlier: f64,
-    /// Pose drift: the position the core is told moves away from the truth at this rate, m/s
-    /// (along the map's x = y diagonal). The vehicle flies the setpoints in the believed frame.
-    pub pose_drift_m_per_s: f32,
-    /// A stale pose stream: over MAVLink, the autopilot sends nothing from `start` for
-    /// `duration` seconds of simulated time.
-    pub pose_outage_s: Option<(f64, f64)>,
 }
 
 impl Default for SimConfig {
@@ -792,15 +779,12 @@ impl Rig<'_> {
 
     /// Believed minus true position: the injected pose drift by now.
     fn drift(&self) -> nalgebra::Vector3<f32> {
-        let d = self.faults.pose_drift_m_per_s * self.t_s as f32 * std::f32::consts::FRAC_1_SQRT_2;
-        nalgebra::Vector3::new(d, d, 0.0)
+        self.faults.drift_at(self.t_s)
     }
 
     /// True while the injected pose outage silences the autopilot.
     fn pose_outage(&self) -> bool {
-        self.faults
-            .pose_outage_s
-            .is_some_and(|(start, duration)| self.t_s >= start && self.t_s < start + duration)
+        self.faults.outage_at(self.t_s)
     }
 
     /// One time step: against a remote autopilot, sleeps until the wall clock has caught up
@@ -1143,23 +1127,6 @@ impl Rig<'_> {
     }
 }
 
-/// Sensor dropouts (0, no return) and outliers (a random depth in range), per pixel.
-fn inject_sensor_faults(faults: &SimFaults, camera: &DepthCamera, rng: &mut ChaCha8Rng, depth: &mut [u16]) {
-    use rand::Rng;
-    if faults.sensor_dropout <= 0.0 && faults.sensor_outlier <= 0.0 {
-        return;
-    }
-    let (lo, hi) = (camera.min_range * 1000.0, camera.max_range * 1000.0);
-    for d in depth.iter_mut() {
-        let u: f64 = rng.random();
-        if u < faults.sensor_dropout {
-            *d = 0;
-        } else if u < faults.sensor_dropout + faults.sensor_outlier {
-            *d = rng.random_range(lo..hi) as u16;
-        }
-    }
-}
-
 /// Writes the labels and source of one planning step for `harmonic-sim solve`.
 fn dump_problem(
     dir: &std::path::Path,
@@ -1324,7 +1291,8 @@ impl Sensing {
                 .camera
                 .render(world, true_pose, &mut self.rng, &mut self.depth),
         }
-        inject_sensor_faults(&cfg.faults, &cfg.camera, &mut self.sensor_rng, &mut self.depth);
+        cfg.faults
+            .corrupt_depth(&cfg.camera, &mut self.sensor_rng, &mut self.depth);
         Ok(())
     }
 }
@@ -1818,7 +1786,17 @@ impl<'a> Run<'a> {
                     frontier: harmonic_core::map::VoxelIndex::new(0, 0, 0),
                     escape: false,
                 };
-                self.fly(&[d.position], &turn)?;
+                // A turn on the spot: over MAVLink a setpoint where the vehicle is believed to
+                // be, directly no waypoint at all; the believed frame's yaw either way.
+                let (vehicle, track) = (&mut self.vehicle, &mut self.track);
+                if self.rig.mav.is_some() {
+                    let at = [d.position];
+                    self.rig
+                        .fly_mavlink(vehicle, &at, &turn, self.budget, self.cfg, track)?;
+                } else {
+                    self.rig
+                        .fly_direct(vehicle, &[], &turn, self.budget, self.cfg, track)?;
+                }
                 return Ok(true);
             }
             if self.steps_without_frame >= LINK_DEAD_STEPS {
@@ -2030,5 +2008,50 @@ fn solver_name(kind: PlannerKind, solver: SolverKind) -> &'static str {
         (PlannerKind::HarmonicThesis, _) | (_, SolverKind::ThesisJacobi) => "thesis-jacobi",
         (_, SolverKind::Multigrid) => "mg",
         (_, SolverKind::Flat) => "flat",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The look-around turns the vehicle on the spot, whatever the believed pose: with a
+    /// drifting estimate the turn must not fly the vehicle to where it believes it is.
+    #[test]
+    fn the_look_around_turns_on_the_spot_under_drift() {
+        let scenario = Scenario::builtin("apartment").expect("built-in");
+        let cfg = SimConfig {
+            max_scans: 5,
+            drift: Some(DriftConfig {
+                sigma_position_m: 0.1,
+                sigma_yaw_rad: 0.015,
+            }),
+            ..SimConfig::default()
+        };
+        let r = run(&scenario, &cfg, |_| {}).expect("run starts");
+        let looks = r.steps.iter().filter(|s| s.outcome == "look_around").count();
+        assert_eq!(looks, cfg.look_around as usize - 1, "{:?}", r.steps);
+        let after = &r.steps[looks];
+        assert_eq!(after.path_length_m, 0.0, "the turns moved the vehicle");
+        assert!(
+            r.final_drift.is_some_and(|[e, _]| e > 0.0),
+            "the estimate drifted"
+        );
+    }
+
+    /// A run reports each step's phase, its planner and the solver by name.
+    #[test]
+    fn solvers_are_named_by_planner_and_kind() {
+        assert_eq!(
+            solver_name(PlannerKind::ClosestFrontier, SolverKind::Multigrid),
+            "none"
+        );
+        assert_eq!(solver_name(PlannerKind::HarmonicGs, SolverKind::Multigrid), "gs");
+        assert_eq!(
+            solver_name(PlannerKind::HarmonicThesis, SolverKind::Multigrid),
+            "thesis-jacobi"
+        );
+        assert_eq!(solver_name(PlannerKind::Harmonic, SolverKind::Multigrid), "mg");
+        assert_eq!(solver_name(PlannerKind::Harmonic, SolverKind::Flat), "flat");
     }
 }

@@ -6,8 +6,10 @@
 //! - [`stereo`]: a textured stereo pair rendered from the world, matched by the core's block
 //!   matcher into depth (`--depth-from stereo`), with ground truth and the PNG/PFM/`.npy`
 //!   disparity files of the `stereo` subcommands.
-//! - [`sensing`]: sensing faults beyond the pixels (pose drift) and how far a map made with
-//!   imperfect sensing is from the noise-free map of the same run.
+//! - [`faults`]: every sensor and pose fault the simulator injects (dropouts, outliers, pose
+//!   drift, a silent pose stream) and the random-walk drift of a believed pose.
+//! - [`sensing`]: how far a map made with imperfect sensing is from the noise-free map of the
+//!   same run.
 //!
 //! In: a [`World`](crate::world::World) from the world stage and the camera's pose from the
 //! run. Out: depth frames for the depth link (or straight to the core), the believed pose
@@ -15,5 +17,6 @@
 //! for disparity files, on [`crate::io::npy`].
 
 pub mod camera;
+pub mod faults;
 pub mod sensing;
 pub mod stereo;

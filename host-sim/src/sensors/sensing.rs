@@ -1,11 +1,5 @@
-//! Faults of the sensing side beyond the camera's pixels: pose drift, and how far a map made
-//! with imperfect sensing is from the noise-free map of the same run.
+//! How far a map made with imperfect sensing is from the noise-free map of the same run.
 //!
-//! - [`Drift`]: the pose the core believes wanders from the truth by a random walk, one step
-//!   per keyframe (every integrated scan): a translation with N(0, σ_pos) per axis and a yaw
-//!   rotation N(0, σ_yaw) about the vehicle (Ziegler 2018 uses 0.1 m and 0.015 rad). Frames
-//!   are stamped and plans made in the believed frame; the vehicle flies the plan, so it moves
-//!   in the true world by the believed displacement.
 //! - [`MapAccuracy`]: the share of voxels whose state (unknown, free, occupied, uncertain)
 //!   matches a reference map that integrated the noise-free depth of every scan of the same run
 //!   at its true pose — the seed thesis's measure (Shade 2011, Fig. 6.19), over the whole grid
@@ -13,93 +7,7 @@
 //!   (`explore --map-errors FILE`).
 
 use harmonic_core::map::{Occupancy, VoxelMap};
-use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-
-/// Random-walk pose drift per keyframe.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct DriftConfig {
-    /// Standard deviation of the translation step per axis and keyframe, metres.
-    pub sigma_position_m: f32,
-    /// Standard deviation of the yaw step per keyframe, radians.
-    pub sigma_yaw_rad: f32,
-}
-
-/// The believed pose's error: believed = offset · true.
-#[derive(Debug, Clone)]
-pub struct Drift {
-    config: DriftConfig,
-    offset: Isometry3<f32>,
-    rng: ChaCha8Rng,
-    keyframes: u32,
-}
-
-fn normal(rng: &mut ChaCha8Rng) -> f32 {
-    let u1: f32 = 1.0 - rng.random::<f32>();
-    let u2: f32 = rng.random::<f32>();
-    (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
-}
-
-impl Drift {
-    /// No drift yet; steps drawn from `seed`.
-    pub fn new(config: DriftConfig, seed: u64) -> Self {
-        Self {
-            config,
-            offset: Isometry3::identity(),
-            rng: ChaCha8Rng::seed_from_u64(seed ^ 0xd21f_7000_0000_0001),
-            keyframes: 0,
-        }
-    }
-
-    /// The believed position and yaw of a vehicle truly at `position` with `yaw`.
-    pub fn believed(&self, position: &Point3<f32>, yaw: f32) -> (Point3<f32>, f32) {
-        (
-            self.offset * position,
-            yaw + self.offset.rotation.euler_angles().2,
-        )
-    }
-
-    /// The true point of a believed one.
-    pub fn to_true(&self, p: &Point3<f32>) -> Point3<f32> {
-        self.offset.inverse_transform_point(p)
-    }
-
-    /// The true yaw of a believed one.
-    pub fn to_true_yaw(&self, yaw: f32) -> f32 {
-        yaw - self.offset.rotation.euler_angles().2
-    }
-
-    /// One keyframe: a random step of the walk, the rotation about the vehicle's believed
-    /// position `about`.
-    pub fn keyframe(&mut self, about: &Point3<f32>) {
-        let c = self.config;
-        let t = Vector3::new(
-            normal(&mut self.rng),
-            normal(&mut self.rng),
-            normal(&mut self.rng),
-        ) * c.sigma_position_m;
-        let yaw = normal(&mut self.rng) * c.sigma_yaw_rad;
-        let r = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
-        // Rotate about `about`, then translate.
-        let about_v = about.coords;
-        let step = Isometry3::from_parts(Translation3::from(about_v + t - r * about_v), r);
-        self.offset = step * self.offset;
-        self.keyframes += 1;
-    }
-
-    /// Position error (metres) of the believed pose at true `position`, and yaw error (rad).
-    pub fn error_at(&self, position: &Point3<f32>) -> (f32, f32) {
-        let (p, _) = self.believed(position, 0.0);
-        ((p - position).norm(), self.offset.rotation.euler_angles().2.abs())
-    }
-
-    /// Keyframes so far.
-    pub fn keyframes(&self) -> u32 {
-        self.keyframes
-    }
-}
 
 /// How closely a map matches the noise-free map of the same run.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
@@ -328,7 +236,7 @@ mod tests {
         ref_misses: &[usize],
         f: impl FnOnce(&VoxelMap<'_>, &VoxelMap<'_>) -> R,
     ) -> R {
-        let g = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        let g = MapGeometry::new(dims, nalgebra::Point3::origin(), 0.1).unwrap();
         let n = dims.len();
         let (mut lo_a, mut st_a) = (vec![0i8; n], vec![0u32; touched_words(&dims)]);
         let (mut lo_b, mut st_b) = (vec![0i8; n], vec![0u32; touched_words(&dims)]);
@@ -445,28 +353,5 @@ mod tests {
             [1, 1, 0, 0],
             "the floor under free space, the ceiling over it"
         );
-    }
-
-    #[test]
-    fn drift_walks_and_maps_back() {
-        let mut d = Drift::new(
-            DriftConfig {
-                sigma_position_m: 0.1,
-                sigma_yaw_rad: 0.015,
-            },
-            1,
-        );
-        let p = Point3::new(2.0, 3.0, 1.0);
-        assert_eq!(d.error_at(&p), (0.0, 0.0));
-        for _ in 0..100 {
-            d.keyframe(&p);
-        }
-        let (e, y) = d.error_at(&p);
-        // A 100-step walk of 0.1 m per axis: about 0.1·√(100·3) ≈ 1.7 m.
-        assert!(e > 0.2 && e < 6.0, "{e}");
-        assert!(y > 0.0 && y < 1.0, "{y}");
-        let (b, by) = d.believed(&p, 0.5);
-        assert!((d.to_true(&b) - p).norm() < 1e-4);
-        assert!((d.to_true_yaw(by) - 0.5).abs() < 1e-5);
     }
 }
