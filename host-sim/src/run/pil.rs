@@ -54,7 +54,7 @@ use crate::link::depth_link::LinkReport;
 use crate::link::fault::FaultInjector;
 use crate::run::board::{machine_args, Board, InProcess, Port, Qemu};
 use crate::run::metrics::{Contact, Coverage, GroundTruth};
-use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, TimeStat, Timing, Vehicle};
+use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, Timing, Vehicle};
 use crate::vehicle::autopilot::{GroundStation, MavlinkReport, OperatorEvent, TrafficReport};
 use crate::vehicle::flight::{FlightEmulator, LinkSigning};
 use crate::world::scenario::Scenario;
@@ -1040,13 +1040,7 @@ impl<'a> FirmwareRun<'a> {
             ),
         };
         let unreachable_frontier_voxels = (termination == "complete").then_some(last.unreachable_frontier);
-        let steps = &self.steps;
-        let timing = Timing {
-            integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
-            domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
-            solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
-            streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
-        };
+        let timing = Timing::of_steps(&self.steps);
         let dims = self.geometry.dims();
         let link = self.link_report(&end);
         let mavlink = self.mavlink_report(&end);

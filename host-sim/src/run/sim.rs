@@ -411,6 +411,18 @@ pub struct Timing {
     pub streamline: TimeStat,
 }
 
+impl Timing {
+    /// The means and maxima of `steps`' phase times.
+    pub fn of_steps(steps: &[StepRecord]) -> Self {
+        Self {
+            integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
+            domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
+            solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
+            streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
+        }
+    }
+}
+
 /// Instructions of one phase, over a run.
 #[derive(Debug, Clone, Copy, Default, Serialize)]
 pub struct InstructionStat {
@@ -1940,13 +1952,7 @@ impl<'a> Run<'a> {
             (Some(_), Some(back)) => back.termination.clone(),
             _ => self.termination.clone(),
         };
-        let steps = &self.steps;
-        let timing = Timing {
-            integrate: TimeStat::of(steps.iter().map(|s| s.integrate_ms)),
-            domain: TimeStat::of(steps.iter().map(|s| s.domain_ms)),
-            solve: TimeStat::of(steps.iter().map(|s| s.solve_ms)),
-            streamline: TimeStat::of(steps.iter().map(|s| s.streamline_ms)),
-        };
+        let timing = Timing::of_steps(&self.steps);
         let geometry = *planner.map().geometry();
         let dims = geometry.dims();
         Report {
