@@ -170,7 +170,8 @@ pub fn build_explorer<'a>(
         coarse_labels,
         depth,
     } = storage;
-    let explorer = Explorer::new(
+    let explorer = Explorer::new_in(
+        slot,
         geometry().map_err(ConfigError::Map)?,
         explorer_config(),
         ExplorerStorage {
@@ -196,7 +197,7 @@ pub fn build_explorer<'a>(
             flat: &mut [],
         },
     )?;
-    Ok((slot.write(explorer), depth))
+    Ok((explorer, depth))
 }
 
 #[cfg(test)]

@@ -75,6 +75,8 @@ pub use status::{ConfigError, ErrorCounters, Fault, Goal, PhaseTicks, PlanOutcom
 use crate::clock::{Clock, NoClock};
 pub use target::{Chosen, Context, TargetChoice, Watch};
 
+use core::mem::MaybeUninit;
+
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::mapping::camera::{DepthFrame, Intrinsics};
@@ -141,6 +143,24 @@ impl<'a> Explorer<'a> {
         Self::build(geometry, config, map, targets)
     }
 
+    /// [`Explorer::new`], built in `slot` (a `static` on a board): the explorer is never a value
+    /// on the stack, which at boot has a few KiB to spare.
+    pub fn new_in(
+        slot: &'a mut MaybeUninit<Self>,
+        geometry: MapGeometry,
+        config: ExplorerConfig,
+        storage: ExplorerStorage<'a>,
+    ) -> Result<&'a mut Self, ConfigError> {
+        let n = geometry.dims().len();
+        if storage.labels.len() < n || storage.phi.len() < n || storage.queue.is_empty() {
+            return Err(ConfigError::StorageTooSmall);
+        }
+        let (map, field) = split(storage);
+        let targets = HarmonicField::new(&geometry, &config, field)?;
+        let parts = Parts::new(geometry, &config, map)?;
+        Ok(slot.write(parts.explorer(config, targets)))
+    }
+
     /// The stored potential ψ = 1 − φ of the last plan (see [`crate::planning::solve`]).
     pub fn psi(&self) -> &[f32] {
         self.targets.psi()
@@ -154,6 +174,76 @@ struct MapStorage<'a> {
     labels: &'a mut [Label],
     queue: &'a mut [u32],
     surface: &'a mut [[i32; 2]],
+}
+
+/// What an explorer is built from, checked: the map over its buffers, the inflation, the
+/// labels and the queue.
+struct Parts<'a> {
+    map: VoxelMap<'a>,
+    inflation: Inflation,
+    labels: &'a mut [Label],
+    queue: &'a mut [u32],
+}
+
+impl<'a> Parts<'a> {
+    fn new(
+        geometry: MapGeometry,
+        config: &ExplorerConfig,
+        storage: MapStorage<'a>,
+    ) -> Result<Self, ConfigError> {
+        let n = geometry.dims().len();
+        let MapStorage {
+            log_odds,
+            touched,
+            labels,
+            queue,
+            surface,
+        } = storage;
+        if labels.len() < n || queue.is_empty() {
+            return Err(ConfigError::StorageTooSmall);
+        }
+        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
+            .map_err(ConfigError::Map)?
+            .with_surface(surface);
+        let inflation = Inflation::new(config.vehicle_radius, config.narrow_radius, geometry.resolution())
+            .map_err(ConfigError::Domain)?;
+        let labels = labels.get_mut(..n).ok_or(ConfigError::StorageTooSmall)?;
+        labels.fill(Label::Outside);
+        Ok(Self {
+            map,
+            inflation,
+            labels,
+            queue,
+        })
+    }
+
+    /// The explorer of these parts, choosing targets with `targets`. Inlined, so that a caller
+    /// that writes it into a slot builds it there.
+    #[inline(always)]
+    fn explorer<T>(self, config: ExplorerConfig, targets: T) -> Explorer<'a, T> {
+        Explorer {
+            config,
+            map: self.map,
+            inflation: self.inflation,
+            labels: self.labels,
+            queue: self.queue,
+            targets,
+            waypoints: Waypoints::new(),
+            intrinsics: None,
+            last_goal: None,
+            last_watch: Watch::new(),
+            last_frame_origin: None,
+            jump_candidate: None,
+            fruitless_visits: 0,
+            unexplored_at_last_plan: None,
+            goal_from_afar: false,
+            go_near: false,
+            last_plan_position: None,
+            looks: ArrivalLooks::default(),
+            reopening: Reopening::default(),
+            status: Status::default(),
+        }
+    }
 }
 
 /// `storage` as the map's buffers and the harmonic field's.
@@ -216,46 +306,21 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
         storage: MapStorage<'a>,
         targets: T,
     ) -> Result<Self, ConfigError> {
-        let n = geometry.dims().len();
-        let MapStorage {
-            log_odds,
-            touched,
-            labels,
-            queue,
-            surface,
-        } = storage;
-        if labels.len() < n || queue.is_empty() {
-            return Err(ConfigError::StorageTooSmall);
-        }
-        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
-            .map_err(ConfigError::Map)?
-            .with_surface(surface);
-        let inflation = Inflation::new(config.vehicle_radius, config.narrow_radius, geometry.resolution())
-            .map_err(ConfigError::Domain)?;
-        let labels = labels.get_mut(..n).ok_or(ConfigError::StorageTooSmall)?;
-        labels.fill(Label::Outside);
-        Ok(Self {
-            config,
-            map,
-            inflation,
-            labels,
-            queue,
-            targets,
-            waypoints: Waypoints::new(),
-            intrinsics: None,
-            last_goal: None,
-            last_watch: Watch::new(),
-            last_frame_origin: None,
-            jump_candidate: None,
-            fruitless_visits: 0,
-            unexplored_at_last_plan: None,
-            goal_from_afar: false,
-            go_near: false,
-            last_plan_position: None,
-            looks: ArrivalLooks::default(),
-            reopening: Reopening::default(),
-            status: Status::default(),
-        })
+        let parts = Parts::new(geometry, &config, storage)?;
+        Ok(parts.explorer(config, targets))
+    }
+
+    /// [`Explorer::with_targets`], built in `slot` (a `static` on a board): the explorer is
+    /// never a value on the stack, which at boot has a few KiB to spare.
+    pub fn with_targets_in(
+        slot: &'a mut MaybeUninit<Self>,
+        geometry: MapGeometry,
+        config: ExplorerConfig,
+        storage: ExplorerStorage<'a>,
+        targets: T,
+    ) -> Result<&'a mut Self, ConfigError> {
+        let parts = Parts::new(geometry, &config, split(storage).0)?;
+        Ok(slot.write(parts.explorer(config, targets)))
     }
 
     /// The map, to write what is known before the first plan (a prior map, a test's): the next
