@@ -142,14 +142,18 @@ pub fn companion_config(tick_hz: u32) -> CompanionConfig {
 }
 
 /// The firmware around `explorer` (see [`build_explorer`]) and the depth-image buffer, with
-/// [`companion_config`]; `tick_hz` is the rate of the clock later passed to
-/// [`Firmware::poll`].
+/// [`companion_config`], built in place in `slot` (a `static` on the MCU); `tick_hz` is the
+/// rate of the clock later passed to [`Firmware::poll`]. Its own function, as
+/// [`build_explorer`] is: the companion under construction (about 6 KiB) lives in this frame,
+/// gone before the loop starts, and not in the frame of the loop's caller for good.
+#[inline(never)]
 pub fn build_firmware<'a>(
     explorer: &'a mut Explorer<'a>,
     depth: &'a mut [u16],
     tick_hz: u32,
-) -> Result<Firmware<'a>, ConfigError> {
-    Firmware::new(explorer, depth, companion_config(tick_hz))
+    slot: &'a mut MaybeUninit<Firmware<'a>>,
+) -> Result<&'a mut Firmware<'a>, ConfigError> {
+    Ok(slot.write(Firmware::new(explorer, depth, companion_config(tick_hz))?))
 }
 
 /// Builds the explorer over `storage`, in place in `slot` (a `static` on the MCU), and returns

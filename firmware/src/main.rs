@@ -64,9 +64,9 @@ mod image {
         // The firmware's own state (explorer, link decoder, bridge: about 12 KiB) is static too,
         // so the planning stack starts near the top of RAM.
         let built = build_explorer(STORAGE, EXPLORER)
-            .and_then(|(explorer, depth)| build_firmware(explorer, depth, PCLK_HZ));
+            .and_then(|(explorer, depth)| build_firmware(explorer, depth, PCLK_HZ, FIRMWARE));
         let firmware = match built {
-            Ok(f) => FIRMWARE.write(f),
+            Ok(f) => f,
             Err(e) => {
                 defmt::error!("explorer refused its configuration: {}", e);
                 halt(2)
