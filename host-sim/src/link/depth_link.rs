@@ -2,16 +2,19 @@
 //!
 //! ```text
 //! camera side                         wire                         core side
-//! LinkEncoder ─► FaultInjector ─► pacing queue ─► Wire (pipe, TCP, serial) ─► DepthReceiver
-//!  (frames)      (optional)       (baud rate,                                   (the core's)
-//!  Heartbeat 1 Hz                  simulated time)
+//! LinkEncoder ─► Faulty ─► Paced ─► transport (pipe, TCP, serial) ─► DepthReceiver
+//!  (frames)     (faults)  (baud rate,                                  (the core's)
+//!  Heartbeat 1 Hz          simulated time)
 //! ```
+//!
+//! The wire is a stack of [`Wire`]s built from the options: the transport, baud pacing around
+//! it ([`Paced`]), fault injection around that ([`Faulty`], passing frames through unchanged
+//! when no fault is configured).
 //!
 //! - The camera side encodes each depth image with its camera pose (a Pose message, then the
 //!   image's Intrinsics and chunks: `harmonic_core::link`), and a link Heartbeat every
 //!   [`HEARTBEAT_PERIOD_S`] of simulated time.
-//! - Every frame passes the [`FaultInjector`] if faults are configured, then waits in a queue
-//!   that drains at the baud rate: a byte takes 10 bit times (8N1), so a 100 × 100 image
+//! - Every frame passes the fault injector, then waits in a queue that drains at the baud rate: a byte takes 10 bit times (8N1), so a 100 × 100 image
 //!   (about 20 kB) is on the wire for about 0.22 s at 921600 baud. [`DepthLink::tick`] moves the
 //!   bytes whose time has come onto the [`Wire`] and hands whatever arrived to the core's
 //!   `DepthReceiver`; the run keeps flying (and streaming MAVLink) between ticks.
@@ -24,7 +27,7 @@
 //! # Selective retransmission and chunk size
 //!
 //! ```text
-//! core side: DepthReceiver::resend_request ─► FaultInjector ─► return queue (same baud) ─► camera side
+//! core side: DepthReceiver::resend_request ─► Faulty ─► Paced (same baud) ─► Pipe ─► camera side
 //! camera side: the rows, pose, intrinsics asked for ─► forward queue, as above
 //! ```
 //!
@@ -45,8 +48,6 @@
 //! (`harmonic_core::link::best_rows_per_chunk`, at most [`ROWS_PER_CHUNK`] rows), unless
 //! [`LinkConfig::chunk_rows`] fixes it. A clean line keeps [`ROWS_PER_CHUNK`].
 
-use std::collections::VecDeque;
-
 use harmonic_core::camera::{DepthFrame, Intrinsics};
 use harmonic_core::link::{
     self, DepthReceiver, FrameDecoder, Heartbeat, LinkCounters, LinkEncoder, LinkEvent, Message,
@@ -55,13 +56,13 @@ use harmonic_core::link::{
 use nalgebra::Isometry3;
 use serde::Serialize;
 
-use crate::link::fault::{FaultConfig, FaultCounters, FaultInjector};
-use crate::link::transport::{self, TransportSpec, Wire};
+use crate::link::fault::{FaultConfig, FaultCounters, Faulty};
+use crate::link::pacing::Paced;
+use crate::link::transport::{self, Pipe, TransportSpec, Wire};
 
 /// Default baud rate of the link.
 pub const DEFAULT_BAUD: u32 = 921_600;
-/// Bits on the wire per byte: 8N1 (start bit, 8 data bits, stop bit).
-pub const BITS_PER_BYTE: f64 = 10.0;
+pub use crate::link::pacing::BITS_PER_BYTE;
 /// Seconds between two camera-side link Heartbeats (1 Hz).
 pub const HEARTBEAT_PERIOD_S: f64 = 1.0;
 /// Decoder capacity of the core side: a chunk of [`ROWS_PER_CHUNK`] rows of an image up to
@@ -314,9 +315,10 @@ struct SentImage {
 
 /// The return channel (core side → camera side) and the camera side's retransmission state.
 struct ReturnChannel {
-    injector: FaultInjector,
-    queue: VecDeque<u8>,
-    credit: f64,
+    /// The channel: faults, then pacing at the link's baud rate, to the camera side.
+    wire: Faulty<Paced<Pipe>>,
+    /// What came back, not yet decoded.
+    arrived: Vec<u8>,
     decoder: FrameDecoder<RETURN_DECODER_BYTES>,
     encoder: LinkEncoder,
     /// Requests the core side sent for the image in progress.
@@ -328,7 +330,6 @@ struct ReturnChannel {
     requests_received: u32,
     chunks_resent: u32,
     bytes_resent: u64,
-    bytes_sent: u64,
     /// The camera side's smoothed bit error rate.
     ber: f32,
 }
@@ -348,21 +349,14 @@ pub struct DepthLink<'b> {
     arq_rounds: u8,
     last_sent: Option<SentImage>,
     back: ReturnChannel,
-    injector: FaultInjector,
-    staged: Vec<u8>,
     next_heartbeat_s: f64,
     heartbeats_sent: u32,
     depth_frames_sent: u32,
     link_frames_sent: u64,
     transfer_ms: Vec<f64>,
-    // Wire.
-    wire: Box<dyn Wire>,
-    queue: VecDeque<u8>,
-    credit: f64,
+    // Wire: faults, then pacing at the baud rate, then the transport.
+    wire: Faulty<Paced<Box<dyn Wire>>>,
     now_s: f64,
-    busy_until_s: f64,
-    busy_s: f64,
-    bytes_sent: u64,
     // Core side.
     receiver: DepthReceiver<'b, DECODER_BYTES>,
     inbox: Vec<u8>,
@@ -410,9 +404,12 @@ impl<'b> DepthLink<'b> {
             arq_rounds: config.arq_rounds,
             last_sent: None,
             back: ReturnChannel {
-                injector: FaultInjector::new(config.faults, seed ^ RETURN_SEED),
-                queue: VecDeque::new(),
-                credit: 0.0,
+                wire: Faulty::new(
+                    Paced::new(Pipe::default(), config.baud),
+                    config.faults,
+                    seed ^ RETURN_SEED,
+                ),
+                arrived: Vec::new(),
                 decoder: FrameDecoder::new(),
                 encoder: LinkEncoder::new(),
                 rounds: 0,
@@ -422,23 +419,15 @@ impl<'b> DepthLink<'b> {
                 requests_received: 0,
                 chunks_resent: 0,
                 bytes_resent: 0,
-                bytes_sent: 0,
                 ber: 0.0,
             },
-            injector: FaultInjector::new(config.faults, seed),
-            staged: Vec::new(),
             next_heartbeat_s: 0.0,
             heartbeats_sent: 0,
             depth_frames_sent: 0,
             link_frames_sent: 0,
             transfer_ms: Vec::new(),
-            wire,
-            queue: VecDeque::new(),
-            credit: 0.0,
+            wire: Faulty::new(Paced::new(wire, config.baud), config.faults, seed),
             now_s: 0.0,
-            busy_until_s: 0.0,
-            busy_s: 0.0,
-            bytes_sent: 0,
             receiver: DepthReceiver::new(buffer),
             inbox: Vec::new(),
             bytes_received: 0,
@@ -448,27 +437,22 @@ impl<'b> DepthLink<'b> {
         })
     }
 
-    fn bytes_per_s(&self) -> f64 {
-        f64::from(self.baud) / BITS_PER_BYTE
-    }
-
-    /// Camera side: one encoded frame through the injector into the staging buffer.
-    fn stage(&mut self, n: usize) {
+    /// Camera side: one encoded frame onto the wire (its faults and its queue).
+    fn stage(&mut self, n: usize) -> Result<(), String> {
         let frame = self.scratch.get(..n).unwrap_or(&[]);
         self.link_frames_sent += 1;
-        self.injector.send(frame, &mut self.staged);
+        self.wire.send(frame).map_err(|e| self.wire_error(e))
     }
 
-    /// Camera side: the staged bytes join the wire's queue; returns when their last byte
-    /// will have left, in simulated seconds.
-    fn enqueue_staged(&mut self) -> f64 {
-        self.injector.flush(&mut self.staged);
-        let n = self.staged.len();
-        let duration = n as f64 / self.bytes_per_s();
-        self.busy_until_s = self.busy_until_s.max(self.now_s) + duration;
-        self.busy_s += duration;
-        self.queue.extend(self.staged.drain(..));
-        self.busy_until_s
+    /// Camera side: the frames staged since the last call join the wire's queue; returns
+    /// when their last byte will have left, in simulated seconds.
+    fn enqueue_staged(&mut self) -> Result<f64, String> {
+        self.wire.flush().map_err(|e| self.wire_error(e))?;
+        Ok(self.wire.inner().busy_until_s())
+    }
+
+    fn wire_error(&self, e: std::io::Error) -> String {
+        format!("--link {}: {e}", self.label)
     }
 
     /// Camera side: sends depth image `frame_id` and its camera pose, at the current time.
@@ -485,7 +469,7 @@ impl<'b> DepthLink<'b> {
             .encoder
             .encode(&link::Message::Pose(pose), &mut self.scratch)
             .map_err(wire_err)?;
-        self.stage(n);
+        self.stage(n)?;
         // The encoder hands out each frame in `scratch`; stage it through a copy, since the
         // closure cannot borrow `self` while the encoder does.
         let mut frames: Vec<Vec<u8>> = Vec::new();
@@ -497,9 +481,9 @@ impl<'b> DepthLink<'b> {
                 });
         self.scratch = scratch;
         result.map_err(wire_err)?;
-        self.stage_all(&frames);
+        self.stage_all(&frames)?;
         let start = self.now_s;
-        let done = self.enqueue_staged();
+        let done = self.enqueue_staged()?;
         self.transfer_ms.push((done - start) * 1e3);
         self.depth_frames_sent += 1;
         self.rows_per_chunk_sum += u64::from(self.rows_per_chunk);
@@ -516,12 +500,13 @@ impl<'b> DepthLink<'b> {
         Ok(())
     }
 
-    /// Camera side: encoded frames through the injector into the staging buffer.
-    fn stage_all(&mut self, frames: &[Vec<u8>]) {
+    /// Camera side: encoded frames onto the wire (its faults and its queue).
+    fn stage_all(&mut self, frames: &[Vec<u8>]) -> Result<(), String> {
         for f in frames {
             self.link_frames_sent += 1;
-            self.injector.send(f, &mut self.staged);
+            self.wire.send(f).map_err(|e| self.wire_error(e))?;
         }
+        Ok(())
     }
 
     /// Core side: asks the camera side for what image `frame_id` still lacks (its rows, its
@@ -553,13 +538,10 @@ impl<'b> DepthLink<'b> {
             .encoder
             .encode(&Message::ResendRequest(request), &mut frame)
             .map_err(|e| format!("depth link return channel: {e:?}"))?;
-        let mut staged = Vec::new();
-        self.back
-            .injector
-            .send(frame.get(..n).unwrap_or(&[]), &mut staged);
-        self.back.injector.flush(&mut staged);
-        self.back.bytes_sent += staged.len() as u64;
-        self.back.queue.extend(staged);
+        let back_err = |e: std::io::Error| format!("depth link return channel: {e}");
+        let back = &mut self.back.wire;
+        back.send(frame.get(..n).unwrap_or(&[])).map_err(back_err)?;
+        back.flush().map_err(back_err)?;
         Ok(!request.is_empty())
     }
 
@@ -604,24 +586,22 @@ impl<'b> DepthLink<'b> {
         .map_err(|e| format!("depth link encoder: {e:?}"))?;
         self.back.chunks_resent += chunks;
         self.back.bytes_resent += frames.iter().map(|f| f.len() as u64).sum::<u64>();
-        self.stage_all(&frames);
-        self.enqueue_staged();
+        self.stage_all(&frames)?;
+        self.enqueue_staged()?;
         Ok(())
     }
 
     /// True while bytes wait to go on the wire, either way.
     pub fn sending(&self) -> bool {
-        !self.queue.is_empty() || !self.back.queue.is_empty()
+        self.wire.pending() || self.back.wire.pending()
     }
 
     /// Advances the link to simulated time `now_s`: a camera Heartbeat if one is due, the
     /// bytes whose time has come onto the wire, and whatever arrived into the core side.
     pub fn tick(&mut self, now_s: f64) -> Result<(), String> {
-        let elapsed = (now_s - self.now_s).max(0.0);
         self.now_s = now_s;
-        if !self.queue.is_empty() {
-            self.credit += elapsed * self.bytes_per_s();
-        }
+        self.wire.advance(now_s);
+        self.back.wire.advance(now_s);
         if now_s >= self.next_heartbeat_s {
             self.next_heartbeat_s = now_s + HEARTBEAT_PERIOD_S;
             let heartbeat = Heartbeat {
@@ -634,41 +614,23 @@ impl<'b> DepthLink<'b> {
                 .encoder
                 .encode(&link::Message::Heartbeat(heartbeat), &mut self.scratch)
                 .map_err(|e| format!("depth link encoder: {e:?}"))?;
-            self.stage(n);
-            self.enqueue_staged();
+            self.stage(n)?;
+            self.enqueue_staged()?;
             self.heartbeats_sent += 1;
         }
-        let n = (self.credit.floor() as usize).min(self.queue.len());
-        if n > 0 {
-            self.credit -= n as f64;
-            let (a, b) = self.queue.as_slices();
-            let first = a.len().min(n);
-            let err = |e: std::io::Error| format!("--link {}: {e}", self.label);
-            self.wire.send(&a[..first]).map_err(err)?;
-            self.wire.send(&b[..n - first]).map_err(err)?;
-            self.queue.drain(..n);
-            self.bytes_sent += n as u64;
-        }
-        if self.queue.is_empty() {
-            // An idle wire saves no time for later.
-            self.credit = 0.0;
-        }
+        self.wire.release().map_err(|e| self.wire_error(e))?;
         self.receive()?;
-        self.receive_returns(elapsed)
+        self.receive_returns()
     }
 
     /// Camera side: the return channel's bytes whose time has come, and the answers to them.
-    fn receive_returns(&mut self, elapsed: f64) -> Result<(), String> {
-        if self.back.queue.is_empty() {
-            self.back.credit = 0.0;
-            return Ok(());
-        }
-        self.back.credit += elapsed * self.bytes_per_s();
-        let n = (self.back.credit.floor() as usize).min(self.back.queue.len());
-        self.back.credit -= n as f64;
-        let bytes: Vec<u8> = self.back.queue.drain(..n).collect();
+    fn receive_returns(&mut self) -> Result<(), String> {
+        let back_err = |e: std::io::Error| format!("depth link return channel: {e}");
+        self.back.wire.release().map_err(back_err)?;
+        self.back.arrived.clear();
+        self.back.wire.receive(&mut self.back.arrived).map_err(back_err)?;
         let mut requests = Vec::new();
-        for b in bytes {
+        for &b in &self.back.arrived {
             if let Some(Ok(Message::ResendRequest(r))) = self.back.decoder.push(b) {
                 requests.push(r);
             }
@@ -678,9 +640,11 @@ impl<'b> DepthLink<'b> {
 
     /// Core side: takes in what the wire delivered.
     fn receive(&mut self) -> Result<(), String> {
-        let err = |e: std::io::Error| format!("--link {}: {e}", self.label);
         self.inbox.clear();
-        let n = self.wire.receive(&mut self.inbox).map_err(err)?;
+        let n = self
+            .wire
+            .receive(&mut self.inbox)
+            .map_err(|e| format!("--link {}: {e}", self.label))?;
         if n == 0 {
             return Ok(());
         }
@@ -700,7 +664,7 @@ impl<'b> DepthLink<'b> {
             return Ok(());
         }
         let mut last_progress = std::time::Instant::now();
-        while self.bytes_received < self.bytes_sent
+        while self.bytes_received < self.wire.inner().bytes_released()
             && last_progress.elapsed().as_secs_f64() < SETTLE_TIMEOUT_S
         {
             let before = self.bytes_received;
@@ -737,16 +701,16 @@ impl<'b> DepthLink<'b> {
                 .saturating_sub(self.depth_frames_integrated),
             frames_without_pose: self.core.frames_without_pose,
             link_frames_sent: self.link_frames_sent,
-            bytes_sent: self.bytes_sent,
+            bytes_sent: self.wire.inner().bytes_released(),
             bytes_received: self.bytes_received,
             heartbeats_sent: self.heartbeats_sent,
             heartbeats_received: self.core.heartbeats_received,
             max_heartbeat_gap_ms: self.core.max_heartbeat_gap_s * 1e3,
             camera_frames_sent_reported: self.core.camera_frames_sent_reported,
             transfer: MsStat::of(&self.transfer_ms),
-            wire_busy_s: self.busy_s,
+            wire_busy_s: self.wire.inner().busy_s(),
             receiver: self.receiver.counters(),
-            injected: self.injector.injected(),
+            injected: self.wire.injector().injected(),
             partial_frames_integrated: self.partial_frames_integrated,
             arq_rounds: self.arq_rounds,
             resend_requests_sent: self.back.requests_sent,
@@ -754,8 +718,13 @@ impl<'b> DepthLink<'b> {
             resend_requests_received: self.back.requests_received,
             chunks_resent: self.back.chunks_resent,
             bytes_resent: self.back.bytes_resent,
-            return_bytes_sent: self.back.bytes_sent,
-            return_injected: self.back.injector.injected().filter(|_| self.back.bytes_sent > 0),
+            return_bytes_sent: self.back.wire.inner().bytes_queued(),
+            return_injected: self
+                .back
+                .wire
+                .injector()
+                .injected()
+                .filter(|_| self.back.wire.inner().bytes_queued() > 0),
             rows_per_chunk_mean: if self.depth_frames_sent == 0 {
                 0.0
             } else {

@@ -19,10 +19,19 @@
 //! against what the receiver noticed: with frame drops alone, the receiver's `frames_ok` is
 //! exactly the frames sent minus [`FaultCounters::frames_dropped`] plus
 //! [`FaultCounters::frames_duplicated`].
+//!
+//! [`Faulty`] puts an injector in front of any [`Wire`], as a wire itself: each
+//! [`Wire::send`] is one link frame, and what the injector makes of a burst of frames goes on
+//! to the inner wire at [`Wire::flush`]. The processor-in-the-loop camera, whose wire is a
+//! board's UART, uses the [`FaultInjector`] directly.
+
+use std::io;
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
+
+use crate::link::transport::Wire;
 
 /// Random-number stream of the fault injector (the sensor noise uses stream 0 of the same
 /// seed), so adding link faults does not change the rendered depth.
@@ -281,6 +290,74 @@ impl FaultInjector {
 
     fn chance(&mut self, p: f64) -> bool {
         p > 0.0 && self.rng.random::<f64>() < p
+    }
+}
+
+/// A [`FaultInjector`] in front of a wire, as a wire: each [`Wire::send`] is one link frame,
+/// damaged (or dropped, duplicated, held back) by the injector; at [`Wire::flush`] what came of
+/// the frames since the last flush goes on to the inner wire in one piece, with a frame held
+/// back for reordering in its place. See the [module documentation](self).
+#[derive(Debug)]
+pub struct Faulty<W> {
+    injector: FaultInjector,
+    inner: W,
+    staged: Vec<u8>,
+}
+
+impl<W: Wire> Faulty<W> {
+    /// `inner` behind an injector with `config` and `seed` ([`FaultInjector::new`]); a clean
+    /// `config` passes every frame through unchanged.
+    pub fn new(inner: W, config: FaultConfig, seed: u64) -> Self {
+        Self {
+            injector: FaultInjector::new(config, seed),
+            inner,
+            staged: Vec::new(),
+        }
+    }
+
+    /// The injector (its counters).
+    pub fn injector(&self) -> &FaultInjector {
+        &self.injector
+    }
+
+    /// The wire behind the injector.
+    pub fn inner(&self) -> &W {
+        &self.inner
+    }
+}
+
+impl<W: Wire> Wire for Faulty<W> {
+    fn send(&mut self, frame: &[u8]) -> io::Result<()> {
+        self.injector.send(frame, &mut self.staged);
+        Ok(())
+    }
+
+    fn receive(&mut self, into: &mut Vec<u8>) -> io::Result<usize> {
+        self.inner.receive(into)
+    }
+
+    fn is_immediate(&self) -> bool {
+        self.inner.is_immediate()
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.injector.flush(&mut self.staged);
+        // Even an empty burst goes on: a paced wire then marks its time.
+        self.inner.send(&self.staged)?;
+        self.staged.clear();
+        self.inner.flush()
+    }
+
+    fn advance(&mut self, now_s: f64) {
+        self.inner.advance(now_s);
+    }
+
+    fn release(&mut self) -> io::Result<()> {
+        self.inner.release()
+    }
+
+    fn pending(&self) -> bool {
+        !self.staged.is_empty() || self.inner.pending()
     }
 }
 

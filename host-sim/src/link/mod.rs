@@ -6,15 +6,18 @@
 //!   and the core's `DepthReceiver` on the far side; counters in a report.
 //! - [`transport`]: the wire itself: an in-process pipe, TCP (connect or listen) or a serial
 //!   device, behind one interface; and the echo service of `harmonic-sim link-echo`.
-//! - [`fault`]: the seeded fault injector between the encoder and the wire (frame drops,
-//!   duplicates, reordering; byte drops, noise bursts, bit errors).
+//! - [`fault`]: the seeded fault injector (frame drops, duplicates, reordering; byte drops,
+//!   noise bursts, bit errors), and [`fault::Faulty`], which puts it in front of any wire;
+//! - [`pacing`]: [`pacing::Paced`], baud pacing in simulated time around any wire.
 //!
 //! In: depth images and the camera poses they were taken at, from the sensors (via the run).
 //! Out: the frames that arrived, whole or with rows missing, decoded by the core's receiver —
 //! the same code the firmware runs on its UART — for the run to integrate, plus what was
 //! injected and what the receiver noticed. Depends on no other stage
-//! (`depth_link → fault`, `depth_link → transport`).
+//! (`depth_link → fault`, `depth_link → pacing`, `depth_link → transport`; `fault` and
+//! `pacing` wrap `transport`'s `Wire`).
 
 pub mod depth_link;
 pub mod fault;
+pub mod pacing;
 pub mod transport;

@@ -8,10 +8,13 @@
 //! | `tcp-listen:[HOST:]PORT` | the same, but this process listens (on 127.0.0.1 unless `HOST` is given) and the peer connects, within [`ACCEPT_TIMEOUT`] |
 //! | `serial:PATH[:BAUD]` | a serial device or pty (the `serialport` crate, 8N1, no flow control), at `BAUD` or `--link-baud`; the far end must send the bytes back (a TX–RX loopback plug, or a program on the pty's other side) |
 //!
-//! Whatever the wire, the camera side paces its bytes at the link's baud rate in simulated time
-//! (see `depth_link`), and the core side reads what has come back. A wire is a [`Wire`]: an
-//! in-process [`Pipe`] or any `std::io::Read + Write` stream in a [`StreamWire`], so the run
-//! loop does not know which one it has.
+//! Whatever the wire, the camera side paces its bytes at the link's baud rate in simulated time,
+//! and the core side reads what has come back. A wire is a [`Wire`]: an in-process [`Pipe`] or
+//! any `std::io::Read + Write` stream in a [`StreamWire`], so the run loop does not know which
+//! one it has; wrappers that are wires themselves add to any of them, as smoltcp's
+//! `phy::FaultInjector<D: Device>` does: baud pacing ([`crate::link::pacing::Paced`]) and
+//! faults ([`crate::link::fault::Faulty`]), stacked from the options by
+//! [`crate::link::depth_link`].
 
 use std::collections::VecDeque;
 use std::fmt;
@@ -142,6 +145,46 @@ pub trait Wire {
     /// True if bytes arrive the moment they are sent (in-process); false if they travel
     /// through something outside that takes real time.
     fn is_immediate(&self) -> bool;
+    /// Ends a burst of [`Wire::send`]s: a wrapper that holds bytes back until then (a fault
+    /// injector keeping a frame to swap with the next) lets them go on.
+    fn flush(&mut self) -> io::Result<()> {
+        Ok(())
+    }
+    /// Simulated time has reached `now_s` (a paced wire earns the right to send more).
+    fn advance(&mut self, _now_s: f64) {}
+    /// Lets on what the simulated time so far allows (a paced wire's queue drains at its baud
+    /// rate); a plain wire has nothing held.
+    fn release(&mut self) -> io::Result<()> {
+        Ok(())
+    }
+    /// True while bytes wait in the wire to go on.
+    fn pending(&self) -> bool {
+        false
+    }
+}
+
+impl<W: Wire + ?Sized> Wire for Box<W> {
+    fn send(&mut self, bytes: &[u8]) -> io::Result<()> {
+        (**self).send(bytes)
+    }
+    fn receive(&mut self, into: &mut Vec<u8>) -> io::Result<usize> {
+        (**self).receive(into)
+    }
+    fn is_immediate(&self) -> bool {
+        (**self).is_immediate()
+    }
+    fn flush(&mut self) -> io::Result<()> {
+        (**self).flush()
+    }
+    fn advance(&mut self, now_s: f64) {
+        (**self).advance(now_s)
+    }
+    fn release(&mut self) -> io::Result<()> {
+        (**self).release()
+    }
+    fn pending(&self) -> bool {
+        (**self).pending()
+    }
 }
 
 /// The in-process wire: a byte queue.

@@ -51,7 +51,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::link::depth_link::LinkReport;
-use crate::link::fault::FaultInjector;
+use crate::link::fault::Faulty;
+use crate::link::transport::{Pipe, Wire};
 use crate::run::board::{machine_args, Board, InProcess, Port, Qemu};
 use crate::run::metrics::{Contact, Coverage, GroundTruth};
 use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, Timing, Vehicle};
@@ -259,6 +260,12 @@ pub fn run_semihosted(qemu: &str, elf: &Path, timeout: Duration) -> Result<Strin
     }
 }
 
+/// The in-process pipe that gathers the camera's bytes for UART0 does not fail; if it did,
+/// this says so.
+fn pipe_error(e: std::io::Error) -> SimError {
+    SimError::Config(format!("the camera's link buffer: {e}"))
+}
+
 fn io(what: &str) -> impl Fn(std::io::Error) -> SimError + '_ {
     move |e| SimError::Config(format!("{what}: {e}"))
 }
@@ -413,7 +420,7 @@ struct Camera {
     requests: Box<FrameDecoder<256>>,
     /// Faults on the camera → firmware direction (`SimConfig::link.faults`); the return
     /// direction (map, reports, resend requests) stays clean.
-    injector: FaultInjector,
+    link: Faulty<Pipe>,
     /// What the camera side did about losses.
     arq: CameraArq,
     /// Most rows per chunk (the firmware decoder's capacity); `None` in
@@ -448,24 +455,23 @@ const HEARTBEAT_COPIES: usize = 3;
 const REPEAT_IMAGE_AFTER: Duration = Duration::from_secs(3);
 
 impl Camera {
-    /// Encodes `message` and puts it through the injector into `wire`.
-    fn put(&mut self, message: &link::Message<'_>, wire: &mut Vec<u8>) -> Result<(), SimError> {
+    /// Encodes `message` and puts it through the injector onto the link.
+    fn put(&mut self, message: &link::Message<'_>) -> Result<(), SimError> {
         let n = self
             .encoder
             .encode(message, &mut self.scratch)
             .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
         let frame = self.scratch[..n].to_vec();
-        self.put_frame(&frame, wire);
-        Ok(())
+        self.put_frame(&frame)
     }
 
-    fn put_frame(&mut self, frame: &[u8], wire: &mut Vec<u8>) {
+    fn put_frame(&mut self, frame: &[u8]) -> Result<(), SimError> {
         self.arq.link_frames_sent += 1;
-        self.injector.send(frame, wire);
+        self.link.send(frame).map_err(pipe_error)
     }
 
-    /// The Heartbeats that end what was sent, then everything onto UART0.
-    fn send(&mut self, board: &mut dyn Board, frame_id: u32, mut wire: Vec<u8>) -> Result<(), SimError> {
+    /// The Heartbeats that end what was put on the link, then everything onto UART0.
+    fn send(&mut self, board: &mut dyn Board, frame_id: u32) -> Result<(), SimError> {
         for _ in 0..HEARTBEAT_COPIES {
             let heartbeat = link::Heartbeat {
                 uptime_ms: 0,
@@ -473,23 +479,19 @@ impl Camera {
                 frames_skipped: 0,
                 sensor_errors: 0,
             };
-            self.put(&link::Message::Heartbeat(heartbeat), &mut wire)?;
+            self.put(&link::Message::Heartbeat(heartbeat))?;
             self.arq.heartbeats_sent += 1;
         }
-        self.injector.flush(&mut wire);
+        self.link.flush().map_err(pipe_error)?;
+        let mut wire = Vec::new();
+        self.link.receive(&mut wire).map_err(pipe_error)?;
         self.arq.bytes_sent += wire.len() as u64;
         board.send(Port::Link, &wire)
     }
 
     /// The image's pose and its depth (intrinsics, then chunks).
-    fn image(
-        &mut self,
-        frame_id: u32,
-        frame: &DepthFrame<'_>,
-        pose: &link::Pose,
-    ) -> Result<Vec<u8>, SimError> {
-        let mut wire = Vec::new();
-        self.put(&link::Message::Pose(*pose), &mut wire)?;
+    fn image(&mut self, frame_id: u32, frame: &DepthFrame<'_>, pose: &link::Pose) -> Result<(), SimError> {
+        self.put(&link::Message::Pose(*pose))?;
         let mut frames = Vec::new();
         self.encoder
             .encode_depth_frame(frame_id, frame, self.rows_per_chunk, &mut self.scratch, |b| {
@@ -497,9 +499,9 @@ impl Camera {
             })
             .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
         for f in frames {
-            self.put_frame(&f, &mut wire);
+            self.put_frame(&f)?;
         }
-        Ok(wire)
+        Ok(())
     }
 
     /// What `request` asks for of image `frame_id`.
@@ -508,7 +510,7 @@ impl Camera {
         request: &link::ResendRequest,
         frame: &DepthFrame<'_>,
         pose: &link::Pose,
-    ) -> Result<Vec<u8>, SimError> {
+    ) -> Result<(), SimError> {
         self.arq.requests_received += 1;
         let (frames, chunks) = crate::link::depth_link::encode_answer(
             &mut self.encoder,
@@ -519,13 +521,12 @@ impl Camera {
             self.rows_per_chunk,
         )
         .map_err(|e| SimError::Config(format!("depth link encoder: {e:?}")))?;
-        let mut wire = Vec::new();
         self.arq.chunks_resent += chunks;
         self.arq.bytes_resent += frames.iter().map(|f| f.len() as u64).sum::<u64>();
         for f in frames {
-            self.put_frame(&f, &mut wire);
+            self.put_frame(&f)?;
         }
-        Ok(wire)
+        Ok(())
     }
 
     /// After an image's report: the bit error rate from what its first resend request asked
@@ -561,8 +562,8 @@ impl Camera {
         // The firmware acknowledges an image as soon as it is in (an empty request), before it
         // plans; until then silence means it heard nothing.
         let mut acknowledged = false;
-        let wire = self.image(frame_id, frame, &pose)?;
-        self.send(board, frame_id, wire)?;
+        self.image(frame_id, frame, &pose)?;
+        self.send(board, frame_id)?;
         let start = Instant::now();
         let mut heard = Instant::now();
         let mut buf = [0u8; 8192];
@@ -573,12 +574,14 @@ impl Camera {
                 if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
                     return Err(SimError::Config(format!("no report for frame {frame_id}")));
                 }
-                if self.injector.injected().is_some() && !acknowledged && heard.elapsed() > REPEAT_IMAGE_AFTER
+                if self.link.injector().injected().is_some()
+                    && !acknowledged
+                    && heard.elapsed() > REPEAT_IMAGE_AFTER
                 {
                     heard = Instant::now();
                     self.arq.images_repeated += 1;
-                    let wire = self.image(frame_id, frame, &pose)?;
-                    self.send(board, frame_id, wire)?;
+                    self.image(frame_id, frame, &pose)?;
+                    self.send(board, frame_id)?;
                 }
                 continue;
             }
@@ -616,8 +619,8 @@ impl Camera {
                     acknowledged = true;
                     continue;
                 }
-                let wire = self.answer(request, frame, &pose)?;
-                self.send(board, frame_id, wire)?;
+                self.answer(request, frame, &pose)?;
+                self.send(board, frame_id)?;
             }
         }
     }
@@ -721,7 +724,7 @@ fn firmware_camera(cfg: &SimConfig) -> Result<Camera, SimError> {
         rows_per_chunk: cfg.link.chunk_rows.map_or(rows, |r| r.clamp(1, rows)),
         decoder: Box::default(),
         requests: Box::new(FrameDecoder::new()),
-        injector: FaultInjector::new(cfg.link.faults, cfg.seed),
+        link: Faulty::new(Pipe::default(), cfg.link.faults, cfg.seed),
         arq: CameraArq::default(),
         max_rows_per_chunk: cfg.link.chunk_rows.is_none().then_some(rows),
         ber: 0.0,
@@ -1121,7 +1124,7 @@ impl<'a> FirmwareRun<'a> {
             bytes_sent: camera.arq.bytes_sent,
             bytes_received: receiver.bytes,
             heartbeats_sent: camera.arq.heartbeats_sent,
-            injected: camera.injector.injected(),
+            injected: camera.link.injector().injected(),
             partial_frames_integrated: receiver.depth_frames_partial,
             arq_rounds: fw::ARQ_ROUNDS,
             resend_requests_sent: end.resend_requests,
