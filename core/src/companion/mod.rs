@@ -542,7 +542,10 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
         Ok(report)
     }
 
-    /// The report of a plan (or turn) made from `pose` after integrating for `integrate_ticks`.
+    /// The report of a plan (or turn) made from `pose` after integrating for `integrate_ticks`:
+    /// `outcome` as the explorer returned it, `kept` if it kept its committed goal, the
+    /// explorer's status after the plan. (Here, not in the downlink: the wire format knows
+    /// the report, not the planner.)
     fn report(
         &self,
         frame_id: u32,
@@ -551,17 +554,46 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
         integrate_ticks: u64,
         (position, yaw): (Point3<f32>, f32),
     ) -> PlanReport {
-        PlanReport::new(
+        let status = self.explorer.status();
+        PlanReport {
             frame_id,
-            outcome,
-            kept,
-            position.coords.into(),
+            outcome: match outcome {
+                PlanOutcome::Goal(g) if g.escape => ReportOutcome::Escape,
+                PlanOutcome::Goal(_) if kept => ReportOutcome::Kept,
+                PlanOutcome::Goal(_) => ReportOutcome::Goal,
+                PlanOutcome::Complete => ReportOutcome::Complete,
+                PlanOutcome::Hold(f) => ReportOutcome::Hold(*f),
+            },
+            position: position.coords.into(),
             yaw,
-            self.explorer.status(),
+            frames: status.frames,
+            plans: status.plans,
+            plans_kept: status.plans_kept,
+            frontier: status.domain.frontier,
+            interior: status.domain.interior,
+            solver_iterations: status.solve.iterations,
+            solver_residual: status.solve.residual,
+            solver_updates: status.solve.cell_updates,
+            streamline_length: status.streamline.map(|s| s.length).unwrap_or(0.0),
+            tick_hz: self.config.tick_hz,
             integrate_ticks,
-            self.config.tick_hz,
-            self.receiver.counters(),
-        )
+            domain_ticks: status.phase_ticks.domain,
+            solve_ticks: status.phase_ticks.solve,
+            streamline_ticks: status.phase_ticks.streamline,
+            integration_ops: status.integration_ops,
+            planning_ops: status.planning_ops,
+            sealed: status.map.sealed,
+            errors: status.errors,
+            link: self.receiver.counters(),
+            unreachable_frontier: status.unreachable_frontier,
+            operator: None,
+            signing: VerifierCounters::default(),
+            resend_requests: 0,
+            goal: match outcome {
+                PlanOutcome::Goal(g) => Some((g.position.coords.into(), g.yaw)),
+                _ => None,
+            },
+        }
         .with_resend_requests(self.resend_requests)
         .with_operator(self.bridge.operator_state())
         .with_signing(self.signing_counters())

@@ -59,7 +59,7 @@ use crate::links::operator::OperatorState;
 use crate::links::signing::VerifierCounters;
 use crate::mapping::integrate::IntegrateError;
 use crate::mapping::map::{Occupancy, VoxelMap};
-use crate::planning::explore::{ErrorCounters, Fault, PlanOutcome, Status};
+use crate::planning::explore::{ErrorCounters, Fault};
 use crate::planning::solve::SolveError;
 use crate::planning::streamline::StreamlineError;
 
@@ -165,7 +165,7 @@ pub struct PlanReport {
     /// The depth link's counters on the core's side.
     pub link: LinkCounters,
     /// At a complete end, frontier voxels seen but out of the vehicle's reach
-    /// ([`Status::unreachable_frontier`]); 0 otherwise.
+    /// (the explorer status's `unreachable_frontier`); 0 otherwise.
     pub unreachable_frontier: u32,
     /// The operator state after the plan (`None` if the reporter has no operator: only the
     /// explorer, without a MAVLink bridge).
@@ -180,64 +180,6 @@ pub struct PlanReport {
 }
 
 impl PlanReport {
-    /// The report of a plan: `outcome` as [`crate::planning::explore::Explorer::plan`] returned it,
-    /// `kept` if the explorer kept its committed goal (its `plans_kept` went up), `status`
-    /// after the plan.
-    #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        frame_id: u32,
-        outcome: &PlanOutcome,
-        kept: bool,
-        position: [f32; 3],
-        yaw: f32,
-        status: &Status,
-        integrate_ticks: u64,
-        tick_hz: u32,
-        link: LinkCounters,
-    ) -> Self {
-        let goal = match outcome {
-            PlanOutcome::Goal(g) => Some((g.position.coords.into(), g.yaw)),
-            _ => None,
-        };
-        let outcome = match outcome {
-            PlanOutcome::Goal(g) if g.escape => ReportOutcome::Escape,
-            PlanOutcome::Goal(_) if kept => ReportOutcome::Kept,
-            PlanOutcome::Goal(_) => ReportOutcome::Goal,
-            PlanOutcome::Complete => ReportOutcome::Complete,
-            PlanOutcome::Hold(f) => ReportOutcome::Hold(*f),
-        };
-        Self {
-            frame_id,
-            outcome,
-            position,
-            yaw,
-            frames: status.frames,
-            plans: status.plans,
-            plans_kept: status.plans_kept,
-            frontier: status.domain.frontier,
-            interior: status.domain.interior,
-            solver_iterations: status.solve.iterations,
-            solver_residual: status.solve.residual,
-            solver_updates: status.solve.cell_updates,
-            streamline_length: status.streamline.map(|s| s.length).unwrap_or(0.0),
-            tick_hz,
-            integrate_ticks,
-            domain_ticks: status.phase_ticks.domain,
-            solve_ticks: status.phase_ticks.solve,
-            streamline_ticks: status.phase_ticks.streamline,
-            integration_ops: status.integration_ops,
-            planning_ops: status.planning_ops,
-            sealed: status.map.sealed,
-            errors: status.errors,
-            link,
-            unreachable_frontier: status.unreachable_frontier,
-            operator: None,
-            signing: VerifierCounters::default(),
-            resend_requests: 0,
-            goal,
-        }
-    }
-
     /// The report with what MAVLink signing accepted and refused (`None`: no signing).
     pub fn with_signing(mut self, counters: Option<VerifierCounters>) -> Self {
         self.signing = counters.unwrap_or_default();
@@ -830,9 +772,42 @@ mod tests {
         }
     }
 
+    /// A report of frame `frame_id` with `link`'s counters and every other field 0.
+    fn sample(frame_id: u32, tick_hz: u32, link: LinkCounters) -> PlanReport {
+        PlanReport {
+            frame_id,
+            outcome: ReportOutcome::Complete,
+            position: [0.0; 3],
+            yaw: 0.0,
+            frames: 0,
+            plans: 0,
+            plans_kept: 0,
+            frontier: 0,
+            interior: 0,
+            solver_iterations: 0,
+            solver_residual: 0.0,
+            solver_updates: 0,
+            streamline_length: 0.0,
+            tick_hz,
+            integrate_ticks: 0,
+            domain_ticks: 0,
+            solve_ticks: 0,
+            streamline_ticks: 0,
+            integration_ops: 0,
+            planning_ops: 0,
+            sealed: 0,
+            errors: ErrorCounters::default(),
+            link,
+            unreachable_frontier: 0,
+            operator: None,
+            signing: VerifierCounters::default(),
+            resend_requests: 0,
+            goal: None,
+        }
+    }
+
     #[test]
     fn report_round_trips_with_every_outcome() {
-        let status = Status::default();
         let link = LinkCounters {
             bytes: 1 << 40,
             depth_frames_complete: 7,
@@ -852,17 +827,10 @@ mod tests {
             ReportOutcome::Hold(Fault::VehicleNotFree),
         ];
         for (k, outcome) in outcomes.into_iter().enumerate() {
-            let mut report = PlanReport::new(
-                9,
-                &PlanOutcome::Complete,
-                false,
-                [1.0, 2.0, 3.0],
-                0.5,
-                &status,
-                123,
-                25_000_000,
-                link,
-            );
+            let mut report = sample(9, 25_000_000, link);
+            report.position = [1.0, 2.0, 3.0];
+            report.yaw = 0.5;
+            report.integrate_ticks = 123;
             report.outcome = outcome;
             report.solver_updates = u64::MAX - k as u64;
             report.errors.seals = 3;
@@ -926,17 +894,7 @@ mod tests {
 
     #[test]
     fn damage_is_dropped_and_link_frames_passed_over() {
-        let report = PlanReport::new(
-            1,
-            &PlanOutcome::Complete,
-            false,
-            [0.0; 3],
-            0.0,
-            &Status::default(),
-            0,
-            1,
-            LinkCounters::default(),
-        );
+        let report = sample(1, 1, LinkCounters::default());
         let mut out = [0u8; max_frame_len(PLAN_REPORT_LEN)];
         let n = encode_report(0, &report, &mut out).unwrap();
         let mut damaged = out;

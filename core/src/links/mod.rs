@@ -1,6 +1,8 @@
 //! Links: the wire formats the core speaks, as leaves that encode and decode and plan nothing.
-//! Only the downlink reads planning's vocabulary: its report carries the explorer's status,
-//! outcome and fault counters ([`crate::planning::explore`]'s types, not its code).
+//! Only the downlink names planning's vocabulary: its report carries the explorer's fault
+//! and fault counters (the data types `Fault` and `ErrorCounters` of
+//! [`crate::planning::explore`] and the error enums inside `Fault`). It reads no status and
+//! no plan: the companion fills the report in.
 //!
 //! - [`link`] — the depth link: depth frames and poses in, resend requests back.
 //! - [`downlink`] — the core's reports back over the depth link's return channel.
