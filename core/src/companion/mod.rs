@@ -32,12 +32,13 @@
 //! bridge from a timer interrupt on the board clock instead.
 
 mod follower;
+mod mission;
 mod signing;
 
 pub use follower::{travel_heading, Follower};
+pub use mission::{After, Mission, Planning, Step};
 pub use signing::LinkSigning;
 
-use core::f32::consts::TAU;
 use core::fmt::Write as _;
 
 use embedded_io::{Read, ReadReady, Write};
@@ -51,12 +52,10 @@ use crate::links::link::{
 };
 use crate::links::mavlink::common::TIMESYNC_DATA;
 use crate::links::mavlink::{
-    encode_v2, wrap_angle, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, StatusText,
+    encode_v2, Bridge, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, StatusText,
     AUTOPILOT_COMPONENT_ID, DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
 };
-use crate::links::operator::OperatorState;
 use crate::links::signing::{SecretKey, VerifierCounters};
-use crate::mapping::map::VoxelIndex;
 use crate::planning::explore::{
     ConfigError, Explorer, Fault, Goal, HarmonicField, PlanOutcome, TargetChoice,
 };
@@ -154,8 +153,9 @@ pub struct Companion<'a, const LINK_BYTES: usize, const STREAMS: usize, T: Targe
     now_ms: u64,
     mav_sequence: u8,
     downlink_sequence: u16,
-    /// Where a return home goes: the position of the first plan.
-    home: Option<Point3<f32>>,
+    /// Look-around, exploration, the way home: where a return home goes is the position of the
+    /// first plan.
+    mission: Mission,
     /// MAVLink signing, with [`CompanionConfig::signing_key`].
     signing: Option<LinkSigning<STREAMS>>,
     /// Encodes resend requests for the depth link's return channel.
@@ -168,8 +168,6 @@ pub struct Companion<'a, const LINK_BYTES: usize, const STREAMS: usize, T: Targe
     awaiting_pose: Option<u32>,
     /// The vehicle pose a board handed over directly ([`Companion::hand_pose`]), if any.
     handed_pose: Option<(Point3<f32>, f32)>,
-    /// Turns of the look-around made so far.
-    looked: u32,
     /// What the last plan (or look-around turn) decided.
     last_plan: Option<PlanOutcome>,
 }
@@ -186,6 +184,7 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
         let mut bridge = Bridge::new(config.bridge).map_err(|_| ConfigError::StorageTooSmall)?;
         // Sent with the first flight tick (the queue is empty: this cannot be refused).
         let _ = bridge.exploration_started();
+        let mission = Mission::new(config.look_around, config.return_home_after_complete);
         Ok(Self {
             explorer,
             receiver: DepthReceiver::new(depth),
@@ -197,13 +196,12 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
             now_ms: 0,
             mav_sequence: 0,
             downlink_sequence: 0,
-            home: None,
+            mission,
             return_encoder: LinkEncoder::new(),
             arq: None,
             resend_requests: 0,
             awaiting_pose: None,
             handed_pose: None,
-            looked: 0,
             last_plan: None,
         })
     }
@@ -249,6 +247,9 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
 
     /// One pass: takes what both streams have ready and acts on it. `phase` is told what the
     /// pass is doing (a watchdog's stall report). Returns what happened worth logging.
+    // One copy, not inlined into a board's loop: inlined into the firmware's `main` it cost
+    // 2.6 KiB of flash more.
+    #[inline(never)]
     pub fn poll<L, M, C>(
         &mut self,
         link: &mut L,
@@ -476,35 +477,24 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
             (None, Ok(p)) => (p.position, p.yaw),
             (None, Err(_)) => (Point3::new(f32::NAN, f32::NAN, f32::NAN), 0.0),
         };
-        let finite = position.coords.iter().all(|c| c.is_finite()) && yaw.is_finite();
         let kept_before = self.explorer.status().plans_kept;
-        // Home is where the first plan was made from.
-        if self.home.is_none() && finite {
-            self.home = Some(position);
-        }
         // The operator decides: explore, go home, or hold (paused, aborted, waiting).
         let state = self.bridge.operator_state();
-        if state == OperatorState::Exploring && finite && self.looked + 1 < self.config.look_around {
-            return self.look_around(frame_id, integrate_ticks, position, yaw, mav);
-        }
-        let outcome = match (state, self.home) {
-            (OperatorState::Exploring, _) => self.explorer.plan_timed(&position, yaw, clock),
-            (OperatorState::ReturningHome, Some(home)) => {
-                self.explorer.plan_home(&position, yaw, &home, clock)
-            }
-            (OperatorState::ReturningHome, None) => PlanOutcome::Hold(Fault::HomeUnreachable),
-            _ => PlanOutcome::Hold(Fault::Operator),
+        let (outcome, home) = match self.mission.step(self.explorer, state, position, yaw, clock) {
+            Step::Look(turn) => return self.look_around(frame_id, integrate_ticks, turn, yaw, mav),
+            Step::Held(_) => (PlanOutcome::Hold(Fault::Operator), false),
+            Step::Plan { outcome, home } => (outcome, home),
         };
         let kept = self.explorer.status().plans_kept > kept_before;
-        match outcome {
-            PlanOutcome::Complete if state == OperatorState::ReturningHome => self.bridge.arrived_home(),
-            PlanOutcome::Complete if self.config.return_home_after_complete && self.home.is_some() => {
+        match self.mission.after(&outcome, home) {
+            After::Home => self.bridge.arrived_home(),
+            After::Returning => {
                 // Explored ("exploration complete" goes out), then home by the same way the
                 // operator's return-to-launch takes: the next frame plans it.
                 steer(&mut self.bridge, &outcome);
                 self.bridge.return_home();
             }
-            _ => steer(&mut self.bridge, &outcome),
+            After::Continue | After::Done => steer(&mut self.bridge, &outcome),
         }
         match &outcome {
             PlanOutcome::Goal(goal) => self.follower.follow(self.explorer.waypoints(), goal),
@@ -516,22 +506,16 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
     }
 
     /// One turn of the look-around before the first plan ([`CompanionConfig::look_around`]):
-    /// the vehicle stays where it is and turns by a full turn over the number of headings.
+    /// the vehicle stays where it is and turns to the mission's next heading.
     fn look_around<M: Write>(
         &mut self,
         frame_id: u32,
         integrate_ticks: u64,
-        position: Point3<f32>,
+        turn: Goal,
         yaw: f32,
         mav: &mut M,
     ) -> Result<PlanReport, IoError> {
-        self.looked += 1;
-        let turn = Goal {
-            position,
-            yaw: wrap_angle(yaw + TAU / self.config.look_around as f32),
-            frontier: VoxelIndex::new(0, 0, 0),
-            escape: false,
-        };
+        let position = turn.position;
         let outcome = PlanOutcome::Goal(turn);
         steer(&mut self.bridge, &outcome);
         self.follower.follow(&[position], &turn);

@@ -43,6 +43,7 @@ pub use storage::{HostClock, HostStorage, MultigridScratch};
 use baseline::Baseline;
 
 use harmonic_core::camera::DepthFrame;
+use harmonic_core::companion::Planning;
 use harmonic_core::domain::Label;
 use harmonic_core::explore::{
     Explorer, Fault, FrameTiming, HarmonicField, PlanOutcome, SolverKind, Status, TargetChoice,
@@ -93,6 +94,22 @@ pub trait Planner {
     /// The stored potential ψ = 1 − φ of the last plan (harmonic planners only).
     fn potential(&self) -> Option<&[f32]> {
         None
+    }
+}
+
+/// Any planner plans what the companion's mission asks for: exploration or the way home.
+impl<'p> Planning<HostClock> for dyn Planner + 'p {
+    fn explore(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
+        self.plan(position, yaw, clock)
+    }
+    fn go_home(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut HostClock,
+    ) -> PlanOutcome {
+        self.plan_home(position, yaw, home, clock)
     }
 }
 

@@ -76,7 +76,7 @@ use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
 use crate::vehicle::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::world::scenario::Scenario;
 use crate::world::World;
-use harmonic_core::companion::travel_heading;
+use harmonic_core::companion::{travel_heading, After, Mission, Step};
 use harmonic_core::streamline::advance_radius;
 
 /// Steps in a row without a depth frame after which the run gives up (`stuck:link`).
@@ -1429,15 +1429,10 @@ impl<'b> Reference<'b> {
 
 /// What one step decided before it flies: the plan (or none), from which pose, and why.
 struct Decision {
-    outcome: Option<PlanOutcome>,
+    /// What the mission did with the fresh map; `None` without one.
+    step: Option<Step>,
     position: Point3<f32>,
     yaw: f32,
-    /// A look-around turn instead of a plan.
-    looking: bool,
-    /// The operator holds (paused, waiting for start).
-    held: Option<OperatorState>,
-    /// The plan is the way home.
-    going_home: bool,
     /// The status before the plan.
     before: harmonic_core::explore::Status,
 }
@@ -1455,8 +1450,9 @@ struct Run<'a> {
     sensing: Sensing,
     reference: Reference<'a>,
     clock: HostClock,
-    /// Where a return home goes: the start, in the frame the core plans in.
-    home: Point3<f32>,
+    /// The mission's rules (look-around, exploration, the way home), the companion's; home is
+    /// the start, in the frame the core plans in.
+    mission: Mission,
     /// Distance flown before the next scan: the receding horizon, or the whole path.
     budget: f32,
     steps: Vec<StepRecord>,
@@ -1464,8 +1460,6 @@ struct Run<'a> {
     steps_without_frame: u32,
     termination: String,
     taken: u32,
-    looked: u32,
-    returning: bool,
     return_start: Option<ReturnStart>,
     return_end: Option<String>,
     /// Each frame's timing, by frame id (= step), until it arrives.
@@ -1524,7 +1518,7 @@ impl<'a> Run<'a> {
             truth: GroundTruth::new(world, &geometry, &scenario.start_position),
             planner,
             rig,
-            home: vehicle.position,
+            mission: Mission::new(cfg.look_around, cfg.return_home).with_home(vehicle.position),
             vehicle,
             track,
             sensing,
@@ -1540,8 +1534,6 @@ impl<'a> Run<'a> {
             steps_without_frame: 0,
             termination: String::from("scan_limit"),
             taken: 0,
-            looked: 0,
-            returning: false,
             return_start: None,
             return_end: None,
             timings: std::collections::BTreeMap::new(),
@@ -1584,7 +1576,7 @@ impl<'a> Run<'a> {
             planner: &*self.planner,
             record: Some(&record),
             frames: &frames,
-            planned_at: decision.outcome.is_some().then_some(decision.position),
+            planned_at: matches!(decision.step, Some(Step::Plan { .. })).then_some(decision.position),
             finished: false,
         });
         self.steps.push(record);
@@ -1682,12 +1674,14 @@ impl<'a> Run<'a> {
             }
         }
         let before = *self.planner.status();
-        // Paused or waiting for start: hold (the bridge already does), integrate, plan nothing.
-        let operator = self.rig.mav.as_ref().map(|m| m.bridge.operator_state());
-        let held = operator.filter(|s| !s.plans());
+        // Without MAVLink there is no operator: exploring.
+        let operator = self
+            .rig
+            .mav
+            .as_ref()
+            .map_or(OperatorState::Exploring, |m| m.bridge.operator_state());
         // The way home: after a complete exploration (`return_home`), or on the operator's word.
-        let going_home = self.returning || operator == Some(OperatorState::ReturningHome);
-        if going_home && self.return_start.is_none() {
+        if self.mission.going_home(operator) && self.return_start.is_none() {
             self.return_start = Some(ReturnStart {
                 distance: self.track.distance,
                 frames: before.frames,
@@ -1698,36 +1692,23 @@ impl<'a> Run<'a> {
                 after_complete: false,
             });
         }
-        // Look around first: turn on the spot between the first scans, planning nothing.
-        let looking =
-            integrated > 0 && held.is_none() && !going_home && self.looked + 1 < self.cfg.look_around;
-        let outcome = if looking {
-            self.looked += 1;
+        let step = if integrated > 0 {
             self.steps_without_frame = 0;
-            None
-        } else if integrated > 0 && held.is_some() {
-            self.steps_without_frame = 0;
-            None
-        } else if integrated > 0 {
-            self.steps_without_frame = 0;
-            self.reference.mark_body(&self.vehicle.position);
-            Some(if going_home {
-                self.planner
-                    .plan_home(&position, yaw, &self.home, &mut self.clock)
-            } else {
-                self.planner.plan(&position, yaw, &mut self.clock)
-            })
+            let step = self
+                .mission
+                .step(self.planner, operator, position, yaw, &mut self.clock);
+            if matches!(step, Step::Plan { .. }) {
+                self.reference.mark_body(&self.vehicle.position);
+            }
+            Some(step)
         } else {
             self.steps_without_frame += 1;
             None
         };
         Ok(Decision {
-            outcome,
+            step,
             position,
             yaw,
-            looking,
-            held,
-            going_home,
             before,
         })
     }
@@ -1743,21 +1724,25 @@ impl<'a> Run<'a> {
         let status = *self.planner.status();
         let kept = status.plans_kept > d.before.plans_kept;
         let turned = status.arrival_looks > d.before.arrival_looks;
-        if let (Some(dir), Some(_), false) = (&self.cfg.dump_problem, &d.outcome, kept || turned) {
+        let outcome = match d.step {
+            Some(Step::Plan { outcome, .. }) => Some(outcome),
+            _ => None,
+        };
+        if let (Some(dir), Some(_), false) = (&self.cfg.dump_problem, &outcome, kept || turned) {
             dump_problem(dir, step, &*self.planner, &d.position, self.cfg)?;
         }
-        let label = match d.outcome {
-            None if d.looking => "look_around".to_string(),
-            None if integrated > 0 => format!("operator:{}", d.held.map_or("", |s| s.name())),
-            None => "no_frame".to_string(),
-            Some(PlanOutcome::Goal(g)) if g.escape => "escape".to_string(),
-            Some(PlanOutcome::Goal(_)) if kept => "kept".to_string(),
-            Some(PlanOutcome::Goal(_)) if turned => "arrival_look".to_string(),
-            Some(PlanOutcome::Goal(_)) => "goal".to_string(),
-            Some(PlanOutcome::Complete) => "complete".to_string(),
-            Some(PlanOutcome::Hold(f)) => format!("hold:{f:?}"),
+        let label = match (d.step, outcome) {
+            (Some(Step::Look(_)), _) => "look_around".to_string(),
+            (Some(Step::Held(s)), _) => format!("operator:{}", s.name()),
+            (_, None) => "no_frame".to_string(),
+            (_, Some(PlanOutcome::Goal(g))) if g.escape => "escape".to_string(),
+            (_, Some(PlanOutcome::Goal(_))) if kept => "kept".to_string(),
+            (_, Some(PlanOutcome::Goal(_))) if turned => "arrival_look".to_string(),
+            (_, Some(PlanOutcome::Goal(_))) => "goal".to_string(),
+            (_, Some(PlanOutcome::Complete)) => "complete".to_string(),
+            (_, Some(PlanOutcome::Hold(f))) => format!("hold:{f:?}"),
         };
-        let planned = d.outcome.is_some();
+        let planned = outcome.is_some();
         let phase_ms = |ticks: u64| if planned { ms(ticks) } else { 0.0 };
         Ok(StepRecord {
             step,
@@ -1779,7 +1764,7 @@ impl<'a> Run<'a> {
             solver_updates: status.solve.cell_updates,
             streamline_m: status.streamline.map(|s| s.length).unwrap_or(0.0),
             path_length_m: self.track.distance,
-            goal: match d.outcome {
+            goal: match outcome {
                 Some(PlanOutcome::Goal(g)) => Some(g.position.coords.into()),
                 _ => None,
             },
@@ -1790,14 +1775,13 @@ impl<'a> Run<'a> {
     /// Acts on the decision: a look-around turn, a goal flown, completion (and the way home),
     /// a hold counted. False once the run is over.
     fn act(&mut self, step: u32, d: Decision) -> Result<bool, SimError> {
-        let Some(outcome) = d.outcome else {
-            if d.looking {
-                let turn = Goal {
-                    position: d.position,
-                    yaw: wrap_angle(d.yaw + std::f32::consts::TAU / self.cfg.look_around as f32),
-                    frontier: harmonic_core::map::VoxelIndex::new(0, 0, 0),
-                    escape: false,
-                };
+        let (outcome, home) = match d.step {
+            None if self.steps_without_frame >= LINK_DEAD_STEPS => {
+                self.termination = "stuck:link".into();
+                return Ok(false);
+            }
+            None | Some(Step::Held(_)) => return Ok(true),
+            Some(Step::Look(turn)) => {
                 // A turn on the spot: over MAVLink a setpoint where the vehicle is believed to
                 // be, directly no waypoint at all; the believed frame's yaw either way.
                 let (vehicle, track) = (&mut self.vehicle, &mut self.track);
@@ -1811,17 +1795,14 @@ impl<'a> Run<'a> {
                 }
                 return Ok(true);
             }
-            if self.steps_without_frame >= LINK_DEAD_STEPS {
-                self.termination = "stuck:link".into();
-                return Ok(false);
-            }
-            return Ok(true);
+            Some(Step::Plan { outcome, home }) => (outcome, home),
         };
+        let after = self.mission.after(&outcome, home);
         let now = self.rig.now_ms();
         if let Some(m) = self.rig.mav.as_mut() {
-            match outcome {
+            match after {
                 // Home again: a hold, announced as such (not as a complete exploration).
-                PlanOutcome::Complete if d.going_home => m.bridge.arrived_home(),
+                After::Home => m.bridge.arrived_home(),
                 _ => harmonic_core::companion::steer(&mut m.bridge, &outcome),
             }
             if !matches!(outcome, PlanOutcome::Goal(_)) {
@@ -1829,12 +1810,12 @@ impl<'a> Run<'a> {
                 m.push(now).map_err(SimError::Mavlink)?;
             }
         }
-        match outcome {
-            PlanOutcome::Complete if d.going_home => {
+        match (after, outcome) {
+            (After::Home, _) => {
                 self.return_end = Some("home".into());
                 Ok(false)
             }
-            PlanOutcome::Complete if self.cfg.return_home => {
+            (After::Returning, _) => {
                 // Explored: the numbers so far are the exploration's; now fly home.
                 let status = *self.planner.status();
                 self.return_start = Some(ReturnStart {
@@ -1846,29 +1827,28 @@ impl<'a> Run<'a> {
                     coverage: self.truth.coverage(self.planner.map()),
                     after_complete: true,
                 });
-                self.returning = true;
                 if let Some(m) = self.rig.mav.as_mut() {
                     m.bridge.return_home();
                     m.push(now).map_err(SimError::Mavlink)?;
                 }
                 Ok(true)
             }
-            PlanOutcome::Complete => {
+            (After::Done, _) | (After::Continue, PlanOutcome::Complete) => {
                 self.termination = "complete".into();
                 Ok(false)
             }
-            PlanOutcome::Hold(fault) => {
+            (After::Continue, PlanOutcome::Hold(fault)) => {
                 self.consecutive_holds += 1;
                 if self.consecutive_holds < 3 {
                     return Ok(true);
                 }
                 self.termination = format!("stuck:{fault:?}");
-                if d.going_home {
+                if home {
                     self.return_end = Some(self.termination.clone());
                 }
                 Ok(false)
             }
-            PlanOutcome::Goal(goal) => {
+            (_, PlanOutcome::Goal(goal)) => {
                 self.consecutive_holds = 0;
                 let waypoints = self.planner.waypoints().to_vec();
                 self.fly(&waypoints, &goal)?;
@@ -1944,7 +1924,10 @@ impl<'a> Run<'a> {
                 .unwrap_or_else(|| self.termination.clone()),
             path_length_m: self.track.distance - r.distance,
             scans: planner.status().frames.saturating_sub(r.frames),
-            distance_to_home_m: f64::from((self.vehicle.position - self.home).norm()),
+            distance_to_home_m: self
+                .mission
+                .home()
+                .map_or(f64::NAN, |home| f64::from((self.vehicle.position - home).norm())),
             time_s: self.rig.t_s - r.t_s,
         });
         let termination = match (&self.return_start, &return_home) {
