@@ -49,6 +49,11 @@ impl Follower {
         self.active
     }
 
+    /// True once the last waypoint is reached: the setpoint is then the goal's yaw on the spot.
+    pub fn is_turning(&self) -> bool {
+        self.turning
+    }
+
     /// The setpoint for a vehicle at `position` with heading `yaw`, if following.
     pub fn setpoint(&mut self, position: &Point3<f32>, yaw: f32) -> Option<(Point3<f32>, f32)> {
         if !self.active {

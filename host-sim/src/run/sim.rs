@@ -23,8 +23,8 @@
 //! frame (`stuck:link`), or at the scan limit.
 //!
 //! With [`SimConfig::mavlink`] the vehicle is not handed the waypoints. The core's `Bridge`
-//! streams them as MAVLink setpoints (the next waypoint along the plan, advancing within
-//! [`advance_radius`]) to the autopilot ([`crate::vehicle::autopilot`]): the in-process
+//! streams them as MAVLink setpoints (the next waypoint along the plan, as the companion's
+//! `Follower` takes them) to the autopilot ([`crate::vehicle::autopilot`]): the in-process
 //! flight-stack emulator, which the vehicle follows, or a real autopilot over UDP, which flies
 //! the vehicle itself (time is then the wall clock, and the vehicle is wherever the autopilot
 //! says). The explorer plans from, and the depth frames are stamped with, the pose the bridge
@@ -76,8 +76,7 @@ use crate::sensors::stereo::{StereoDepth, StereoReport, StereoRig};
 use crate::vehicle::autopilot::{MavlinkConfig, MavlinkLink, MavlinkReport};
 use crate::world::scenario::Scenario;
 use crate::world::World;
-use harmonic_core::companion::{travel_heading, After, Mission, Step};
-use harmonic_core::streamline::advance_radius;
+use harmonic_core::companion::{travel_heading, After, Follower, Mission, Step};
 
 /// Steps in a row without a depth frame after which the run gives up (`stuck:link`).
 pub const LINK_DEAD_STEPS: u32 = 100;
@@ -1058,7 +1057,7 @@ impl Rig<'_> {
     }
 
     /// Flies one leg over MAVLink: streams the next waypoint along `waypoints` as the setpoint
-    /// (advancing when the bridge's pose is within [`advance_radius`] of it), lets the
+    /// (the companion's [`Follower`]: advancing when the bridge's pose is within its radius of it), lets the
     /// vehicle follow the autopilot for at most `budget` metres, and on reaching the end turns
     /// to the goal yaw. At the end of the budget the setpoint becomes the believed position.
     fn fly_mavlink(
@@ -1073,11 +1072,9 @@ impl Rig<'_> {
         let step_len = cfg.max_speed * cfg.dt;
         let yaw_step = cfg.max_yaw_rate * cfg.dt;
         let mut travelled = 0.0f32;
-        let mut next = 0usize;
-        // Yaw of the current setpoint: along the segment towards the waypoint, as fixed when
-        // the waypoint was taken (so the setpoint does not change every tick).
-        let mut heading: Option<(usize, f32)> = None;
-        let mut turning = false;
+        // The companion's follower: the next waypoint, the heading towards it as fixed when it
+        // was taken (so the setpoint does not change every tick), the goal's yaw at the end.
+        let mut follower = Follower::default();
         let mut last_progress = (self.t_s, 0.0f32);
         // Generous: a leg is a few metres at most in receding-horizon mode.
         for _ in 0..200_000usize {
@@ -1092,36 +1089,19 @@ impl Rig<'_> {
                 // keep exchanging until it is back.
                 Err(_) => (vehicle.position, vehicle.yaw),
             };
-            while next + 1 < waypoints.len()
-                && waypoints
-                    .get(next)
-                    .is_some_and(|w| (w - position).norm() < advance_radius(waypoints, next))
-            {
-                next += 1;
+            if !follower.is_active() {
+                // No waypoints: stay and turn.
+                let here = [position];
+                follower.follow(if waypoints.is_empty() { &here } else { waypoints }, goal);
             }
-            // No waypoints: stay and turn.
-            let target = waypoints.get(next).copied().unwrap_or(position);
-            if next + 1 >= waypoints.len() && (target - position).norm() < 1e-3 {
-                turning = true;
-            }
+            let (target, target_yaw) = follower.setpoint(&position, yaw).unwrap_or((position, yaw));
+            let turning = follower.is_turning();
             let stalled = self.wall.is_some() && self.t_s - last_progress.0 > REMOTE_STALL_S;
             if (!turning && travelled >= budget) || stalled {
                 // End of the receding horizon: stop where the vehicle is.
                 let _ = mav.bridge.set_target(position, yaw);
                 return Ok(());
             }
-            let target_yaw = if turning {
-                goal.yaw
-            } else {
-                match heading {
-                    Some((i, h)) if i == next => h,
-                    _ => {
-                        let h = travel_heading(&(target - position)).unwrap_or(yaw);
-                        heading = Some((next, h));
-                        h
-                    }
-                }
-            };
             if turning && wrap_angle(goal.yaw - yaw).abs() < 1e-3 {
                 return Ok(());
             }
