@@ -161,6 +161,36 @@ fn firmware_explores_pil_small_under_qemu() {
     );
 }
 
+/// The companion object with the run's own configuration (`--core companion`): the apartment,
+/// which the firmware's fixed grid refuses, explored to completion in this process with the
+/// world played around it as around the firmware: depth over the link, setpoints over MAVLink,
+/// the map back over the downlink.
+#[test]
+fn the_companion_object_explores_a_world_the_firmware_grid_refuses() {
+    let scenario = Scenario::builtin("apartment").expect("built-in scenario");
+    let cfg = SimConfig {
+        return_home: true,
+        ..SimConfig::default()
+    };
+    let refused = pil::run_in_process(&scenario, &cfg, |_| {});
+    assert!(
+        refused
+            .as_ref()
+            .is_err_and(|e| e.to_string().contains("does not fit the firmware's grid")),
+        "the firmware's grid takes the apartment: {:?}",
+        refused.map(|r| r.termination)
+    );
+    let r = pil::run_companion(&scenario, &cfg, |_| {}).expect("companion run");
+    assert_eq!(r.termination, "complete", "{:?}", r.steps.last());
+    assert!(r.coverage_free > 0.99, "free coverage {}", r.coverage_free);
+    assert_eq!(r.collisions, 0);
+    // It looked around first (the run's setting, not the firmware's) and came home.
+    let looks = r.steps.iter().filter(|s| s.outcome == "look_around").count();
+    assert_eq!(looks, cfg.look_around as usize - 1);
+    let home = r.return_home.as_ref().expect("a way home");
+    assert_eq!(home.termination, "home", "{home:?}");
+}
+
 /// The firmware built with a MAVLink signing key, under QEMU, with a ground station on the
 /// autopilot's wire and a noisy depth link: it signs everything it sends (the flight stack
 /// refuses anything else and still flies it), acts on the signed operator commands — pause,

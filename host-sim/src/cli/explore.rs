@@ -185,8 +185,10 @@ pub struct ExploreArgs {
     /// Where the planning runs: `host` (the core in this process), `qemu` (the firmware,
     /// harmonic-fw, on an emulated Cortex-M4F: processor in the loop; see `pil` in the docs) or
     /// `in-process` (the firmware's companion, with its grid, storage and configuration, built
-    /// for this machine and flown exactly as under `qemu`, without the emulator).
-    #[arg(long, default_value = "host", value_parser = ["host", "qemu", "in-process"])]
+    /// for this machine and flown exactly as under `qemu`, without the emulator) or `companion`
+    /// (the core's companion object with this run's grid, planner and settings, in this
+    /// process, flown as under `qemu`: any scenario).
+    #[arg(long, default_value = "host", value_parser = ["host", "qemu", "in-process", "companion"])]
     core: String,
     /// With `--core qemu`: the firmware ELF to run (default: build it with cargo).
     #[arg(long)]
@@ -343,7 +345,7 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     if firmware && (args.figures || args.record.is_some()) {
         return Err("--figures and --record need --core host".into());
     }
-    if firmware && cfg.grid_offset != [0.0; 3] {
+    if (args.core == "qemu" || args.core == "in-process") && cfg.grid_offset != [0.0; 3] {
         return Err("--grid-offset needs --core host (the firmware's grid is fixed)".into());
     }
     let geometry = sim::scenario_geometry(&scenario, cfg.grid_offset).map_err(|e| e.to_string())?;
@@ -401,6 +403,8 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
         harmonic_sim::run::pil::run(&scenario, &cfg, &pil, on_step)
     } else if args.core == "in-process" {
         harmonic_sim::run::pil::run_in_process(&scenario, &cfg, on_step)
+    } else if args.core == "companion" {
+        harmonic_sim::run::pil::run_companion(&scenario, &cfg, on_step)
     } else {
         sim::run_observed(&scenario, &cfg, on_step, observe)
     }

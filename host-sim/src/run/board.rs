@@ -1,6 +1,7 @@
 //! Where the companion runs: the firmware on an emulated Cortex-M4F ([`Qemu`]), or the very same
-//! [`Companion`](harmonic_core::companion::Companion), with the firmware's grid, storage and
-//! configuration, in this process ([`InProcess`]).
+//! [`Companion`](harmonic_core::companion::Companion) in this process ([`InProcess`]): with the
+//! firmware's grid, storage and configuration, or with the run's (any scenario's grid, any
+//! planner).
 //!
 //! Either way the simulator talks to it only through its two byte streams, the depth link
 //! (UART0) and MAVLink (UART1), and a [`Board`] is all the processor-in-the-loop run
@@ -15,7 +16,8 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use harmonic_core::explore::Explorer;
+use harmonic_core::companion::{Companion, CompanionConfig};
+use harmonic_core::explore::{Explorer, HarmonicField, TargetChoice};
 use harmonic_core::signing::SecretKey;
 use harmonic_fw::app as fw;
 
@@ -278,13 +280,15 @@ impl embedded_io::Write for Pipe {
     }
 }
 
-/// The firmware's companion running in this process: the same code the firmware runs, built for
-/// the host, with the firmware's grid, storage ([`fw::build_explorer`]) and configuration
-/// ([`fw::companion_config`]). Its clock is the host's (nanoseconds), so the tick counts in its
-/// reports are wall time, not instructions. Bytes sent are acted on before [`Board::send`]
-/// returns, so a run is deterministic as under QEMU's lockstep.
-pub struct InProcess<'a> {
-    companion: fw::Firmware<'a>,
+/// A companion running in this process: the same code the firmware runs, built for the host,
+/// with the firmware's grid, storage ([`fw::build_explorer`]) and configuration
+/// ([`fw::companion_config`]) ([`InProcess::start`]), or around any explorer and configuration
+/// ([`InProcess::new`]); the firmware's link decoder and signing streams either way. Its clock
+/// is the host's (nanoseconds), so the tick counts in its reports are wall time, not
+/// instructions. Bytes sent are acted on before [`Board::send`] returns, so a run is
+/// deterministic as under QEMU's lockstep.
+pub struct InProcess<'a, T: TargetChoice = HarmonicField<'a>> {
+    companion: Companion<'a, { fw::LINK_DECODER_BYTES }, { fw::SIGNING_STREAMS }, T>,
     link: Pipe,
     mav: Pipe,
     clock: HostClock,
@@ -306,8 +310,22 @@ impl<'a> InProcess<'a> {
         let (explorer, depth) = fw::build_explorer(storage, slot).map_err(config_err)?;
         let mut config = fw::companion_config(IN_PROCESS_TICK_HZ);
         config.signing_key = key;
+        Self::new(explorer, depth, config)
+    }
+}
+
+impl<'a, T: TargetChoice> InProcess<'a, T> {
+    /// A companion around `explorer`, receiving depth images of up to `depth.len()` pixels,
+    /// configured by `config` (its clock ticks at [`IN_PROCESS_TICK_HZ`]).
+    pub fn new(
+        explorer: &'a mut Explorer<'a, T>,
+        depth: &'a mut [u16],
+        config: CompanionConfig,
+    ) -> Result<Self, SimError> {
+        let companion = Companion::new(explorer, depth, config)
+            .map_err(|e| SimError::Config(format!("the companion: {e:?}")))?;
         Ok(Self {
-            companion: fw::Firmware::new(explorer, depth, config).map_err(config_err)?,
+            companion,
             link: Pipe::default(),
             mav: Pipe::default(),
             clock: HostClock::new(),
@@ -315,7 +333,7 @@ impl<'a> InProcess<'a> {
     }
 
     /// The companion (its explorer, bridge and counters).
-    pub fn companion(&self) -> &fw::Firmware<'a> {
+    pub fn companion(&self) -> &Companion<'a, { fw::LINK_DECODER_BYTES }, { fw::SIGNING_STREAMS }, T> {
         &self.companion
     }
 
@@ -327,7 +345,7 @@ impl<'a> InProcess<'a> {
     }
 }
 
-impl Board for InProcess<'_> {
+impl<T: TargetChoice> Board for InProcess<'_, T> {
     fn send(&mut self, port: Port, bytes: &[u8]) -> Result<(), SimError> {
         self.pipe(port).to_companion.extend(bytes);
         while !(self.link.to_companion.is_empty() && self.mav.to_companion.is_empty()) {

@@ -37,13 +37,14 @@ use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
+use harmonic_core::companion::CompanionConfig;
 use harmonic_core::downlink::{Downlink, DownlinkDecoder, PlanReport, ReportOutcome};
 use harmonic_core::explore::{forward_camera_pose, Fault};
 use harmonic_core::link::{self, FrameDecoder, LinkCounters, LinkEncoder};
 use harmonic_core::map::{Dims, MapGeometry, Occupancy};
 use harmonic_core::mavlink::common::MavResult;
 use harmonic_core::mavlink::common::TIMESYNC_DATA;
-use harmonic_core::mavlink::{encode_v2, MavHeader, MavMessage, MavlinkDecoder, MAX_FRAME_LEN};
+use harmonic_core::mavlink::{encode_v2, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, MAX_FRAME_LEN};
 use harmonic_core::operator::{CommandResult, OperatorCommand, OperatorState};
 use harmonic_fw::app as fw;
 use rand::SeedableRng;
@@ -53,9 +54,13 @@ use serde::Serialize;
 use crate::link::depth_link::LinkReport;
 use crate::link::fault::Faulty;
 use crate::link::transport::{Pipe, Wire};
-use crate::run::board::{machine_args, Board, InProcess, Port, Qemu};
+use crate::planners::HostStorage;
+use crate::run::board::{machine_args, Board, InProcess, Port, Qemu, IN_PROCESS_TICK_HZ};
 use crate::run::metrics::{Contact, Coverage, GroundTruth};
-use crate::run::sim::{Report, ReturnHome, SimConfig, SimError, StepRecord, Timing, Vehicle};
+use crate::run::sim::{
+    make_explorer, scenario_geometry, Report, ReturnHome, RunExplorer, SimConfig, SimError, StepRecord,
+    Timing, Vehicle,
+};
 use crate::vehicle::autopilot::{GroundStation, MavlinkReport, OperatorEvent, TrafficReport};
 use crate::vehicle::flight::{FlightEmulator, LinkSigning};
 use crate::world::scenario::Scenario;
@@ -667,7 +672,14 @@ pub fn run(
     }
     let mut board = Qemu::start(&pil.qemu, &elf, &pil.out)?;
     let qemu = board.command().to_string();
-    let flown = fly_firmware(&mut board, scenario, cfg, &pil.intruder, progress);
+    let flown = fly_firmware(
+        &mut board,
+        firmware_geometry()?,
+        scenario,
+        cfg,
+        &pil.intruder,
+        progress,
+    );
     drop(board);
     // The log explains a failed run too.
     decode_log(&elf, &pil.out);
@@ -695,7 +707,43 @@ pub fn run_in_process(
     let mut storage = Box::new(fw::Storage::new());
     let mut slot = Box::new(MaybeUninit::uninit());
     let mut board = InProcess::start(&mut storage, &mut slot, key)?;
-    let mut report = fly_firmware(&mut board, scenario, cfg, &[], progress)?;
+    let mut report = fly_firmware(&mut board, firmware_geometry()?, scenario, cfg, &[], progress)?;
+    report.pil = None;
+    report.wall_time_s = wall.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// [`run_in_process`] with the run's own companion instead of the firmware's: the scenario's
+/// grid (as the host's loop builds it), the run's planner and explorer configuration, the
+/// host's storage, and the run's look-around, resend rounds, way home and signing key. The
+/// world is played around it as around the firmware ([`fly_firmware`]).
+pub fn run_companion(
+    scenario: &Scenario,
+    cfg: &SimConfig,
+    progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    let wall = Instant::now();
+    let geometry = scenario_geometry(scenario, cfg.grid_offset)?;
+    let mut storage = HostStorage::new(&geometry.dims());
+    let mut depth = vec![0u16; cfg.camera.intrinsics.pixel_count()];
+    let config = CompanionConfig {
+        bridge: BridgeConfig::default(),
+        arq_rounds: cfg.link.arq_rounds,
+        return_home_after_complete: cfg.return_home,
+        tick_hz: IN_PROCESS_TICK_HZ,
+        signing_key: cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone()),
+        look_around: cfg.look_around,
+    };
+    let mut report = match make_explorer(cfg, geometry, &mut storage)? {
+        RunExplorer::Harmonic(mut explorer) => {
+            let mut board = InProcess::new(&mut explorer, &mut depth, config)?;
+            fly_firmware(&mut board, geometry, scenario, cfg, &[], progress)?
+        }
+        RunExplorer::Baseline(mut explorer) => {
+            let mut board = InProcess::new(&mut explorer, &mut depth, config)?;
+            fly_firmware(&mut board, geometry, scenario, cfg, &[], progress)?
+        }
+    };
     report.pil = None;
     report.wall_time_s = wall.elapsed().as_secs_f64();
     Ok(report)
@@ -758,12 +806,13 @@ fn firmware_autopilot(cfg: &SimConfig, intruder: &[(f64, OperatorCommand)]) -> A
 /// stack on its MAVLink, until it reports the end.
 fn fly_firmware(
     board: &mut dyn Board,
+    geometry: MapGeometry,
     scenario: &Scenario,
     cfg: &SimConfig,
     intruder: &[(f64, OperatorCommand)],
     mut progress: impl FnMut(&StepRecord),
 ) -> Result<Report, SimError> {
-    let mut run = FirmwareRun::start(board, scenario, cfg, intruder)?;
+    let mut run = FirmwareRun::start(board, geometry, scenario, cfg, intruder)?;
     for step in 1..=cfg.max_scans {
         let (report, coverage) = run.scan(step)?;
         if let Some(record) = run.steps.last() {
@@ -819,11 +868,11 @@ struct FirmwareRun<'a> {
 impl<'a> FirmwareRun<'a> {
     fn start(
         board: &'a mut dyn Board,
+        geometry: MapGeometry,
         scenario: &'a Scenario,
         cfg: &'a SimConfig,
         intruder: &[(f64, OperatorCommand)],
     ) -> Result<Self, SimError> {
-        let geometry = firmware_geometry()?;
         let vehicle = Vehicle {
             position: scenario.start_position,
             yaw: scenario.start_yaw,

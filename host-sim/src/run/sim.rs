@@ -55,7 +55,8 @@ use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::explore::{
-    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, FrameTiming, Goal, PlanOutcome, SolverKind,
+    forward_camera_pose, ErrorCounters, Explorer, ExplorerConfig, FrameTiming, Goal, HarmonicField,
+    PlanOutcome, SolverKind,
 };
 use harmonic_core::map::{self, Dims, MapGeometry, VoxelMap};
 use harmonic_core::operator::OperatorState;
@@ -1153,11 +1154,21 @@ fn dump_problem(
 }
 
 /// The planner `cfg` asks for, over `storage`.
-fn make_planner<'s>(
+/// The core's explorer for the run's planner: the harmonic field's, or a baseline's.
+pub enum RunExplorer<'s> {
+    /// A harmonic planner (`harmonic`, `harmonic-laplace`, `harmonic-gs`, `harmonic-thesis`).
+    Harmonic(Box<Explorer<'s, HarmonicField<'s>>>),
+    /// A baseline's target choice.
+    Baseline(Box<Explorer<'s, Baseline>>),
+}
+
+/// The explorer `cfg` asks for over `storage` (the harmonic planners' field and solver, or a
+/// baseline's choice, with the run's explorer configuration).
+pub fn make_explorer<'s>(
     cfg: &SimConfig,
     geometry: MapGeometry,
     storage: &'s mut HostStorage,
-) -> Result<Box<dyn Planner + 's>, SimError> {
+) -> Result<RunExplorer<'s>, SimError> {
     let config_err = |e| SimError::Config(format!("{e:?}"));
     if cfg.surface_estimate {
         storage.with_surface();
@@ -1181,7 +1192,7 @@ fn make_planner<'s>(
             if explorer.solver == SolverKind::Flat {
                 storage.with_flat();
             }
-            Box::new(HarmonicPlanner::new(
+            RunExplorer::Harmonic(Box::new(
                 Explorer::new(geometry, explorer, storage.lend()).map_err(config_err)?,
             ))
         }
@@ -1190,10 +1201,22 @@ fn make_planner<'s>(
             if cfg.baseline_views {
                 targets = targets.with_core_views();
             }
-            let explorer = Explorer::with_targets(geometry, cfg.explorer, storage.lend(), targets)
-                .map_err(config_err)?;
-            Box::new(CorePlanner::baseline(explorer))
+            RunExplorer::Baseline(Box::new(
+                Explorer::with_targets(geometry, cfg.explorer, storage.lend(), targets)
+                    .map_err(config_err)?,
+            ))
         }
+    })
+}
+
+fn make_planner<'s>(
+    cfg: &SimConfig,
+    geometry: MapGeometry,
+    storage: &'s mut HostStorage,
+) -> Result<Box<dyn Planner + 's>, SimError> {
+    Ok(match make_explorer(cfg, geometry, storage)? {
+        RunExplorer::Harmonic(explorer) => Box::new(HarmonicPlanner::new(*explorer)),
+        RunExplorer::Baseline(explorer) => Box::new(CorePlanner::baseline(*explorer)),
     })
 }
 
