@@ -52,12 +52,13 @@ use harmonic_core::field::PlanningField;
 use harmonic_core::map::VoxelMap;
 use nalgebra::{Isometry3, Point3};
 
-/// What the run loop asks of a planner: integrate frames, plan from a pose, and report.
+/// What the run loop asks of a planner: integrate frames, plan ([`Planning`]: exploration and
+/// the way home, as the companion's mission asks), and report.
 ///
 /// Phase times in [`Status::phase_ticks`] are nanoseconds of a [`HostClock`]: for the harmonic
 /// planners domain / solve / streamline; for the baselines domain / search (A*, Dijkstra and
 /// the gain evaluation) / goal choice.
-pub trait Planner {
+pub trait Planner: Planning<HostClock> {
     /// The planner's kind.
     fn kind(&self) -> PlannerKind;
     /// Integrates one depth frame taken from `camera_pose` (camera → map); with `timing`, the
@@ -70,19 +71,6 @@ pub trait Planner {
         camera_pose: &Isometry3<f32>,
         timing: Option<&FrameTiming>,
     ) -> Result<(), Fault>;
-    /// Plans from the vehicle at `position` with heading `yaw`.
-    fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome;
-    /// Plans the way back to `home` through known free space: `Complete` once there (within
-    /// [`harmonic_core::explore::HOME_REACHED_M`]), `Hold(HomeUnreachable)` if home is not in
-    /// the vehicle's safe space. The core's planners follow their field with home as its only
-    /// target ([`harmonic_core::explore::Explorer::plan_home`]); the baselines take A* there.
-    fn plan_home(
-        &mut self,
-        position: &Point3<f32>,
-        yaw: f32,
-        home: &Point3<f32>,
-        clock: &mut HostClock,
-    ) -> PlanOutcome;
     /// Waypoints from the vehicle to the last goal, map frame.
     fn waypoints(&self) -> &[Point3<f32>];
     /// The occupancy map.
@@ -94,22 +82,6 @@ pub trait Planner {
     /// The stored potential ψ = 1 − φ of the last plan (harmonic planners only).
     fn potential(&self) -> Option<&[f32]> {
         None
-    }
-}
-
-/// Any planner plans what the companion's mission asks for: exploration or the way home.
-impl<'p> Planning<HostClock> for dyn Planner + 'p {
-    fn explore(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
-        self.plan(position, yaw, clock)
-    }
-    fn go_home(
-        &mut self,
-        position: &Point3<f32>,
-        yaw: f32,
-        home: &Point3<f32>,
-        clock: &mut HostClock,
-    ) -> PlanOutcome {
-        self.plan_home(position, yaw, home, clock)
     }
 }
 
@@ -146,6 +118,24 @@ impl<'a> CorePlanner<'a, Baseline> {
     }
 }
 
+/// Exploration and the way home, as the companion's mission asks for them: the explorer's
+/// ([`Explorer::plan_timed`], [`Explorer::plan_home`]). Phase times in nanoseconds of the
+/// [`HostClock`].
+impl<T: TargetChoice> Planning<HostClock> for CorePlanner<'_, T> {
+    fn explore(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
+        self.explorer.explore(position, yaw, clock)
+    }
+    fn go_home(
+        &mut self,
+        position: &Point3<f32>,
+        yaw: f32,
+        home: &Point3<f32>,
+        clock: &mut HostClock,
+    ) -> PlanOutcome {
+        self.explorer.go_home(position, yaw, home, clock)
+    }
+}
+
 impl<T: TargetChoice> Planner for CorePlanner<'_, T> {
     fn kind(&self) -> PlannerKind {
         self.kind
@@ -161,18 +151,6 @@ impl<T: TargetChoice> Planner for CorePlanner<'_, T> {
             None => self.explorer.integrate(frame, camera_pose),
         }
         .map(|_| ())
-    }
-    fn plan(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut HostClock) -> PlanOutcome {
-        self.explorer.plan_timed(position, yaw, clock)
-    }
-    fn plan_home(
-        &mut self,
-        position: &Point3<f32>,
-        yaw: f32,
-        home: &Point3<f32>,
-        clock: &mut HostClock,
-    ) -> PlanOutcome {
-        self.explorer.plan_home(position, yaw, home, clock)
     }
     fn waypoints(&self) -> &[Point3<f32>] {
         self.explorer.waypoints()
