@@ -437,7 +437,7 @@ fn million_triangle_mesh_loads_in_seconds() {
 /// without a collision. (Which starts close depends on the exact path: until the re-solves in
 /// boxes, 2026-12-06, they were starts 9 and 2, then 33 and 11 until the boxes' budget and
 /// inner box, 2026-12-07, then 9 and 44 until the boxes were kept within the domain's box,
-/// then 9 and 33 until the inner box's share, session 40. Of starts 1–60, 13 close without
+/// then 9 and 33 until the inner box's share, 2026-12-07 at `41ad775`. Of starts 1–60, 13 close without
 /// the rule and 10 with it: 12, 14, 15, 17, 20, 23, 24, 25, 51, 57, at 33–58 %;
 /// docs/RESULTS.md.)
 #[test]

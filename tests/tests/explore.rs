@@ -341,7 +341,7 @@ fn office_explored_over_a_noisy_link_that_loses_a_tenth_of_its_frames() {
     // and shows as a gap in the sequence numbers, unless no frame came intact after it: the
     // frames lost at the very end show no gap. At this loss rate (about a quarter of the
     // frames) a run of k such frames has probability ~4^-k (eight: ~1.5e-5); this seed's run
-    // ends on two since the re-solves' boxes were kept within the domain (session 39).
+    // ends on two since the re-solves' boxes were kept within the domain (2026-12-07 at `6b730f2`).
     assert_eq!(
         u64::from(c.frames_ok),
         l.link_frames_sent - injected.frames_dropped - injected.frames_damaged,
