@@ -110,6 +110,7 @@ fn tiny_bench_of_every_planner_shards_and_merges() {
         shard,
         jobs: 2,
         sim: SimConfig::default(),
+        companion: false,
     };
     let a = batch::run(&cfg((1, 2)), &dir.join("a"), true).unwrap();
     let b = batch::run(&cfg((2, 2)), &dir.join("b"), true).unwrap();

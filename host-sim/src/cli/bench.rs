@@ -58,6 +58,11 @@ pub struct BenchArgs {
     /// No per-run progress lines.
     #[arg(long)]
     quiet: bool,
+    /// Where the planning runs: `host` (the host's own loop, the default) or `companion` (the
+    /// core's companion object in this process, flown as the firmware is; `explore --core
+    /// companion`).
+    #[arg(long, default_value = "host", value_parser = ["host", "companion"])]
+    core: String,
 }
 
 /// The subcommands of `bench`.
@@ -105,6 +110,7 @@ pub fn run(args: &BenchArgs) -> Result<(), String> {
         shard: args.shard.unwrap_or((1, 1)),
         jobs: args.jobs,
         sim,
+        companion: args.core == "companion",
     };
     let rows = batch::run(&cfg, &args.out, args.quiet)?;
     if cfg.shard.1 == 1 {

@@ -265,6 +265,10 @@ pub struct BenchConfig {
     pub jobs: usize,
     /// Settings shared by every run (noise, limits, …); planner and seed are set per run.
     pub sim: SimConfig,
+    /// Fly each run around the core's companion object in this process
+    /// ([`crate::run::pil::run_companion`], `explore --core companion`) instead of the host's
+    /// own loop.
+    pub companion: bool,
 }
 
 /// One job of a batch.
@@ -344,14 +348,23 @@ impl BenchConfig {
 }
 
 /// Runs one job.
-pub fn run_job(job: &Job, base: &SimConfig) -> Result<(RunRow, Curve, SolveSummary), String> {
+pub fn run_job(
+    job: &Job,
+    base: &SimConfig,
+    companion: bool,
+) -> Result<(RunRow, Curve, SolveSummary), String> {
     let scenario = Scenario::by_name_or_path(&job.scenario)
         .map_err(|e| e.to_string())?
         .with_random_start(job.seed);
     let mut cfg = base.clone();
     cfg.planner = job.planner;
     cfg.seed = job.seed;
-    let report = sim::run(&scenario, &cfg, |_| {}).map_err(|e| e.to_string())?;
+    let report = if companion {
+        crate::run::pil::run_companion(&scenario, &cfg, |_| {})
+    } else {
+        sim::run(&scenario, &cfg, |_| {})
+    }
+    .map_err(|e| e.to_string())?;
     let row = RunRow::from_report(&report, &scenario, job.seed);
     let curve = Curve {
         scenario: report.scenario.clone(),
@@ -407,7 +420,7 @@ pub fn run(cfg: &BenchConfig, out: &Path, quiet: bool) -> Result<Vec<RunRow>, St
     let results: Vec<Result<RunRow, String>> = pool.install(|| {
         jobs.par_iter()
             .map(|job| {
-                let (row, curve, solves) = run_job(job, &cfg.sim)
+                let (row, curve, solves) = run_job(job, &cfg.sim, cfg.companion)
                     .map_err(|e| format!("{} {} seed {}: {e}", job.scenario, job.planner, job.seed))?;
                 use std::io::Write;
                 {
@@ -913,6 +926,7 @@ mod tests {
             shard: (1, 1),
             jobs: 1,
             sim: SimConfig::default(),
+            companion: false,
         };
         let all = cfg.jobs();
         assert_eq!(all.len(), 2 * PlannerKind::ALL.len() * 5);
