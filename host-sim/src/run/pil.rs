@@ -707,10 +707,7 @@ pub fn run_in_process(
     let mut storage = Box::new(fw::Storage::new());
     let mut slot = Box::new(MaybeUninit::uninit());
     let mut board = InProcess::start(&mut storage, &mut slot, key)?;
-    let mut report = fly_firmware(&mut board, firmware_geometry()?, scenario, cfg, &[], progress)?;
-    report.pil = None;
-    report.wall_time_s = wall.elapsed().as_secs_f64();
-    Ok(report)
+    fly_in_process(&mut board, wall, firmware_geometry()?, scenario, cfg, progress)
 }
 
 /// [`run_in_process`] with the run's own companion instead of the firmware's: the scenario's
@@ -734,16 +731,30 @@ pub fn run_companion(
         signing_key: cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone()),
         look_around: cfg.look_around,
     };
-    let mut report = match make_explorer(cfg, geometry, &mut storage)? {
+    // The two arms differ in the explorer's target choice only.
+    match make_explorer(cfg, geometry, &mut storage)? {
         RunExplorer::Harmonic(mut explorer) => {
             let mut board = InProcess::new(&mut explorer, &mut depth, config)?;
-            fly_firmware(&mut board, geometry, scenario, cfg, &[], progress)?
+            fly_in_process(&mut board, wall, geometry, scenario, cfg, progress)
         }
         RunExplorer::Baseline(mut explorer) => {
             let mut board = InProcess::new(&mut explorer, &mut depth, config)?;
-            fly_firmware(&mut board, geometry, scenario, cfg, &[], progress)?
+            fly_in_process(&mut board, wall, geometry, scenario, cfg, progress)
         }
-    };
+    }
+}
+
+/// [`fly_firmware`] around a companion in this process, started at `wall`: the report has no
+/// instruction counts (its ticks are host time) and the wall time of the whole run.
+fn fly_in_process(
+    board: &mut dyn Board,
+    wall: Instant,
+    geometry: MapGeometry,
+    scenario: &Scenario,
+    cfg: &SimConfig,
+    progress: impl FnMut(&StepRecord),
+) -> Result<Report, SimError> {
+    let mut report = fly_firmware(board, geometry, scenario, cfg, &[], progress)?;
     report.pil = None;
     report.wall_time_s = wall.elapsed().as_secs_f64();
     Ok(report)
