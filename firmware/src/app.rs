@@ -1,39 +1,39 @@
-//! The firmware's configuration of the core's [`Companion`](companion::Companion): the grid, the buffers it works in
-//! (one `static` [`Storage`]), the explorer's and the companion's settings. Everything that
-//! happens between the two UARTs is [`harmonic_core::companion`]'s; the board (`board`) gives
-//! it byte streams, a clock and a watchdog.
+//! The firmware's configuration of the core's [`Companion`](companion::Companion): its capacity,
+//! the buffers it works in (one `static` [`Storage`], carved for the mission's grid at start),
+//! the explorer's and the companion's settings. Everything that happens between the two UARTs
+//! is [`harmonic_core::companion`]'s; the board (`board`) gives it byte streams, a clock and a
+//! watchdog.
+//!
+//! The firmware is built with a voxel capacity ([`CAPACITY`]), not a grid: at mission start
+//! the grid's dimensions, origin and resolution come over the depth link
+//! ([`companion::GeometryWait`]); a grid within capacity ([`fits`]) is taken and the storage
+//! carved for it ([`build_explorer`]); a larger one is refused with both numbers.
 
 use core::mem::MaybeUninit;
 
 use harmonic_core::companion::{self, CompanionConfig};
 use harmonic_core::domain::Label;
+use harmonic_core::downlink::{Resource, Shortfall};
 use harmonic_core::explore::{ConfigError, Explorer, ExplorerConfig, ExplorerStorage};
-use harmonic_core::map::{Dims, MapError, MapGeometry};
+use harmonic_core::map::{touched_words, MapGeometry};
 use harmonic_core::mavlink::BridgeConfig;
 use harmonic_core::signing::SecretKey;
+use harmonic_core::solve::multigrid::scratch_size;
 use harmonic_core::solve::Bf16;
-use nalgebra::Point3;
 
 pub use harmonic_core::companion::{Event, IoError, Phase};
 
 /// The firmware's companion: the core's, with the firmware's link decoder and signing streams.
 pub type Firmware<'a> = companion::Companion<'a, LINK_DECODER_BYTES, SIGNING_STREAMS>;
 
-/// Voxels along x of the firmware's grid.
-pub const NX: usize = 64;
-/// Voxels along y.
-pub const NY: usize = 64;
-/// Voxels along z.
-pub const NZ: usize = 32;
-/// Voxels in the grid.
-pub const VOXELS: usize = NX * NY * NZ;
-/// Voxel edge, metres: the grid covers 6.4 × 6.4 × 3.2 m.
-pub const RESOLUTION: f32 = 0.1;
-/// Map-frame position of the grid's minimum corner.
-pub const ORIGIN: [f32; 3] = [0.0, 0.0, 0.0];
-/// Cells of the multigrid's coarse levels for the grid (32·32·16 + 16·16·8 + 8·8·4 + 4·4·2 +
-/// 2·2·1); checked against `scratch_size` when the explorer is built.
-pub const COARSE_CELLS: usize = 18_724;
+/// Voxels of the largest grid the firmware maps, of any shape (64 × 64 × 32 is one; so are
+/// 70 × 40 × 40 and 60 × 80 × 25). A multiple of 32 (the touched bits are words).
+pub const CAPACITY: usize = 131_072;
+/// Cells of the multigrid's coarse levels the firmware has room for: a sixth of
+/// [`CAPACITY`]. The levels halve each axis (rounding up), so a grid needs about a seventh of
+/// its voxels (18 724 for 64 × 64 × 32, 18 068 for 60 × 80 × 25); a grid thin enough to need
+/// more is refused with both numbers.
+pub const COARSE_CAPACITY: usize = CAPACITY / 6;
 /// Flood-fill queue entries (larger fills sweep, see `harmonic_core::domain`).
 pub const QUEUE_LEN: usize = 2048;
 /// Largest depth image, pixels.
@@ -77,15 +77,17 @@ const fn built_in_key(hex: &str) -> SecretKey {
 
 /// Everything the explorer and the link work in; lives in one `static` on the MCU. Zeroed
 /// (`.bss`): the explorer initialises what it needs.
+/// Sized by [`CAPACITY`] and [`COARSE_CAPACITY`]; [`build_explorer`] carves what the mission's
+/// grid needs from the front of each pool.
 pub struct Storage {
-    log_odds: [i8; VOXELS],
-    touched: [u32; VOXELS / 32],
-    labels: [Label; VOXELS],
-    phi: [f32; VOXELS],
+    log_odds: [i8; CAPACITY],
+    touched: [u32; CAPACITY / 32],
+    labels: [Label; CAPACITY],
+    phi: [f32; CAPACITY],
     queue: [u32; QUEUE_LEN],
-    /// bfloat16: 73 KiB instead of 146 KiB (see `harmonic_core::solve::multigrid::CoarseValues`).
-    coarse_values: [Bf16; 2 * COARSE_CELLS],
-    coarse_labels: [Label; COARSE_CELLS],
+    /// bfloat16: half the bytes of `f32` (see `harmonic_core::solve::multigrid::CoarseValues`).
+    coarse_values: [Bf16; 2 * COARSE_CAPACITY],
+    coarse_labels: [Label; COARSE_CAPACITY],
     depth: [u16; MAX_DEPTH_PIXELS],
 }
 
@@ -93,13 +95,13 @@ impl Storage {
     /// All zeros.
     pub const fn new() -> Self {
         Self {
-            log_odds: [0; VOXELS],
-            touched: [0; VOXELS / 32],
-            labels: [Label::Outside; VOXELS],
-            phi: [0.0; VOXELS],
+            log_odds: [0; CAPACITY],
+            touched: [0; CAPACITY / 32],
+            labels: [Label::Outside; CAPACITY],
+            phi: [0.0; CAPACITY],
             queue: [0; QUEUE_LEN],
-            coarse_values: [Bf16::ZERO; 2 * COARSE_CELLS],
-            coarse_labels: [Label::Outside; COARSE_CELLS],
+            coarse_values: [Bf16::ZERO; 2 * COARSE_CAPACITY],
+            coarse_labels: [Label::Outside; COARSE_CAPACITY],
             depth: [0; MAX_DEPTH_PIXELS],
         }
     }
@@ -111,10 +113,23 @@ impl Default for Storage {
     }
 }
 
-/// The firmware's map geometry. (The constants are valid, so this is `Ok`; a port that edits
-/// them gets the reason at boot instead of a panic.)
-pub fn geometry() -> Result<MapGeometry, MapError> {
-    MapGeometry::new(Dims::new(NX, NY, NZ)?, Point3::from(ORIGIN), RESOLUTION)
+/// Whether the firmware can map `geometry`: at most [`CAPACITY`] voxels and
+/// [`COARSE_CAPACITY`] coarse cells; otherwise what runs short, with both numbers.
+pub fn fits(geometry: &MapGeometry) -> Result<(), Shortfall> {
+    let dims = geometry.dims();
+    let short = |what, needed: usize, capacity: usize| Shortfall {
+        what,
+        needed: u32::try_from(needed).unwrap_or(u32::MAX),
+        capacity: u32::try_from(capacity).unwrap_or(u32::MAX),
+    };
+    if dims.len() > CAPACITY {
+        return Err(short(Resource::Voxels, dims.len(), CAPACITY));
+    }
+    let coarse = scratch_size(&dims).labels;
+    if coarse > COARSE_CAPACITY {
+        return Err(short(Resource::CoarseCells, coarse, COARSE_CAPACITY));
+    }
+    Ok(())
 }
 
 /// The explorer configuration: the host's defaults, with plain V-cycles (no Krylov storage
@@ -156,14 +171,18 @@ pub fn build_firmware<'a>(
     Ok(slot.write(Firmware::new(explorer, depth, companion_config(tick_hz))?))
 }
 
-/// Builds the explorer over `storage`, in place in `slot` (a `static` on the MCU), and returns
-/// it with the depth-image buffer. Its own function, so its stack frame (the explorer under
-/// construction) is gone before the rest of the firmware is built.
+/// Builds the explorer of `geometry` over `storage` (the front of each pool, as much as the
+/// grid needs; a grid that does not [`fit`](fits) is refused, `StorageTooSmall`), in place in
+/// `slot` (a `static` on the MCU), and returns it with the depth-image buffer. Its own
+/// function, so its stack frame (the explorer under construction) is gone before the rest of
+/// the firmware is built.
 #[inline(never)]
 pub fn build_explorer<'a>(
     storage: &'a mut Storage,
+    geometry: MapGeometry,
     slot: &'a mut MaybeUninit<Explorer<'a>>,
 ) -> Result<(&'a mut Explorer<'a>, &'a mut [u16]), ConfigError> {
+    fits(&geometry).map_err(|_| ConfigError::StorageTooSmall)?;
     let Storage {
         log_odds,
         touched,
@@ -174,18 +193,21 @@ pub fn build_explorer<'a>(
         coarse_labels,
         depth,
     } = storage;
+    let dims = geometry.dims();
+    let (n, coarse) = (dims.len(), scratch_size(&dims));
+    let too_small = ConfigError::StorageTooSmall;
     let explorer = Explorer::new_in(
         slot,
-        geometry().map_err(ConfigError::Map)?,
+        geometry,
         explorer_config(),
         ExplorerStorage {
-            log_odds,
-            touched,
-            labels,
-            phi,
+            log_odds: log_odds.get_mut(..n).ok_or(too_small)?,
+            touched: touched.get_mut(..touched_words(&dims)).ok_or(too_small)?,
+            labels: labels.get_mut(..n).ok_or(too_small)?,
+            phi: phi.get_mut(..n).ok_or(too_small)?,
             queue,
-            coarse_values: coarse_values.as_mut_slice().into(),
-            coarse_labels,
+            coarse_values: coarse_values.get_mut(..coarse.values).ok_or(too_small)?.into(),
+            coarse_labels: coarse_labels.get_mut(..coarse.labels).ok_or(too_small)?,
             // No face conductances: 73 KiB the 1 MiB budget does not have (see
             // `MultigridStorage::faces`); coarse levels use the label-only operator.
             coarse_faces: &mut [],
@@ -216,18 +238,46 @@ mod tests {
         assert_eq!(key.as_bytes(), &bytes);
     }
 
+    fn grid(nx: usize, ny: usize, nz: usize) -> MapGeometry {
+        let dims = harmonic_core::map::Dims::new(nx, ny, nz).unwrap();
+        MapGeometry::new(dims, nalgebra::Point3::origin(), 0.1).unwrap()
+    }
+
     #[test]
-    fn the_grid_fits_the_multigrid_scratch_and_the_budget() {
-        let g = geometry().unwrap();
-        let need = harmonic_core::solve::multigrid::scratch_size(&g.dims());
-        assert_eq!(need.values, 2 * COARSE_CELLS);
-        assert_eq!(need.labels, COARSE_CELLS);
+    fn grids_of_any_shape_within_capacity_fit_and_larger_ones_are_refused_with_both_numbers() {
+        // The old fixed box, s1, the apartment and the garage fit.
+        for (nx, ny, nz) in [(64, 64, 32), (70, 40, 40), (60, 80, 25), (70, 90, 20)] {
+            assert_eq!(fits(&grid(nx, ny, nz)), Ok(()), "{nx}×{ny}×{nz}");
+        }
+        // The office does not: 240 000 voxels.
         assert_eq!(
-            harmonic_core::map::touched_words(&g.dims()),
-            VOXELS / 32,
-            "touched bitset"
+            fits(&grid(120, 80, 25)),
+            Err(Shortfall {
+                what: Resource::Voxels,
+                needed: 240_000,
+                capacity: CAPACITY as u32
+            })
         );
+        // Within capacity, but so thin that the coarse levels need more than a sixth.
+        let thin = fits(&grid(2048, 63, 1)).unwrap_err();
+        assert_eq!(thin.what, Resource::CoarseCells);
+        assert!(thin.needed > thin.capacity);
         // The whole state must leave room for the stack in 1 MiB.
         assert!(core::mem::size_of::<Storage>() < 1000 * 1024);
+    }
+
+    #[test]
+    fn the_explorer_is_built_for_the_grid_that_came_and_refuses_one_over_capacity() {
+        let mut storage = Box::new(Storage::new());
+        let mut slot = Box::new(MaybeUninit::uninit());
+        let (explorer, depth) = build_explorer(&mut storage, grid(70, 40, 40), &mut slot).unwrap();
+        assert_eq!(explorer.map().geometry().dims().len(), 112_000);
+        assert_eq!(depth.len(), MAX_DEPTH_PIXELS);
+        let mut storage = Box::new(Storage::new());
+        let mut slot = Box::new(MaybeUninit::uninit());
+        assert_eq!(
+            build_explorer(&mut storage, grid(120, 80, 25), &mut slot).err(),
+            Some(ConfigError::StorageTooSmall)
+        );
     }
 }

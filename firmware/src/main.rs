@@ -1,6 +1,6 @@
-//! The firmware image: boots, builds the explorer in a `static`, and runs the loop of
-//! [`harmonic_fw::app`] over UART0 (depth link) and UART1 (MAVLink) forever, feeding the
-//! watchdog on every pass. On the host this binary only explains how to build the real one.
+//! The firmware image: boots, waits on UART0 (the depth link) for the grid the mission maps,
+//! builds the explorer for it in a `static`, and runs the loop of [`harmonic_fw::app`] over
+//! UART0 and UART1 (MAVLink) forever, feeding the watchdog on every pass. On the host this binary only explains how to build the real one.
 #![cfg_attr(target_os = "none", no_std)]
 #![cfg_attr(target_os = "none", no_main)]
 // As in harmonic-core: no panicking constructs outside tests (README, *No panics*).
@@ -22,10 +22,10 @@ mod image {
     use core::mem::MaybeUninit;
 
     use cortex_m_rt::entry;
+    use harmonic_core::companion::{GeometryWait, Waited};
     use harmonic_core::explore::Explorer;
-    use harmonic_fw::app::{
-        build_explorer, build_firmware, Event, Firmware, Storage, BAUD, NX, NY, NZ, RESOLUTION,
-    };
+    use harmonic_core::map::MapGeometry;
+    use harmonic_fw::app::{build_explorer, build_firmware, fits, Event, Firmware, Storage, BAUD, CAPACITY};
     use harmonic_fw::board::timer::Ticks;
     use harmonic_fw::board::uart::{Uart, UART0, UART1};
     use harmonic_fw::board::watchdog::{self, Watchdog};
@@ -54,16 +54,23 @@ mod image {
             )
         };
         defmt::info!(
-            "harmonic-fw: {=usize}x{=usize}x{=usize} grid at {=f32} m, state {=usize} bytes; depth link on UART0, MAVLink on UART1",
-            NX,
-            NY,
-            NZ,
-            RESOLUTION,
+            "harmonic-fw: room for {=usize} voxels, state {=usize} bytes; depth link on UART0, MAVLink on UART1; waiting for the grid",
+            CAPACITY,
             core::mem::size_of::<Storage>()
+        );
+        harmonic_fw::board::enable_rx_interrupts(&[&link, &mav]);
+        let geometry = wait_for_grid(&mut link, &mut dog);
+        let dims = geometry.dims();
+        defmt::info!(
+            "grid {=usize}x{=usize}x{=usize} at {=f32} m taken",
+            dims.nx(),
+            dims.ny(),
+            dims.nz(),
+            geometry.resolution()
         );
         // The firmware's own state (explorer, link decoder, bridge: about 12 KiB) is static too,
         // so the planning stack starts near the top of RAM.
-        let built = build_explorer(STORAGE, EXPLORER)
+        let built = build_explorer(STORAGE, geometry, EXPLORER)
             .and_then(|(explorer, depth)| build_firmware(explorer, depth, PCLK_HZ, FIRMWARE));
         let firmware = match built {
             Ok(f) => f,
@@ -78,7 +85,6 @@ mod image {
             harmonic_fw::board::stack::high_water(),
             harmonic_fw::board::stack::room()
         );
-        harmonic_fw::board::enable_rx_interrupts(&[&link, &mav]);
         loop {
             dog.feed();
             // Idle in `wfi`, not in a polling loop: a real board saves power, and QEMU gets to
@@ -115,6 +121,32 @@ mod image {
                 Ok(Some(Event::LinkError(e))) => defmt::warn!("depth link: {}", e),
                 Ok(Some(Event::FlightTick(ms))) => defmt::debug!("flight tick at {=u64} ms", ms),
                 Ok(None) => {}
+                Err(e) => defmt::error!("stream error: {}", e),
+            }
+        }
+    }
+
+    /// Waits on the depth link for a grid the firmware can map, answering each grid that comes
+    /// (a refusal names what the grid needs and what the firmware has).
+    fn wait_for_grid(link: &mut Uart, dog: &mut Watchdog) -> MapGeometry {
+        let mut wait = GeometryWait::new();
+        loop {
+            dog.feed();
+            harmonic_fw::board::wait_for_input(&[&*link]);
+            match wait.poll(link, fits) {
+                Ok(Waited::Taken(geometry)) => return geometry,
+                Ok(Waited::Refused(g, shortfall)) => {
+                    let d = g.dims();
+                    defmt::warn!(
+                        "grid {=usize}x{=usize}x{=usize} refused: {} needed, room for {}",
+                        d.nx(),
+                        d.ny(),
+                        d.nz(),
+                        shortfall.needed,
+                        shortfall.capacity
+                    );
+                }
+                Ok(Waited::Nothing) => {}
                 Err(e) => defmt::error!("stream error: {}", e),
             }
         }

@@ -9,8 +9,9 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use harmonic_sim::run::board::{Board, InProcess, Qemu};
 use harmonic_sim::run::pil::{self, PilConfig};
-use harmonic_sim::run::sim::SimConfig;
+use harmonic_sim::run::sim::{scenario_geometry, SimConfig};
 use harmonic_sim::world::scenario::Scenario;
 
 const TARGET: &str = "thumbv7em-none-eabihf";
@@ -161,25 +162,50 @@ fn firmware_explores_pil_small_under_qemu() {
     );
 }
 
-/// The companion object with the run's own configuration (`--core companion`): the apartment,
-/// which the firmware's fixed grid refuses, explored to completion in this process with the
+/// A board is built with a capacity, not a grid: the firmware, under QEMU and in this process,
+/// refuses the office's grid (240 000 voxels) naming both numbers, keeps waiting, and takes
+/// pil-small's; a run refuses the office before it starts, with the same numbers.
+#[test]
+fn the_board_refuses_a_grid_over_capacity_with_both_numbers_and_takes_the_next() {
+    let cfg = SimConfig::default();
+    let office = Scenario::builtin("office").expect("built-in");
+    let small = Scenario::builtin("pil-small").expect("built-in");
+    let office_grid = scenario_geometry(&office, cfg.grid_offset).unwrap();
+    let small_grid = pil::firmware_grid(&small, &cfg).expect("pil-small fits");
+    let both_numbers = |e: &harmonic_sim::run::sim::SimError| {
+        let text = e.to_string();
+        assert!(
+            text.contains("240000 voxels") && text.contains("room for 131072"),
+            "{text}"
+        );
+    };
+    let qemu = qemu();
+    let out = Path::new(env!("CARGO_MANIFEST_DIR")).join("../target/pil-refusal-test");
+    std::fs::create_dir_all(&out).unwrap();
+    let mut on_qemu = Qemu::start(&qemu, &firmware(), &out).expect("QEMU starts");
+    let mut storage = Box::new(harmonic_fw::app::Storage::new());
+    let mut slot = Box::new(std::mem::MaybeUninit::uninit());
+    let mut in_process = InProcess::start(&mut storage, &mut slot, None);
+    for board in [&mut on_qemu as &mut dyn Board, &mut in_process] {
+        let refused = pil::offer_grid(board, &cfg, &office_grid, "office").unwrap_err();
+        assert!(refused.to_string().contains(board.name()), "{refused}");
+        both_numbers(&refused);
+        pil::offer_grid(board, &cfg, &small_grid, "pil-small").expect("the next grid is taken");
+    }
+    both_numbers(&pil::run_in_process(&office, &cfg, |_| {}).unwrap_err());
+}
+
+/// The companion object with the run's own configuration (`--core companion`): the office,
+/// which is over the firmware's capacity, explored to completion in this process with the
 /// world played around it as around the firmware: depth over the link, setpoints over MAVLink,
 /// the map back over the downlink.
 #[test]
-fn the_companion_object_explores_a_world_the_firmware_grid_refuses() {
-    let scenario = Scenario::builtin("apartment").expect("built-in scenario");
+fn the_companion_object_explores_a_world_over_the_firmware_capacity() {
+    let scenario = Scenario::builtin("office").expect("built-in scenario");
     let cfg = SimConfig {
         return_home: true,
         ..SimConfig::default()
     };
-    let refused = pil::run_in_process(&scenario, &cfg, |_| {});
-    assert!(
-        refused
-            .as_ref()
-            .is_err_and(|e| e.to_string().contains("does not fit the firmware's grid")),
-        "the firmware's grid takes the apartment: {:?}",
-        refused.map(|r| r.termination)
-    );
     let r = pil::run_companion(&scenario, &cfg, |_| {}).expect("companion run");
     assert_eq!(r.termination, "complete", "{:?}", r.steps.last());
     assert!(r.coverage_free > 0.99, "free coverage {}", r.coverage_free);

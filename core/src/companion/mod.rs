@@ -21,6 +21,12 @@
 //! ([`Explorer::plan_home`], to where the first plan was made), or hold. After a complete
 //! exploration the companion flies home if [`CompanionConfig::return_home_after_complete`].
 //!
+//! **The grid.** A board is built with a capacity, not a grid: before the mission,
+//! [`GeometryWait`] reads the grid's dimensions, origin and resolution off the depth link and
+//! answers them (taken, or refused with what the grid needs and what the board has); the board
+//! carves its storage for a grid that fits and builds the companion around it. A repeat of the
+//! grid (the answer was lost) is answered again by the companion.
+//!
 //! The firmware (`harmonic-fw`) is a board around this object: UARTs, a timer, statics. The host
 //! simulator runs the same object in-process over pipes, or plays the world around it on QEMU.
 //!
@@ -32,10 +38,12 @@
 //! bridge from a timer interrupt on the board clock instead.
 
 mod follower;
+mod geometry;
 mod mission;
 mod signing;
 
 pub use follower::{travel_heading, Follower};
+pub use geometry::{GeometryWait, Waited};
 pub use mission::{After, Mission, Planning, Step};
 pub use signing::LinkSigning;
 
@@ -45,7 +53,9 @@ use embedded_io::{Read, ReadReady, Write};
 use nalgebra::Point3;
 
 use crate::clock::Clock;
-use crate::links::downlink::{self, PlanReport, ReportOutcome, MAP_SLICE_VOXELS};
+use crate::links::downlink::{
+    self, GeometryAnswer, PlanReport, ReportOutcome, Resource, Shortfall, MAP_SLICE_VOXELS,
+};
 use crate::links::link::{
     max_encoded_len, DepthReceiver, LinkEncoder, LinkError, LinkEvent, Message as LinkMessage, Pose,
     ResendRequest, HEADER_LEN, MAX_RESEND_RANGES, RESEND_REQUEST_HEADER_LEN,
@@ -56,6 +66,7 @@ use crate::links::mavlink::{
     AUTOPILOT_COMPONENT_ID, DEFAULT_SYSTEM_ID, MAX_FRAME_LEN, ONBOARD_COMPUTER_COMPONENT_ID,
 };
 use crate::links::signing::{SecretKey, VerifierCounters};
+use crate::mapping::map::MapGeometry;
 use crate::planning::explore::{
     ConfigError, Explorer, Fault, Goal, HarmonicField, PlanOutcome, TargetChoice,
 };
@@ -279,6 +290,7 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
             without_pose: None,
             pose: None,
             heartbeat: false,
+            geometry: None,
             event: ticked,
         };
         let Self {
@@ -287,6 +299,9 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
         receiver.feed(buf.get(..n).unwrap_or(&[]), |e| {
             taken.take(e, explorer, clock, &mut phase)
         });
+        if let Some(geometry) = taken.geometry {
+            self.answer_geometry(&geometry, link)?;
+        }
         self.place_awaited(&mut taken, clock, &mut phase);
         if taken.delivered.is_none() && (taken.heartbeat || taken.without_pose.is_some()) {
             self.ask_or_give_up(&mut taken, link, clock, &mut phase)?;
@@ -305,6 +320,24 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
             event = Some(Event::Planned(report));
         }
         Ok(event)
+    }
+
+    /// A grid repeated after the mission started (the camera side did not hear the answer):
+    /// taken again if it is the mission's, refused otherwise.
+    fn answer_geometry<L: Write>(&mut self, geometry: &MapGeometry, link: &mut L) -> Result<(), IoError> {
+        let voxels = geometry::voxels(geometry);
+        let answer = if geometry == self.explorer.map().geometry() {
+            GeometryAnswer::Taken { voxels }
+        } else {
+            GeometryAnswer::Refused(Shortfall {
+                what: Resource::GridInUse,
+                needed: voxels,
+                capacity: 0,
+            })
+        };
+        let seq = self.downlink_sequence;
+        self.downlink_sequence = seq.wrapping_add(1);
+        geometry::send_answer(seq, &answer, link)
     }
 
     /// An image that came without its pose waits for it in the receiver's buffer; once the
@@ -622,6 +655,8 @@ struct Taken {
     pose: Option<Pose>,
     /// The camera side's Heartbeat came: it has sent what it had.
     heartbeat: bool,
+    /// A grid geometry came (a repeat: the mission's grid is fixed).
+    geometry: Option<MapGeometry>,
     /// What to log.
     event: Option<Event>,
 }
@@ -651,6 +686,7 @@ impl Taken {
             LinkEvent::Depth { frame_id, .. } => self.without_pose = Some(frame_id),
             LinkEvent::Pose(pose) => self.pose = Some(pose),
             LinkEvent::Heartbeat(_) => self.heartbeat = true,
+            LinkEvent::Geometry(g) => self.geometry = Some(g),
             LinkEvent::Error(e) => self.event = Some(Event::LinkError(e)),
             _ => {}
         }
@@ -901,5 +937,81 @@ mod tests {
             4,
             "every scan was integrated"
         );
+    }
+
+    /// The geometry answers on a return channel, decoded.
+    fn answers(wire: &Wire) -> Vec<GeometryAnswer> {
+        let mut decoder = downlink::DownlinkDecoder::<64>::new();
+        wire.from_companion
+            .iter()
+            .filter_map(|&b| match decoder.push(b) {
+                Some(Ok(downlink::Downlink::Geometry(a))) => Some(a),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Before a mission, a grid over capacity is answered with both numbers and the wait goes
+    /// on; a grid that fits is taken, and the bytes after it stay for the companion.
+    #[test]
+    fn the_wait_refuses_a_grid_over_capacity_takes_one_that_fits_and_leaves_what_follows() {
+        let grid = |nx| MapGeometry::new(Dims::new(nx, 10, 10).unwrap(), Point3::origin(), 0.1).unwrap();
+        let capacity = 1000u32;
+        let fits = |g: &MapGeometry| {
+            let needed = g.dims().len() as u32;
+            if needed <= capacity {
+                Ok(())
+            } else {
+                Err(Shortfall {
+                    what: Resource::Voxels,
+                    needed,
+                    capacity,
+                })
+            }
+        };
+        let mut encoder = LinkEncoder::new();
+        let mut scratch = [0u8; 128];
+        let mut link = Wire::default();
+        let mut put = |link: &mut Wire, m: &Message<'_>| {
+            let k = encoder.encode(m, &mut scratch).unwrap();
+            link.to_companion.extend(&scratch[..k]);
+        };
+        let heartbeat = Message::Heartbeat(crate::links::link::Heartbeat {
+            uptime_ms: 0,
+            frames_sent: 0,
+            frames_skipped: 0,
+            sensor_errors: 0,
+        });
+        // Noise first, then a grid of 2000 voxels.
+        link.to_companion.extend([7u8, 1, 2, 0]);
+        put(&mut link, &heartbeat);
+        put(&mut link, &Message::Geometry(grid(20)));
+        let mut wait = GeometryWait::new();
+        let too_big = Shortfall {
+            what: Resource::Voxels,
+            needed: 2000,
+            capacity,
+        };
+        assert_eq!(wait.poll(&mut link, fits), Ok(Waited::Refused(grid(20), too_big)));
+        assert_eq!(wait.poll(&mut link, fits), Ok(Waited::Nothing));
+        assert_eq!(wait.refused(), 1);
+        assert_eq!(answers(&link), [GeometryAnswer::Refused(too_big)]);
+        // A grid of 1000 voxels, and the mission's first bytes right behind it.
+        put(&mut link, &Message::Geometry(grid(10)));
+        put(&mut link, &heartbeat);
+        let behind = link.to_companion.len();
+        assert_eq!(wait.poll(&mut link, fits), Ok(Waited::Taken(grid(10))));
+        assert!(behind > 0 && link.to_companion.len() < behind);
+        let k = encoder.encode(&heartbeat, &mut scratch).unwrap();
+        assert_eq!(link.to_companion.len(), k, "the heartbeat after the grid is left");
+        assert_eq!(
+            answers(&link),
+            [
+                GeometryAnswer::Refused(too_big),
+                GeometryAnswer::Taken { voxels: 1000 }
+            ]
+        );
+        let text = std::format!("{too_big}");
+        assert!(text.contains("2000") && text.contains("1000"), "{text}");
     }
 }

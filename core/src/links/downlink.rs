@@ -10,6 +10,8 @@
 //!   phase took and every fault counter, the link's included.
 //! - a map slice — the occupancy state of a run of voxels, two bits each
 //!   ([`encode_map_slice`]); a whole 64 × 64 × 32 map is 32 KiB in 1 KiB slices.
+//! - a [`GeometryAnswer`] — before a mission, to the grid the camera side sent (a depth-link
+//!   Geometry message): taken, or refused with what it needs and what the board has.
 //!
 //! Downlink frames use the link's framing exactly (a `0x00` delimiter, COBS of header, body and
 //! CRC-32, a `0x00` delimiter; the 4-byte header of version, type and sequence number), with
@@ -46,6 +48,12 @@
 //! 292  u32 remnants_sealed (ErrorCounters, added after the others)
 //! 296  u32 pocket_plans (ErrorCounters, added after the others)
 //! 300  f32 x, y, z, yaw   the goal flown to (map frame); NaN without one
+//!
+//! 0x83 GeometryAnswer, 9 bytes
+//!   0  u8  verdict   0 taken, 1 too many voxels, 2 too many multigrid cells,
+//!                    3 a mission on another grid is under way
+//!   1  u32 needed    the grid's voxels (verdicts 0, 1, 3) or coarse cells (2)
+//!   5  u32 capacity  what the board has room for (0 for verdict 3)
 //! ```
 //!
 //! Fault codes: 1 BadPose, 2 VehicleOutsideGrid, 3 VehicleNotFree, 4 Streamline (detail:
@@ -67,6 +75,10 @@ use crate::planning::streamline::StreamlineError;
 pub const PLAN_REPORT: u8 = 0x81;
 /// Message type of a map slice.
 pub const MAP_SLICE: u8 = 0x82;
+/// Message type of a [`GeometryAnswer`].
+pub const GEOMETRY_ANSWER: u8 = 0x83;
+/// Body bytes of a [`GeometryAnswer`].
+pub const GEOMETRY_ANSWER_LEN: usize = 9;
 /// Body bytes of a [`PlanReport`].
 pub const PLAN_REPORT_LEN: usize = 316;
 /// Most voxels in one map slice (1 KiB of states).
@@ -86,7 +98,8 @@ pub const fn max_frame_len(body_len: usize) -> usize {
 pub enum DownlinkError {
     /// Framing, CRC, version, type or length, as on the depth link.
     Link(LinkError),
-    /// A report with an outcome or fault code this version does not know.
+    /// A report with an outcome or fault code this version does not know (or a geometry answer
+    /// with a verdict it does not know).
     BadOutcome,
 }
 
@@ -94,6 +107,114 @@ impl From<LinkError> for DownlinkError {
     fn from(e: LinkError) -> Self {
         Self::Link(e)
     }
+}
+
+/// What a grid needs more of than a board has.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Resource {
+    /// Voxels of the map (and the field over it).
+    Voxels,
+    /// Cells of the multigrid's coarse levels.
+    CoarseCells,
+    /// A mission on another grid is under way (`needed` is the new grid's voxels, `capacity`
+    /// 0): a board maps one grid per mission.
+    GridInUse,
+}
+
+/// Why a board refused a grid: it needs `needed` of `what` and the board has `capacity`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Shortfall {
+    /// What runs short.
+    pub what: Resource,
+    /// What the grid needs.
+    pub needed: u32,
+    /// What the board has room for.
+    pub capacity: u32,
+}
+
+impl core::fmt::Display for Shortfall {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self.what {
+            Resource::Voxels => write!(
+                f,
+                "the grid has {} voxels and the board has room for {}",
+                self.needed, self.capacity
+            ),
+            Resource::CoarseCells => write!(
+                f,
+                "the grid's multigrid needs {} coarse cells and the board has room for {}",
+                self.needed, self.capacity
+            ),
+            Resource::GridInUse => write!(
+                f,
+                "a mission on another grid is under way (this one has {} voxels)",
+                self.needed
+            ),
+        }
+    }
+}
+
+/// The core's answer to the grid the camera side sent before a mission.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum GeometryAnswer {
+    /// The mission maps this grid of `voxels` voxels.
+    Taken {
+        /// The grid's voxels.
+        voxels: u32,
+    },
+    /// The board cannot map this grid.
+    Refused(Shortfall),
+}
+
+impl GeometryAnswer {
+    fn write_body(&self) -> [u8; GEOMETRY_ANSWER_LEN] {
+        let (verdict, needed, capacity) = match *self {
+            GeometryAnswer::Taken { voxels } => (0u8, voxels, 0),
+            GeometryAnswer::Refused(s) => {
+                let verdict = match s.what {
+                    Resource::Voxels => 1,
+                    Resource::CoarseCells => 2,
+                    Resource::GridInUse => 3,
+                };
+                (verdict, s.needed, s.capacity)
+            }
+        };
+        let mut body = [0u8; GEOMETRY_ANSWER_LEN];
+        body[0] = verdict;
+        body[1..5].copy_from_slice(&needed.to_le_bytes());
+        body[5..].copy_from_slice(&capacity.to_le_bytes());
+        body
+    }
+
+    fn read_body(body: &[u8]) -> Result<Self, DownlinkError> {
+        let Ok(&[verdict, n0, n1, n2, n3, c0, c1, c2, c3]) = <&[u8; GEOMETRY_ANSWER_LEN]>::try_from(body)
+        else {
+            return Err(LinkError::Malformed(Malformed::BodyLength).into());
+        };
+        let needed = u32::from_le_bytes([n0, n1, n2, n3]);
+        let capacity = u32::from_le_bytes([c0, c1, c2, c3]);
+        let what = match verdict {
+            0 => return Ok(GeometryAnswer::Taken { voxels: needed }),
+            1 => Resource::Voxels,
+            2 => Resource::CoarseCells,
+            3 => Resource::GridInUse,
+            _ => return Err(DownlinkError::BadOutcome),
+        };
+        Ok(GeometryAnswer::Refused(Shortfall {
+            what,
+            needed,
+            capacity,
+        }))
+    }
+}
+
+/// Encodes `answer` with sequence number `seq` as one frame into `out`; returns its length.
+/// [`max_frame_len`]`(`[`GEOMETRY_ANSWER_LEN`]`)` bytes always suffice.
+pub fn encode_geometry_answer(seq: u16, answer: &GeometryAnswer, out: &mut [u8]) -> Result<usize, LinkError> {
+    encode(seq, GEOMETRY_ANSWER, &[&answer.write_body()], out)
 }
 
 /// What the core did with one frame's plan, as it travels.
@@ -639,6 +760,8 @@ pub enum Downlink<'a> {
         /// `⌈count / 4⌉` bytes of states.
         states: &'a [u8],
     },
+    /// The core's answer to a grid geometry.
+    Geometry(GeometryAnswer),
     /// An intact frame of one of the depth link's own message types (high bit clear): the
     /// core's resend requests and acknowledgements travel the same return channel. Not damage;
     /// a [`crate::links::link::FrameDecoder`] fed the same bytes reads it.
@@ -737,6 +860,7 @@ fn parse(frame: &mut [u8]) -> Result<Downlink<'_>, DownlinkError> {
     }
     match kind {
         PLAN_REPORT => PlanReport::read_body(body).map(Downlink::Report),
+        GEOMETRY_ANSWER => GeometryAnswer::read_body(body).map(Downlink::Geometry),
         MAP_SLICE => {
             let (header, states) = body.split_first_chunk::<MAP_SLICE_HEADER>().ok_or(truncated)?;
             let first = u32::from_le_bytes([header[0], header[1], header[2], header[3]]);
@@ -858,6 +982,44 @@ mod tests {
     }
 
     #[test]
+    fn geometry_answers_round_trip_and_an_unknown_verdict_is_dropped() {
+        let answers = [
+            GeometryAnswer::Taken { voxels: 120_000 },
+            GeometryAnswer::Refused(Shortfall {
+                what: Resource::Voxels,
+                needed: 240_000,
+                capacity: 131_072,
+            }),
+            GeometryAnswer::Refused(Shortfall {
+                what: Resource::CoarseCells,
+                needed: 25_000,
+                capacity: 21_845,
+            }),
+            GeometryAnswer::Refused(Shortfall {
+                what: Resource::GridInUse,
+                needed: 6000,
+                capacity: 0,
+            }),
+        ];
+        for (k, answer) in answers.iter().enumerate() {
+            let mut out = [0u8; max_frame_len(GEOMETRY_ANSWER_LEN)];
+            let n = encode_geometry_answer(k as u16, answer, &mut out).unwrap();
+            let mut dec = DownlinkDecoder::<64>::new();
+            let mut got = None;
+            decode_all(&mut dec, &out[..n], |m| {
+                if let Downlink::Geometry(a) = m {
+                    got = Some(a);
+                }
+            });
+            assert_eq!(got.as_ref(), Some(answer));
+        }
+        let mut body = GeometryAnswer::Taken { voxels: 1 }.write_body();
+        body[0] = 9;
+        assert_eq!(GeometryAnswer::read_body(&body), Err(DownlinkError::BadOutcome));
+        assert!(GeometryAnswer::read_body(&body[..8]).is_err());
+    }
+
+    #[test]
     fn map_slices_carry_every_state() {
         let g = MapGeometry::new(Dims::new(5, 3, 2).unwrap(), Point3::origin(), 0.1).unwrap();
         let (mut lo, mut st) = ([0i8; 30], [0u32; 1]);
@@ -914,6 +1076,7 @@ mod tests {
                     let kind = r.map(|m| match m {
                         Downlink::Report(_) => 0x81,
                         Downlink::MapSlice { .. } => 0x82,
+                        Downlink::Geometry(_) => 0x83,
                         Downlink::Link { kind } => kind,
                     });
                     results.push(kind).unwrap();

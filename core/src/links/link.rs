@@ -5,8 +5,9 @@
 //! explorer. This module holds both ends of that link, without allocation:
 //!
 //! - [`Message`] — what travels: camera [`Intrinsics`], [`DepthChunk`]s (a run of rows of one
-//!   depth image), an optional camera [`Pose`], and a [`Heartbeat`]; back, on a return channel
-//!   if there is one, a [`ResendRequest`]. Checked once, when decoded.
+//!   depth image), an optional camera [`Pose`], a [`Heartbeat`], and before a mission the
+//!   grid to map ([`MapGeometry`]); back, on a return channel if there is one, a
+//!   [`ResendRequest`]. Checked once, when decoded.
 //! - [`encode_frame`] and [`LinkEncoder`] — the sender: one message into one delimited frame
 //!   in a caller buffer; [`LinkEncoder::encode_depth_frame`] cuts a whole image into chunks.
 //! - [`FrameDecoder`] — the receiver's framing: bytes in any slicing in, checked messages out,
@@ -74,6 +75,11 @@
 //!   4  u8  flags   bit 0: the pose, bit 1: the intrinsics; other bits 0
 //!   5  u8  n       row ranges, at most 16
 //!   6  (u16 first_row, u16 row_count > 0) × n
+//!
+//! 0x06 Geometry, 28 bytes: the grid the mission maps (sent before it starts)
+//!   0  u32 nx, ny, nz   voxels along x, y, z, each > 0
+//!  12  f32 ox, oy, oz   map-frame position of the grid's minimum corner, metres
+//!  24  f32 resolution   voxel edge, metres, > 0
 //! ```
 //!
 //! Intrinsics must be finite with positive focal lengths and the principal point inside the
@@ -81,7 +87,8 @@
 //! camera → map transform of the depth frame with the same id (the `camera_pose` of
 //! [`integrate`](crate::mapping::integrate::integrate)): all seven numbers finite and
 //! `|q|` within [`UNIT_QUATERNION_TOLERANCE`] of 1. A body whose length differs from the table
-//! is malformed; so is a chunk with zero width, height or rows, or rows past the height.
+//! is malformed; so is a chunk with zero width, height or rows, or rows past the height, and a
+//! geometry that [`MapGeometry::new`] refuses.
 //!
 //! Sender conventions: an Intrinsics message before the chunks of every image (so a receiver
 //! that starts late, or lost one, recovers at the next image); a Pose, if the camera side owns
@@ -129,6 +136,7 @@ use core::num::NonZeroUsize;
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};
 
 use crate::mapping::camera::{DepthFrame, Intrinsics, IntrinsicsError};
+use crate::mapping::map::{Dims, MapGeometry};
 
 /// Protocol version this module speaks (header byte 0).
 pub const PROTOCOL_VERSION: u8 = 1;
@@ -146,6 +154,8 @@ pub const DEPTH_CHUNK_HEADER_LEN: usize = 12;
 pub const POSE_BODY_LEN: usize = 32;
 /// Body bytes of a Heartbeat message.
 pub const HEARTBEAT_BODY_LEN: usize = 16;
+/// Body bytes of a Geometry message.
+pub const GEOMETRY_BODY_LEN: usize = 28;
 /// Row ranges a [`ResendRequest`] holds at most; rows past them are asked for in the next
 /// request.
 pub const MAX_RESEND_RANGES: usize = 16;
@@ -202,6 +212,8 @@ pub enum MessageType {
     /// Core side to camera side, on the return channel: send these rows (and pose, intrinsics)
     /// of an image again.
     ResendRequest = 0x05,
+    /// The grid the mission maps: dimensions, origin, resolution.
+    Geometry = 0x06,
 }
 
 impl MessageType {
@@ -213,6 +225,7 @@ impl MessageType {
             0x03 => Some(Self::Pose),
             0x04 => Some(Self::Heartbeat),
             0x05 => Some(Self::ResendRequest),
+            0x06 => Some(Self::Geometry),
             _ => None,
         }
     }
@@ -240,6 +253,9 @@ pub enum Malformed {
     /// A resend request with more than [`MAX_RESEND_RANGES`] ranges, an empty range, or flags
     /// this version does not know.
     ResendRequest,
+    /// A grid geometry that [`MapGeometry::new`] refuses (a zero dimension, a resolution that
+    /// is not positive, an origin too far out for `f32` to tell the voxels apart).
+    Geometry,
 }
 
 /// Everything that can go wrong on the link. Each variant but [`LinkError::BufferTooSmall`]
@@ -715,6 +731,8 @@ pub enum Message<'a> {
     Heartbeat(Heartbeat),
     /// Core side to camera side: send parts of an image again.
     ResendRequest(ResendRequest),
+    /// The grid the mission maps.
+    Geometry(MapGeometry),
 }
 
 impl<'a> Message<'a> {
@@ -726,6 +744,7 @@ impl<'a> Message<'a> {
             Message::Pose(_) => MessageType::Pose,
             Message::Heartbeat(_) => MessageType::Heartbeat,
             Message::ResendRequest(_) => MessageType::ResendRequest,
+            Message::Geometry(_) => MessageType::Geometry,
         }
     }
 
@@ -738,6 +757,7 @@ impl<'a> Message<'a> {
             Message::Pose(_) => HEADER_LEN + POSE_BODY_LEN,
             Message::Heartbeat(_) => HEADER_LEN + HEARTBEAT_BODY_LEN,
             Message::ResendRequest(r) => HEADER_LEN + RESEND_REQUEST_HEADER_LEN + 4 * r.rows().len(),
+            Message::Geometry(_) => HEADER_LEN + GEOMETRY_BODY_LEN,
         }
     }
 
@@ -781,6 +801,18 @@ impl<'a> Message<'a> {
                 for &(first, count) in r.rows() {
                     w.payload(&first.to_le_bytes())?;
                     w.payload(&count.to_le_bytes())?;
+                }
+                Ok(())
+            }
+            Message::Geometry(g) => {
+                let dims = g.dims();
+                for n in [dims.nx(), dims.ny(), dims.nz()] {
+                    // A grid whose side does not fit 32 bits fits no memory either.
+                    let n = u32::try_from(n).map_err(|_| LinkError::Malformed(Malformed::Geometry))?;
+                    w.payload(&n.to_le_bytes())?;
+                }
+                for v in g.origin().coords.iter().chain([g.resolution()].iter()) {
+                    w.payload(&v.to_le_bytes())?;
                 }
                 Ok(())
             }
@@ -856,6 +888,17 @@ impl<'a> Message<'a> {
                 }
                 r.end()?;
                 Message::ResendRequest(request)
+            }
+            MessageType::Geometry => {
+                let bad = LinkError::Malformed(Malformed::Geometry);
+                let side = |n: u32| usize::try_from(n).map_err(|_| bad);
+                let (nx, ny, nz) = (side(r.u32()?)?, side(r.u32()?)?, side(r.u32()?)?);
+                let origin = [r.f32()?, r.f32()?, r.f32()?];
+                let resolution = r.f32()?;
+                r.end()?;
+                let dims = Dims::new(nx, ny, nz).map_err(|_| bad)?;
+                let geometry = MapGeometry::new(dims, origin.into(), resolution).map_err(|_| bad)?;
+                Message::Geometry(geometry)
             }
         };
         Ok(message)
@@ -1601,6 +1644,8 @@ pub enum LinkEvent<'f> {
     /// A resend request (it travels the other way; a camera side that decodes its return
     /// channel with a receiver sees it here).
     ResendRequest(ResendRequest),
+    /// The grid the mission maps (the camera side repeats it until the core answers).
+    Geometry(MapGeometry),
     /// A frame or chunk was dropped (already counted).
     Error(LinkError),
 }
@@ -1645,6 +1690,7 @@ impl<'a, const N: usize> DepthReceiver<'a, N> {
                 }
                 Ok(Message::Heartbeat(h)) => on_event(LinkEvent::Heartbeat(h)),
                 Ok(Message::ResendRequest(r)) => on_event(LinkEvent::ResendRequest(r)),
+                Ok(Message::Geometry(g)) => on_event(LinkEvent::Geometry(g)),
                 Ok(Message::DepthChunk(chunk)) => {
                     if self.assembler.displaces(&chunk) {
                         Self::emit(self.pose, self.assembler.finish(), &mut on_event);
@@ -1864,6 +1910,7 @@ mod tests {
                     Message::Pose(p) => Message::Pose(p),
                     Message::Heartbeat(h) => Message::Heartbeat(h),
                     Message::ResendRequest(r) => Message::ResendRequest(r),
+                    Message::Geometry(g) => Message::Geometry(g),
                 }));
             }
         }
@@ -1990,6 +2037,9 @@ mod tests {
                 frames_skipped: 0,
                 sensor_errors: 1,
             }),
+            Message::Geometry(
+                MapGeometry::new(Dims::new(120, 80, 25).unwrap(), [-0.05, 2.0, 0.0].into(), 0.1).unwrap(),
+            ),
         ];
         for (seq, message) in messages.iter().enumerate() {
             let seq = 65_534u16.wrapping_add(seq as u16);
@@ -2005,6 +2055,33 @@ mod tests {
             let decoded = decode_one::<256>(&out[..n]);
             assert_eq!(decoded.len(), 1);
             assert_eq!(decoded[0].as_ref().unwrap(), message);
+        }
+    }
+
+    #[test]
+    fn a_geometry_the_map_refuses_is_malformed_and_counted() {
+        let body = |n: [u32; 3], resolution: f32| {
+            let mut p = vec![1, MessageType::Geometry.code(), 0, 0];
+            n.iter().for_each(|v| p.extend_from_slice(&v.to_le_bytes()));
+            [0.0f32, 0.0, 0.0, resolution]
+                .iter()
+                .for_each(|v| p.extend_from_slice(&v.to_le_bytes()));
+            p
+        };
+        let bad = LinkError::Malformed(Malformed::Geometry);
+        for payload in [
+            body([0, 10, 10], 0.1),
+            body([10, 10, 10], 0.0),
+            body([10, 10, 10], f32::NAN),
+        ] {
+            let frame = raw_frame(&payload);
+            let decoded = decode_one::<64>(&frame);
+            assert_eq!(decoded, [Err(bad)]);
+        }
+        let good = decode_one::<64>(&raw_frame(&body([10, 20, 30], 0.2)));
+        match good.as_slice() {
+            [Ok(Message::Geometry(g))] => assert_eq!(g.dims().len(), 6000),
+            other => panic!("{other:?}"),
         }
     }
 

@@ -345,9 +345,6 @@ pub fn run(args: ExploreArgs) -> Result<(), String> {
     if firmware && (args.figures || args.record.is_some()) {
         return Err("--figures and --record need --core host".into());
     }
-    if (args.core == "qemu" || args.core == "in-process") && cfg.grid_offset != [0.0; 3] {
-        return Err("--grid-offset needs --core host (the firmware's grid is fixed)".into());
-    }
     let geometry = sim::scenario_geometry(&scenario, cfg.grid_offset).map_err(|e| e.to_string())?;
     let mut recorder = match &args.record {
         Some(dir) => {

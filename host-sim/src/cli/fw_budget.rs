@@ -174,12 +174,17 @@ pub fn run(args: &FwBudgetArgs) -> Result<(), String> {
     };
     println!();
     println!(
-        "{}: {} scans, {} full replans, termination {}, coverage {:.2} %; grid 64x64x32, domain up to {} unknowns",
+        "{}: {} scans, {} full replans, termination {}, coverage {:.2} %; grid {}x{}x{} ({} voxels of the firmware's {}), domain up to {} unknowns",
         report.scenario,
         report.scans,
         full.len(),
         report.termination,
         report.coverage_free * 100.0,
+        report.grid[0],
+        report.grid[1],
+        report.grid[2],
+        report.grid.iter().product::<usize>(),
+        harmonic_fw::app::CAPACITY,
         largest
     );
     println!("| phase (instructions, millions) | mean | max |");

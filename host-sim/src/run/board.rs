@@ -16,8 +16,9 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use harmonic_core::companion::{Companion, CompanionConfig};
+use harmonic_core::companion::{Companion, CompanionConfig, GeometryWait, Waited};
 use harmonic_core::explore::{Explorer, HarmonicField, TargetChoice};
+use harmonic_core::map::MapGeometry;
 use harmonic_core::signing::SecretKey;
 use harmonic_fw::app as fw;
 
@@ -280,15 +281,31 @@ impl embedded_io::Write for Pipe {
     }
 }
 
+/// The companion [`InProcess`] runs: the firmware's link decoder and signing streams.
+pub type InProcessCompanion<'a, T> = Companion<'a, { fw::LINK_DECODER_BYTES }, { fw::SIGNING_STREAMS }, T>;
+
+/// Builds the companion for the grid that came (carving the storage for it).
+type Build<'a, T> = Box<dyn FnOnce(MapGeometry) -> Result<InProcessCompanion<'a, T>, SimError> + 'a>;
+
+/// Where an [`InProcess`] board is in its mission.
+enum State<'a, T: TargetChoice> {
+    /// Waiting for the grid, as the firmware does at boot ([`GeometryWait`], [`fw::fits`]).
+    Waiting { wait: GeometryWait, build: Build<'a, T> },
+    /// Exploring (boxed: the companion is some 6 KiB, the wait a few hundred bytes).
+    Running(Box<InProcessCompanion<'a, T>>),
+    /// Building the companion failed (the error was returned).
+    Failed,
+}
+
 /// A companion running in this process: the same code the firmware runs, built for the host,
-/// with the firmware's grid, storage ([`fw::build_explorer`]) and configuration
-/// ([`fw::companion_config`]) ([`InProcess::start`]), or around any explorer and configuration
-/// ([`InProcess::new`]); the firmware's link decoder and signing streams either way. Its clock
-/// is the host's (nanoseconds), so the tick counts in its reports are wall time, not
-/// instructions. Bytes sent are acted on before [`Board::send`] returns, so a run is
-/// deterministic as under QEMU's lockstep.
+/// with the firmware's capacity, storage ([`fw::build_explorer`]) and configuration
+/// ([`fw::companion_config`]) ([`InProcess::start`]: it waits for the grid as the firmware
+/// does), or around any explorer and configuration ([`InProcess::new`]); the firmware's link
+/// decoder and signing streams either way. Its clock is the host's (nanoseconds), so the tick
+/// counts in its reports are wall time, not instructions. Bytes sent are acted on before
+/// [`Board::send`] returns, so a run is deterministic as under QEMU's lockstep.
 pub struct InProcess<'a, T: TargetChoice = HarmonicField<'a>> {
-    companion: Companion<'a, { fw::LINK_DECODER_BYTES }, { fw::SIGNING_STREAMS }, T>,
+    state: State<'a, T>,
     link: Pipe,
     mav: Pipe,
     clock: HostClock,
@@ -299,24 +316,37 @@ pub const IN_PROCESS_TICK_HZ: u32 = 1_000_000_000;
 
 impl<'a> InProcess<'a> {
     /// The firmware's companion over `storage` (the firmware's own buffers: put them on the
-    /// heap, `Box::new(fw::Storage::new())`), its explorer built in `slot`, signing MAVLink with
-    /// `key` if one is given (the firmware builds its key in; here it is the run's).
+    /// heap, `Box::new(fw::Storage::new())`), its explorer built in `slot` for the grid that
+    /// comes over the depth link, signing MAVLink with `key` if one is given (the firmware
+    /// builds its key in; here it is the run's).
     pub fn start(
         storage: &'a mut fw::Storage,
         slot: &'a mut MaybeUninit<Explorer<'a>>,
         key: Option<SecretKey>,
-    ) -> Result<Self, SimError> {
-        let config_err = |e| SimError::Config(format!("the firmware's companion: {e:?}"));
-        let (explorer, depth) = fw::build_explorer(storage, slot).map_err(config_err)?;
-        let mut config = fw::companion_config(IN_PROCESS_TICK_HZ);
-        config.signing_key = key;
-        Self::new(explorer, depth, config)
+    ) -> Self {
+        let build = move |geometry| {
+            let config_err = |e| SimError::Config(format!("the firmware's companion: {e:?}"));
+            let (explorer, depth) = fw::build_explorer(storage, geometry, slot).map_err(config_err)?;
+            let mut config = fw::companion_config(IN_PROCESS_TICK_HZ);
+            config.signing_key = key;
+            Companion::new(explorer, depth, config).map_err(config_err)
+        };
+        Self {
+            state: State::Waiting {
+                wait: GeometryWait::new(),
+                build: Box::new(build),
+            },
+            link: Pipe::default(),
+            mav: Pipe::default(),
+            clock: HostClock::new(),
+        }
     }
 }
 
 impl<'a, T: TargetChoice> InProcess<'a, T> {
     /// A companion around `explorer`, receiving depth images of up to `depth.len()` pixels,
-    /// configured by `config` (its clock ticks at [`IN_PROCESS_TICK_HZ`]).
+    /// configured by `config` (its clock ticks at [`IN_PROCESS_TICK_HZ`]); its grid is the
+    /// explorer's.
     pub fn new(
         explorer: &'a mut Explorer<'a, T>,
         depth: &'a mut [u16],
@@ -325,16 +355,19 @@ impl<'a, T: TargetChoice> InProcess<'a, T> {
         let companion = Companion::new(explorer, depth, config)
             .map_err(|e| SimError::Config(format!("the companion: {e:?}")))?;
         Ok(Self {
-            companion,
+            state: State::Running(Box::new(companion)),
             link: Pipe::default(),
             mav: Pipe::default(),
             clock: HostClock::new(),
         })
     }
 
-    /// The companion (its explorer, bridge and counters).
-    pub fn companion(&self) -> &Companion<'a, { fw::LINK_DECODER_BYTES }, { fw::SIGNING_STREAMS }, T> {
-        &self.companion
+    /// The companion (its explorer, bridge and counters), once the mission's grid came.
+    pub fn companion(&self) -> Option<&InProcessCompanion<'a, T>> {
+        match &self.state {
+            State::Running(c) => Some(c),
+            _ => None,
+        }
     }
 
     fn pipe(&mut self, port: Port) -> &mut Pipe {
@@ -343,18 +376,48 @@ impl<'a, T: TargetChoice> InProcess<'a, T> {
             Port::Mavlink => &mut self.mav,
         }
     }
+
+    /// Before the mission: reads the depth link for the grid (MAVLink waits in its pipe, as
+    /// in a UART's); builds the companion once one fits.
+    fn wait_for_grid(&mut self) -> Result<(), SimError> {
+        let State::Waiting { wait, .. } = &mut self.state else {
+            return Ok(());
+        };
+        loop {
+            let waited = wait
+                .poll(&mut self.link, fw::fits)
+                .map_err(|e| SimError::Config(format!("the companion's {e:?} stream failed")))?;
+            match waited {
+                Waited::Taken(geometry) => {
+                    let State::Waiting { build, .. } = std::mem::replace(&mut self.state, State::Failed)
+                    else {
+                        return Ok(());
+                    };
+                    self.state = State::Running(Box::new(build(geometry)?));
+                    return Ok(());
+                }
+                Waited::Refused(..) => continue,
+                Waited::Nothing => return Ok(()),
+            }
+        }
+    }
 }
 
 impl<T: TargetChoice> Board for InProcess<'_, T> {
     fn send(&mut self, port: Port, bytes: &[u8]) -> Result<(), SimError> {
         self.pipe(port).to_companion.extend(bytes);
+        self.wait_for_grid()?;
         while !(self.link.to_companion.is_empty() && self.mav.to_companion.is_empty()) {
             let Self {
-                companion,
+                state,
                 link,
                 mav,
                 clock,
             } = self;
+            let State::Running(companion) = state else {
+                // Still waiting for the grid: the rest stays queued.
+                return Ok(());
+            };
             companion
                 .poll(link, mav, clock, |_| {})
                 .map_err(|e| SimError::Config(format!("the companion's {e:?} stream failed")))?;

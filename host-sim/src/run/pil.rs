@@ -38,10 +38,10 @@ use std::time::{Duration, Instant};
 
 use harmonic_core::camera::DepthFrame;
 use harmonic_core::companion::CompanionConfig;
-use harmonic_core::downlink::{Downlink, DownlinkDecoder, PlanReport, ReportOutcome};
+use harmonic_core::downlink::{Downlink, DownlinkDecoder, GeometryAnswer, PlanReport, ReportOutcome};
 use harmonic_core::explore::{forward_camera_pose, Fault};
 use harmonic_core::link::{self, FrameDecoder, LinkCounters, LinkEncoder};
-use harmonic_core::map::{Dims, MapGeometry, Occupancy};
+use harmonic_core::map::{MapGeometry, Occupancy};
 use harmonic_core::mavlink::common::MavResult;
 use harmonic_core::mavlink::common::TIMESYNC_DATA;
 use harmonic_core::mavlink::{encode_v2, BridgeConfig, MavHeader, MavMessage, MavlinkDecoder, MAX_FRAME_LEN};
@@ -93,9 +93,23 @@ pub struct PilConfig {
 /// nothing from here).
 pub use crate::run::sim::{InstructionStat, PilReport};
 
-/// The firmware's grid.
-pub fn firmware_geometry() -> Result<MapGeometry, SimError> {
-    fw::geometry().map_err(|e| SimError::Config(format!("the firmware's grid constants: {e:?}")))
+/// The grid a run around the firmware maps: the scenario's, as the host's runs map it, if it is
+/// within the firmware's capacity ([`fw::fits`]); otherwise the error names what the grid needs
+/// and what the firmware has room for. The board checks the same again when the grid comes.
+pub fn firmware_grid(scenario: &Scenario, cfg: &SimConfig) -> Result<MapGeometry, SimError> {
+    let geometry = scenario_geometry(scenario, cfg.grid_offset)?;
+    fw::fits(&geometry).map_err(|shortfall| {
+        let d = geometry.dims();
+        SimError::Grid(format!(
+            "`{}` does not fit the firmware: {shortfall} (grid {}×{}×{} of {} m)",
+            scenario.world.name,
+            d.nx(),
+            d.ny(),
+            d.nz(),
+            geometry.resolution()
+        ))
+    })?;
+    Ok(geometry)
 }
 
 /// Builds the firmware with cargo into `target_dir` (the workspace's `target/` if `None`) and
@@ -487,11 +501,55 @@ impl Camera {
             self.put(&link::Message::Heartbeat(heartbeat))?;
             self.arq.heartbeats_sent += 1;
         }
+        self.flush_to(board)
+    }
+
+    /// Everything put on the link, through the injector, onto UART0.
+    fn flush_to(&mut self, board: &mut dyn Board) -> Result<(), SimError> {
         self.link.flush().map_err(pipe_error)?;
         let mut wire = Vec::new();
         self.link.receive(&mut wire).map_err(pipe_error)?;
         self.arq.bytes_sent += wire.len() as u64;
         board.send(Port::Link, &wire)
+    }
+
+    /// Before the mission: sends the grid and waits for the board's answer, sending it again
+    /// while no answer comes (a line that loses it). A refusal is an error that names what the
+    /// grid needs and what the board has.
+    fn open(&mut self, board: &mut dyn Board, geometry: &MapGeometry, name: &str) -> Result<(), SimError> {
+        let start = Instant::now();
+        let mut sent: Option<Instant> = None;
+        let mut buf = [0u8; 256];
+        loop {
+            if sent.is_none_or(|t| t.elapsed() > REPEAT_IMAGE_AFTER) {
+                self.put(&link::Message::Geometry(*geometry))?;
+                self.flush_to(board)?;
+                sent = Some(Instant::now());
+            }
+            let n = board.receive(Port::Link, &mut buf)?;
+            if n == 0 {
+                board.check_alive()?;
+                if start.elapsed() > Duration::from_secs(ANSWER_TIMEOUT_S) {
+                    return Err(SimError::Config(format!(
+                        "{}: no answer to the grid",
+                        board.name()
+                    )));
+                }
+                continue;
+            }
+            for &b in &buf[..n] {
+                match self.decoder.push(b) {
+                    Some(Ok(Downlink::Geometry(GeometryAnswer::Taken { .. }))) => return Ok(()),
+                    Some(Ok(Downlink::Geometry(GeometryAnswer::Refused(shortfall)))) => {
+                        return Err(SimError::Grid(format!(
+                            "the {} board refused `{name}`: {shortfall}",
+                            board.name()
+                        )))
+                    }
+                    _ => {}
+                }
+            }
+        }
     }
 
     /// The image's pose and its depth (intrinsics, then chunks).
@@ -644,9 +702,8 @@ fn stat(values: impl Iterator<Item = u64>) -> InstructionStat {
     }
 }
 
-/// Explores `scenario` with the firmware deciding, through QEMU. The scenario must lie inside
-/// the firmware's grid ([`firmware_geometry`]) at its resolution. `progress` is called after
-/// every scan.
+/// Explores `scenario` with the firmware deciding, through QEMU. The scenario's grid must be
+/// within the firmware's capacity ([`firmware_grid`]). `progress` is called after every scan.
 pub fn run(
     scenario: &Scenario,
     cfg: &SimConfig,
@@ -654,7 +711,7 @@ pub fn run(
     progress: impl FnMut(&StepRecord),
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
-    check_fits(scenario, &firmware_geometry()?)?;
+    let geometry = firmware_grid(scenario, cfg)?;
     std::fs::create_dir_all(&pil.out).map_err(io("output directory"))?;
     let key = cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone());
     let elf = match (&pil.firmware, &key) {
@@ -672,14 +729,7 @@ pub fn run(
     }
     let mut board = Qemu::start(&pil.qemu, &elf, &pil.out)?;
     let qemu = board.command().to_string();
-    let flown = fly_firmware(
-        &mut board,
-        firmware_geometry()?,
-        scenario,
-        cfg,
-        &pil.intruder,
-        progress,
-    );
+    let flown = fly_firmware(&mut board, geometry, scenario, cfg, &pil.intruder, progress);
     drop(board);
     // The log explains a failed run too.
     decode_log(&elf, &pil.out);
@@ -692,6 +742,18 @@ pub fn run(
     Ok(report)
 }
 
+/// Offers `board` (waiting for its mission's grid) the grid `geometry`, as a run does before
+/// its first scan: `Ok` once the board takes it; an error that names what the grid needs and
+/// what the board has if it refuses (the board then waits for another grid).
+pub fn offer_grid(
+    board: &mut dyn Board,
+    cfg: &SimConfig,
+    geometry: &MapGeometry,
+    name: &str,
+) -> Result<(), SimError> {
+    firmware_camera(cfg)?.open(board, geometry, name)
+}
+
 /// [`run`] with the firmware's companion in this process instead of on QEMU
 /// ([`InProcess`]): the same code, grid, storage and configuration, built for the host, flown
 /// the same way. The report's tick counts are host time, so it has no instruction counts
@@ -702,12 +764,12 @@ pub fn run_in_process(
     progress: impl FnMut(&StepRecord),
 ) -> Result<Report, SimError> {
     let wall = Instant::now();
-    check_fits(scenario, &firmware_geometry()?)?;
+    let geometry = firmware_grid(scenario, cfg)?;
     let key = cfg.mavlink.as_ref().and_then(|m| m.signing_key.clone());
     let mut storage = Box::new(fw::Storage::new());
     let mut slot = Box::new(MaybeUninit::uninit());
-    let mut board = InProcess::start(&mut storage, &mut slot, key)?;
-    fly_in_process(&mut board, wall, firmware_geometry()?, scenario, cfg, progress)
+    let mut board = InProcess::start(&mut storage, &mut slot, key);
+    fly_in_process(&mut board, wall, geometry, scenario, cfg, progress)
 }
 
 /// [`run_in_process`] with the run's own companion instead of the firmware's: the scenario's
@@ -918,6 +980,7 @@ impl<'a> FirmwareRun<'a> {
             return_start: None,
             return_end: None,
         };
+        run.camera.open(run.board, &geometry, &scenario.world.name)?;
         run.autopilot.tick(run.board, run.now_ms, &run.vehicle)?;
         Ok(run)
     }
@@ -1298,31 +1361,6 @@ struct Leg {
     time: f64,
 }
 
-/// The scenario's world must lie inside the firmware's grid, at its resolution.
-fn check_fits(scenario: &Scenario, geometry: &MapGeometry) -> Result<(), SimError> {
-    let dims: Dims = geometry.dims();
-    let max = geometry.origin()
-        + nalgebra::Vector3::new(dims.nx() as f32, dims.ny() as f32, dims.nz() as f32)
-            * geometry.resolution();
-    let b = &scenario.world.bounds;
-    let inside = (0..3).all(|k| b.min[k] >= geometry.origin()[k] - 1e-4 && b.max[k] <= max[k] + 1e-4);
-    if (scenario.resolution - geometry.resolution()).abs() > 1e-6 || !inside {
-        return Err(SimError::Grid(format!(
-            "`{}` does not fit the firmware's grid: {}×{}×{} voxels of {} m from {:?} (scenario: {} m, {:?} to {:?})",
-            scenario.world.name,
-            dims.nx(),
-            dims.ny(),
-            dims.nz(),
-            geometry.resolution(),
-            <[f32; 3]>::from(geometry.origin().coords),
-            scenario.resolution,
-            <[f32; 3]>::from(b.min.coords),
-            <[f32; 3]>::from(b.max.coords),
-        )));
-    }
-    Ok(())
-}
-
 /// The deepest stack the firmware used in a run, in bytes: the largest "stack high-water N of
 /// M bytes" its decoded log (`firmware.log` in `out`) reports (it measures by stack painting,
 /// `firmware/src/board/stack.rs`, after every plan). `None` if the log is missing or was not
@@ -1402,11 +1440,18 @@ mod tests {
     }
 
     #[test]
-    fn pil_small_fits_the_firmware_grid_and_apartment_does_not() {
-        let g = firmware_geometry().unwrap();
-        assert!(check_fits(&Scenario::builtin("pil-small").unwrap(), &g).is_ok());
-        let e = check_fits(&Scenario::builtin("apartment").unwrap(), &g).unwrap_err();
-        assert!(e.to_string().contains("does not fit the firmware's grid"), "{e}");
+    fn grids_within_the_firmware_capacity_are_flown_and_the_office_is_refused_with_both_numbers() {
+        let cfg = SimConfig::default();
+        for name in ["pil-small", "apartment", "s1", "garage", "apartment-thesis"] {
+            let g = firmware_grid(&Scenario::builtin(name).unwrap(), &cfg).unwrap();
+            assert!(g.dims().len() <= fw::CAPACITY, "{name}");
+        }
+        let e = firmware_grid(&Scenario::builtin("office").unwrap(), &cfg).unwrap_err();
+        let text = e.to_string();
+        assert!(
+            text.contains("240000 voxels") && text.contains("room for 131072"),
+            "{text}"
+        );
     }
 }
 
