@@ -15,7 +15,7 @@ use harmonic_core::companion::{self, CompanionConfig};
 use harmonic_core::domain::Label;
 use harmonic_core::downlink::{Resource, Shortfall};
 use harmonic_core::explore::{ConfigError, Explorer, ExplorerConfig, ExplorerStorage};
-use harmonic_core::map::{touched_words, MapGeometry};
+use harmonic_core::map::{touched_words, Dims, MapError, MapGeometry};
 use harmonic_core::mavlink::BridgeConfig;
 use harmonic_core::signing::SecretKey;
 use harmonic_core::solve::multigrid::scratch_size;
@@ -26,14 +26,22 @@ pub use harmonic_core::companion::{Event, IoError, Phase};
 /// The firmware's companion: the core's, with the firmware's link decoder and signing streams.
 pub type Firmware<'a> = companion::Companion<'a, LINK_DECODER_BYTES, SIGNING_STREAMS>;
 
-/// Voxels of the largest grid the firmware maps, of any shape (64 × 64 × 32 is one; so are
-/// 70 × 40 × 40 and 60 × 80 × 25). A multiple of 32 (the touched bits are words).
-pub const CAPACITY: usize = 131_072;
-/// Cells of the multigrid's coarse levels the firmware has room for: a sixth of
-/// [`CAPACITY`]. The levels halve each axis (rounding up), so a grid needs about a seventh of
-/// its voxels (18 724 for 64 × 64 × 32, 18 068 for 60 × 80 × 25); a grid thin enough to need
-/// more is refused with both numbers.
-pub const COARSE_CAPACITY: usize = CAPACITY / 6;
+/// Voxels of the largest grid the firmware maps, of any shape (the office's 120 × 80 × 25 and
+/// two-level's 80 × 80 × 50 are within it). A multiple of 32 (the touched bits are words).
+pub const CAPACITY: usize = 458_752;
+/// The firmware plans on cells of 2 × 2 × 2 voxels pooled from the map
+/// ([`ExplorerConfig::plan_coarsening`]): an eighth of the planning memory and work of a field
+/// over every voxel, which is what lets a building's grid fit 1 MiB and a plan its instruction
+/// budget.
+pub const PLAN_COARSENING: u8 = 2;
+/// Planning cells the firmware has room for: an eighth of [`CAPACITY`] and 6.7 % more for the
+/// axes a coarser grid rounds up (the office needs 31 200 for its 240 000 voxels, two-level
+/// 40 000 for 320 000). A multiple of 32.
+pub const PLAN_CAPACITY: usize = 61_184;
+/// Cells of the multigrid's coarse levels over the planning grid the firmware has room for: a
+/// sixth of [`PLAN_CAPACITY`]. The levels halve each axis (rounding up), so a grid needs about
+/// a seventh of its cells; a grid thin enough to need more is refused with both numbers.
+pub const COARSE_CAPACITY: usize = PLAN_CAPACITY / 6;
 /// Flood-fill queue entries (larger fills sweep, see `harmonic_core::domain`).
 pub const QUEUE_LEN: usize = 2048;
 /// Largest depth image, pixels.
@@ -77,13 +85,17 @@ const fn built_in_key(hex: &str) -> SecretKey {
 
 /// Everything the explorer and the link work in; lives in one `static` on the MCU. Zeroed
 /// (`.bss`): the explorer initialises what it needs.
-/// Sized by [`CAPACITY`] and [`COARSE_CAPACITY`]; [`build_explorer`] carves what the mission's
-/// grid needs from the front of each pool.
+/// Sized by [`CAPACITY`], [`PLAN_CAPACITY`] and [`COARSE_CAPACITY`]; [`build_explorer`] carves
+/// what the mission's grid needs from the front of each pool.
 pub struct Storage {
-    log_odds: [i8; CAPACITY],
-    touched: [u32; CAPACITY / 32],
-    labels: [Label; CAPACITY],
-    phi: [f32; CAPACITY],
+    /// The map, one byte per voxel of the mission's grid.
+    map_log_odds: [i8; CAPACITY],
+    map_touched: [u32; CAPACITY / 32],
+    /// The planning grid's pooled map, labels and field.
+    log_odds: [i8; PLAN_CAPACITY],
+    touched: [u32; PLAN_CAPACITY / 32],
+    labels: [Label; PLAN_CAPACITY],
+    phi: [f32; PLAN_CAPACITY],
     queue: [u32; QUEUE_LEN],
     /// bfloat16: half the bytes of `f32` (see `harmonic_core::solve::multigrid::CoarseValues`).
     coarse_values: [Bf16; 2 * COARSE_CAPACITY],
@@ -95,10 +107,12 @@ impl Storage {
     /// All zeros.
     pub const fn new() -> Self {
         Self {
-            log_odds: [0; CAPACITY],
-            touched: [0; CAPACITY / 32],
-            labels: [Label::Outside; CAPACITY],
-            phi: [0.0; CAPACITY],
+            map_log_odds: [0; CAPACITY],
+            map_touched: [0; CAPACITY / 32],
+            log_odds: [0; PLAN_CAPACITY],
+            touched: [0; PLAN_CAPACITY / 32],
+            labels: [Label::Outside; PLAN_CAPACITY],
+            phi: [0.0; PLAN_CAPACITY],
             queue: [0; QUEUE_LEN],
             coarse_values: [Bf16::ZERO; 2 * COARSE_CAPACITY],
             coarse_labels: [Label::Outside; COARSE_CAPACITY],
@@ -113,23 +127,34 @@ impl Default for Storage {
     }
 }
 
-/// Whether the firmware can map `geometry`: at most [`CAPACITY`] voxels and
-/// [`COARSE_CAPACITY`] coarse cells; otherwise what runs short, with both numbers.
+/// Whether the firmware can map `geometry`: at most [`CAPACITY`] voxels, [`PLAN_CAPACITY`]
+/// planning cells and [`COARSE_CAPACITY`] multigrid cells; otherwise what runs short, with
+/// both numbers.
 pub fn fits(geometry: &MapGeometry) -> Result<(), Shortfall> {
-    let dims = geometry.dims();
     let short = |what, needed: usize, capacity: usize| Shortfall {
         what,
         needed: u32::try_from(needed).unwrap_or(u32::MAX),
         capacity: u32::try_from(capacity).unwrap_or(u32::MAX),
     };
-    if dims.len() > CAPACITY {
-        return Err(short(Resource::Voxels, dims.len(), CAPACITY));
+    let voxels = geometry.dims().len();
+    if voxels > CAPACITY {
+        return Err(short(Resource::Voxels, voxels, CAPACITY));
     }
-    let coarse = scratch_size(&dims).labels;
+    let plan =
+        planning_dims(geometry).map_err(|_| short(Resource::PlanningCells, usize::MAX, PLAN_CAPACITY))?;
+    if plan.len() > PLAN_CAPACITY {
+        return Err(short(Resource::PlanningCells, plan.len(), PLAN_CAPACITY));
+    }
+    let coarse = scratch_size(&plan).labels;
     if coarse > COARSE_CAPACITY {
         return Err(short(Resource::CoarseCells, coarse, COARSE_CAPACITY));
     }
     Ok(())
+}
+
+/// The dimensions of the grid the firmware plans on for the mission grid `geometry`.
+fn planning_dims(geometry: &MapGeometry) -> Result<Dims, MapError> {
+    Ok(geometry.coarsened(usize::from(PLAN_COARSENING))?.dims())
 }
 
 /// The explorer configuration: the host's defaults, with plain V-cycles (no Krylov storage
@@ -139,11 +164,13 @@ pub fn explorer_config() -> ExplorerConfig {
     config.solve.max_iterations = 400;
     // The `cold-start` feature measures cold solves (fw-budget): every solve from ψ = 0.
     config.solve.warm_start = !cfg!(feature = "cold-start");
+    config.plan_coarsening = PLAN_COARSENING;
     config
 }
 
 /// The companion configuration: the bridge's defaults, [`ARQ_ROUNDS`],
-/// [`RETURN_HOME_AFTER_COMPLETE`], [`MAVLINK_KEY`], no look-around, and a clock of `tick_hz`.
+/// [`RETURN_HOME_AFTER_COMPLETE`], [`MAVLINK_KEY`], the simulator's look-around (four
+/// headings before the first plan), and a clock of `tick_hz`.
 pub fn companion_config(tick_hz: u32) -> CompanionConfig {
     CompanionConfig {
         bridge: BridgeConfig::default(),
@@ -151,8 +178,9 @@ pub fn companion_config(tick_hz: u32) -> CompanionConfig {
         return_home_after_complete: RETURN_HOME_AFTER_COMPLETE,
         tick_hz,
         signing_key: MAVLINK_KEY,
-        // The processor-in-the-loop runs plan from the first scan (pil-small's recorded run).
-        look_around: 0,
+        // As `harmonic-sim explore`: on the coarser planning grid a start that plans from its
+        // first view alone leaves more of the big worlds unseen (docs/RESULTS.md).
+        look_around: 4,
     }
 }
 
@@ -184,6 +212,8 @@ pub fn build_explorer<'a>(
 ) -> Result<(&'a mut Explorer<'a>, &'a mut [u16]), ConfigError> {
     fits(&geometry).map_err(|_| ConfigError::StorageTooSmall)?;
     let Storage {
+        map_log_odds,
+        map_touched,
         log_odds,
         touched,
         labels,
@@ -193,8 +223,9 @@ pub fn build_explorer<'a>(
         coarse_labels,
         depth,
     } = storage;
-    let dims = geometry.dims();
+    let dims = planning_dims(&geometry).map_err(ConfigError::Map)?;
     let (n, coarse) = (dims.len(), scratch_size(&dims));
+    let fine = geometry.dims();
     let too_small = ConfigError::StorageTooSmall;
     let explorer = Explorer::new_in(
         slot,
@@ -221,6 +252,8 @@ pub fn build_explorer<'a>(
             local_labels: &mut [],
             local_psi: &mut [],
             flat: &mut [],
+            fine_log_odds: map_log_odds.get_mut(..fine.len()).ok_or(too_small)?,
+            fine_touched: map_touched.get_mut(..touched_words(&fine)).ok_or(too_small)?,
         },
     )?;
     Ok((explorer, depth))
@@ -245,38 +278,54 @@ mod tests {
 
     #[test]
     fn grids_of_any_shape_within_capacity_fit_and_larger_ones_are_refused_with_both_numbers() {
-        // The old fixed box, s1, the apartment and the garage fit.
-        for (nx, ny, nz) in [(64, 64, 32), (70, 40, 40), (60, 80, 25), (70, 90, 20)] {
+        // The old fixed box, s1, the apartment, the kitchen, the office and two-level fit.
+        for (nx, ny, nz) in [
+            (64, 64, 32),
+            (70, 40, 40),
+            (60, 80, 25),
+            (80, 80, 30),
+            (120, 80, 25),
+            (80, 80, 50),
+        ] {
             assert_eq!(fits(&grid(nx, ny, nz)), Ok(()), "{nx}×{ny}×{nz}");
         }
-        // The office does not: 240 000 voxels.
+        // s2 does not: 500 000 voxels.
         assert_eq!(
-            fits(&grid(120, 80, 25)),
+            fits(&grid(100, 100, 50)),
             Err(Shortfall {
                 what: Resource::Voxels,
-                needed: 240_000,
+                needed: 500_000,
                 capacity: CAPACITY as u32
             })
         );
-        // Within capacity, but so thin that the coarse levels need more than a sixth.
-        let thin = fits(&grid(2048, 63, 1)).unwrap_err();
-        assert_eq!(thin.what, Resource::CoarseCells);
-        assert!(thin.needed > thin.capacity);
+        // Within capacity, but with axes so odd and thin that the planning grid, rounding each
+        // up, needs more cells than an eighth and its margin.
+        let thin = fits(&grid(3, 149, 1023)).unwrap_err();
+        assert_eq!(
+            thin,
+            Shortfall {
+                what: Resource::PlanningCells,
+                needed: 2 * 75 * 512,
+                capacity: PLAN_CAPACITY as u32
+            }
+        );
         // The whole state must leave room for the stack in 1 MiB.
         assert!(core::mem::size_of::<Storage>() < 1000 * 1024);
     }
 
     #[test]
-    fn the_explorer_is_built_for_the_grid_that_came_and_refuses_one_over_capacity() {
+    fn the_explorer_maps_the_grid_that_came_plans_on_cells_twice_as_large_and_refuses_one_over_capacity() {
         let mut storage = Box::new(Storage::new());
         let mut slot = Box::new(MaybeUninit::uninit());
-        let (explorer, depth) = build_explorer(&mut storage, grid(70, 40, 40), &mut slot).unwrap();
-        assert_eq!(explorer.map().geometry().dims().len(), 112_000);
+        let (explorer, depth) = build_explorer(&mut storage, grid(120, 80, 25), &mut slot).unwrap();
+        assert_eq!(explorer.observed_map().geometry().dims().len(), 240_000);
+        assert_eq!(explorer.map().geometry().dims().len(), 60 * 40 * 13);
+        assert_eq!(explorer.map().geometry().resolution(), 0.2);
         assert_eq!(depth.len(), MAX_DEPTH_PIXELS);
         let mut storage = Box::new(Storage::new());
         let mut slot = Box::new(MaybeUninit::uninit());
         assert_eq!(
-            build_explorer(&mut storage, grid(120, 80, 25), &mut slot).err(),
+            build_explorer(&mut storage, grid(100, 100, 50), &mut slot).err(),
             Some(ConfigError::StorageTooSmall)
         );
     }

@@ -108,6 +108,8 @@ pub fn run(data: &[u8]) {
         local_labels: &mut [],
         local_psi: &mut [],
         flat: &mut [],
+        fine_log_odds: &mut [],
+        fine_touched: &mut [],
     };
     let Ok(mut explorer) = Explorer::new(geometry, config, storage) else {
         return;

@@ -163,19 +163,19 @@ fn firmware_explores_pil_small_under_qemu() {
 }
 
 /// A board is built with a capacity, not a grid: the firmware, under QEMU and in this process,
-/// refuses the office's grid (240 000 voxels) naming both numbers, keeps waiting, and takes
-/// pil-small's; a run refuses the office before it starts, with the same numbers.
+/// refuses s2's grid (500 000 voxels) naming both numbers, keeps waiting, and takes
+/// pil-small's; a run refuses s2 before it starts, with the same numbers.
 #[test]
 fn the_board_refuses_a_grid_over_capacity_with_both_numbers_and_takes_the_next() {
     let cfg = SimConfig::default();
-    let office = Scenario::builtin("office").expect("built-in");
+    let s2 = Scenario::builtin("s2").expect("built-in");
     let small = Scenario::builtin("pil-small").expect("built-in");
-    let office_grid = scenario_geometry(&office, cfg.grid_offset).unwrap();
+    let s2_grid = scenario_geometry(&s2, cfg.grid_offset).unwrap();
     let small_grid = pil::firmware_grid(&small, &cfg).expect("pil-small fits");
     let both_numbers = |e: &harmonic_sim::run::sim::SimError| {
         let text = e.to_string();
         assert!(
-            text.contains("240000 voxels") && text.contains("room for 131072"),
+            text.contains("500000 voxels") && text.contains("room for 458752"),
             "{text}"
         );
     };
@@ -187,21 +187,21 @@ fn the_board_refuses_a_grid_over_capacity_with_both_numbers_and_takes_the_next()
     let mut slot = Box::new(std::mem::MaybeUninit::uninit());
     let mut in_process = InProcess::start(&mut storage, &mut slot, None);
     for board in [&mut on_qemu as &mut dyn Board, &mut in_process] {
-        let refused = pil::offer_grid(board, &cfg, &office_grid, "office").unwrap_err();
+        let refused = pil::offer_grid(board, &cfg, &s2_grid, "s2").unwrap_err();
         assert!(refused.to_string().contains(board.name()), "{refused}");
         both_numbers(&refused);
         pil::offer_grid(board, &cfg, &small_grid, "pil-small").expect("the next grid is taken");
     }
-    both_numbers(&pil::run_in_process(&office, &cfg, |_| {}).unwrap_err());
+    both_numbers(&pil::run_in_process(&s2, &cfg, |_| {}).unwrap_err());
 }
 
-/// The companion object with the run's own configuration (`--core companion`): the office,
-/// which is over the firmware's capacity, explored to completion in this process with the
+/// The companion object with the run's own configuration (`--core companion`): s2, which is
+/// over the firmware's capacity, explored to completion in this process with the
 /// world played around it as around the firmware: depth over the link, setpoints over MAVLink,
 /// the map back over the downlink.
 #[test]
 fn the_companion_object_explores_a_world_over_the_firmware_capacity() {
-    let scenario = Scenario::builtin("office").expect("built-in scenario");
+    let scenario = Scenario::builtin("s2").expect("built-in scenario");
     let cfg = SimConfig {
         return_home: true,
         ..SimConfig::default()

@@ -326,7 +326,7 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
     /// taken again if it is the mission's, refused otherwise.
     fn answer_geometry<L: Write>(&mut self, geometry: &MapGeometry, link: &mut L) -> Result<(), IoError> {
         let voxels = geometry::voxels(geometry);
-        let answer = if geometry == self.explorer.map().geometry() {
+        let answer = if geometry == self.explorer.observed_map().geometry() {
             GeometryAnswer::Taken { voxels }
         } else {
             GeometryAnswer::Refused(Shortfall {
@@ -619,7 +619,7 @@ impl<'a, const LINK_BYTES: usize, const STREAMS: usize, T: TargetChoice>
     /// The map, then the report, back over the link.
     fn send_downlink<L: Write>(&mut self, report: &PlanReport, link: &mut L) -> Result<(), IoError> {
         let mut out = [0u8; downlink::max_frame_len(6 + (MAP_SLICE_VOXELS >> 2))];
-        let map = self.explorer.map();
+        let map = self.explorer.observed_map();
         let voxels = map.geometry().dims().len();
         let mut first = 0;
         while first < voxels {
@@ -878,6 +878,8 @@ mod tests {
             local_labels: &mut [],
             local_psi: &mut [],
             flat: &mut [],
+            fine_log_odds: &mut [],
+            fine_touched: &mut [],
         };
         let mut explorer = Explorer::new(geometry, ExplorerConfig::default(), storage).unwrap();
         let mut depth_buffer = vec![0u16; 40 * 30];

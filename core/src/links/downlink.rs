@@ -51,8 +51,9 @@
 //!
 //! 0x83 GeometryAnswer, 9 bytes
 //!   0  u8  verdict   0 taken, 1 too many voxels, 2 too many multigrid cells,
-//!                    3 a mission on another grid is under way
-//!   1  u32 needed    the grid's voxels (verdicts 0, 1, 3) or coarse cells (2)
+//!                    3 a mission on another grid is under way, 4 too many planning cells
+//!   1  u32 needed    the grid's voxels (verdicts 0, 1, 3), multigrid cells (2) or
+//!                    planning cells (4)
 //!   5  u32 capacity  what the board has room for (0 for verdict 3)
 //! ```
 //!
@@ -117,6 +118,8 @@ pub enum Resource {
     Voxels,
     /// Cells of the multigrid's coarse levels.
     CoarseCells,
+    /// Cells of the grid the board plans on (coarser than the map).
+    PlanningCells,
     /// A mission on another grid is under way (`needed` is the new grid's voxels, `capacity`
     /// 0): a board maps one grid per mission.
     GridInUse,
@@ -145,6 +148,11 @@ impl core::fmt::Display for Shortfall {
             Resource::CoarseCells => write!(
                 f,
                 "the grid's multigrid needs {} coarse cells and the board has room for {}",
+                self.needed, self.capacity
+            ),
+            Resource::PlanningCells => write!(
+                f,
+                "the grid needs {} planning cells and the board has room for {}",
                 self.needed, self.capacity
             ),
             Resource::GridInUse => write!(
@@ -178,6 +186,7 @@ impl GeometryAnswer {
                     Resource::Voxels => 1,
                     Resource::CoarseCells => 2,
                     Resource::GridInUse => 3,
+                    Resource::PlanningCells => 4,
                 };
                 (verdict, s.needed, s.capacity)
             }
@@ -201,6 +210,7 @@ impl GeometryAnswer {
             1 => Resource::Voxels,
             2 => Resource::CoarseCells,
             3 => Resource::GridInUse,
+            4 => Resource::PlanningCells,
             _ => return Err(DownlinkError::BadOutcome),
         };
         Ok(GeometryAnswer::Refused(Shortfall {

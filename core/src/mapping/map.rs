@@ -233,6 +233,14 @@ impl MapGeometry {
     pub fn dims(&self) -> Dims {
         self.dims
     }
+    /// The grid `factor` times coarser over the same space: the same origin, voxels `factor`
+    /// times larger, each axis rounded up (the last cells may reach past this grid's edge).
+    pub fn coarsened(&self, factor: usize) -> Result<Self, MapError> {
+        let f = factor.max(1);
+        let d = self.dims;
+        let dims = Dims::new(d.nx().div_ceil(f), d.ny().div_ceil(f), d.nz().div_ceil(f))?;
+        Self::new(dims, self.origin, self.resolution * f as f32)
+    }
     /// Minimum corner of voxel (0,0,0), map frame.
     pub fn origin(&self) -> Point3<f32> {
         self.origin
@@ -364,6 +372,36 @@ pub(crate) const fn stored_blocks(lo: i8) -> bool {
 /// `u32` words of the per-frame "touched" bitset a grid of `dims` needs: one bit per voxel.
 pub const fn touched_words(dims: &Dims) -> usize {
     (dims.nx.get() * dims.ny.get() * dims.nz.get()).div_ceil(32)
+}
+
+/// The pooled stored value of the fine voxels in the block of `factor` voxels a side from
+/// `corner` (clipped to the fine grid): see [`VoxelMap::pool_from`].
+fn pool(fine: &VoxelMap<'_>, corner: [usize; 3], factor: usize) -> i8 {
+    let d = fine.dims();
+    let (mut blocks, mut unknown, mut free) = (None::<i8>, 0u32, None::<i8>);
+    for z in corner[2]..(corner[2] + factor).min(d.nz()) {
+        for y in corner[1]..(corner[1] + factor).min(d.ny()) {
+            for x in corner[0]..(corner[0] + factor).min(d.nx()) {
+                let lo = fine
+                    .log_odds
+                    .get((z * d.ny() + y) * d.nx() + x)
+                    .copied()
+                    .unwrap_or(UNKNOWN);
+                if stored_blocks(lo) && lo != SEALED {
+                    blocks = Some(blocks.map_or(lo, |b| b.max(lo)));
+                } else if stored_free(lo) {
+                    free = Some(free.map_or(lo, |f| f.max(lo)));
+                } else {
+                    unknown += 1;
+                }
+            }
+        }
+    }
+    match (blocks, free) {
+        (Some(b), _) => b,
+        (None, Some(f)) if unknown == 0 => f,
+        _ => UNKNOWN,
+    }
 }
 
 /// Counts of voxels by state.
@@ -548,6 +586,50 @@ impl<'a> VoxelMap<'a> {
             }
             _ => false,
         }
+    }
+
+    /// Brings this map, a grid [`coarsened`](MapGeometry::coarsened) by `factor` from `fine`'s,
+    /// up to date with the voxels of `fine` updated in its last frame (its touched bits): each
+    /// cell over them takes the pooled state of the fine voxels it covers (those inside the fine
+    /// grid). Pooling is safe, not average: a cell is occupied (the largest log-odds) if any of
+    /// its voxels blocks, unknown if any is unknown (a sealed cell stays sealed), and free (the
+    /// least free log-odds) only if all are free. Starts a frame on this map: the cells
+    /// updated are its touched ones. Returns how many were. A `fine` of another shape updates
+    /// nothing.
+    pub fn pool_from(&mut self, fine: &VoxelMap<'_>, factor: usize) -> u32 {
+        self.begin_frame();
+        let (fd, cd) = (fine.dims(), self.dims());
+        let Some(f) = u16::try_from(factor).ok().and_then(core::num::NonZeroU16::new) else {
+            return 0;
+        };
+        if fine.geometry.coarsened(factor).ok().map(|g| g.dims) != Some(cd) {
+            return 0;
+        }
+        let mut updated = 0u32;
+        for (w, &word) in fine.touched.iter().enumerate() {
+            let mut bits = word;
+            while bits != 0 {
+                let i = (w << 5) | bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                if i >= fd.len() {
+                    break;
+                }
+                let v = fd.voxel(i);
+                let c = VoxelIndex::new(v.x / f, v.y / f, v.z / f);
+                let ci = cd.linear(c);
+                if !self.reserve(ci) {
+                    continue;
+                }
+                let pooled = pool(fine, [c.x, c.y, c.z].map(|k| usize::from(k) * factor), factor);
+                if let Some(lo) = self.log_odds.get_mut(ci) {
+                    if !(pooled == UNKNOWN && *lo == SEALED) {
+                        *lo = pooled;
+                    }
+                    updated = updated.saturating_add(1);
+                }
+            }
+        }
+        updated
     }
 
     /// The stored values, one per voxel in linear order: [`UNKNOWN`], [`SEALED`], or an
@@ -781,5 +863,92 @@ mod tests {
         assert_eq!(map.occupancy(0), Occupancy::Free);
         assert_eq!(map.occupancy(1), Occupancy::Occupied);
         assert!(!map.is_unknown(0) && !map.is_sealed(0));
+    }
+
+    #[test]
+    fn a_coarser_grid_pools_safely_from_the_voxels_a_frame_touched() {
+        // A 5 × 4 × 2 grid under cells of 2 × 2 × 2: 3 × 2 × 1, the last column half outside.
+        let fine_g = MapGeometry::new(Dims::new(5, 4, 2).unwrap(), Point3::origin(), 0.1).unwrap();
+        let coarse_g = fine_g.coarsened(2).unwrap();
+        assert_eq!(coarse_g.dims().extent(), [3, 2, 1]);
+        assert_eq!(coarse_g.resolution(), 0.2);
+        let (mut flo, mut fst) = ([0i8; 40], [0u32; 2]);
+        let (mut clo, mut cst) = ([0i8; 6], [0u32; 1]);
+        let mut fine = VoxelMap::new(fine_g, LogOddsParams::default(), &mut flo, &mut fst).unwrap();
+        let mut coarse = VoxelMap::new(coarse_g, LogOddsParams::default(), &mut clo, &mut cst).unwrap();
+        let fi = |x, y, z| fine_g.dims().linear(VoxelIndex::new(x, y, z));
+        fine.begin_frame();
+        // Cell (0,0,0): all eight voxels free. Cell (1,0,0): seven free, one occupied. Cell
+        // (2,0,0): its two voxels inside the grid free... bar one left unknown.
+        for z in 0..2 {
+            for y in 0..2 {
+                for x in 0..5 {
+                    if (x, y, z) != (4, 1, 1) {
+                        fine.apply_miss(fi(x, y, z));
+                    }
+                }
+            }
+        }
+        // Cell (0,1,0) is left untouched: unknown. Cell (1,1,0): free but for one unknown voxel.
+        for z in 0..2 {
+            for y in 2..4 {
+                for x in 2..4 {
+                    if (x, y, z) != (3, 3, 1) {
+                        fine.apply_miss(fi(x, y, z));
+                    }
+                }
+            }
+        }
+        fine.begin_frame();
+        for z in 0..2 {
+            for y in 0..4 {
+                for x in 0..5 {
+                    let i = fi(x, y, z);
+                    if !fine.is_unknown(i) {
+                        if (x, y, z) == (3, 1, 0) {
+                            fine.apply_hit(i);
+                            fine.apply_hit(i);
+                        } else {
+                            fine.reserve(i);
+                        }
+                    }
+                }
+            }
+        }
+        assert_eq!(fine.occupancy(fi(3, 1, 0)), Occupancy::Occupied);
+        assert_eq!(
+            coarse.pool_from(&fine, 2),
+            4,
+            "the four cells over touched voxels"
+        );
+        let ci = |x, y| coarse_g.dims().linear(VoxelIndex::new(x, y, 0));
+        assert_eq!(coarse.occupancy(ci(0, 0)), Occupancy::Free);
+        assert_eq!(
+            coarse.occupancy(ci(1, 0)),
+            Occupancy::Occupied,
+            "one occupied voxel blocks"
+        );
+        assert!(
+            coarse.is_unexplored(ci(2, 0)),
+            "one unknown voxel keeps the cell unknown"
+        );
+        assert!(coarse.is_unexplored(ci(0, 1)), "nothing seen");
+        assert!(coarse.is_unexplored(ci(1, 1)));
+        assert!(coarse.is_unknown(ci(2, 1)));
+        // A sealed cell stays sealed while its voxels are unknown, and opens once they are seen.
+        assert!(coarse.seal(ci(2, 0)));
+        fine.begin_frame();
+        fine.reserve(fi(4, 0, 0));
+        coarse.pool_from(&fine, 2);
+        assert!(coarse.is_sealed(ci(2, 0)));
+        fine.begin_frame();
+        fine.apply_miss(fi(4, 1, 1));
+        coarse.pool_from(&fine, 2);
+        assert_eq!(coarse.occupancy(ci(2, 0)), Occupancy::Free);
+        // A grid of another shape updates nothing.
+        let other = MapGeometry::new(Dims::new(2, 2, 1).unwrap(), Point3::origin(), 0.2).unwrap();
+        let (mut olo, mut ost) = ([0i8; 4], [0u32; 1]);
+        let mut wrong = VoxelMap::new(other, LogOddsParams::default(), &mut olo, &mut ost).unwrap();
+        assert_eq!(wrong.pool_from(&fine, 2), 0);
     }
 }

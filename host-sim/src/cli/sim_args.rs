@@ -168,6 +168,12 @@ pub struct FieldArgs {
     /// the safe space (same goal, same frontier).
     #[arg(long)]
     raw_streamline: bool,
+    /// Plan on a grid this many times coarser than the map (1 or 2; default 1): frames are
+    /// integrated at the scenario's resolution and the domain, field and streamline work on
+    /// cells pooled from it (occupied if any voxel is, unknown if any is, free only if all
+    /// are): an eighth of the planning memory and work at 2. The firmware plans this way.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=2))]
+    plan_coarsening: Option<u8>,
 }
 
 impl FieldArgs {
@@ -195,6 +201,9 @@ impl FieldArgs {
         }
         if self.raw_streamline {
             cfg.explorer.taut_path = false;
+        }
+        if let Some(f) = self.plan_coarsening {
+            cfg.explorer.plan_coarsening = f;
         }
     }
 }

@@ -73,7 +73,7 @@ pub trait Planner: Planning<HostClock> {
     ) -> Result<(), Fault>;
     /// Waypoints from the vehicle to the last goal, map frame.
     fn waypoints(&self) -> &[Point3<f32>];
-    /// The occupancy map.
+    /// The occupancy map over the mission grid (the one frames are integrated into).
     fn map(&self) -> &VoxelMap<'_>;
     /// Status and counters (the core's [`Status`], filled the same way by every planner).
     fn status(&self) -> &Status;
@@ -156,7 +156,7 @@ impl<T: TargetChoice> Planner for CorePlanner<'_, T> {
         self.explorer.waypoints()
     }
     fn map(&self) -> &VoxelMap<'_> {
-        self.explorer.map()
+        self.explorer.observed_map()
     }
     fn status(&self) -> &Status {
         self.explorer.status()

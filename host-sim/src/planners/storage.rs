@@ -86,6 +86,11 @@ pub struct HostStorage {
     local_psi: Vec<f32>,
     /// The flat solver's storage: empty until [`HostStorage::with_flat`].
     flat: Vec<f32>,
+    /// The map at the mission grid's resolution when the explorer plans on a coarser grid:
+    /// empty until [`HostStorage::with_fine_map`].
+    fine_log_odds: Vec<i8>,
+    /// Its touched bits.
+    fine_touched: Vec<u32>,
 }
 
 impl HostStorage {
@@ -107,7 +112,17 @@ impl HostStorage {
             local_labels: vec![Label::Outside; box_cells],
             local_psi: vec![0.0; box_cells],
             flat: Vec::new(),
+            fine_log_odds: Vec::new(),
+            fine_touched: Vec::new(),
         }
+    }
+    /// Adds the map at the grid's resolution that an explorer planning on a coarser grid
+    /// integrates into ([`ExplorerConfig::plan_coarsening`](harmonic_core::explore::ExplorerConfig::plan_coarsening));
+    /// the other buffers, sized for this grid, hold the coarser one. A no-op if it is there.
+    pub fn with_fine_map(&mut self) -> &mut Self {
+        self.fine_log_odds.resize(self.dims.len(), 0);
+        self.fine_touched.resize(map::touched_words(&self.dims), 0);
+        self
     }
     /// Adds the storage of the flat solver ([`SolverKind::Flat`](harmonic_core::explore::SolverKind::Flat),
     /// [`harmonic_core::solve::flat::flat_scratch_len`] values); a no-op if it is there.
@@ -147,6 +162,8 @@ impl HostStorage {
             local_labels: &mut self.local_labels,
             local_psi: &mut self.local_psi,
             flat: &mut self.flat,
+            fine_log_odds: &mut self.fine_log_odds,
+            fine_touched: &mut self.fine_touched,
         }
     }
 }

@@ -1440,16 +1440,25 @@ mod tests {
     }
 
     #[test]
-    fn grids_within_the_firmware_capacity_are_flown_and_the_office_is_refused_with_both_numbers() {
+    fn grids_within_the_firmware_capacity_are_flown_and_s2_is_refused_with_both_numbers() {
         let cfg = SimConfig::default();
-        for name in ["pil-small", "apartment", "s1", "garage", "apartment-thesis"] {
+        for name in [
+            "pil-small",
+            "apartment",
+            "office",
+            "two-level",
+            "s1",
+            "kitchen",
+            "garage",
+            "apartment-thesis",
+        ] {
             let g = firmware_grid(&Scenario::builtin(name).unwrap(), &cfg).unwrap();
             assert!(g.dims().len() <= fw::CAPACITY, "{name}");
         }
-        let e = firmware_grid(&Scenario::builtin("office").unwrap(), &cfg).unwrap_err();
+        let e = firmware_grid(&Scenario::builtin("s2").unwrap(), &cfg).unwrap_err();
         let text = e.to_string();
         assert!(
-            text.contains("240000 voxels") && text.contains("room for 131072"),
+            text.contains("500000 voxels") && text.contains("room for 458752"),
             "{text}"
         );
     }

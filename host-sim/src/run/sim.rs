@@ -1173,6 +1173,9 @@ pub fn make_explorer<'s>(
     if cfg.surface_estimate {
         storage.with_surface();
     }
+    if cfg.explorer.plan_coarsening > 1 {
+        storage.with_fine_map();
+    }
     Ok(match cfg.planner {
         PlannerKind::Harmonic
         | PlannerKind::HarmonicLaplace

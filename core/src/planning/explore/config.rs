@@ -124,6 +124,15 @@ pub struct ExplorerConfig {
     /// Remnants: how far along its streamline (metres) a remnant target may be and still be
     /// flown to (see [`ExplorerConfig::remnant_frontier_m2`](super::ExplorerConfig::remnant_frontier_m2)). Default 3 m.
     pub remnant_reach_m: f32,
+    /// Plan on a grid this many times coarser than the map (1 or 2; default 1): frames are
+    /// integrated into the map at the mission grid's resolution
+    /// ([`ExplorerStorage::fine_log_odds`]), and the domain, the field and the streamline work
+    /// on cells of `plan_coarsening` voxels a side whose state is pooled from the map's
+    /// ([`VoxelMap::pool_from`](crate::mapping::map::VoxelMap::pool_from): occupied if any voxel
+    /// is, unknown if any is, free only if all are). A board that cannot hold, or solve in time,
+    /// a field over every voxel of a building plans this way: 2 takes an eighth of the planning
+    /// memory and work.
+    pub plan_coarsening: u8,
 }
 
 /// How a frame's camera pose relates in time to the frame, for [`Explorer::integrate_timed`](super::Explorer::integrate_timed).
@@ -206,6 +215,7 @@ impl Default for ExplorerConfig {
             max_frame_pose_lag_ms: 150,
             remnant_frontier_m2: 0.5,
             remnant_reach_m: 3.0,
+            plan_coarsening: 1,
         }
     }
 }
@@ -262,6 +272,13 @@ pub struct ExplorerStorage<'a> {
     /// The flat solver's storage (`SolverKind::Flat` only, with the `flat` feature; otherwise
     /// it may be empty and is not used).
     pub flat: &'a mut [f32],
+    /// With [`ExplorerConfig::plan_coarsening`] above 1: the log-odds of the map at the mission
+    /// grid's resolution (one per voxel of the grid), which frames are integrated into; every
+    /// buffer above is then sized for the coarser planning grid. Empty otherwise.
+    pub fine_log_odds: &'a mut [i8],
+    /// Its touched bits ([`map::touched_words`](crate::mapping::map::touched_words) of the
+    /// mission grid). Empty without a fine map.
+    pub fine_touched: &'a mut [u32],
 }
 
 impl ExplorerStorage<'_> {
@@ -283,6 +300,8 @@ impl ExplorerStorage<'_> {
             + size_of_val(self.local_labels)
             + size_of_val(self.local_psi)
             + size_of_val(self.flat)
+            + size_of_val(self.fine_log_odds)
+            + size_of_val(self.fine_touched)
     }
 }
 

@@ -96,7 +96,12 @@ fn watch_of(v: VoxelIndex) -> Watch {
 /// the harmonic planner's field, [`HarmonicField`]).
 pub struct Explorer<'a, T = HarmonicField<'a>> {
     config: ExplorerConfig,
+    /// The map planned on: the map itself, or with [`ExplorerConfig::plan_coarsening`] the
+    /// coarser grid pooled from `observed`.
     map: VoxelMap<'a>,
+    /// With [`ExplorerConfig::plan_coarsening`] above 1: the map frames are integrated into,
+    /// at the mission grid's resolution.
+    observed: Option<VoxelMap<'a>>,
     inflation: Inflation,
     labels: &'a mut [Label],
     queue: &'a mut [u32],
@@ -134,12 +139,13 @@ impl<'a> Explorer<'a> {
         config: ExplorerConfig,
         storage: ExplorerStorage<'a>,
     ) -> Result<Self, ConfigError> {
-        let n = geometry.dims().len();
+        let plan = planning_geometry(&geometry, &config)?;
+        let n = plan.dims().len();
         if storage.labels.len() < n || storage.phi.len() < n || storage.queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
         }
         let (map, field) = split(storage);
-        let targets = HarmonicField::new(&geometry, &config, field)?;
+        let targets = HarmonicField::new(&plan, &config, field)?;
         Self::build(geometry, config, map, targets)
     }
 
@@ -151,12 +157,13 @@ impl<'a> Explorer<'a> {
         config: ExplorerConfig,
         storage: ExplorerStorage<'a>,
     ) -> Result<&'a mut Self, ConfigError> {
-        let n = geometry.dims().len();
+        let plan = planning_geometry(&geometry, &config)?;
+        let n = plan.dims().len();
         if storage.labels.len() < n || storage.phi.len() < n || storage.queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
         }
         let (map, field) = split(storage);
-        let targets = HarmonicField::new(&geometry, &config, field)?;
+        let targets = HarmonicField::new(&plan, &config, field)?;
         let parts = Parts::new(geometry, &config, map)?;
         Ok(slot.write(parts.explorer(config, targets)))
     }
@@ -167,6 +174,15 @@ impl<'a> Explorer<'a> {
     }
 }
 
+/// The grid an explorer of the mission grid `geometry` plans on: the grid itself, or
+/// [`ExplorerConfig::plan_coarsening`] times coarser.
+fn planning_geometry(geometry: &MapGeometry, config: &ExplorerConfig) -> Result<MapGeometry, ConfigError> {
+    match config.plan_coarsening {
+        0 | 1 => Ok(*geometry),
+        f => geometry.coarsened(usize::from(f)).map_err(ConfigError::Map),
+    }
+}
+
 /// The buffers of the map and the domain (the part of [`ExplorerStorage`] every planner uses).
 struct MapStorage<'a> {
     log_odds: &'a mut [i8],
@@ -174,12 +190,15 @@ struct MapStorage<'a> {
     labels: &'a mut [Label],
     queue: &'a mut [u32],
     surface: &'a mut [[i32; 2]],
+    fine_log_odds: &'a mut [i8],
+    fine_touched: &'a mut [u32],
 }
 
-/// What an explorer is built from, checked: the map over its buffers, the inflation, the
+/// What an explorer is built from, checked: the maps over their buffers, the inflation, the
 /// labels and the queue.
 struct Parts<'a> {
     map: VoxelMap<'a>,
+    observed: Option<VoxelMap<'a>>,
     inflation: Inflation,
     labels: &'a mut [Label],
     queue: &'a mut [u32],
@@ -191,26 +210,36 @@ impl<'a> Parts<'a> {
         config: &ExplorerConfig,
         storage: MapStorage<'a>,
     ) -> Result<Self, ConfigError> {
-        let n = geometry.dims().len();
+        let plan = planning_geometry(&geometry, config)?;
+        let n = plan.dims().len();
         let MapStorage {
             log_odds,
             touched,
             labels,
             queue,
             surface,
+            fine_log_odds,
+            fine_touched,
         } = storage;
         if labels.len() < n || queue.is_empty() {
             return Err(ConfigError::StorageTooSmall);
         }
-        let map = VoxelMap::new(geometry, config.log_odds, log_odds, touched)
-            .map_err(ConfigError::Map)?
-            .with_surface(surface);
-        let inflation = Inflation::new(config.vehicle_radius, config.narrow_radius, geometry.resolution())
+        let map = VoxelMap::new(plan, config.log_odds, log_odds, touched).map_err(ConfigError::Map)?;
+        let (map, observed) = if plan == geometry {
+            (map.with_surface(surface), None)
+        } else {
+            let fine = VoxelMap::new(geometry, config.log_odds, fine_log_odds, fine_touched)
+                .map_err(|_| ConfigError::StorageTooSmall)?
+                .with_surface(surface);
+            (map, Some(fine))
+        };
+        let inflation = Inflation::new(config.vehicle_radius, config.narrow_radius, plan.resolution())
             .map_err(ConfigError::Domain)?;
         let labels = labels.get_mut(..n).ok_or(ConfigError::StorageTooSmall)?;
         labels.fill(Label::Outside);
         Ok(Self {
             map,
+            observed,
             inflation,
             labels,
             queue,
@@ -224,6 +253,7 @@ impl<'a> Parts<'a> {
         Explorer {
             config,
             map: self.map,
+            observed: self.observed,
             inflation: self.inflation,
             labels: self.labels,
             queue: self.queue,
@@ -264,6 +294,8 @@ fn split(storage: ExplorerStorage<'_>) -> (MapStorage<'_>, FieldStorage<'_>) {
         local_labels,
         local_psi,
         flat,
+        fine_log_odds,
+        fine_touched,
     } = storage;
     let map = MapStorage {
         log_odds,
@@ -271,6 +303,8 @@ fn split(storage: ExplorerStorage<'_>) -> (MapStorage<'_>, FieldStorage<'_>) {
         labels,
         queue,
         surface,
+        fine_log_odds,
+        fine_touched,
     };
     let field = FieldStorage {
         phi,
@@ -338,9 +372,15 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
     pub fn config(&self) -> &ExplorerConfig {
         &self.config
     }
-    /// The map.
+    /// The map planned on (with [`ExplorerConfig::plan_coarsening`], the coarser grid pooled
+    /// from [`Explorer::observed_map`]).
     pub fn map(&self) -> &VoxelMap<'a> {
         &self.map
+    }
+    /// The map frames are integrated into, over the mission grid: [`Explorer::map`] itself
+    /// unless the explorer plans on a coarser grid.
+    pub fn observed_map(&self) -> &VoxelMap<'a> {
+        self.observed.as_ref().unwrap_or(&self.map)
     }
     /// Domain labels of the last plan.
     pub fn labels(&self) -> &[Label] {
@@ -391,14 +431,18 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
             return Err(Fault::Integrate(IntegrateError::PoseJump));
         }
         // The flood-fill queue is idle between plans: it holds the noisy-depth vote.
+        let target = self.observed.as_mut().unwrap_or(&mut self.map);
         match integrate::integrate_with_scratch(
-            &mut self.map,
+            target,
             frame,
             camera_pose,
             &self.config.integration,
             self.queue,
         ) {
             Ok(stats) => {
+                if let Some(fine) = &self.observed {
+                    self.map.pool_from(fine, usize::from(self.config.plan_coarsening));
+                }
                 self.last_frame_origin = Some(origin);
                 self.jump_candidate = None;
                 self.intrinsics = Some(*frame.intrinsics());
@@ -562,8 +606,15 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
         // Every plan tries the planning radius first; one that found a pocket left it narrowed.
         let was_narrow = self.inflation.widen();
         domain::mark_body(&mut self.map, self.inflation.stencil(), position);
-        let counts = self.map.counts();
-        let unexplored = counts.unknown - counts.sealed;
+        // Learning is counted on the map frames go into: a view that observed voxels taught
+        // something even when the cells pooled from them are still unknown.
+        let unexplored = match &self.observed {
+            Some(fine) => fine.counts().unknown,
+            None => {
+                let counts = self.map.counts();
+                counts.unknown - counts.sealed
+            }
+        };
         let learned_nothing = self.unexplored_at_last_plan == Some(unexplored);
         self.unexplored_at_last_plan = Some(unexplored);
         let last_from_afar = core::mem::take(&mut self.goal_from_afar);

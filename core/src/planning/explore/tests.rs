@@ -98,6 +98,8 @@ impl Buffers {
                 local_labels: &mut self.local_labels,
                 local_psi: &mut self.local_psi,
                 flat: &mut self.flat,
+                fine_log_odds: &mut [],
+                fine_touched: &mut [],
             },
         )
     }
@@ -984,6 +986,8 @@ fn storage_bytes_count_every_buffer() {
         local_labels: &mut local_labels,
         local_psi: &mut local_psi,
         flat: &mut [],
+        fine_log_odds: &mut [],
+        fine_touched: &mut [],
     };
     let want = 10 + 4 + 3 * label + 8 + 20 + 14 + 11 * label + 52 + 68 + 19 + 92 + 29 * label + 4 * 31;
     assert_eq!(storage.bytes(), want);
@@ -1088,4 +1092,87 @@ fn the_flat_solver_solves_the_field_multigrid_does() {
         .map(|(a, b)| (a - b).abs())
         .fold(0.0f32, f32::max);
     assert!(worst <= 1e-4, "{worst}");
+}
+
+/// With `plan_coarsening` 2 frames go into the map at the grid's resolution and the explorer
+/// plans on cells twice as large pooled from it: a goal that looks at a frontier cell, its way
+/// inside the domain. Without the fine map's storage it is refused.
+#[test]
+fn a_coarser_planning_grid_plans_from_the_map_it_pools_and_needs_the_map_storage() {
+    let dims = Dims::new(64, 12, 12).unwrap();
+    let config = ExplorerConfig {
+        plan_coarsening: 2,
+        ..ExplorerConfig::default()
+    };
+    let mut b = Buffers::new(&dims);
+    assert_eq!(
+        b.try_explorer(dims, config).err(),
+        Some(ConfigError::StorageTooSmall)
+    );
+    let (mut fine_log_odds, mut fine_touched) = (
+        vec![0i8; dims.len()],
+        vec![0u32; crate::mapping::map::touched_words(&dims)],
+    );
+    let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+    let mut e = Explorer::new(
+        geometry,
+        config,
+        ExplorerStorage {
+            log_odds: &mut b.log_odds,
+            touched: &mut b.touched,
+            labels: &mut b.labels,
+            phi: &mut b.phi,
+            queue: &mut b.queue,
+            coarse_values: b.values.as_mut_slice().into(),
+            coarse_labels: &mut b.coarse_labels,
+            coarse_faces: &mut b.faces,
+            krylov: &mut b.krylov,
+            masks: &mut b.masks,
+            surface: &mut [],
+            jacobi: &mut b.jacobi,
+            local_labels: &mut b.local_labels,
+            local_psi: &mut b.local_psi,
+            flat: &mut b.flat,
+            fine_log_odds: &mut fine_log_odds,
+            fine_touched: &mut fine_touched,
+        },
+    )
+    .unwrap();
+    assert_eq!(e.observed_map().dims().extent(), [64, 12, 12]);
+    assert_eq!(e.map().dims().extent(), [32, 6, 6]);
+    // A 6.4 × 1.2 × 1.2 m corridor seen from its west end every way: what the rays missed is
+    // unknown.
+    let p = Point3::new(0.5, 0.6, 0.6);
+    for d in AXES {
+        look(&mut e, &looking(p, Vector3::from(d)), 0);
+    }
+    let fine = e.observed_map().counts();
+    assert!(fine.free > 0 && fine.unknown > 0, "{fine:?}");
+    let coarse = e.map().counts();
+    assert!(
+        coarse.free > 0 && coarse.free * 8 <= fine.free,
+        "{coarse:?} from {fine:?}"
+    );
+    let PlanOutcome::Goal(goal) = e.plan(&p, 0.0) else {
+        panic!("{:?}", e.status())
+    };
+    assert!(!goal.escape, "{goal:?}");
+    let end = e
+        .map()
+        .geometry()
+        .voxel_at(e.waypoints().last().unwrap())
+        .unwrap();
+    assert!(e.map().geometry().voxel_at(&goal.position).is_some());
+    assert!(
+        e.labels().iter().any(|l| *l == Label::Frontier) && e.status().domain.frontier > 0,
+        "the field has frontier cells: {goal:?} {:?}",
+        e.status()
+    );
+    assert_ne!(
+        e.labels()[e.map().dims().linear(end)],
+        Label::Outside,
+        "the way stays in the domain"
+    );
+    // The goal looks at a frontier cell of the coarser grid.
+    assert_eq!(e.labels()[e.map().dims().linear(goal.frontier)], Label::Frontier);
 }
