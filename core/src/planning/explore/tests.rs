@@ -79,29 +79,34 @@ impl Buffers {
     }
     fn try_explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Result<Explorer<'_>, ConfigError> {
         let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
-        Explorer::new(
-            geometry,
-            config,
-            ExplorerStorage {
-                log_odds: &mut self.log_odds,
-                touched: &mut self.touched,
-                labels: &mut self.labels,
-                phi: &mut self.phi,
-                queue: &mut self.queue,
-                coarse_values: self.values.as_mut_slice().into(),
-                coarse_labels: &mut self.coarse_labels,
-                coarse_faces: &mut self.faces,
-                krylov: &mut self.krylov,
-                masks: &mut self.masks,
-                surface: &mut [],
-                jacobi: &mut self.jacobi,
-                local_labels: &mut self.local_labels,
-                local_psi: &mut self.local_psi,
-                flat: &mut self.flat,
-                fine_log_odds: &mut [],
-                fine_touched: &mut [],
-            },
-        )
+        Explorer::new(geometry, config, self.storage(&mut [], &mut []))
+    }
+    /// The buffers lent to an explorer, with the map at the grid's resolution in `fine_*` (empty
+    /// unless it plans on coarser cells).
+    fn storage<'s>(
+        &'s mut self,
+        fine_log_odds: &'s mut [i8],
+        fine_touched: &'s mut [u32],
+    ) -> ExplorerStorage<'s> {
+        ExplorerStorage {
+            log_odds: &mut self.log_odds,
+            touched: &mut self.touched,
+            labels: &mut self.labels,
+            phi: &mut self.phi,
+            queue: &mut self.queue,
+            coarse_values: self.values.as_mut_slice().into(),
+            coarse_labels: &mut self.coarse_labels,
+            coarse_faces: &mut self.faces,
+            krylov: &mut self.krylov,
+            masks: &mut self.masks,
+            surface: &mut [],
+            jacobi: &mut self.jacobi,
+            local_labels: &mut self.local_labels,
+            local_psi: &mut self.local_psi,
+            flat: &mut self.flat,
+            fine_log_odds,
+            fine_touched,
+        }
     }
 }
 
@@ -1114,30 +1119,7 @@ fn a_coarser_planning_grid_plans_from_the_map_it_pools_and_needs_the_map_storage
         vec![0u32; crate::mapping::map::touched_words(&dims)],
     );
     let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
-    let mut e = Explorer::new(
-        geometry,
-        config,
-        ExplorerStorage {
-            log_odds: &mut b.log_odds,
-            touched: &mut b.touched,
-            labels: &mut b.labels,
-            phi: &mut b.phi,
-            queue: &mut b.queue,
-            coarse_values: b.values.as_mut_slice().into(),
-            coarse_labels: &mut b.coarse_labels,
-            coarse_faces: &mut b.faces,
-            krylov: &mut b.krylov,
-            masks: &mut b.masks,
-            surface: &mut [],
-            jacobi: &mut b.jacobi,
-            local_labels: &mut b.local_labels,
-            local_psi: &mut b.local_psi,
-            flat: &mut b.flat,
-            fine_log_odds: &mut fine_log_odds,
-            fine_touched: &mut fine_touched,
-        },
-    )
-    .unwrap();
+    let mut e = Explorer::new(geometry, config, b.storage(&mut fine_log_odds, &mut fine_touched)).unwrap();
     assert_eq!(e.observed_map().dims().extent(), [64, 12, 12]);
     assert_eq!(e.map().dims().extent(), [32, 6, 6]);
     // A 6.4 × 1.2 × 1.2 m corridor seen from its west end every way: what the rays missed is
