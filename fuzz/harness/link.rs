@@ -53,6 +53,7 @@ enum Event {
     Pose(Pose),
     Heartbeat(Heartbeat),
     ResendRequest(ResendRequest),
+    Geometry(harmonic_core::map::MapGeometry),
     Error(LinkError),
     /// What the receiver asked for at the end.
     Asked(Option<ResendRequest>),
@@ -168,6 +169,16 @@ fn check(event: LinkEvent<'_>) -> Event {
         LinkEvent::ResendRequest(r) => {
             check_request(&r);
             Event::ResendRequest(r)
+        }
+        LinkEvent::Geometry(g) => {
+            let d = g.dims();
+            assert!(!d.is_empty(), "a grid without voxels delivered");
+            assert!(
+                g.resolution().is_finite() && g.resolution() > 0.0,
+                "a grid of resolution {} delivered",
+                g.resolution()
+            );
+            Event::Geometry(g)
         }
         LinkEvent::Error(e) => Event::Error(e),
     }

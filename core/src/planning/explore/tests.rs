@@ -1146,7 +1146,7 @@ fn a_coarser_planning_grid_plans_from_the_map_it_pools_and_needs_the_map_storage
         .unwrap();
     assert!(e.map().geometry().voxel_at(&goal.position).is_some());
     assert!(
-        e.labels().iter().any(|l| *l == Label::Frontier) && e.status().domain.frontier > 0,
+        e.labels().contains(&Label::Frontier) && e.status().domain.frontier > 0,
         "the field has frontier cells: {goal:?} {:?}",
         e.status()
     );
