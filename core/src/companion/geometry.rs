@@ -11,7 +11,7 @@
 
 use embedded_io::{Read, ReadReady, Write};
 
-use super::IoError;
+use super::io::IoError;
 use crate::links::downlink::{self, GeometryAnswer, Shortfall, GEOMETRY_ANSWER_LEN};
 use crate::links::link::{max_encoded_len, FrameDecoder, Message, GEOMETRY_BODY_LEN, HEADER_LEN};
 use crate::mapping::map::MapGeometry;

@@ -39,11 +39,13 @@
 
 mod follower;
 mod geometry;
+mod io;
 mod mission;
 mod signing;
 
 pub use follower::{travel_heading, Follower};
 pub use geometry::{GeometryWait, Waited};
+pub use io::IoError;
 pub use mission::{After, Mission, Planning, Step};
 pub use signing::LinkSigning;
 
@@ -123,16 +125,6 @@ pub enum Phase {
     Plan,
     /// Sending the map and the report.
     Report,
-}
-
-/// A stream failed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum IoError {
-    /// The depth link.
-    Link,
-    /// MAVLink.
-    Mavlink,
 }
 
 /// What one pass of the loop did, for the log. (Returned and logged at once, never stored.)
