@@ -127,11 +127,16 @@ pub struct SolveStats {
     /// Relative residual the rounding of the current f32 solution alone can produce: below
     /// this, nothing better is representable (see [`Residual`]).
     pub floor: f32,
-    /// True if the solve stopped by its own rule: the tolerance reached or, where the tolerance
-    /// lies below it, the f32 floor (plain multigrid V-cycles: the floor *and* a residual that
-    /// has stopped falling, see [`multigrid`]). False whenever it stopped at
-    /// [`SolveParams::max_iterations`] first, whatever the residual.
+    /// True only if the solve met what it was asked for: the relative residual at or below
+    /// [`SolveParams::tolerance`] *and*, where [`SolveParams::max_error`] is finite, the
+    /// [error estimate](Self::error_estimate) at or below it. A solve may stop for other
+    /// reasons ([`Self::stop`]): at the f32 rounding floor where that lies above the
+    /// tolerance (Laplace's equation on a late map with few frontier voxels: a floor of 4e-6
+    /// against a tolerance of 1e-6), after its conjugate-gradient restarts, or at
+    /// [`SolveParams::max_iterations`]; it then reports `false`, whatever else it reached.
     pub converged: bool,
+    /// Why the solve stopped.
+    pub stop: Stop,
     /// Estimated largest error `max |ψ − ψ*|` against the exact solution ψ* of the same
     /// discrete system, or `None` where the solve has nothing to estimate it from.
     ///
@@ -151,6 +156,55 @@ pub struct SolveStats {
     /// small random domains, where smoothing rather than the coarse correction does the work
     /// (BENCHMARKS.md). The thesis's Jacobi solve reports `None`.
     pub error_estimate: Option<f32>,
+}
+
+/// Why a solve stopped ([`SolveStats::stop`]). Only [`Stop::Met`] goes with
+/// [`SolveStats::converged`].
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Stop {
+    /// The tolerance and the error target (if one was set) were met: converged.
+    #[default]
+    Met,
+    /// The residual reached the f32 rounding floor ([`Residual::floor`]), which lies above the
+    /// tolerance, and (plain V-cycles) stopped falling; the error target, if one was set, was
+    /// met. Iterating further only stirs rounding noise, so the solve stops, but the tolerance
+    /// was not met: not converged.
+    Floor,
+    /// Multigrid-preconditioned conjugate gradients used all their restarts
+    /// ([`multigrid::MAX_RESTARTS`] passes from the true residual) without meeting the
+    /// tolerance or the error target: not converged.
+    Restarts,
+    /// [`SolveParams::max_iterations`] reached first: not converged.
+    Cap,
+    /// The solver's own rule stopped it, which is not the residual tolerance (the thesis's
+    /// relative-change rule, [`thesis`]); converged only if the residual met the tolerance too.
+    Rule,
+}
+
+impl Stop {
+    /// Why a solve that ended at `res` with the error estimate `estimate`, and did not reach its
+    /// iteration cap, stopped: [`Stop::Met`] where the tolerance and the error target are met,
+    /// else [`Stop::Floor`] where the residual meets the floor that lies above the tolerance and
+    /// the error target is met, else `otherwise`.
+    pub(crate) fn of(res: &Residual, params: &SolveParams, estimate: Option<f32>, otherwise: Stop) -> Stop {
+        let error_ok = error_met(estimate, params.max_error);
+        if res.relative <= params.tolerance && error_ok {
+            Stop::Met
+        } else if res.meets(params.tolerance) && error_ok {
+            Stop::Floor
+        } else {
+            otherwise
+        }
+    }
+}
+
+/// Whether a solve that ended at `res` with the error estimate `estimate` met `params`: the
+/// relative residual at or below the tolerance (not the rounding floor) and the estimate at or
+/// below the error target, if one was set. The one rule every solver reports
+/// [`SolveStats::converged`] by.
+pub(crate) fn converged(res: &Residual, params: &SolveParams, estimate: Option<f32>) -> bool {
+    res.relative <= params.tolerance && error_met(estimate, params.max_error)
 }
 
 /// A box solve's outcome ([`local::BoxSolver::solve_box`]): its stats, and the residual of its
@@ -1718,7 +1772,15 @@ pub fn gauss_seidel(
     stats.residual = res.relative;
     stats.floor = res.floor;
     stats.error_estimate = error_estimate(&steps, &res, &screen);
-    stats.converged = done(&res, &steps);
+    stats.converged = converged(&res, params, stats.error_estimate);
+    stats.stop = if stats.converged {
+        Stop::Met
+    } else if stats.iterations < params.max_iterations {
+        // The loop ends before the cap only where its rule says done: at the floor.
+        Stop::Floor
+    } else {
+        Stop::Cap
+    };
     Ok(stats)
 }
 
