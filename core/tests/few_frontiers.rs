@@ -256,12 +256,13 @@ fn for_each_field(mut f: impl FnMut(usize, Dims, &[Label], f32, &[f64])) {
 /// length at 0.1 m voxels, s = 0.09), for the host's two multigrid solvers and the firmware's
 /// (V-cycles, label-only coarse operator, bfloat16 coarse levels), each stopped after 6, 20
 /// and 80 steps and at its own stop. A user relies on it not being optimistic on such late
-/// problems: it is never below half the true error here (measured 0.73× at worst). Nor is it
-/// uselessly pessimistic while the error is above the rounding noise: at most 12× (measured
-/// 9.8×, MGPCG on the screened field). It is an estimate, not a bound: on small random
-/// domains plain V-cycles' fell to 0.07× (BENCHMARKS.md, "Error estimates").
+/// problems: it is never below the true error here (a bound for the screened field, a measured
+/// safe estimate for Laplace's; the estimate before issue 60 was as low as 0.7× the true error
+/// here and 0.15× on the issue's rooms). It is cautious by design: up to some thousands of
+/// times the true error where the screening is weak (s = 1e-4) or the solve sits at the f32
+/// floor, so only a sanity ceiling (10⁴ times the true error or 1e-2) is checked.
 #[test]
-fn the_error_estimate_follows_the_true_error() {
+fn the_error_estimate_bounds_the_true_error() {
     for_each_field(|room, dims, labels, s, ex| {
         for setup in [
             Setup::Host(Method::VCycle),
@@ -273,10 +274,8 @@ fn the_error_estimate_follows_the_true_error() {
                 let err = max_error(&psi, ex);
                 let est = f64::from(st.error_estimate.expect("estimated"));
                 let case = format!("rooms {room}, s {s}, {setup:?}, cap {cap}: error {err:.3e}, {st:?}");
-                assert!(est >= 0.5 * err, "optimistic: {case}");
-                if err >= 1e-5 {
-                    assert!(est <= 12.0 * err, "pessimistic: {case}");
-                }
+                assert!(est >= err, "optimistic: {case}");
+                assert!(est <= 1e4 * err.max(1e-6), "useless: {case}");
                 if st.iterations < cap {
                     break;
                 }

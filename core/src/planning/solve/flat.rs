@@ -522,6 +522,7 @@ impl<'a> Flat<'a> {
                     break;
                 }
                 let target = params.tolerance.max(res.floor);
+                steps.restart();
                 let start = res.relative;
                 current = false;
                 stats.cell_updates += precondition(fork, &grids, levels_store, &interior, &pins, cycle);

@@ -730,6 +730,7 @@ impl<'a> Multigrid<'a> {
                 break;
             }
             let target = params.tolerance.max(res.floor);
+            steps.restart();
             stats.cell_updates += precondition(r, z);
             p.copy_from_slice(z);
             let mut rho = dot(r, z);
