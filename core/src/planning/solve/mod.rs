@@ -156,10 +156,9 @@ pub struct SolveStats {
     /// shrank: a converging iteration shrinks its error by about ρ per step, so the error left
     /// is about `ρ / (1 − ρ)` times the last step's largest change. ρ is the *largest* ratio of
     /// successive largest changes over the last eight steps (for conjugate gradients, whose
-    /// changes do not fall steadily, the largest two-step contraction of their residuals within the
-    /// current restart pass): the
-    /// error left is made of the slowest mode, and a ratio read from the last one or two steps
-    /// was often a faster one's (the estimate was as low as 0.08× the true error: 1.2e-6
+    /// changes do not fall steadily, the largest two-step contraction of their residuals within
+    /// the current restart pass): the error left is made of the slowest mode, and a ratio read
+    /// from the last one or two steps was often a faster one's (the estimate was as low as 0.08× the true error: 1.2e-6
     /// reported, 1.5e-5 true, flat solver; 0.15× in the rooms). That is then multiplied
     /// by a safety factor of 8 (`ESTIMATE_SAFETY`): the windowed estimate alone was still
     /// down to 0.18× the true error (MGPCG) on random worlds of long walls, narrow doors and a
