@@ -10,7 +10,7 @@ mod common;
 use harmonic_core::domain::Label;
 use harmonic_core::map::{Dims, VoxelIndex};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
-use harmonic_core::solve::{Bf16, SolveParams, SolveStats};
+use harmonic_core::solve::{Bf16, SolveParams, SolveStats, Stop};
 
 /// The grid of the firmware and of the solver benchmark.
 const SMALL: [usize; 3] = [64, 64, 32];
@@ -163,8 +163,17 @@ fn max_error(psi: &[f32], exact: &[f64]) -> f64 {
 /// The layouts: rooms 21, 16 and 13 voxels across, each with its own doors and furniture.
 const LAYOUTS: [(usize, usize); 3] = [(0, 21), (1, 16), (2, 13)];
 
+/// Whether a solve stopped by its own rule (the tolerance, or the f32 rounding floor where that
+/// lies above it), not at a cap, and reported `converged` exactly when its residual met the
+/// tolerance of 1e-6 (on these rooms Laplace's floor is about 4e-6: the solves stop there and
+/// are honestly not converged).
+fn stopped_by_its_rule(stats: &SolveStats) -> bool {
+    matches!(stats.stop, Stop::Met | Stop::Floor) && stats.converged == (stats.residual <= 1e-6)
+}
+
 /// Solves each layout of `size` with both of the core's multigrid solvers and checks that
-/// each reports `converged` and lies within `bound` of the f64 solution everywhere.
+/// each stops by its own rule, reports `converged` honestly and lies within `bound` of the f64
+/// solution everywhere.
 fn assert_converged_within(size: [usize; 3], layouts: &[(usize, usize)], bound: f64) {
     for &(variant, room) in layouts {
         let (dims, labels, _) = rooms_of(size, variant, room);
@@ -177,7 +186,10 @@ fn assert_converged_within(size: [usize; 3], layouts: &[(usize, usize)], bound: 
         for method in [Method::Pcg, Method::VCycle] {
             let (psi, stats) = solve(dims, &labels, method, 1_000_000);
             let err = max_error(&psi, &ex);
-            assert!(stats.converged, "{size:?}, rooms {room}, {method:?}: {stats:?}");
+            assert!(
+                stopped_by_its_rule(&stats),
+                "{size:?}, rooms {room}, {method:?}: {stats:?}"
+            );
             assert!(
                 err <= bound,
                 "{size:?}, rooms {room}, {method:?}: max error {err:.3e}, {stats:?}"
@@ -187,7 +199,8 @@ fn assert_converged_within(size: [usize; 3], layouts: &[(usize, usize)], bound: 
 }
 
 /// Both of the core's multigrid solvers — MGPCG (the host's) and plain V-cycles (the
-/// firmware's) — report `converged` and are then within 2e-5 of the f64 solution everywhere
+/// firmware's) — stop by their own rule (at the rounding floor, about 4e-6 here, above the
+/// tolerance of 1e-6: not converged) and are then within 2e-5 of the f64 solution everywhere
 /// (the solver issue's bar is 1e-4). V-cycles that stopped at the f32 rounding floor were
 /// 5.6e-5 to 8.6e-5 off on these layouts (1.1e-4 on an earlier door layout) before they learned
 /// to go on while the residual falls.
@@ -243,12 +256,13 @@ fn for_each_field(mut f: impl FnMut(usize, Dims, &[Label], f32, &[f64])) {
 /// length at 0.1 m voxels, s = 0.09), for the host's two multigrid solvers and the firmware's
 /// (V-cycles, label-only coarse operator, bfloat16 coarse levels), each stopped after 6, 20
 /// and 80 steps and at its own stop. A user relies on it not being optimistic on such late
-/// problems: it is never below half the true error here (measured 0.73× at worst). Nor is it
-/// uselessly pessimistic while the error is above the rounding noise: at most 12× (measured
-/// 9.8×, MGPCG on the screened field). It is an estimate, not a bound: on small random
-/// domains plain V-cycles' fell to 0.07× (BENCHMARKS.md, "Error estimates").
+/// problems: it is never below the true error here (a bound for the screened field, a measured
+/// safe estimate for Laplace's; the estimate before issue 60 was as low as 0.7× the true error
+/// here and 0.15× on the issue's rooms). It is cautious by design: up to some thousands of
+/// times the true error where the screening is weak (s = 1e-4) or the solve sits at the f32
+/// floor, so only a sanity ceiling (10⁴ times the true error or 1e-2) is checked.
 #[test]
-fn the_error_estimate_follows_the_true_error() {
+fn the_error_estimate_bounds_the_true_error() {
     for_each_field(|room, dims, labels, s, ex| {
         for setup in [
             Setup::Host(Method::VCycle),
@@ -260,10 +274,8 @@ fn the_error_estimate_follows_the_true_error() {
                 let err = max_error(&psi, ex);
                 let est = f64::from(st.error_estimate.expect("estimated"));
                 let case = format!("rooms {room}, s {s}, {setup:?}, cap {cap}: error {err:.3e}, {st:?}");
-                assert!(est >= 0.5 * err, "optimistic: {case}");
-                if err >= 1e-5 {
-                    assert!(est <= 12.0 * err, "pessimistic: {case}");
-                }
+                assert!(est >= err, "optimistic: {case}");
+                assert!(est <= 1e4 * err.max(1e-6), "useless: {case}");
                 if st.iterations < cap {
                     break;
                 }
@@ -273,24 +285,70 @@ fn the_error_estimate_follows_the_true_error() {
 }
 
 /// With an error target (`SolveParams::max_error`) a solve goes on until its estimate meets
-/// it and only then reports `converged`: on the layout where the residual rule alone left
-/// plain V-cycles 8.5e-6 off (and an earlier rule 1.1e-4 off), asking for 5e-6 leaves both
-/// solvers within 1e-5 of the f64 solution (the estimate is at least half the error here). A
-/// target the cap does not let it reach is reported as not converged.
+/// it, and `converged` says whether both the tolerance and the target were met: on the layout
+/// where the residual rule alone left plain V-cycles 8.5e-6 off (and an earlier rule 1.1e-4
+/// off), with a tolerance above the rounding floor (5e-6) and a target of 1e-4, a converged
+/// solve's estimate meets the target and bounds its true error. A target the cap does not let
+/// it reach is reported as not converged.
 #[test]
 fn an_error_target_is_met_or_reported_missed() {
     let (dims, labels, _) = rooms_of(SMALL, 0, 21);
     let ex = exact(&dims, &labels);
     for method in [Method::VCycle, Method::Pcg] {
-        let (psi, st) = solve_with(dims, &labels, Setup::Host(method), 1_000_000, 0.0, 5e-6);
+        let (psi, st) = solve_to(dims, &labels, method, 5_000, 5e-6, 1e-4);
         let err = max_error(&psi, &ex);
         println!("{method:?}: error {err:.3e}, {st:?}");
-        assert!(st.converged, "{method:?}: {st:?}");
-        assert!(st.error_estimate.is_some_and(|e| e <= 5e-6), "{method:?}: {st:?}");
-        assert!(err <= 1e-5, "{method:?}: error {err:.3e}, {st:?}");
-        let (_, capped) = solve_with(dims, &labels, Setup::Host(method), 8, 0.0, 5e-6);
-        assert!(!capped.converged, "{method:?} at 8 steps: {capped:?}");
+        let met = st.residual <= 5e-6 && st.error_estimate.is_some_and(|e| e <= 1e-4);
+        assert_eq!(st.converged, met, "{method:?}: {st:?}");
+        if let Some(e) = st.error_estimate {
+            assert!(err <= f64::from(e), "{method:?}: error {err:.3e}, {st:?}");
+        }
+        let (_, capped) = solve_to(dims, &labels, method, 8, 5e-6, 1e-6);
+        assert!(
+            !capped.converged && capped.stop == Stop::Cap,
+            "{method:?} at 8 steps: {capped:?}"
+        );
     }
+}
+
+/// [`solve_with`] on the host's storage with a tolerance of `tolerance`.
+fn solve_to(
+    dims: Dims,
+    labels: &[Label],
+    method: Method,
+    max_iterations: u32,
+    tolerance: f32,
+    max_error: f32,
+) -> (Vec<f32>, SolveStats) {
+    let s = scratch_size(&dims);
+    let (mut values, mut clabels, mut faces, mut krylov, mut masks) = (
+        vec![0.0f32; s.values],
+        vec![Label::Outside; s.labels],
+        vec![[0u8; 4]; s.faces],
+        vec![0.0f32; s.krylov],
+        vec![0u8; s.masks],
+    );
+    let mut mg = Multigrid::new(
+        dims,
+        MultigridStorage {
+            values: values.as_mut_slice().into(),
+            labels: &mut clabels,
+            faces: &mut faces,
+            krylov: &mut krylov,
+            masks: &mut masks,
+        },
+    )
+    .unwrap();
+    let mut psi = vec![0.0f32; dims.len()];
+    let params = SolveParams {
+        tolerance,
+        max_iterations,
+        warm_start: false,
+        screening: 0.0,
+        max_error,
+    };
+    let stats = mg.solve(labels, &mut psi, &params, method).unwrap();
+    (psi, stats)
 }
 
 /// The firmware's solver — plain V-cycles on the label-only coarse operator, with its coarse
@@ -307,7 +365,7 @@ fn bfloat16_coarse_levels_converge_like_f32_ones() {
         let (psi, half) = solve_with(dims, labels, Setup::Firmware, 100_000, s, f32::INFINITY);
         let err = max_error(&psi, ex);
         let case = format!("rooms {room}, s {s}: error {err:.3e}, bf16 {half:?}, f32 {full:?}");
-        assert!(half.converged && full.converged, "{case}");
+        assert!(stopped_by_its_rule(&half) && stopped_by_its_rule(&full), "{case}");
         assert!(
             f64::from(half.iterations) <= 1.1 * f64::from(full.iterations) + 2.0,
             "{case}"
@@ -341,7 +399,10 @@ fn the_flat_solver_matches_the_f64_solution_on_rooms_with_a_small_far_frontier()
             };
             let stats = flat.solve(labels, &mut psi, &params).unwrap();
             let err = max_error(&psi, &ex);
-            assert!(stats.converged, "rooms {room}, s = {screening}: {stats:?}");
+            assert!(
+                stopped_by_its_rule(&stats),
+                "rooms {room}, s = {screening}: {stats:?}"
+            );
             eprintln!(
                 "rooms {room}, s = {screening}: max error {err:.3e}, {} iterations",
                 stats.iterations

@@ -24,7 +24,7 @@ use harmonic_core::map::{self, Dims, LogOddsParams, MapGeometry, VoxelIndex, Vox
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::multigrid::{scratch_size, Method, Multigrid, MultigridStorage};
 use harmonic_core::solve::{
-    gauss_seidel, Fork, Sequential, SolveParams, SolveStats, PSI_FRONTIER, PSI_SOURCE,
+    gauss_seidel, Fork, Sequential, SolveParams, SolveStats, Stop, PSI_FRONTIER, PSI_SOURCE,
 };
 use harmonic_core::streamline::{trace, Field, StreamlineError, StreamlineParams, Waypoints};
 use nalgebra::{Point3, Vector3};
@@ -268,6 +268,14 @@ fn build_with_frontier(world: &World) -> Result<Built, TestCaseError> {
 // ---------------------------------------------------------------------------------------------
 // Solves
 // ---------------------------------------------------------------------------------------------
+
+/// Whether a solve stopped by its own rule — the tolerance, or the f32 rounding floor where
+/// that lies above it — rather than at its cap, and reported `converged` exactly when its
+/// residual met the tolerance (1e-6 in every property here; the floor of a small domain rarely
+/// lies above it).
+fn stopped_by_its_rule(s: &SolveStats) -> bool {
+    matches!(s.stop, Stop::Met | Stop::Floor) && s.converged == (s.residual <= 1e-6)
+}
 
 fn solve_gs(b: &Built, tolerance: f32) -> (Vec<f32>, SolveStats) {
     let mut psi = vec![0.0f32; b.dims().len()];
@@ -560,7 +568,7 @@ proptest! {
     fn multigrid_potential_obeys_the_discrete_maximum_principle(w in world()) {
         let b = build_with_frontier(&w)?;
         let (mg, mg_stats) = solve_mg(&b, Method::Pcg);
-        prop_assert!(mg_stats.converged, "multigrid PCG did not converge: {mg_stats:?}");
+        prop_assert!(stopped_by_its_rule(&mg_stats), "multigrid PCG did not converge: {mg_stats:?}");
         check_maximum_principle(&b, &mg, "multigrid PCG", 1e-5)?;
     }
 
@@ -581,7 +589,7 @@ proptest! {
     fn gauss_seidel_potential_obeys_the_discrete_maximum_principle(w in world()) {
         let b = build_with_frontier(&w)?;
         let (gs, gs_stats) = solve_gs(&b, 1e-6);
-        prop_assert!(gs_stats.converged, "Gauss-Seidel did not converge: {gs_stats:?}");
+        prop_assert!(stopped_by_its_rule(&gs_stats), "Gauss-Seidel did not converge: {gs_stats:?}");
         check_maximum_principle(&b, &gs, "Gauss-Seidel", 1e-5)?;
     }
 
@@ -596,7 +604,7 @@ proptest! {
     fn gauss_seidel_potential_obeys_the_maximum_principle_within_its_residual(w in world()) {
         let b = build_with_frontier(&w)?;
         let (gs, gs_stats) = solve_gs(&b, 1e-6);
-        prop_assert!(gs_stats.converged, "Gauss-Seidel did not converge: {gs_stats:?}");
+        prop_assert!(stopped_by_its_rule(&gs_stats), "Gauss-Seidel did not converge: {gs_stats:?}");
         let allowed = 1e-5 + gs_stats.residual * rhs_norm(&b);
         check_maximum_principle(&b, &gs, "Gauss-Seidel", allowed)?;
     }
@@ -639,7 +647,7 @@ proptest! {
             prop_assume!(gs_stats.residual <= 1e-6);
         }
         let (mg, mg_stats) = solve_mg(&b, Method::Pcg);
-        prop_assert!(mg_stats.converged, "multigrid PCG did not converge: {mg_stats:?}");
+        prop_assert!(stopped_by_its_rule(&mg_stats), "multigrid PCG did not converge: {mg_stats:?}");
         let (worst, at) = max_difference(&gs, &mg);
         prop_assert!(
             worst <= 1e-4,
@@ -666,7 +674,7 @@ proptest! {
         // The firmware's V-cycles are held to 5e-4.
         for (method, tolerance, bound) in [(Method::Pcg, 1e-6, 1e-4), (Method::VCycle, 1e-6, 5e-4)] {
             let (mg, mg_stats) = solve_mg_to(&b, method, tolerance);
-            prop_assert!(mg_stats.converged, "{method:?} did not converge: {mg_stats:?}");
+            prop_assert!(stopped_by_its_rule(&mg_stats), "{method:?} did not converge: {mg_stats:?}");
             let (worst, at) = exact
                 .iter()
                 .zip(&mg)
@@ -713,7 +721,7 @@ proptest! {
         let exact = solve_exact_screened(&s, f64::from(SCREENING));
         for method in [Method::Pcg, Method::VCycle] {
             let (u, stats) = solve_mg_screened(&s, method, 1e-6, SCREENING);
-            prop_assert!(stats.converged, "{method:?} did not converge: {stats:?}");
+            prop_assert!(stopped_by_its_rule(&stats), "{method:?} did not converge: {stats:?}");
             let worst = exact.iter().zip(&u).map(|(e, m)| (e - f64::from(*m)).abs()).fold(0.0, f64::max);
             prop_assert!(worst <= 5e-5, "{method:?}: max |u − u_exact| = {worst:e}; {stats:?}");
         }
@@ -731,7 +739,7 @@ proptest! {
         for (problem, screening, bound) in [(&b, 0.0, 1e-4), (&s, SCREENING, 5e-5)] {
             let exact = solve_exact_screened(problem, f64::from(screening));
             let (u, stats) = solve_flat(problem, 1e-6, screening, None);
-            prop_assert!(stats.converged, "screening {screening}: did not converge: {stats:?}");
+            prop_assert!(stopped_by_its_rule(&stats), "screening {screening}: did not converge: {stats:?}");
             let worst = exact.iter().zip(&u).map(|(e, m)| (e - f64::from(*m)).abs()).fold(0.0, f64::max);
             prop_assert!(worst <= bound, "screening {screening}: max |ψ − ψ_exact| = {worst:e}; {stats:?}");
         }
@@ -765,7 +773,7 @@ proptest! {
     fn screened_field_has_no_interior_maximum(w in world()) {
         let b = build_with_frontier(&w)?;
         let (s, u, stats) = screened(&b);
-        prop_assert!(stats.converged, "{stats:?}");
+        prop_assert!(stopped_by_its_rule(&stats), "{stats:?}");
         let dims = s.dims();
         for i in 0..dims.len() {
             if s.labels[i] != Label::Interior || u[i] < 1e-4 {
@@ -787,7 +795,7 @@ proptest! {
     ) {
         let b = build_with_frontier(&w)?;
         let (s, u, stats) = screened(&b);
-        prop_assert!(stats.converged, "{stats:?}");
+        prop_assert!(stopped_by_its_rule(&stats), "{stats:?}");
         let (dims, g) = (s.dims(), s.geometry);
         let field = Field { geometry: &g, labels: &s.labels, phi: &u };
         let domain: Vec<usize> = (0..dims.len()).filter(|&i| s.labels[i].in_domain()).collect();
@@ -911,7 +919,7 @@ proptest! {
     ) {
         let b = build_with_frontier(&w)?;
         let (psi, s) = solve_mg(&b, Method::Pcg);
-        prop_assert!(s.converged, "multigrid PCG did not converge: {s:?}");
+        prop_assert!(stopped_by_its_rule(&s), "multigrid PCG did not converge: {s:?}");
         let (dims, g) = (b.dims(), b.geometry);
         let field = Field { geometry: &g, labels: &b.labels, phi: &psi };
         let interior: Vec<usize> = (0..dims.len()).filter(|&i| b.labels[i] == Label::Interior).collect();
@@ -941,7 +949,7 @@ proptest! {
     ) {
         let b = build_with_frontier(&w)?;
         let (psi, s) = solve_mg(&b, Method::Pcg);
-        prop_assert!(s.converged, "multigrid PCG did not converge: {s:?}");
+        prop_assert!(stopped_by_its_rule(&s), "multigrid PCG did not converge: {s:?}");
         let g = b.geometry;
         let field = Field { geometry: &g, labels: &b.labels, phi: &psi };
         let mut starts = vec![g.center(b.vehicle)];
@@ -968,7 +976,7 @@ proptest! {
     ) {
         let b = build_with_frontier(&w)?;
         let (psi, s) = solve_mg(&b, Method::Pcg);
-        prop_assert!(s.converged, "multigrid PCG did not converge: {s:?}");
+        prop_assert!(stopped_by_its_rule(&s), "multigrid PCG did not converge: {s:?}");
         let (dims, g) = (b.dims(), b.geometry);
         let field = Field { geometry: &g, labels: &b.labels, phi: &psi };
         let domain: Vec<usize> = (0..dims.len()).filter(|&i| b.labels[i].in_domain()).collect();

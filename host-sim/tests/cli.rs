@@ -229,11 +229,13 @@ fn solve_on_two_threads_writes_the_same_phi_as_on_one() {
             (
                 std::fs::read(&phi).unwrap(),
                 line["cycles"].clone(),
-                line["converged"].clone(),
+                line["stop"].clone(),
             )
         };
         let (one, two) = (run("1"), run("2"));
-        assert_eq!(one.2, true, "{solver}");
+        // Stopped by its own rule: the tolerance, or the rounding floor above it (Laplace's
+        // field behind one doorway: then honestly not converged).
+        assert!(one.2 == "met" || one.2 == "floor", "{solver}: {}", one.2);
         assert_eq!((&one.1, &one.2), (&two.1, &two.2), "{solver}");
         assert!(one.0 == two.0, "{solver}: φ differs between one and two threads");
     }

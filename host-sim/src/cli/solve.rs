@@ -24,13 +24,15 @@ pub struct SolveArgs {
     /// Relative-residual tolerance.
     #[arg(long, default_value_t = 1e-6, value_parser = parse_positive)]
     tol: f32,
-    /// Most cycles (sweeps for `gs`). A solve stopped here before its own rule says "done"
-    /// prints `"converged": false` (and still exits 0).
+    /// Most cycles (sweeps for `gs`). A solve stopped here prints `"converged": false` and
+    /// `"stop": "cap"` (and still exits 0); so does one stopped at the f32 rounding floor above
+    /// `--tol` (`"stop": "floor"`).
     #[arg(long, default_value_t = 1_000_000)]
     max_cycles: u32,
-    /// Error target: go on until the solve's estimate of its largest error of φ (printed as
-    /// `error_estimate`) is at or below this as well as the tolerance; `converged` then means
-    /// both were met. Default: the residual alone decides.
+    /// Error target: go on until the solve's bound on its largest error of φ (printed as
+    /// `error_estimate`: a bound for the screened field, a measured safe estimate for
+    /// Laplace's) is at or below this as well as the tolerance; `converged` then means both
+    /// were met. Default: the residual alone decides.
     #[arg(long, value_parser = parse_positive)]
     max_error: Option<f32>,
     /// Vehicle radius in metres (obstacles and unknown space are inflated by it).

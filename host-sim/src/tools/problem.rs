@@ -12,7 +12,7 @@ use harmonic_core::domain::{self, DomainStats, InflationStencil, Label};
 use harmonic_core::map::{touched_words, Dims, LogOddsParams, MapGeometry, VoxelIndex, VoxelMap};
 use harmonic_core::solve::flat::{flat_scratch_len, Flat};
 use harmonic_core::solve::multigrid::{Method, Multigrid};
-use harmonic_core::solve::{gauss_seidel, SolveParams};
+use harmonic_core::solve::{gauss_seidel, SolveParams, Stop};
 use nalgebra::Point3;
 use serde::Serialize;
 
@@ -86,11 +86,18 @@ pub struct SolveSummary {
     pub cycles: u32,
     /// Final relative residual.
     pub residual: f32,
-    /// Whether the solve stopped by its own rule: the tolerance (or the f32 floor) reached,
-    /// and the error target if one was set. False at the cycle cap.
+    /// Whether the solve met what it was asked: the relative residual at or below the
+    /// tolerance and, if one was set, the error estimate at or below the error target. False
+    /// whenever either was missed, whatever stopped the solve (`stop`).
     pub converged: bool,
+    /// Why the solve stopped: `met` (converged), `floor` (the residual reached the f32 rounding
+    /// floor, which lies above the tolerance), `restarts` (MGPCG out of restarts), `cap` (the
+    /// cycle cap) or `rule` (a solver's own rule).
+    pub stop: &'static str,
     /// Estimated largest error of φ against the exact solution of the same discrete system
-    /// (`null` where the solve had too few steps to estimate it).
+    /// ([`harmonic_core::solve::SolveStats::error_estimate`]: a bound for the screened field,
+    /// a measured safe estimate for Laplace's; `null` where the solve had too few steps to
+    /// estimate it).
     pub error_estimate: Option<f32>,
     /// Solve time, ms.
     pub solve_ms: f64,
@@ -272,6 +279,13 @@ pub fn solve(grid: &Array3<u8>, req: &SolveRequest) -> Result<(Array3<f32>, Solv
         cycles: s.iterations,
         residual: s.residual,
         converged: s.converged,
+        stop: match s.stop {
+            Stop::Met => "met",
+            Stop::Floor => "floor",
+            Stop::Restarts => "restarts",
+            Stop::Cap => "cap",
+            Stop::Rule => "rule",
+        },
         error_estimate: s.error_estimate,
         solve_ms,
         setup_ms,
@@ -361,9 +375,10 @@ mod tests {
         }
     }
 
-    /// `--max-error`: every solver goes on until its error estimate meets the target, and the
-    /// potential it prints is then that close to the exact one (in a one-voxel corridor φ is
-    /// linear from the source to the frontier voxel). With one step there is nothing to estimate from:
+    /// `--max-error`: the multigrid solvers go on until their error estimate meets the target,
+    /// and the potential they print is then that close to the exact one (in a one-voxel
+    /// corridor φ is linear from the source to the frontier voxel); Gauss-Seidel reports the
+    /// target missed at its cap, its estimate still above its true error. With one step there is nothing to estimate from:
     /// `error_estimate` is null and the solve is not converged.
     #[test]
     fn an_error_target_is_met_and_reported() {
@@ -380,14 +395,26 @@ mod tests {
         ] {
             let req = SolveRequest {
                 max_error: 1e-4,
+                max_cycles: 20_000,
                 ..request(solver)
             };
             let (phi, s) = solve(&long, &req).unwrap();
-            assert!(s.converged, "{solver:?}: {s:?}");
-            assert!(s.error_estimate.is_some_and(|e| e <= 1e-4), "{solver:?}: {s:?}");
             let worst = (0..58)
                 .map(|x| (phi.get(x, 1, 1).unwrap() - (1.0 - x as f32 / 58.0)).abs())
                 .fold(0.0f32, f32::max);
+            // The estimate bounds the error whether or not it met the target.
+            let estimate = s.error_estimate.unwrap_or(f32::INFINITY);
+            assert!(worst <= estimate, "{solver:?}: φ off by {worst:.2e}, {s:?}");
+            assert_eq!(s.converged, estimate <= 1e-4, "{solver:?}: {s:?}");
+            if solver == SolverChoice::GaussSeidel {
+                // Gauss-Seidel's contraction on 58 voxels is too slow, and its noise at the
+                // floor too large, for the cautious estimate to reach 1e-4: it reports the
+                // target missed (measured: 0.044 after 1e6 sweeps) rather
+                // than claiming it.
+                assert!(!s.converged && s.stop == "cap", "{s:?}");
+            } else {
+                assert!(s.converged, "{solver:?}: {s:?}");
+            }
             assert!(worst <= 2e-4, "{solver:?}: φ off the line by {worst:.2e}, {s:?}");
             let one = SolveRequest { max_cycles: 1, ..req };
             let (_, s) = solve(&long, &one).unwrap();

@@ -39,9 +39,9 @@
 use super::flat::Flat;
 use super::multigrid::{Method, Multigrid};
 use super::{
-    cell_residual, error_estimate, error_met, for_each_row, rounding2, rounding_row, row_residual_chunks,
-    zip3, Active, ChunkSink, Contraction, Dirichlet, Residual, Screen, SolveError, SolveParams, SolveStats,
-    Solved, CHUNK,
+    cell_residual, converged, error_estimate, error_met, for_each_row, rounding2, rounding_row,
+    row_residual_chunks, zip3, Active, ChunkSink, Contraction, Dirichlet, Residual, Screen, SolveError,
+    SolveParams, SolveStats, Solved, Stop, CHUNK,
 };
 use crate::mapping::map::Dims;
 use crate::planning::domain::Label;
@@ -145,7 +145,8 @@ impl LocalParams {
 /// How a local re-solve solved.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Local {
-    /// In boxes; the whole grid meets the tolerance.
+    /// In boxes; the whole grid meets the tolerance, or the rounding floor where that lies
+    /// above it (then not [`SolveStats::converged`]).
     Solved(LocalStats),
     /// The boxes gave the grid back: a whole-grid solve from what they left. Its stats, with
     /// the work the boxes spent (box solves and residual passes) added to its cell updates.
@@ -906,7 +907,14 @@ fn in_boxes(
     out.stats.residual = res.relative;
     out.stats.floor = res.floor;
     out.stats.error_estimate = error_estimate(&Contraction::default(), &res, &screen);
-    out.stats.converged = true;
+    // The boxes stop where the whole grid meets the tolerance or the floor above it (as a
+    // whole-grid solve does); converged only in the first case.
+    out.stats.converged = converged(&res, params, out.stats.error_estimate);
+    out.stats.stop = if out.stats.converged {
+        Stop::Met
+    } else {
+        Stop::Floor
+    };
     Ok(Some(out))
 }
 

@@ -47,11 +47,12 @@
 //!
 //! The result is whatever the rule leaves: not a converged harmonic field. [`SolveStats`] reports
 //! the sweeps, the cell updates, and the relative residual of ψ before and after (the core's
-//! measure, for comparison with the other solvers).
+//! measure, for comparison with the other solvers); `converged` only where that residual meets
+//! [`ThesisParams::tolerance`] too.
 
 use super::{
     clamp_to_bounds, dirichlet_norm2, for_each_row, residual_with, row_residuals, Active, Screen, SolveError,
-    SolveStats, PSI_FRONTIER, PSI_SOURCE,
+    SolveStats, Stop, PSI_FRONTIER, PSI_SOURCE,
 };
 use crate::mapping::map::Dims;
 use crate::planning::domain::Label;
@@ -75,6 +76,10 @@ pub struct ThesisParams {
     pub relative_change: f32,
     /// Stop after this many sweeps regardless (not converged).
     pub max_sweeps: u32,
+    /// The relative residual [`SolveStats::converged`] asks for as well: the rule stops the
+    /// solve, but a field it truncated is converged only if it also meets this (the core's
+    /// default, 1e-6).
+    pub tolerance: f32,
 }
 
 impl Default for ThesisParams {
@@ -82,6 +87,7 @@ impl Default for ThesisParams {
         Self {
             relative_change: RELATIVE_CHANGE,
             max_sweeps: MAX_SWEEPS,
+            tolerance: 1e-6,
         }
     }
 }
@@ -195,8 +201,9 @@ fn sweep_phi(
 
 /// Solves the seed's field the thesis's way (see the module doc) into `psi` (the core's stored
 /// ψ, as [`gauss_seidel`](super::gauss_seidel) leaves it), with `scratch` (at least one entry
-/// per voxel) holding the other sweep. `converged` is true if the relative-change rule (or a
-/// fixed point) stopped it, false at the sweep cap.
+/// per voxel) holding the other sweep. `converged` is true only if the relative-change rule (or
+/// a fixed point) stopped it *and* the field meets [`ThesisParams::tolerance`]; `stop` says
+/// which rule ended it ([`Stop::Rule`], or [`Stop::Cap`] at the sweep cap).
 ///
 /// Laplace only: the thesis solves no screened problem.
 pub fn solve(
@@ -236,7 +243,14 @@ pub fn solve(
     let end = residual_with(dims, &active, &Screen::NONE, (labels, &[]), psi, b2);
     stats.residual = end.relative;
     stats.floor = end.floor;
-    stats.converged = converged;
+    // The rule stopping the sweeps is not a converged field: converged only where the residual
+    // meets the tolerance too (no error target: the thesis estimates no error).
+    stats.converged = converged && end.relative <= params.tolerance;
+    stats.stop = match (stats.converged, converged) {
+        (true, _) => Stop::Met,
+        (false, true) => Stop::Rule,
+        (false, false) => Stop::Cap,
+    };
     Ok(stats)
 }
 
@@ -286,7 +300,8 @@ mod tests {
         let mut scratch = vec![0.0f32; n];
         let params = ThesisParams::default();
         let s = solve(&dims, &labels, &mut psi, &mut scratch, &params).unwrap();
-        assert!(s.converged, "{s:?}");
+        // Stopped by its rule, but the field it left does not meet the core's tolerance.
+        assert!(!s.converged && s.stop == Stop::Rule, "{s:?}");
         assert!(s.iterations > 2 && s.iterations < params.max_sweeps, "{s:?}");
         // The rule, checked from outside on the thesis's φ: the last sweep changed φ by less
         // than 1e-4 relative, the one before did not.
@@ -394,7 +409,7 @@ mod tests {
         let labels = [Label::Source, Label::Interior, Label::Frontier];
         let (mut psi, mut scratch) = ([0.0f32; 3], [0.0f32; 3]);
         let s = solve(&dims, &labels, &mut psi, &mut scratch, &ThesisParams::default()).unwrap();
-        assert!(s.converged && s.iterations == 1, "{s:?}");
+        assert!(s.converged && s.iterations == 1 && s.stop == Stop::Met, "{s:?}");
         assert_eq!(psi, [0.0, 0.5, 1.0]);
         // The cap: reported, not converged.
         let (dims, labels, _) = boxed(12, 9, 6);
@@ -404,7 +419,7 @@ mod tests {
             ..ThesisParams::default()
         };
         let s = solve(&dims, &labels, &mut psi, &mut scratch, &capped).unwrap();
-        assert!(!s.converged && s.iterations == 5, "{s:?}");
+        assert!(!s.converged && s.iterations == 5 && s.stop == Stop::Cap, "{s:?}");
         // Short buffers and a bad threshold are refused.
         let mut short = vec![0.0f32; dims.len() - 1];
         assert_eq!(
