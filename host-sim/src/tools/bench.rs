@@ -535,7 +535,9 @@ mod tests {
     fn warm_and_full_multigrid_starts_beat_a_zero_start() {
         let dims = Dims::new(32, 32, 16).unwrap();
         for method in [Method::Pcg, Method::VCycle] {
-            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-6, 1, 0.0, None);
+            // 1e-5, the explorer's tolerance: at 1e-6 this grid's Laplace solve stops at its
+            // f32 rounding floor (about 1.03e-6), which is honestly not converged.
+            let rows = measure(dims, BenchSolver::Multigrid(method), 1e-5, 1, 0.0, None);
             let get = |start: &str| rows.iter().find(|r| r.start == start).unwrap();
             let (cold, zero, warm) = (get("cold"), get("zero"), get("warm"));
             assert!(cold.converged && zero.converged && warm.converged, "{rows:?}");
