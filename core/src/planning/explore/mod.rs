@@ -841,6 +841,10 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
         };
         let was_narrow = self.inflation.widen();
         domain::mark_body(&mut self.map, self.inflation.stencil(), position);
+        // The vehicle stood at home, so the space its body filled there is free, however the
+        // map has it now (on a coarser planning grid a cell there holding voxels the camera never
+        // saw, inside its minimum range at the start, pools back to unknown).
+        domain::mark_body(&mut self.map, self.inflation.stencil(), home);
         let dims = geometry.dims();
         let at_home = dims.linear(home_voxel);
         let t0 = clock.ticks();
