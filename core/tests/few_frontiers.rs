@@ -57,25 +57,7 @@ fn rooms_of([nx, ny, nz]: [usize; 3], variant: usize, room: usize) -> (Dims, Vec
     labels[dims.linear(source)] = Label::Source;
     // As the domain build does: only the source's component (through interior voxels) takes
     // part; a room that furniture or a missing door cuts off is outside.
-    let mut reached = vec![false; dims.len()];
-    let mut stack = vec![dims.linear(source)];
-    reached[dims.linear(source)] = true;
-    while let Some(i) = stack.pop() {
-        if labels[i] == Label::Frontier {
-            continue;
-        }
-        dims.for_each_face_neighbour(dims.voxel(i), |j| {
-            if !reached[j] && labels[j] != Label::Outside {
-                reached[j] = true;
-                stack.push(j);
-            }
-        });
-    }
-    for (l, r) in labels.iter_mut().zip(&reached) {
-        if !r {
-            *l = Label::Outside;
-        }
-    }
+    common::keep_component(&dims, &mut labels, dims.linear(source));
     (dims, labels, source)
 }
 

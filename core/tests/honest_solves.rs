@@ -141,25 +141,7 @@ fn labels_of(w: &World) -> Option<(Dims, Vec<Label>)> {
         return None;
     }
     labels[source] = Label::Source;
-    let mut reached = vec![false; dims.len()];
-    let mut stack = vec![source];
-    reached[source] = true;
-    while let Some(i) = stack.pop() {
-        if labels[i] == Label::Frontier {
-            continue;
-        }
-        dims.for_each_face_neighbour(dims.voxel(i), |j| {
-            if !reached[j] && labels[j] != Label::Outside {
-                reached[j] = true;
-                stack.push(j);
-            }
-        });
-    }
-    for (l, r) in labels.iter_mut().zip(&reached) {
-        if !r {
-            *l = Label::Outside;
-        }
-    }
+    common::keep_component(&dims, &mut labels, source);
     labels.contains(&Label::Frontier).then_some((dims, labels))
 }
 

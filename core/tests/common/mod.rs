@@ -1,4 +1,5 @@
-//! What several integration tests share: the f64 reference solution of the discrete system.
+//! What several integration tests share: the f64 reference solution of the discrete system, and
+//! the domain cut to the source's component.
 
 use harmonic_core::domain::Label;
 use harmonic_core::map::Dims;
@@ -66,4 +67,29 @@ pub fn exact_solution(dims: &Dims, labels: &[Label], screening: f64) -> Vec<f64>
             _ => f64::from(PSI_SOURCE),
         })
         .collect()
+}
+
+/// Keeps only the source's component, as the domain build does: what the source reaches through
+/// non-frontier domain voxels stays, everything else becomes `Outside` (a room that furniture or
+/// a missing door cuts off takes no part).
+pub fn keep_component(dims: &Dims, labels: &mut [Label], source: usize) {
+    let mut reached = vec![false; dims.len()];
+    let mut stack = vec![source];
+    reached[source] = true;
+    while let Some(i) = stack.pop() {
+        if labels[i] == Label::Frontier {
+            continue;
+        }
+        dims.for_each_face_neighbour(dims.voxel(i), |j| {
+            if !reached[j] && labels[j] != Label::Outside {
+                reached[j] = true;
+                stack.push(j);
+            }
+        });
+    }
+    for (l, r) in labels.iter_mut().zip(&reached) {
+        if !r {
+            *l = Label::Outside;
+        }
+    }
 }
