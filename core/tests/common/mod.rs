@@ -72,6 +72,10 @@ pub fn exact_solution(dims: &Dims, labels: &[Label], screening: f64) -> Vec<f64>
 /// Keeps only the source's component, as the domain build does: what the source reaches through
 /// non-frontier domain voxels stays, everything else becomes `Outside` (a room that furniture or
 /// a missing door cuts off takes no part).
+#[allow(
+    dead_code,
+    reason = "each test crate compiles its own copy of this module; properties.rs uses only the reference solution"
+)]
 pub fn keep_component(dims: &Dims, labels: &mut [Label], source: usize) {
     let mut reached = vec![false; dims.len()];
     let mut stack = vec![source];
