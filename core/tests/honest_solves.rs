@@ -450,3 +450,43 @@ fn the_worlds_have_few_frontier_voxels_and_walls() {
     assert!(interior > 1_000, "{interior}");
     assert_eq!(labels[dims.linear(VoxelIndex::new(3, 3, 3))], Label::Source);
 }
+
+/// The world a CI run's random cases found (2026-12-08): PCG capped at 7 iterations left ψ
+/// outside [0, 1]; the clamp moved it, and the report gave the residual of the iterate before
+/// the clamp (1.60e-2 against 1.69e-2 recomputed). Every solver now reports the returned ψ's.
+#[test]
+fn a_capped_solve_reports_the_residual_of_the_clamped_field() {
+    let w = World {
+        n: [17, 30, 8],
+        walls: vec![
+            Wall {
+                along_x: false,
+                at: 9,
+                doors: vec![(2, 3, 5)],
+            },
+            Wall {
+                along_x: false,
+                at: 5,
+                doors: vec![(14, 2, 1)],
+            },
+            Wall {
+                along_x: true,
+                at: 14,
+                doors: vec![(15, 1, 1), (5, 2, 1)],
+            },
+            Wall {
+                along_x: false,
+                at: 14,
+                doors: vec![(1, 3, 4)],
+            },
+        ],
+        window: (3, 6, 3, 1),
+        vehicle: [4, 14, 3],
+    };
+    let a = Ask {
+        tolerance: 1e-6,
+        max_error: f32::INFINITY,
+        cap: 7,
+    };
+    honest(&w, &a).expect("honest reports");
+}

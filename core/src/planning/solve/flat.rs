@@ -55,6 +55,7 @@ use super::multigrid::{source_pins, LOCAL_RADIUS, MAX_PINS, MAX_RESTARTS};
 use super::{
     checked_problem, clamp_to_bounds, converged, error_estimate, error_met, rounding_row, zip3, Active,
     Contraction, Dirichlet, Fork, Residual, Screen, SolveError, SolveParams, SolveStats, Solved, Stop,
+    CLAMP_SLACK, PSI_FRONTIER, PSI_SOURCE,
 };
 use crate::mapping::map::Dims;
 use crate::planning::domain::Label;
@@ -572,14 +573,18 @@ impl<'a> Flat<'a> {
                     });
                 }
             }
-            // Report the true residual, not the recurrence's.
+            // Report the true residual of the ψ returned, not the recurrence's, nor the
+            // iterate's before the clamp (a capped solve can overshoot the bounds).
+            if clamp_to_bounds_all(kr.x) > CLAMP_SLACK {
+                current = false;
+            }
             if !current {
                 res = residual(levels_store, &mut kr);
                 stats.cell_updates += fine.len as u64;
             }
         }
         store(&fine, &crop, labels, kr.x, psi);
-        clamp_to_bounds(labels, psi);
+        let _ = clamp_to_bounds(labels, psi);
         stats.residual = res.relative;
         stats.floor = res.floor;
         stats.error_estimate = error_estimate(&steps, &res, &screen);
@@ -1852,6 +1857,18 @@ fn load(g: &Grid, crop: &Crop, labels: &[Label], psi: &[f32], x: &mut [f32]) {
 }
 
 /// The padded `x` back into the interior cells of `psi`.
+/// Clamps the whole padded iterate into [0, 1] (its padding is 0, its Dirichlet values are 0
+/// or 1, so only unknowns move); returns the largest change, as [`clamp_to_bounds`] does.
+fn clamp_to_bounds_all(x: &mut [f32]) -> f32 {
+    let mut moved = 0.0f32;
+    for v in x.iter_mut() {
+        let c = v.clamp(PSI_SOURCE, PSI_FRONTIER);
+        moved = moved.max((c - *v).abs());
+        *v = c;
+    }
+    moved
+}
+
 fn store(g: &Grid, crop: &Crop, labels: &[Label], x: &[f32], psi: &mut [f32]) {
     each_row(g, crop, |row, padded| {
         if let (Some(dst), Some(l), Some(src)) = (psi.get_mut(row.clone()), labels.get(row), x.get(padded)) {

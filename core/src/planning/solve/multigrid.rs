@@ -578,7 +578,10 @@ impl<'a> Multigrid<'a> {
                 }
             }
         }
-        super::clamp_to_bounds(labels, phi);
+        if super::clamp_to_bounds(labels, phi) > super::CLAMP_SLACK {
+            res = residual_with(&self.fine, &active, &screen, (labels, self.masks), phi, b2);
+            stats.cell_updates += n as u64;
+        }
         stats.residual = res.relative;
         stats.floor = res.floor;
         stats.error_estimate = error_estimate(&steps, &res, &screen);

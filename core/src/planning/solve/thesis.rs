@@ -239,7 +239,7 @@ pub fn solve(
     }
     stats.iterations = sweeps;
     stats.cell_updates = updates;
-    clamp_to_bounds(labels, psi);
+    let _ = clamp_to_bounds(labels, psi);
     let end = residual_with(dims, &active, &Screen::NONE, (labels, &[]), psi, b2);
     stats.residual = end.relative;
     stats.floor = end.floor;
