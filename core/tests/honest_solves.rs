@@ -297,10 +297,12 @@ fn check(
         case
     );
     prop_assert_eq!(s.converged, s.stop == Stop::Met, "stop misreported: {}", case);
-    // The report's residual is the returned ψ's (up to the clamp into [0, 1], an ulp).
+    // The report's residual is the returned ψ's, up to how two evaluations of it differ in
+    // rounding: within the floor that rounding ψ to f32 causes (a 400-case run found a converged
+    // flat solve at 4.29e-7 reported, 4.53e-7 recomputed, floor 1.76e-7).
     let again = screened_residual(&dims, labels, psi, screening).relative;
     prop_assert!(
-        again <= 1.05 * s.residual + 1e-9,
+        again <= 1.05 * s.residual + s.floor + 1e-9,
         "residual {again:.3e} recomputed: {}",
         case
     );
