@@ -167,7 +167,9 @@ pub trait TargetChoice {
 /// inside the vertical field of view, unless `near`; else, and if no point sees it so, the
 /// point *closest to the end* that sees it beyond the minimum range; if no point sees it at all
 /// (a frontier inside the minimum range, or straight above or below), a point backed off from
-/// it, level with it, that does ([`step_back`]). The goal yaw faces the frontier. Trims `way`
+/// it, level with it, that does ([`step_back`]). The goal yaw faces the frontier; on a planning
+/// grid coarser than the map, the goal sees and faces the unexplored space the frontier cell
+/// borders instead ([`unexplored_beyond`]), which can lie two cells past it. Trims `way`
 /// to end at the goal; returns the goal and whether it looks from afar.
 pub fn view_rule(
     cx: &Context<'_, '_>,
@@ -184,8 +186,16 @@ pub fn view_rule(
         .intrinsics
         .map(|i| libm::tanf(i.half_fov().1 * config.view_margin))
         .unwrap_or(0.0);
+    // On a planning grid coarser than the map the unexplored space lies up to two cells past
+    // the frontier cell, often off to one side of it (a door seen along a hall) or below it
+    // (the floor beside a table): the goal must see and face that, not the cell.
+    let aim = if config.plan_coarsening > 1 {
+        unexplored_beyond(cx, end.frontier).unwrap_or(target)
+    } else {
+        target
+    };
     let sees = |p: &Point3<f32>| {
-        let d = target - p;
+        let d = aim - p;
         let horizontal = libm::sqrtf(d.x * d.x + d.y * d.y);
         d.norm() >= min_range && d.z.abs() <= horizontal * tan_v
     };
@@ -212,7 +222,7 @@ pub fn view_rule(
         Some(k) => {
             way.truncate(k + 1);
             let p = way.get(k).copied().unwrap_or(end.end);
-            (p, target - p)
+            (p, aim - p)
         }
         None => match step_back(cx, way, &target, &sees) {
             // Too near to see (inside the minimum range, or straight above or below): back
@@ -222,7 +232,7 @@ pub fn view_rule(
                 way.clear();
                 let _ = way.push(start);
                 let _ = way.push(p);
-                (p, target - p)
+                (p, aim - p)
             }
             None => (end.end, end.direction),
         },
@@ -234,6 +244,42 @@ pub fn view_rule(
         escape: false,
     };
     (goal, afar.is_some())
+}
+
+/// The centre of the unexplored voxels that make `frontier` one: those within
+/// [`frontier_reach`](crate::planning::domain::frontier_reach) of it (Chebyshev) that a straight
+/// line from its centre reaches through no occupied, uncertain or sealed voxel. `None` if
+/// there are none.
+pub fn unexplored_beyond(cx: &Context<'_, '_>, frontier: VoxelIndex) -> Option<Point3<f32>> {
+    let geometry = *cx.map.geometry();
+    let dims = geometry.dims();
+    let reach = crate::planning::domain::frontier_reach(cx.stencil);
+    let from = geometry.center(frontier);
+    let (mut sum, mut count) = (Vector3::zeros(), 0u32);
+    for dz in -reach..=reach {
+        for dy in -reach..=reach {
+            for dx in -reach..=reach {
+                let Some(u) = dims.offset(frontier, [dx, dy, dz]) else {
+                    continue;
+                };
+                if !cx.map.is_unexplored(dims.linear(u)) {
+                    continue;
+                }
+                let to = geometry.center(u);
+                let mut open = true;
+                integrate::traverse(&geometry, &from, &to, |v| {
+                    let i = dims.linear(v);
+                    open &= cx.map.is_free(i) || cx.map.is_unexplored(i);
+                    open
+                });
+                if open {
+                    sum += to.coords;
+                    count += 1;
+                }
+            }
+        }
+    }
+    (count > 0).then(|| Point3::from(sum / count as f32))
 }
 
 /// A viewpoint for a frontier `target` that no point of `way` sees: the nearest to the vehicle
