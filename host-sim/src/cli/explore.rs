@@ -514,7 +514,7 @@ fn one_screening_solves(steps: &[StepRecord]) -> String {
 
 /// The end-of-run summary: one aligned line per quantity of the report.
 fn print_summary(r: &Report) {
-    let rows: [(&str, String); 19] = [
+    let rows: [(&str, String); 20] = [
         ("scenario", r.scenario.clone()),
         ("planner", r.planner.clone()),
         ("termination", r.termination.clone()),
@@ -545,6 +545,20 @@ fn print_summary(r: &Report) {
         ),
         ("collisions", r.collisions.to_string()),
         ("integration ops", r.integration_ops.to_string()),
+        (
+            "explorer memory",
+            r.explorer_bytes.map_or_else(
+                || "the firmware's arena (see `fw-budget`)".into(),
+                |b| {
+                    let voxels = r.grid.iter().product::<usize>().max(1);
+                    format!(
+                        "{:.1} MiB, {:.2} B per voxel",
+                        b as f64 / 1048576.0,
+                        b as f64 / voxels as f64
+                    )
+                },
+            ),
+        ),
         ("planning ops", r.planning_ops.to_string()),
         (
             "local re-solves",

@@ -116,13 +116,45 @@ impl HostStorage {
             fine_touched: Vec::new(),
         }
     }
-    /// Adds the map at the grid's resolution that an explorer planning on a coarser grid
-    /// integrates into ([`ExplorerConfig::plan_coarsening`](harmonic_core::explore::ExplorerConfig::plan_coarsening));
-    /// the other buffers, sized for this grid, hold the coarser one. A no-op if it is there.
-    pub fn with_fine_map(&mut self) -> &mut Self {
-        self.fine_log_odds.resize(self.dims.len(), 0);
-        self.fine_touched.resize(map::touched_words(&self.dims), 0);
+    /// For an explorer planning on cells of `factor` voxels a side
+    /// ([`ExplorerConfig::plan_coarsening`](harmonic_core::explore::ExplorerConfig::plan_coarsening)):
+    /// the map at this grid's resolution, which frames go into, and every other buffer sized for
+    /// the coarser planning grid `plan` (as the firmware carves its arena), so the host's memory
+    /// per voxel falls as the firmware's does. A factor of 1 or a `plan` no smaller than this
+    /// grid: as it was.
+    pub fn with_coarser_plan(&mut self, plan: &Dims) -> &mut Self {
+        if plan.len() >= self.dims.len() || !self.fine_log_odds.is_empty() {
+            return self;
+        }
+        let fine = self.dims;
+        let mut coarse = Self::new(plan);
+        coarse.fine_log_odds = vec![0; fine.len()];
+        coarse.fine_touched = vec![0; map::touched_words(&fine)];
+        *self = coarse;
         self
+    }
+    /// Bytes the buffers hold (their lengths, not their allocations' spare capacity): the
+    /// explorer's memory on the host, beside the firmware's arena.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of_val;
+        let s = &self.solver;
+        size_of_val(self.log_odds.as_slice())
+            + size_of_val(self.touched.as_slice())
+            + size_of_val(self.labels.as_slice())
+            + size_of_val(self.phi.as_slice())
+            + size_of_val(self.queue.as_slice())
+            + size_of_val(s.values.as_slice())
+            + size_of_val(s.labels.as_slice())
+            + size_of_val(s.faces.as_slice())
+            + size_of_val(s.krylov.as_slice())
+            + size_of_val(s.masks.as_slice())
+            + size_of_val(self.surface.as_slice())
+            + size_of_val(self.jacobi.as_slice())
+            + size_of_val(self.local_labels.as_slice())
+            + size_of_val(self.local_psi.as_slice())
+            + size_of_val(self.flat.as_slice())
+            + size_of_val(self.fine_log_odds.as_slice())
+            + size_of_val(self.fine_touched.as_slice())
     }
     /// Adds the storage of the flat solver ([`SolverKind::Flat`](harmonic_core::explore::SolverKind::Flat),
     /// [`harmonic_core::solve::flat::flat_scratch_len`] values); a no-op if it is there.
@@ -140,7 +172,9 @@ impl HostStorage {
     /// Adds the map's surface estimate for noisy depth (two words per voxel; see
     /// [`harmonic_core::integrate`]); a no-op if it is there.
     pub fn with_surface(&mut self) -> &mut Self {
-        self.surface.resize(self.phi.len(), [0, 0]);
+        // Kept by the map frames go into: the one at the grid's resolution when there is one.
+        let n = self.fine_log_odds.len().max(self.phi.len());
+        self.surface.resize(n, [0, 0]);
         self
     }
     /// Lends the buffers to an explorer.
@@ -165,5 +199,38 @@ impl HostStorage {
             fine_log_odds: &mut self.fine_log_odds,
             fine_touched: &mut self.fine_touched,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use harmonic_core::explore::{Explorer, ExplorerConfig};
+    use harmonic_core::map::MapGeometry;
+    use nalgebra::Point3;
+
+    use super::*;
+
+    /// Planning on 2 × 2 × 2 cells, the host lends what the firmware carves: the map at the
+    /// grid's resolution and the rest for the coarser grid, under a fifth of the bytes of
+    /// planning on voxels; an explorer takes it, and does not take it planning on voxels.
+    #[test]
+    fn a_coarser_planning_grid_shrinks_the_hosts_storage_and_an_explorer_takes_it() {
+        let geometry = MapGeometry::new(Dims::new(120, 80, 25).unwrap(), Point3::origin(), 0.1).unwrap();
+        let mut storage = HostStorage::new(&geometry.dims());
+        let voxels = storage.bytes();
+        let plan = geometry.coarsened(2).unwrap();
+        storage.with_coarser_plan(&plan.dims());
+        let cells = storage.bytes();
+        assert!(cells * 5 < voxels, "{cells} B against {voxels} B");
+        assert!(
+            cells > geometry.dims().len(),
+            "the map's byte per voxel is kept: {cells} B"
+        );
+        let coarse = ExplorerConfig {
+            plan_coarsening: 2,
+            ..ExplorerConfig::default()
+        };
+        assert!(Explorer::new(geometry, coarse, storage.lend()).is_ok());
+        assert!(Explorer::new(geometry, ExplorerConfig::default(), storage.lend()).is_err());
     }
 }

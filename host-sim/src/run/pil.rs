@@ -794,7 +794,7 @@ pub fn run_companion(
         look_around: cfg.look_around,
     };
     // The two arms differ in the explorer's target choice only.
-    match make_explorer(cfg, geometry, &mut storage)? {
+    let mut report = match make_explorer(cfg, geometry, &mut storage)? {
         RunExplorer::Harmonic(mut explorer) => {
             let mut board = InProcess::new(&mut explorer, &mut depth, config)?;
             fly_in_process(&mut board, wall, geometry, scenario, cfg, progress)
@@ -803,7 +803,9 @@ pub fn run_companion(
             let mut board = InProcess::new(&mut explorer, &mut depth, config)?;
             fly_in_process(&mut board, wall, geometry, scenario, cfg, progress)
         }
-    }
+    }?;
+    report.explorer_bytes = Some(storage.bytes());
+    Ok(report)
 }
 
 /// [`fly_firmware`] around a companion in this process, started at `wall`: the report has no
@@ -1204,6 +1206,7 @@ impl<'a> FirmwareRun<'a> {
             local_solves: [0, 0],
             flight_time_s: self.now_ms as f64 * 1e-3,
             wall_time_s: 0.0,
+            explorer_bytes: None,
             grid: [dims.nx(), dims.ny(), dims.nz()],
             resolution: self.geometry.resolution(),
             reachable_free_voxels: self.truth.reachable_free(),

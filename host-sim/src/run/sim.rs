@@ -508,6 +508,10 @@ pub struct Report {
     pub flight_time_s: f64,
     /// Wall-clock time of the run, s.
     pub wall_time_s: f64,
+    /// Bytes of the buffers the explorer borrows on the host (map, planning grid, solver,
+    /// scratch: [`HostStorage::bytes`]); `None` when the firmware's arena holds them (its size
+    /// is `fw-budget`'s).
+    pub explorer_bytes: Option<usize>,
     /// Grid size.
     pub grid: [usize; 3],
     /// Voxel edge, metres.
@@ -1170,11 +1174,14 @@ pub fn make_explorer<'s>(
     storage: &'s mut HostStorage,
 ) -> Result<RunExplorer<'s>, SimError> {
     let config_err = |e| SimError::Config(format!("{e:?}"));
+    if cfg.explorer.plan_coarsening > 1 {
+        let plan = geometry
+            .coarsened(usize::from(cfg.explorer.plan_coarsening))
+            .map_err(|e| SimError::Config(format!("--plan-coarsening: {e:?}")))?;
+        storage.with_coarser_plan(&plan.dims());
+    }
     if cfg.surface_estimate {
         storage.with_surface();
-    }
-    if cfg.explorer.plan_coarsening > 1 {
-        storage.with_fine_map();
     }
     Ok(match cfg.planner {
         PlannerKind::Harmonic
@@ -1260,7 +1267,10 @@ pub fn run_observed(
             break;
         }
     }
-    run.finish(wall, &mut observe)
+    let mut report = run.finish(wall, &mut observe)?;
+    drop(planner);
+    report.explorer_bytes = Some(storage.bytes());
+    Ok(report)
 }
 
 /// Where the depth frames come from, and what happens to them on the way: the camera or the
@@ -1966,6 +1976,7 @@ impl<'a> Run<'a> {
             local_solves: [status.local_solves, status.local_given_up],
             flight_time_s: self.rig.t_s,
             wall_time_s: wall.elapsed().as_secs_f64(),
+            explorer_bytes: None,
             grid: [dims.nx(), dims.ny(), dims.nz()],
             resolution: geometry.resolution(),
             grid_origin: geometry.origin().coords.into(),
