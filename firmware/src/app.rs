@@ -157,11 +157,28 @@ fn planning_dims(geometry: &MapGeometry) -> Result<Dims, MapError> {
     Ok(geometry.coarsened(usize::from(PLAN_COARSENING))?.dims())
 }
 
-/// The explorer configuration: the host's defaults, with plain V-cycles (no Krylov storage
-/// fits) and a cap on cycles so one plan stays bounded.
-pub fn explorer_config() -> ExplorerConfig {
+/// Instructions one plain V-cycle costs per planning cell on the Cortex-M4F, rounded up: two-level's
+/// largest plan under QEMU took 726.2 M in 23 cycles of its 40 000 cells (790 a cell) on
+/// `b8c9a4c`, before plans had a budget.
+pub const CYCLE_INSTRUCTIONS_PER_CELL: u32 = 800;
+/// Instructions a plan's solves may take: the 480 M (1 s at 480 MHz) for a whole plan,
+/// less its domain builds and streamline (at most 43 M measured).
+pub const SOLVE_INSTRUCTIONS: u32 = 400_000_000;
+
+/// The V-cycles a plan may spend on a planning grid of `cells` cells: [`SOLVE_INSTRUCTIONS`] at
+/// [`CYCLE_INSTRUCTIONS_PER_CELL`], at least 4 and at most 400. A plan whose solves reach it
+/// traces the field as it stands (a streamline that does not end on a frontier is refused, the
+/// vehicle holds) and the next plan resumes the solve from it.
+pub fn plan_cycles(cells: usize) -> u32 {
+    let per_cycle = u64::from(CYCLE_INSTRUCTIONS_PER_CELL) * cells.max(1) as u64;
+    (u64::from(SOLVE_INSTRUCTIONS) / per_cycle).clamp(4, 400) as u32
+}
+
+/// The explorer configuration for a planning grid of `cells` cells: the host's defaults, with
+/// plain V-cycles (no Krylov storage fits) and a plan's cycles bounded ([`plan_cycles`]).
+pub fn explorer_config(cells: usize) -> ExplorerConfig {
     let mut config = ExplorerConfig::default();
-    config.solve.max_iterations = 400;
+    config.solve.max_iterations = plan_cycles(cells);
     // The `cold-start` feature measures cold solves (fw-budget): every solve from ψ = 0.
     config.solve.warm_start = !cfg!(feature = "cold-start");
     config.plan_coarsening = PLAN_COARSENING;
@@ -230,7 +247,7 @@ pub fn build_explorer<'a>(
     let explorer = Explorer::new_in(
         slot,
         geometry,
-        explorer_config(),
+        explorer_config(n),
         ExplorerStorage {
             log_odds: log_odds.get_mut(..n).ok_or(too_small)?,
             touched: touched.get_mut(..touched_words(&dims)).ok_or(too_small)?,
@@ -269,6 +286,23 @@ mod tests {
         let mut bytes = [0u8; 32];
         bytes.iter_mut().enumerate().for_each(|(i, b)| *b = i as u8);
         assert_eq!(key.as_bytes(), &bytes);
+    }
+
+    /// A plan's cycles shrink with the planning grid so its solves stay within the budget:
+    /// the office's 60 × 40 × 13 cells get 16, two-level's 40 × 40 × 25 get 12, a full
+    /// planning capacity 8, a small room the old 400.
+    #[test]
+    fn a_plans_cycles_keep_its_solves_within_the_instruction_budget() {
+        assert_eq!(plan_cycles(60 * 40 * 13), 16);
+        assert_eq!(plan_cycles(40 * 40 * 25), 12);
+        assert_eq!(plan_cycles(PLAN_CAPACITY), 8);
+        assert_eq!(plan_cycles(500), 400);
+        assert_eq!(plan_cycles(0), 400);
+        for cells in [1_000, 20_000, PLAN_CAPACITY] {
+            let spent = u64::from(plan_cycles(cells)) * u64::from(CYCLE_INSTRUCTIONS_PER_CELL) * cells as u64;
+            assert!(spent <= u64::from(SOLVE_INSTRUCTIONS), "{cells}: {spent}");
+        }
+        assert_eq!(explorer_config(40 * 40 * 25).solve.max_iterations, 12);
     }
 
     fn grid(nx: usize, ny: usize, nz: usize) -> MapGeometry {

@@ -18,7 +18,7 @@ use crate::planning::field::{self, PlanningField};
 use crate::planning::solve::flat::Flat;
 use crate::planning::solve::local::{resolve_near, BoxSolver, Local, LocalParams, LocalScratch, WithMethod};
 use crate::planning::solve::multigrid::{CoarseValues, Method, Multigrid, MultigridStorage};
-use crate::planning::solve::{self, SolveError, SolveParams, SolveStats};
+use crate::planning::solve::{self, SolveError, SolveParams, SolveStats, Stop};
 use crate::planning::streamline::{self, Field, StreamlineError, Waypoints};
 
 use super::config::{ExplorerConfig, SolverKind};
@@ -168,23 +168,34 @@ impl<'a> HarmonicField<'a> {
     /// (the nearest frontier is far) κ is lowered and the field solved again; once `u` there is
     /// large again κ returns towards its configured value for the next plan. The stats returned
     /// add up the iterations.
+    ///
+    /// [`SolveParams::max_iterations`] bounds the plan's iterations, all its solves together, so
+    /// that a board can bound a plan's time: a solve it stops short leaves κ as it is (an
+    /// unconverged `u` says little), and the next plan resumes from the ψ it left (warm).
     pub(super) fn solve_field(&mut self, cx: &mut Context<'_, '_>) -> Result<SolveStats, SolveError> {
         let geometry = *cx.map.geometry();
         let PlanningField::Screened(params) = cx.config.field else {
-            return self.solve_once(cx, 0.0, cx.config.solve.tolerance);
+            return self.solve_once(cx, 0.0, cx.config.solve.tolerance, cx.config.solve.max_iterations);
         };
         field::release_source(cx.labels);
         let full = params.kappa_voxel(geometry.resolution());
         let at_vehicle = geometry.dims().linear(cx.vehicle);
+        let budget = cx.config.solve.max_iterations;
         let mut total: Option<SolveStats> = None;
         for _ in 0..field::MAX_SCREENING_SOLVES {
             let kappa = self.kappa_voxel.clamp(field::MIN_KAPPA_VOXEL, full);
-            let mut stats = self.solve_once(cx, kappa * kappa, params.tolerance)?;
+            let used = total.map_or(0, |t| t.iterations);
+            let mut stats =
+                self.solve_once(cx, kappa * kappa, params.tolerance, budget.saturating_sub(used))?;
+            let capped = stats.stop == Stop::Cap;
             if let Some(t) = total {
                 stats.iterations += t.iterations;
                 stats.cell_updates += t.cell_updates;
             }
             total = Some(stats);
+            if capped {
+                break;
+            }
             let u = self.phi.get(at_vehicle).copied().unwrap_or(0.0);
             if u >= params.min_vehicle_value || kappa <= field::MIN_KAPPA_VOXEL {
                 // Near frontiers again: let κ recover for the next plan.
@@ -230,17 +241,20 @@ impl<'a> HarmonicField<'a> {
         }
     }
 
-    /// One solve of the current domain with `screening` (κ²h², 0 for Laplace) to `tolerance`
+    /// One solve of the current domain with `screening` (κ²h², 0 for Laplace) to `tolerance`, in
+    /// at most `max_iterations`
     /// (the thesis's Jacobi stops by its own rule instead, [`solve::thesis`]).
     fn solve_once(
         &mut self,
         cx: &mut Context<'_, '_>,
         screening: f32,
         tolerance: f32,
+        max_iterations: u32,
     ) -> Result<SolveStats, SolveError> {
         let params = SolveParams {
             screening,
             tolerance,
+            max_iterations,
             ..cx.config.solve
         };
         let dims = cx.map.geometry().dims();

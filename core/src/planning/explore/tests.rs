@@ -1276,3 +1276,36 @@ fn on_a_coarser_grid_the_goal_faces_the_unexplored_space_the_frontier_borders() 
     let cell_off = libm::remainderf(towards(g.center(f)) - towards(doorway), core::f32::consts::TAU);
     assert!(cell_off.abs() > half, "{cell_off}");
 }
+
+/// `solve.max_iterations` bounds a plan's solves together (the screened field solves again at
+/// a lower κ while the frontier is far: here 10 m down a corridor): a board bounds a plan's
+/// time with it. The plan stops short, says so, and still plans on the field as it stands.
+#[test]
+fn a_plans_solves_together_keep_to_its_iteration_budget() {
+    let dims = Dims::new(120, 24, 12).unwrap();
+    let p = Point3::new(0.3, 1.2, 0.6);
+    let plan = |budget: u32| {
+        let mut b = Buffers::new(&dims);
+        let mut config = ExplorerConfig::default();
+        config.solve.max_iterations = budget;
+        let mut e = b.seen_explorer(dims, config, |v| v.x < 110);
+        let outcome = e.plan(&p, 0.0);
+        (outcome, *e.status())
+    };
+    // Unbounded, the plan solves more than once and takes more than the budget below.
+    let (_, free) = plan(20_000);
+    assert!(
+        free.solves > 1 && free.solve.iterations > 8,
+        "{:?} in {} solves",
+        free.solve,
+        free.solves
+    );
+    let (outcome, s) = plan(8);
+    assert!(
+        s.solve.iterations <= 8 && !s.solve.converged && s.solve.stop == Stop::Cap,
+        "{:?}",
+        s.solve
+    );
+    assert_eq!(s.errors.solver_not_converged, 1);
+    assert!(matches!(outcome, PlanOutcome::Goal(_)), "{outcome:?}");
+}
