@@ -169,24 +169,25 @@ impl<'a> HarmonicField<'a> {
     /// large again κ returns towards its configured value for the next plan. The stats returned
     /// add up the iterations.
     ///
-    /// [`SolveParams::max_iterations`] bounds the plan's iterations, all its solves together, so
-    /// that a board can bound a plan's time: a solve it stops short leaves κ as it is (an
-    /// unconverged `u` says little), and the next plan resumes from the ψ it left (warm).
+    /// [`SolveParams::max_iterations`] bounds the plan's iterations, all its solves together
+    /// ([`Status::plan_iterations`]), so that a board can bound a plan's time: a solve it stops
+    /// short leaves κ as it is (an unconverged `u` says little), and the next plan resumes from
+    /// the ψ it left (warm).
     pub(super) fn solve_field(&mut self, cx: &mut Context<'_, '_>) -> Result<SolveStats, SolveError> {
         let geometry = *cx.map.geometry();
         let PlanningField::Screened(params) = cx.config.field else {
-            return self.solve_once(cx, 0.0, cx.config.solve.tolerance, cx.config.solve.max_iterations);
+            let stats = self.solve_once(cx, 0.0, cx.config.solve.tolerance, budget_left(cx))?;
+            cx.status.plan_iterations = cx.status.plan_iterations.saturating_add(stats.iterations);
+            return Ok(stats);
         };
         field::release_source(cx.labels);
         let full = params.kappa_voxel(geometry.resolution());
         let at_vehicle = geometry.dims().linear(cx.vehicle);
-        let budget = cx.config.solve.max_iterations;
         let mut total: Option<SolveStats> = None;
         for _ in 0..field::MAX_SCREENING_SOLVES {
             let kappa = self.kappa_voxel.clamp(field::MIN_KAPPA_VOXEL, full);
-            let used = total.map_or(0, |t| t.iterations);
-            let mut stats =
-                self.solve_once(cx, kappa * kappa, params.tolerance, budget.saturating_sub(used))?;
+            let mut stats = self.solve_once(cx, kappa * kappa, params.tolerance, budget_left(cx))?;
+            cx.status.plan_iterations = cx.status.plan_iterations.saturating_add(stats.iterations);
             let capped = stats.stop == Stop::Cap;
             if let Some(t) = total {
                 stats.iterations += t.iterations;
@@ -344,7 +345,9 @@ impl TargetChoice for HarmonicField<'_> {
                     // The screened field has no interior maximum; a stall means the solve did
                     // not resolve u this far from the frontiers. A smaller κ raises u at the
                     // vehicle: solve again with half of it.
-                    if self.lower_screening(cx.config) {
+                    if status.plan_iterations < cx.config.solve.max_iterations
+                        && self.lower_screening(cx.config)
+                    {
                         status.errors.screening_retries += 1;
                         return Chosen::Again;
                     }
@@ -421,7 +424,10 @@ impl TargetChoice for HarmonicField<'_> {
                         escape: false,
                     });
                 }
-                Err(StreamlineError::Stalled) if self.lower_screening(cx.config) => {
+                Err(StreamlineError::Stalled)
+                    if cx.status.plan_iterations < cx.config.solve.max_iterations
+                        && self.lower_screening(cx.config) =>
+                {
                     cx.status.errors.screening_retries += 1;
                 }
                 Err(e) => {
@@ -483,4 +489,13 @@ impl Boxes<'_> {
         }
         solved.map(|how| how.stats())
     }
+}
+
+/// The iterations the plan being made may still spend ([`SolveParams::max_iterations`] less
+/// [`Status::plan_iterations`]).
+fn budget_left(cx: &Context<'_, '_>) -> u32 {
+    cx.config
+        .solve
+        .max_iterations
+        .saturating_sub(cx.status.plan_iterations)
 }

@@ -494,6 +494,7 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
     pub fn plan_timed(&mut self, position: &Point3<f32>, yaw: f32, clock: &mut impl Clock) -> PlanOutcome {
         self.status.plans += 1;
         self.status.phase_ticks = PhaseTicks::default();
+        self.status.plan_iterations = 0;
         // A kept goal moves the vehicle; one that did not since the last plan is dropped, so a
         // controller that cannot follow it (or a path that ends where the vehicle is) never
         // freezes the loop.
@@ -818,6 +819,7 @@ impl<'a, T: TargetChoice> Explorer<'a, T> {
         clock: &mut impl Clock,
     ) -> PlanOutcome {
         self.status.phase_ticks = PhaseTicks::default();
+        self.status.plan_iterations = 0;
         self.waypoints.clear();
         self.last_goal = None;
         let outcome = self.plan_home_inner(position, yaw, home, clock);

@@ -191,6 +191,9 @@ pub struct Status {
     pub unreachable_frontier: u32,
     /// Time per phase of the last plan, in the caller's clock ticks.
     pub phase_ticks: PhaseTicks,
+    /// Solver iterations of the last plan, all its solves together: what
+    /// [`SolveParams::max_iterations`](crate::planning::solve::SolveParams::max_iterations) bounds.
+    pub plan_iterations: u32,
     /// Fault counters.
     pub errors: ErrorCounters,
 }
