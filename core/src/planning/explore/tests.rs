@@ -33,6 +33,10 @@ struct Buffers {
     local_labels: Vec<Label>,
     local_psi: Vec<f32>,
     flat: Vec<f32>,
+    /// The map at the grid's resolution when the explorer plans on coarser cells (empty
+    /// otherwise: [`Buffers::coarse_explorer`]).
+    fine_log_odds: Vec<i8>,
+    fine_touched: Vec<u32>,
 }
 
 impl Buffers {
@@ -54,6 +58,8 @@ impl Buffers {
             local_labels: Vec::new(),
             local_psi: Vec::new(),
             flat: Vec::new(),
+            fine_log_odds: Vec::new(),
+            fine_touched: Vec::new(),
         }
     }
     fn explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Explorer<'_> {
@@ -80,15 +86,19 @@ impl Buffers {
     }
     fn try_explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Result<Explorer<'_>, ConfigError> {
         let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
-        Explorer::new(geometry, config, self.storage(&mut [], &mut []))
+        Explorer::new(geometry, config, self.storage())
+    }
+    /// An explorer of `config` (which plans on coarser cells) on a 0.1 m grid of `dims`: this
+    /// grid's map beside the planning buffers, which are sized for `dims` too.
+    fn coarse_explorer(&mut self, dims: Dims, config: ExplorerConfig) -> Explorer<'_> {
+        self.fine_log_odds = vec![0; dims.len()];
+        self.fine_touched = vec![0; crate::mapping::map::touched_words(&dims)];
+        let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
+        Explorer::new(geometry, config, self.storage()).unwrap()
     }
     /// The buffers lent to an explorer, with the map at the grid's resolution in `fine_*` (empty
     /// unless it plans on coarser cells).
-    fn storage<'s>(
-        &'s mut self,
-        fine_log_odds: &'s mut [i8],
-        fine_touched: &'s mut [u32],
-    ) -> ExplorerStorage<'s> {
+    fn storage(&mut self) -> ExplorerStorage<'_> {
         ExplorerStorage {
             log_odds: &mut self.log_odds,
             touched: &mut self.touched,
@@ -105,8 +115,8 @@ impl Buffers {
             local_labels: &mut self.local_labels,
             local_psi: &mut self.local_psi,
             flat: &mut self.flat,
-            fine_log_odds,
-            fine_touched,
+            fine_log_odds: &mut self.fine_log_odds,
+            fine_touched: &mut self.fine_touched,
         }
     }
 }
@@ -1116,12 +1126,7 @@ fn a_coarser_planning_grid_plans_from_the_map_it_pools_and_needs_the_map_storage
         b.try_explorer(dims, config).err(),
         Some(ConfigError::StorageTooSmall)
     );
-    let (mut fine_log_odds, mut fine_touched) = (
-        vec![0i8; dims.len()],
-        vec![0u32; crate::mapping::map::touched_words(&dims)],
-    );
-    let geometry = MapGeometry::new(dims, Point3::origin(), 0.1).unwrap();
-    let mut e = Explorer::new(geometry, config, b.storage(&mut fine_log_odds, &mut fine_touched)).unwrap();
+    let mut e = b.coarse_explorer(dims, config);
     assert_eq!(e.observed_map().dims().extent(), [64, 12, 12]);
     assert_eq!(e.map().dims().extent(), [32, 6, 6]);
     // A 6.4 × 1.2 × 1.2 m corridor seen from its west end every way: what the rays missed is
@@ -1218,12 +1223,7 @@ fn on_a_coarser_grid_the_goal_faces_the_unexplored_space_the_frontier_borders() 
         ..ExplorerConfig::default()
     };
     let mut b = Buffers::new(&fine);
-    let (mut fine_log_odds, mut fine_touched) = (
-        vec![0i8; fine.len()],
-        vec![0u32; crate::mapping::map::touched_words(&fine)],
-    );
-    let geometry = MapGeometry::new(fine, Point3::origin(), 0.1).unwrap();
-    let mut e = Explorer::new(geometry, config, b.storage(&mut fine_log_odds, &mut fine_touched)).unwrap();
+    let mut e = b.coarse_explorer(fine, config);
     let intrinsics = Intrinsics::from_hfov(100, 100, 75f32.to_radians()).unwrap();
     e.intrinsics = Some(intrinsics);
     // Planning cells: a hall y 1..=4 between a floor, a ceiling and walls; the wall y = 5 with
