@@ -432,13 +432,12 @@ pub fn integrate_with_scratch(
                 return;
             }
         };
-        let dims = geometry.dims();
-        traverse(&geometry, &origin, &end, |v| {
+        let endpoint = endpoint.map(|v| geometry.dims().linear(v));
+        traverse_linear(&geometry, &origin, &end, |i| {
             stats.voxels_traversed += 1;
-            if Some(v) == endpoint {
+            if Some(i) == endpoint {
                 return false;
             }
-            let i = dims.linear(v);
             if weak && map.occupancy(i) == Occupancy::Occupied {
                 stats.no_return_blocked += 1;
                 return false;
@@ -1058,6 +1057,32 @@ pub fn traverse(
     b: &Point3<f32>,
     mut visit: impl FnMut(VoxelIndex) -> bool,
 ) -> u32 {
+    walk(geometry, a, b, |[x, y, z], _| {
+        visit(VoxelIndex::new(x as u16, y as u16, z as u16))
+    })
+}
+
+/// [`traverse`] handing `visit` each voxel's linear index ([`Dims::linear`]) instead: the same
+/// voxels in the same order, the index kept up to date step by step (integration's rays, where
+/// the per-step cost is what a frame costs).
+pub fn traverse_linear(
+    geometry: &MapGeometry,
+    a: &Point3<f32>,
+    b: &Point3<f32>,
+    mut visit: impl FnMut(usize) -> bool,
+) -> u32 {
+    walk(geometry, a, b, |_, i| visit(i))
+}
+
+/// The traversal of [`traverse`]: `visit` gets each voxel's cell coordinates (inside the grid)
+/// and linear index.
+#[inline(always)]
+fn walk(
+    geometry: &MapGeometry,
+    a: &Point3<f32>,
+    b: &Point3<f32>,
+    mut visit: impl FnMut([i32; 3], usize) -> bool,
+) -> u32 {
     let dims = geometry.dims();
     let ga = geometry.to_grid(a);
     let gb = geometry.to_grid(b);
@@ -1070,35 +1095,48 @@ pub fn traverse(
     };
     let start = ga + d * t0;
     let end = ga + d * t1;
-    let [mut x, mut y, mut z] = [
-        (dims.nx(), ga.x, d.x, start.x, end.x),
-        (dims.ny(), ga.y, d.y, start.y, end.y),
-        (dims.nz(), ga.z, d.z, start.z, end.z),
+    let n = [dims.nx(), dims.ny(), dims.nz()];
+    let mut axes = [
+        (n[0], ga.x, d.x, start.x, end.x),
+        (n[1], ga.y, d.y, start.y, end.y),
+        (n[2], ga.z, d.z, start.z, end.z),
     ]
     .map(|(n, g, d, start, end)| DdaAxis::new(n, g, d, start, end));
+    let stride = [1isize, n[0] as isize, (n[0] * n[1]) as isize];
+    let inside = |c: i32, n: usize| c >= 0 && (c as usize) < n;
+    if !(0..3).all(|k| inside(axes[k].cell, n[k])) {
+        return 0;
+    }
+    let mut cells = axes.map(|a| a.cell);
+    let mut i = dims.linear(VoxelIndex::new(cells[0] as u16, cells[1] as u16, cells[2] as u16));
     let mut visited = 0u32;
     // A segment crosses at most nx + ny + nz voxel boundaries inside the grid.
-    let cap = dims.nx() + dims.ny() + dims.nz() + 1;
+    let cap = n[0] + n[1] + n[2] + 1;
     for _ in 0..cap {
-        let Some(v) = dims.checked(x.cell, y.cell, z.cell) else {
-            break;
-        };
         visited += 1;
-        if !visit(v) || (x.cell == x.last && y.cell == y.last && z.cell == z.last) {
+        if !visit(cells, i) || axes.iter().all(|a| a.cell == a.last) {
             break;
         }
-        let axis = if x.t_max <= y.t_max && x.t_max <= z.t_max {
-            &mut x
+        let [x, y, z] = &axes;
+        let k = if x.t_max <= y.t_max && x.t_max <= z.t_max {
+            0
         } else if y.t_max <= z.t_max {
-            &mut y
+            1
         } else {
-            &mut z
+            2
         };
+        let axis = &mut axes[k];
         if axis.t_max > t1 || axis.step == 0 {
             break;
         }
         axis.cell += axis.step;
         axis.t_max += axis.t_delta;
+        // Only the axis that stepped can have left the grid.
+        if !inside(axis.cell, n[k]) {
+            break;
+        }
+        cells[k] = axis.cell;
+        i = i.wrapping_add_signed(axis.step as isize * stride[k]);
     }
     visited
 }
@@ -1123,7 +1161,9 @@ impl DdaAxis {
     /// clipped part runs from `start` to `end`.
     fn new(n: usize, g: f32, d: f32, start: f32, end: f32) -> Self {
         let max = n as i32 - 1;
-        let cell_of = |p: f32| (libm::floorf(p) as i32).clamp(0, max);
+        // Truncation is the floor wherever the clamp keeps it (p ≥ 0); below 0 both clamp to
+        // 0, and a NaN converts to 0 either way. It spares a software floor on the M4F.
+        let cell_of = |p: f32| (p as i32).clamp(0, max);
         let cell = cell_of(start);
         let (step, t_max, t_delta) = if d > 0.0 {
             (1, (cell as f32 + 1.0 - g) / d, 1.0 / d)
@@ -1249,6 +1289,55 @@ mod tests {
         assert_eq!(got.as_slice(), &[[0, 1, 1], [1, 1, 1], [2, 1, 1], [3, 1, 1]]);
         assert!(collect(&g, [-3.0, -1.0, 1.5], [9.0, -1.0, 1.5]).is_empty());
         assert!(collect(&g, [f32::NAN, 1.0, 1.0], [2.0, 1.0, 1.0]).is_empty());
+    }
+
+    /// The linear traversal integration uses visits the voxels [`traverse`] visits, in order,
+    /// as linear indices: segments inside, through, ending outside and missing the grid, along
+    /// axes, faces and diagonals.
+    #[test]
+    fn the_linear_traversal_visits_what_the_voxel_traversal_visits() {
+        extern crate std;
+        let g = geometry(7, 5, 6);
+        let dims = g.dims();
+        let mut seed = 0x2545_f491u32;
+        let mut next = |span: f32| {
+            seed ^= seed << 13;
+            seed ^= seed >> 17;
+            seed ^= seed << 5;
+            (seed as f32 / u32::MAX as f32) * span - 0.25 * span
+        };
+        let mut segments: std::vec::Vec<([f32; 3], [f32; 3])> = (0..400)
+            .map(|_| {
+                (
+                    [next(10.0), next(8.0), next(9.0)],
+                    [next(10.0), next(8.0), next(9.0)],
+                )
+            })
+            .collect();
+        segments.extend([
+            ([0.5, 0.5, 0.5], [6.5, 0.5, 0.5]),
+            ([0.5, 0.5, 0.5], [6.5, 4.5, 5.5]),
+            ([1.0, 1.0, 1.0], [4.0, 4.0, 4.0]),
+            ([-3.5, 1.5, 1.5], [9.0, 1.5, 1.5]),
+            ([3.5, 2.5, 2.5], [3.5, 2.5, 2.5]),
+        ]);
+        let mut steps = 0;
+        for (a, b) in segments {
+            let (a, b) = (Point3::from(a), Point3::from(b));
+            let mut voxels = std::vec::Vec::new();
+            let n = traverse(&g, &a, &b, |v| {
+                voxels.push(dims.linear(v));
+                true
+            });
+            let mut linear = std::vec::Vec::new();
+            let m = traverse_linear(&g, &a, &b, |i| {
+                linear.push(i);
+                true
+            });
+            assert_eq!((n, &linear), (m, &voxels), "{a} → {b}");
+            steps += voxels.len();
+        }
+        assert!(steps > 1_000, "{steps}");
     }
 
     struct Fixture {
