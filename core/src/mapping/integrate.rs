@@ -1096,47 +1096,43 @@ fn walk(
     let start = ga + d * t0;
     let end = ga + d * t1;
     let n = [dims.nx(), dims.ny(), dims.nz()];
-    let mut axes = [
+    let [mut x, mut y, mut z] = [
         (n[0], ga.x, d.x, start.x, end.x),
         (n[1], ga.y, d.y, start.y, end.y),
         (n[2], ga.z, d.z, start.z, end.z),
     ]
     .map(|(n, g, d, start, end)| DdaAxis::new(n, g, d, start, end));
-    let stride = [1isize, n[0] as isize, (n[0] * n[1]) as isize];
+    let (sy, sz) = (n[0] as isize, (n[0] * n[1]) as isize);
     let inside = |c: i32, n: usize| c >= 0 && (c as usize) < n;
-    if !(0..3).all(|k| inside(axes[k].cell, n[k])) {
+    if !(inside(x.cell, n[0]) && inside(y.cell, n[1]) && inside(z.cell, n[2])) {
         return 0;
     }
-    let mut cells = axes.map(|a| a.cell);
-    let mut i = dims.linear(VoxelIndex::new(cells[0] as u16, cells[1] as u16, cells[2] as u16));
+    let mut i = dims.linear(VoxelIndex::new(x.cell as u16, y.cell as u16, z.cell as u16));
     let mut visited = 0u32;
     // A segment crosses at most nx + ny + nz voxel boundaries inside the grid.
     let cap = n[0] + n[1] + n[2] + 1;
     for _ in 0..cap {
         visited += 1;
-        if !visit(cells, i) || axes.iter().all(|a| a.cell == a.last) {
+        if !visit([x.cell, y.cell, z.cell], i) || (x.cell == x.last && y.cell == y.last && z.cell == z.last) {
             break;
         }
-        let [x, y, z] = &axes;
-        let k = if x.t_max <= y.t_max && x.t_max <= z.t_max {
-            0
+        let (axis, len, stride) = if x.t_max <= y.t_max && x.t_max <= z.t_max {
+            (&mut x, n[0], 1)
         } else if y.t_max <= z.t_max {
-            1
+            (&mut y, n[1], sy)
         } else {
-            2
+            (&mut z, n[2], sz)
         };
-        let axis = &mut axes[k];
         if axis.t_max > t1 || axis.step == 0 {
             break;
         }
         axis.cell += axis.step;
         axis.t_max += axis.t_delta;
         // Only the axis that stepped can have left the grid.
-        if !inside(axis.cell, n[k]) {
+        if !inside(axis.cell, len) {
             break;
         }
-        cells[k] = axis.cell;
-        i = i.wrapping_add_signed(axis.step as isize * stride[k]);
+        i = i.wrapping_add_signed(axis.step as isize * stride);
     }
     visited
 }
