@@ -328,6 +328,7 @@ impl TargetChoice for HarmonicField<'_> {
             Err(fault) => return Chosen::Hold(fault),
         };
         let traced = self.trace(&cx, position, way);
+        let budget = budget_left(&cx);
         let status = &mut *cx.status;
         match traced {
             Ok(end) => {
@@ -345,9 +346,7 @@ impl TargetChoice for HarmonicField<'_> {
                     // The screened field has no interior maximum; a stall means the solve did
                     // not resolve u this far from the frontiers. A smaller κ raises u at the
                     // vehicle: solve again with half of it.
-                    if status.plan_iterations < cx.config.solve.max_iterations
-                        && self.lower_screening(cx.config)
-                    {
+                    if budget > 0 && self.lower_screening(cx.config) {
                         status.errors.screening_retries += 1;
                         return Chosen::Again;
                     }
@@ -424,10 +423,7 @@ impl TargetChoice for HarmonicField<'_> {
                         escape: false,
                     });
                 }
-                Err(StreamlineError::Stalled)
-                    if cx.status.plan_iterations < cx.config.solve.max_iterations
-                        && self.lower_screening(cx.config) =>
-                {
+                Err(StreamlineError::Stalled) if budget_left(&cx) > 0 && self.lower_screening(cx.config) => {
                     cx.status.errors.screening_retries += 1;
                 }
                 Err(e) => {
